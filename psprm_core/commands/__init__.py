@@ -1,0 +1,1 @@
+"""Subcommands of the ``psprm`` command line (one module per group, each exposing ``register``)."""

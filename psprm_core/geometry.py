@@ -1,0 +1,87 @@
+"""Rigid-transform helpers (numpy for configuration-time work, torch for batched hot paths).
+
+Quaternions are (x, y, z, w), as in ROS and pybullet.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+
+def quat_to_matrix(q) -> np.ndarray:
+    """Rotation matrix of a unit quaternion ``(x, y, z, w)`` (normalised first)."""
+    x, y, z, w = np.asarray(q, dtype=float) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def matrix_to_quat(r: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(x, y, z, w)`` of a rotation matrix (Shepperd's method)."""
+    r = np.asarray(r, dtype=float)
+    tr = np.trace(r)
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        w, x, y, z = 0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        w, x, y, z = (r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s
+    elif r[1, 1] > r[2, 2]:
+        s = math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        w, x, y, z = (r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s
+    else:
+        s = math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        w, x, y, z = (r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s
+    q = np.array([x, y, z, w])
+    return q / np.linalg.norm(q)
+
+
+def rpy_to_matrix(rpy) -> np.ndarray:
+    """URDF fixed-axis roll-pitch-yaw: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    r, p, y = rpy
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
+
+
+def yaw_to_quat(yaw: float) -> np.ndarray:
+    return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
+
+
+def make_transform(rotation: np.ndarray, translation) -> np.ndarray:
+    t = np.eye(4)
+    t[:3, :3] = rotation
+    t[:3, 3] = translation
+    return t
+
+
+def wrap_angle(a):
+    """Wrap angles to (-pi, pi]; works on floats, numpy arrays and torch tensors."""
+    if isinstance(a, torch.Tensor):
+        return torch.remainder(a + math.pi, 2 * math.pi) - math.pi
+    return np.remainder(np.asarray(a) + math.pi, 2 * math.pi) - math.pi
+
+
+def axis_angle_matrix_torch(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
+    """Batched Rodrigues rotation: ``axis`` (3,) unit vector, ``angle`` (B,) -> (B, 3, 3)."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    x, y, z = axis[0], axis[1], axis[2]
+    one_c = 1 - c
+    rows = [
+        c + x * x * one_c, x * y * one_c - z * s, x * z * one_c + y * s,
+        y * x * one_c + z * s, c + y * y * one_c, y * z * one_c - x * s,
+        z * x * one_c - y * s, z * y * one_c + x * s, c + z * z * one_c,
+    ]
+    return torch.stack(rows, dim=-1).reshape(angle.shape + (3, 3))

@@ -1,0 +1,1 @@
+"""Perception scoring: renderer + real-detector oracle, ray-cast occlusion, neural surrogate."""

@@ -1,0 +1,1 @@
+"""Planners (PS-PRM and baselines), graph search and trajectory timing."""

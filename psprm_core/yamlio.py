@@ -1,0 +1,123 @@
+"""Small typed helpers for reading YAML configuration with errors that name file and field."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Sequence
+
+import yaml
+
+from .errors import ConfigError
+
+
+def load_yaml(path: str | Path) -> dict:
+    """Load a YAML mapping from ``path``; raise :class:`ConfigError` naming the file on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(str(path), "", "file not found")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as exc:  # malformed YAML: report line/column from the parser
+        mark = getattr(exc, "problem_mark", None)
+        pos = f" (line {mark.line + 1}, column {mark.column + 1})" if mark is not None else ""
+        raise ConfigError(str(path), "", f"malformed YAML{pos}: {getattr(exc, 'problem', exc)}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(str(path), "", "top level must be a mapping")
+    return data
+
+
+class Fields:
+    """Typed accessor over one YAML mapping that reports errors as ``file: field 'a.b[2].c': message``."""
+
+    def __init__(self, data: Any, source: str, prefix: str = ""):
+        if not isinstance(data, dict):
+            raise ConfigError(source, prefix, f"expected a mapping, got {type(data).__name__}")
+        self.data = data
+        self.source = source
+        self.prefix = prefix
+
+    def _name(self, key: str) -> str:
+        return f"{self.prefix}.{key}" if self.prefix else key
+
+    def error(self, key: str, message: str) -> ConfigError:
+        return ConfigError(self.source, self._name(key) if key else self.prefix, message)
+
+    def has(self, key: str) -> bool:
+        return key in self.data and self.data[key] is not None
+
+    def check_keys(self, allowed: Sequence[str]) -> None:
+        """Reject unknown keys (typos would otherwise be silently ignored)."""
+        for key in self.data:
+            if key not in allowed:
+                raise self.error(str(key), f"unknown field (allowed: {', '.join(allowed)})")
+
+    def raw(self, key: str, default: Any = ...) -> Any:
+        if key not in self.data or self.data[key] is None:
+            if default is ...:
+                raise self.error(key, "required field is missing")
+            return default
+        return self.data[key]
+
+    def sub(self, key: str) -> "Fields":
+        return Fields(self.raw(key), self.source, self._name(key))
+
+    def sub_list(self, key: str, default: Any = ...) -> list["Fields"]:
+        items = self.raw(key, default)
+        if items is default and default is not ...:
+            return []
+        if not isinstance(items, list):
+            raise self.error(key, "expected a list")
+        return [Fields(item, self.source, f"{self._name(key)}[{i}]") for i, item in enumerate(items)]
+
+    def str(self, key: str, default: Any = ...) -> str:
+        value = self.raw(key, default)
+        if value is default and default is not ...:
+            return value
+        if not isinstance(value, str):
+            raise self.error(key, f"expected a string, got {value!r}")
+        return value
+
+    def bool(self, key: str, default: Any = ...) -> bool:
+        value = self.raw(key, default)
+        if not isinstance(value, bool):
+            raise self.error(key, f"expected true/false, got {value!r}")
+        return value
+
+    def float(self, key: str, default: Any = ..., lo: float | None = None, hi: float | None = None) -> float:
+        value = self.raw(key, default)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise self.error(key, f"expected a number, got {value!r}")
+        value = float(value)
+        if not math.isfinite(value):
+            raise self.error(key, f"must be finite, got {value}")
+        if lo is not None and value < lo:
+            raise self.error(key, f"must be >= {lo}, got {value}")
+        if hi is not None and value > hi:
+            raise self.error(key, f"must be <= {hi}, got {value}")
+        return value
+
+    def int(self, key: str, default: Any = ..., lo: int | None = None) -> int:
+        value = self.raw(key, default)
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise self.error(key, f"expected an integer, got {value!r}")
+        if lo is not None and value < lo:
+            raise self.error(key, f"must be >= {lo}, got {value}")
+        return value
+
+    def vec(self, key: str, n: int | None = None, default: Any = ..., positive: bool = False) -> tuple[float, ...]:
+        value = self.raw(key, default)
+        if value is default and default is not ...:
+            return value
+        if not isinstance(value, (list, tuple)) or (n is not None and len(value) != n):
+            raise self.error(key, f"expected a list of {n if n is not None else 'some'} numbers, got {value!r}")
+        out = []
+        for v in value:
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise self.error(key, f"expected numbers, got {v!r}")
+            if not math.isfinite(float(v)):
+                raise self.error(key, f"must be finite (NaN/inf given): {value!r}")
+            if positive and v <= 0:
+                raise self.error(key, f"must be > 0: {value!r}")
+            out.append(float(v))
+        return tuple(out)
