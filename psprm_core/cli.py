@@ -16,6 +16,7 @@ from .errors import PsprmError
 # Modules that contribute subcommands (imported lazily so ``psprm --help`` stays fast).
 SUBCOMMAND_MODULES = [
     "psprm_core.commands.demo",
+    "psprm_core.commands.robot",
     "psprm_core.commands.perf",
     "psprm_core.commands.perception",
     "psprm_core.commands.planning",

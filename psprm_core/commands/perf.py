@@ -1,0 +1,31 @@
+"""``psprm perf``: benchmarks that print numbers (kinematics/collision now; planner and replanning later)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("perf", help="benchmarks (print numbers; ratios measured in the same run)")
+    ps = p.add_subparsers(dest="perf_command", metavar="BENCH")
+    k = ps.add_parser("kinematics", help="batched FK + collision vs pybullet's exact check (same configurations)")
+    k.add_argument("--robot", required=True)
+    k.add_argument("--scene", required=True)
+    k.add_argument("--n", type=int, default=10000, help="number of random configurations (default 10000)")
+    k.add_argument("--seed", type=int, default=0)
+    k.add_argument("--threads", type=int, default=2)
+    k.add_argument("--json", action="store_true", help="print one JSON object")
+    k.set_defaults(func=_kinematics)
+
+
+def _kinematics(args) -> int:
+    from ..benchmarks import kinematics_benchmark
+
+    res = kinematics_benchmark(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:28s} {v:.6g}" if isinstance(v, float) else f"{k:28s} {v}")
+    return 0
