@@ -219,8 +219,8 @@ def _color(f: Fields, default) -> np.ndarray:
         return np.array(default, dtype=float)
     if len(c) == 3:
         c = tuple(c) + (1.0,)
-    if len(c) != 4:
-        raise f.error("color", "expected [r, g, b] or [r, g, b, a] in 0..1")
+    if len(c) != 4 or any(v < 0.0 or v > 1.0 for v in c):
+        raise f.error("color", f"expected [r, g, b] or [r, g, b, a] in 0..1, got {list(c)}")
     return np.array(c)
 
 
@@ -256,7 +256,10 @@ def _joint_map(f: Fields, key: str) -> dict:
     if not isinstance(raw, dict):
         raise f.error(key, "expected a mapping of joint name -> value")
     sub = Fields(raw, f.source, f"{f.prefix}.{key}" if f.prefix else key)
-    return {str(k): sub.float(str(k)) for k in raw}
+    for k in raw:
+        if not isinstance(k, str):
+            raise sub.error(str(k), "joint names must be strings")
+    return {k: sub.float(k) for k in raw}
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -288,6 +291,7 @@ def load_scene(path: str | Path) -> Scene:
     problems = []
     for p in f.sub_list("problems", []):
         p.check_keys(["name", "target", "start", "goal", "goal_regions"])
+        p.raw("start")  # required (may be an empty mapping only if written explicitly as {})
         regions = p.raw("goal_regions", [])
         if not isinstance(regions, list) or not all(isinstance(r, str) for r in regions):
             raise p.error("goal_regions", "expected a list of goal region names")
@@ -298,6 +302,9 @@ def load_scene(path: str | Path) -> Scene:
         dup = {n for n in names if names.count(n) > 1}
         if dup:
             raise f.error(kind, f"duplicate names: {', '.join(sorted(dup))}")
+    shared = {b.name for b in obstacles} & {t.name for t in targets}
+    if shared:  # collision_boxes() puts both in one list, looked up by name
+        raise f.error("targets", f"names also used by obstacles: {', '.join(sorted(shared))}")
     target_names = {t.name for t in targets}
     goal_names = {g.name for g in goals}
     for i, p in enumerate(problems):
