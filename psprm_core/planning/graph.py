@@ -1,0 +1,583 @@
+"""Roadmap graph for PS-PRM (paper, section "PRM construction and scoring").
+
+The roadmap :math:`G = (V, E)` of PS-PRM holds a few thousand configuration nodes and ~10^5 undirected edges whose
+weights :math:`c(q_u, q_v)` (Eq. 2) change whenever the perception target moves, and whose nodes/edges are pruned
+when an obstacle moves (section "GPU-Parallelized Replanning Pipeline").  :class:`Roadmap` is tuned for that use:
+
+* node and edge ids are **stable** integers: removal only marks a node/edge invalid (no renumbering, no rebuild), so
+  per-node / per-edge arrays held by the caller (perception scores, motion costs, ...) stay aligned;
+* storage is a set of growable numpy arrays (amortised doubling), so adding start/goal nodes or repair edges is cheap;
+* the adjacency used by searches is a CSR structure over the *valid* edges, rebuilt lazily (only after a structural
+  change, never after a weight change) and cached together with its Python-list form used by the heapq searches;
+* edge weights live in one float array indexed by edge id (``Roadmap.weights``); weight updates are O(k) writes.
+
+Edges are undirected and unique: adding ``(u, v)`` when ``(u, v)`` or ``(v, u)`` already exists (and is valid) returns
+the existing edge id and overwrites its weight.  Self loops are rejected.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Iterable
+
+import numpy as np
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["CSRAdjacency", "Roadmap"]
+
+_MIN_CAPACITY = 16
+#: Weight updates of at most this many edges patch the cached Python weight list instead of rebuilding it.
+_PATCH_LIMIT = 2048
+
+
+@dataclass(frozen=True)
+class CSRAdjacency:
+    """Directed CSR view of the valid undirected edges (each edge appears once per direction).
+
+    Attributes
+    ----------
+    indptr : np.ndarray
+        ``(n_nodes + 1,)`` int64; the neighbours of node ``u`` are ``indices[indptr[u]:indptr[u + 1]]``.
+    indices : np.ndarray
+        ``(2 * n_valid_edges,)`` int64 neighbour node ids.
+    edge_ids : np.ndarray
+        ``(2 * n_valid_edges,)`` int64 id of the undirected edge behind each CSR entry (index into ``Roadmap.weights``).
+    structure_version : int
+        The ``Roadmap.structure_version`` this view was built for.
+    """
+
+    indptr: np.ndarray
+    indices: np.ndarray
+    edge_ids: np.ndarray
+    structure_version: int
+
+    @property
+    def n_nodes(self) -> int:
+        """Number of node slots covered by the view."""
+        return int(self.indptr.shape[0] - 1)
+
+    @property
+    def nnz(self) -> int:
+        """Number of directed entries (twice the number of valid edges)."""
+        return int(self.indices.shape[0])
+
+
+def _grow(arr: np.ndarray, needed: int, fill: Any) -> np.ndarray:
+    """Return ``arr`` (first axis) enlarged to at least ``needed`` rows by doubling, new rows set to ``fill``."""
+    cap = arr.shape[0]
+    if needed <= cap:
+        return arr
+    new_cap = max(_MIN_CAPACITY, cap)
+    while new_cap < needed:
+        new_cap *= 2
+    out = np.empty((new_cap,) + arr.shape[1:], dtype=arr.dtype)
+    out[:cap] = arr
+    out[cap:] = fill
+    return out
+
+
+class Roadmap:
+    """Undirected roadmap graph with stable ids, invalidation and lazily rebuilt CSR adjacency.
+
+    Parameters
+    ----------
+    dof : int or None
+        Dimension of the configuration stored with each node; ``None`` stores no configurations (pure graph).
+    node_capacity, edge_capacity : int
+        Initial storage sizes (grown automatically).
+
+    Notes
+    -----
+    ``weights`` holds the search weight :math:`c(q_u, q_v)` of Eq. 2 for every edge slot (valid or not).  Optional
+    named per-edge float attributes (e.g. ``"c_m"``, ``"c_p"`` of Eqs. 1-2) can be registered with
+    :meth:`add_edge_attribute` and are grown together with the edges.
+    """
+
+    def __init__(self, dof: int | None = None, node_capacity: int = 1024, edge_capacity: int = 4096) -> None:
+        self.dof = dof
+        nc = max(_MIN_CAPACITY, int(node_capacity))
+        ec = max(_MIN_CAPACITY, int(edge_capacity))
+        self._n_nodes = 0
+        self._n_edges = 0
+        self._configs = np.zeros((nc, dof), dtype=np.float64) if dof is not None else None
+        self._node_valid = np.zeros(nc, dtype=bool)
+        self._eu = np.zeros(ec, dtype=np.int64)
+        self._ev = np.zeros(ec, dtype=np.int64)
+        self._edge_valid = np.zeros(ec, dtype=bool)
+        self._weights = np.zeros(ec, dtype=np.float64)
+        self._edge_attrs: dict[str, np.ndarray] = {}
+        self._pair_to_edge: dict[tuple[int, int], int] = {}
+        self.structure_version = 0
+        self.weights_version = 0
+        self._csr: CSRAdjacency | None = None
+        # Per-node Python adjacency lists for the heapq searches: rebuilt after removals, extended in place after
+        # additions (connecting a start/goal node does not trigger a rebuild).
+        self._removal_version = 0
+        self._py_adj: tuple[int, int, int, list[list[int]], list[list[int]]] | None = None
+        self._py_weights: tuple[int, list[float]] | None = None
+        #: Free-form cache used by :mod:`psprm_core.planning.graph_search` (hop distances per goal set).
+        self.search_cache: dict[Any, Any] = {}
+
+    # ------------------------------------------------------------------ construction helpers
+    @classmethod
+    def from_edges(
+        cls,
+        n_nodes: int,
+        edges: np.ndarray,
+        weights: np.ndarray | None = None,
+        configs: np.ndarray | None = None,
+    ) -> "Roadmap":
+        """Build a roadmap from ``n_nodes`` and an ``(E, 2)`` undirected edge list (duplicates are merged).
+
+        Parameters
+        ----------
+        n_nodes : int
+            Number of nodes (ids ``0 .. n_nodes - 1``).
+        edges : np.ndarray
+            ``(E, 2)`` integer node pairs.
+        weights : np.ndarray, optional
+            ``(E,)`` edge weights (Eq. 2); zeros when omitted.
+        configs : np.ndarray, optional
+            ``(n_nodes, dof)`` node configurations.
+        """
+        dof = None if configs is None else int(np.asarray(configs).shape[1])
+        edges = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+        g = cls(dof=dof, node_capacity=n_nodes, edge_capacity=max(len(edges), 1))
+        g.add_nodes(configs if configs is not None else int(n_nodes))
+        g.add_edges(edges[:, 0], edges[:, 1], weights)
+        return g
+
+    # ------------------------------------------------------------------ sizes and views
+    @property
+    def n_nodes(self) -> int:
+        """Number of node slots ever created (valid or not); node ids are ``0 .. n_nodes - 1``."""
+        return self._n_nodes
+
+    @property
+    def n_edges(self) -> int:
+        """Number of edge slots ever created (valid or not); edge ids are ``0 .. n_edges - 1``."""
+        return self._n_edges
+
+    @property
+    def num_valid_nodes(self) -> int:
+        """Number of nodes not removed."""
+        return int(self._node_valid[: self._n_nodes].sum())
+
+    @property
+    def num_valid_edges(self) -> int:
+        """Number of edges not removed."""
+        return int(self._edge_valid[: self._n_edges].sum())
+
+    @property
+    def configs(self) -> np.ndarray:
+        """``(n_nodes, dof)`` view of node configurations (raises if the roadmap stores none)."""
+        if self._configs is None:
+            raise AttributeError("this Roadmap was created with dof=None and stores no configurations")
+        return self._configs[: self._n_nodes]
+
+    @property
+    def node_valid(self) -> np.ndarray:
+        """``(n_nodes,)`` read-only boolean view: node not removed."""
+        v = self._node_valid[: self._n_nodes].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def edge_valid(self) -> np.ndarray:
+        """``(n_edges,)`` read-only boolean view: edge not removed."""
+        v = self._edge_valid[: self._n_edges].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def edges(self) -> np.ndarray:
+        """``(n_edges, 2)`` array of endpoints ``(u, v)`` of every edge slot (copy)."""
+        return np.stack([self._eu[: self._n_edges], self._ev[: self._n_edges]], axis=1)
+
+    @property
+    def edge_u(self) -> np.ndarray:
+        """``(n_edges,)`` read-only view of the first endpoint of every edge."""
+        v = self._eu[: self._n_edges].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def edge_v(self) -> np.ndarray:
+        """``(n_edges,)`` read-only view of the second endpoint of every edge."""
+        v = self._ev[: self._n_edges].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def weights(self) -> np.ndarray:
+        """``(n_edges,)`` read-only view of the edge weights :math:`c(q_u, q_v)` (Eq. 2); use :meth:`set_weights`."""
+        v = self._weights[: self._n_edges].view()
+        v.flags.writeable = False
+        return v
+
+    @property
+    def removal_version(self) -> int:
+        """Counter bumped by edge removals/restorations only (additions keep it): caches built at the same
+        ``removal_version`` can be updated incrementally with the nodes/edges added since."""
+        return self._removal_version
+
+    def valid_edge_ids(self) -> np.ndarray:
+        """Ids of all edges that are not removed."""
+        return np.flatnonzero(self._edge_valid[: self._n_edges])
+
+    def valid_node_ids(self) -> np.ndarray:
+        """Ids of all nodes that are not removed."""
+        return np.flatnonzero(self._node_valid[: self._n_nodes])
+
+    # ------------------------------------------------------------------ nodes
+    def add_nodes(self, configs_or_count: np.ndarray | int) -> np.ndarray:
+        """Append nodes; returns their ids.
+
+        Parameters
+        ----------
+        configs_or_count : np.ndarray or int
+            ``(k, dof)`` configurations (required when ``dof`` is set) or a node count (``dof is None``).
+        """
+        if isinstance(configs_or_count, (int, np.integer)):
+            if self._configs is not None:
+                raise ValueError("this Roadmap stores configurations: pass a (k, dof) array")
+            k = int(configs_or_count)
+            cfg = None
+        else:
+            cfg = np.asarray(configs_or_count, dtype=np.float64)
+            if self._configs is None:
+                raise ValueError("this Roadmap was created with dof=None: pass a node count")
+            cfg = cfg.reshape(-1, self.dof)
+            k = cfg.shape[0]
+        start = self._n_nodes
+        end = start + k
+        self._node_valid = _grow(self._node_valid, end, False)
+        if self._configs is not None:
+            self._configs = _grow(self._configs, end, 0.0)
+            self._configs[start:end] = cfg
+        self._node_valid[start:end] = True
+        self._n_nodes = end
+        self._structure_changed()
+        return np.arange(start, end, dtype=np.int64)
+
+    def add_node(self, config: np.ndarray | None = None) -> int:
+        """Append one node (with its configuration when the roadmap stores them); returns its id."""
+        if self._configs is None:
+            return int(self.add_nodes(1)[0])
+        return int(self.add_nodes(np.asarray(config, dtype=np.float64).reshape(1, -1))[0])
+
+    def remove_nodes(self, nodes: Iterable[int] | np.ndarray) -> np.ndarray:
+        """Mark nodes invalid together with all their incident edges (pruning, no renumbering).
+
+        Returns
+        -------
+        np.ndarray
+            Ids of the edges invalidated by this call.
+        """
+        nodes = self._as_ids(nodes, self._n_nodes, "node")
+        if nodes.size == 0:
+            return np.zeros(0, dtype=np.int64)
+        self._node_valid[nodes] = False
+        eids = self.incident_edges(nodes)
+        self.remove_edges(eids)
+        self._structure_changed()
+        return eids
+
+    def restore_nodes(self, nodes: Iterable[int] | np.ndarray) -> None:
+        """Mark removed nodes valid again (their edges stay removed; see :meth:`restore_edges`)."""
+        nodes = self._as_ids(nodes, self._n_nodes, "node")
+        self._node_valid[nodes] = True
+        self._structure_changed()
+
+    # ------------------------------------------------------------------ edges
+    def add_edge_attribute(self, name: str, fill: float = np.nan) -> np.ndarray:
+        """Register a named float per-edge attribute (e.g. ``"c_m"``/``"c_p"`` of Eqs. 1-2); returns a view of it."""
+        if name not in self._edge_attrs:
+            arr = np.full(self._eu.shape[0], fill, dtype=np.float64)
+            self._edge_attrs[name] = arr
+        return self.edge_attribute(name)
+
+    def edge_attribute(self, name: str) -> np.ndarray:
+        """Writable ``(n_edges,)`` view of a registered per-edge attribute."""
+        return self._edge_attrs[name][: self._n_edges]
+
+    def add_edges(
+        self,
+        u: np.ndarray | Iterable[int],
+        v: np.ndarray | Iterable[int],
+        weights: np.ndarray | float | None = None,
+        **attrs: np.ndarray | float,
+    ) -> np.ndarray:
+        """Add undirected edges ``(u[i], v[i])``; returns the edge id of each pair (existing id for duplicates).
+
+        Parameters
+        ----------
+        u, v : array-like of int
+            Endpoints (valid node ids).  Self loops raise ``ValueError``.
+        weights : array-like or float, optional
+            Edge weights :math:`c(q_u, q_v)` (Eq. 2), non-negative.  For an existing edge the weight is overwritten;
+            when omitted, new edges get 0 and existing edges keep their weight.
+        **attrs
+            Values of registered edge attributes (registered on the fly when unknown).
+        """
+        u = np.asarray(u, dtype=np.int64).reshape(-1)
+        v = np.asarray(v, dtype=np.int64).reshape(-1)
+        if u.shape != v.shape:
+            raise ValueError("u and v must have the same length")
+        k = u.shape[0]
+        w = np.broadcast_to(np.asarray(0.0 if weights is None else weights, dtype=np.float64), (k,))
+        self._check_weights(w)
+        if k == 0:
+            return np.zeros(0, dtype=np.int64)
+        for arr in (u, v):
+            if arr.min() < 0 or arr.max() >= self._n_nodes:
+                raise ValueError("edge endpoint out of range")
+        if np.any(u == v):
+            raise ValueError("self loops are not allowed in the roadmap")
+        if not (self._node_valid[u].all() and self._node_valid[v].all()):
+            raise ValueError("cannot connect a removed node")
+        attr_vals = {n: np.broadcast_to(np.asarray(a, dtype=np.float64), (k,)) for n, a in attrs.items()}
+        for name in attr_vals:
+            self.add_edge_attribute(name)
+
+        lo = np.minimum(u, v)
+        hi = np.maximum(u, v)
+        out = np.empty(k, dtype=np.int64)
+        new_lo: list[int] = []
+        new_hi: list[int] = []
+        new_pos: list[int] = []
+        pair_to_edge = self._pair_to_edge
+        next_id = self._n_edges
+        for i, key in enumerate(zip(lo.tolist(), hi.tolist())):
+            eid = pair_to_edge.get(key)
+            if eid is None:
+                eid = next_id
+                next_id += 1
+                pair_to_edge[key] = eid
+                new_lo.append(key[0])
+                new_hi.append(key[1])
+                new_pos.append(i)
+            out[i] = eid
+        n_new = next_id - self._n_edges
+        if n_new:
+            start, end = self._n_edges, next_id
+            self._eu = _grow(self._eu, end, 0)
+            self._ev = _grow(self._ev, end, 0)
+            self._edge_valid = _grow(self._edge_valid, end, False)
+            self._weights = _grow(self._weights, end, 0.0)
+            for name, arr in self._edge_attrs.items():
+                self._edge_attrs[name] = _grow(arr, end, np.nan)
+            self._eu[start:end] = new_lo
+            self._ev[start:end] = new_hi
+            self._edge_valid[start:end] = True
+            self._n_edges = end
+            self._structure_changed()
+        # Last write wins for duplicates inside the batch, as for pre-existing edges.  Without ``weights`` the
+        # existing edges keep theirs and the new ones get 0.
+        if weights is None:
+            pos = np.asarray(new_pos, dtype=np.int64)
+            out_w, w = out[pos], w[pos]
+        else:
+            out_w = out
+        self._weights[out_w] = w
+        for name, vals in attr_vals.items():
+            self._edge_attrs[name][out] = vals
+        self._weights_written(out_w, w)
+        return out
+
+    def add_edge(self, u: int, v: int, weight: float = 0.0, **attrs: float) -> int:
+        """Add one undirected edge; returns its id (see :meth:`add_edges`)."""
+        return int(self.add_edges([u], [v], weight, **attrs)[0])
+
+    def remove_edges(self, edge_ids: Iterable[int] | np.ndarray) -> None:
+        """Mark edges invalid (pruning).  Their slots, weights and attributes are kept (see :meth:`restore_edges`)."""
+        eids = self._as_ids(edge_ids, self._n_edges, "edge")
+        if eids.size == 0:
+            return
+        eids = eids[self._edge_valid[eids]]
+        if eids.size == 0:
+            return
+        self._edge_valid[eids] = False
+        for a, b in zip(self._eu[eids].tolist(), self._ev[eids].tolist()):
+            self._pair_to_edge.pop((a, b), None)
+        self._removal_version += 1
+        self._structure_changed()
+
+    def restore_edges(self, edge_ids: Iterable[int] | np.ndarray) -> np.ndarray:
+        """Mark removed edges valid again when both endpoints are valid and the pair is not re-added meanwhile.
+
+        Returns
+        -------
+        np.ndarray
+            The ids actually restored.
+        """
+        eids = self._as_ids(edge_ids, self._n_edges, "edge")
+        restored: list[int] = []
+        for e, a, b in zip(eids.tolist(), self._eu[eids].tolist(), self._ev[eids].tolist()):
+            if self._edge_valid[e] or not (self._node_valid[a] and self._node_valid[b]):
+                continue
+            if (a, b) in self._pair_to_edge:
+                continue
+            self._pair_to_edge[(a, b)] = e
+            self._edge_valid[e] = True
+            restored.append(e)
+        if restored:
+            self._removal_version += 1
+            self._structure_changed()
+        return np.asarray(restored, dtype=np.int64)
+
+    def set_weights(self, edge_ids: np.ndarray | Iterable[int] | slice | None, values: np.ndarray | float) -> None:
+        """Overwrite edge weights (Eq. 2) for ``edge_ids`` (``None`` = all edge slots).  Weights must be >= 0."""
+        vals = np.asarray(values, dtype=np.float64)
+        self._check_weights(vals)
+        if edge_ids is None:
+            self._weights[: self._n_edges] = vals
+            self._py_weights = None
+            self.weights_version += 1
+        else:
+            ids = self._as_ids(edge_ids, self._n_edges, "edge")
+            self._weights[ids] = vals
+            self._weights_written(ids, np.broadcast_to(vals, ids.shape))
+
+    def edge_id(self, u: int, v: int) -> int | None:
+        """Id of the valid edge between ``u`` and ``v`` or ``None``."""
+        a, b = (int(u), int(v)) if u <= v else (int(v), int(u))
+        return self._pair_to_edge.get((a, b))
+
+    def edge_ids_of_path(self, path: Iterable[int]) -> np.ndarray:
+        """Edge ids along a node path; raises ``KeyError`` when two consecutive nodes are not connected."""
+        p = list(path)
+        out = np.empty(max(len(p) - 1, 0), dtype=np.int64)
+        for i in range(len(p) - 1):
+            e = self.edge_id(p[i], p[i + 1])
+            if e is None:
+                raise KeyError(f"no valid edge between {p[i]} and {p[i + 1]}")
+            out[i] = e
+        return out
+
+    def incident_edges(self, nodes: Iterable[int] | np.ndarray) -> np.ndarray:
+        """Ids of the valid edges touching any of ``nodes``."""
+        nodes = self._as_ids(nodes, self._n_nodes, "node")
+        mask = np.zeros(self._n_nodes, dtype=bool)
+        mask[nodes] = True
+        eu, ev = self._eu[: self._n_edges], self._ev[: self._n_edges]
+        hit = (mask[eu] | mask[ev]) & self._edge_valid[: self._n_edges]
+        return np.flatnonzero(hit)
+
+    def neighbors(self, u: int) -> tuple[np.ndarray, np.ndarray]:
+        """Valid neighbours of ``u`` and the ids of the connecting edges."""
+        csr = self.csr()
+        lo, hi = csr.indptr[u], csr.indptr[u + 1]
+        return csr.indices[lo:hi].copy(), csr.edge_ids[lo:hi].copy()
+
+    def degree(self) -> np.ndarray:
+        """``(n_nodes,)`` number of valid incident edges of every node."""
+        return np.diff(self.csr().indptr)
+
+    # ------------------------------------------------------------------ adjacency caches
+    def csr(self) -> CSRAdjacency:
+        """Directed CSR adjacency over the valid edges (cached until the next structural change)."""
+        if self._csr is not None and self._csr.structure_version == self.structure_version:
+            return self._csr
+        n = self._n_nodes
+        eids = np.flatnonzero(self._edge_valid[: self._n_edges])
+        u = self._eu[eids]
+        v = self._ev[eids]
+        src = np.concatenate([u, v])
+        dst = np.concatenate([v, u])
+        eid2 = np.concatenate([eids, eids])
+        order = np.argsort(src, kind="stable")
+        counts = np.bincount(src, minlength=n)
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(counts, out=indptr[1:])
+        self._csr = CSRAdjacency(
+            indptr=indptr,
+            indices=dst[order].astype(np.int64, copy=False),
+            edge_ids=eid2[order].astype(np.int64, copy=False),
+            structure_version=self.structure_version,
+        )
+        logger.debug("rebuilt CSR adjacency: %d nodes, %d directed entries", n, self._csr.nnz)
+        return self._csr
+
+    def python_adjacency(self) -> tuple[list[list[int]], list[list[int]]]:
+        """Per-node Python lists ``(neighbours[u], edge_ids[u])`` of the valid edges, for the heapq searches.
+
+        Cached: rebuilt from :meth:`csr` only after a removal/restoration; nodes and edges added since the last call
+        are appended in place (cheap start/goal connection).  Callers must not modify the lists.
+        """
+        cache = self._py_adj
+        if cache is None or cache[0] != self._removal_version:
+            csr = self.csr()
+            ind = csr.indices.tolist()
+            eid = csr.edge_ids.tolist()
+            ptr = csr.indptr.tolist()
+            nbrs = [ind[ptr[i] : ptr[i + 1]] for i in range(self._n_nodes)]
+            eids = [eid[ptr[i] : ptr[i + 1]] for i in range(self._n_nodes)]
+            self._py_adj = (self._removal_version, self._n_nodes, self._n_edges, nbrs, eids)
+            return nbrs, eids
+        _, n_cov, e_cov, nbrs, eids = cache
+        if n_cov < self._n_nodes:
+            for _ in range(self._n_nodes - n_cov):
+                nbrs.append([])
+                eids.append([])
+        if e_cov < self._n_edges:
+            new = np.arange(e_cov, self._n_edges)
+            new = new[self._edge_valid[new]]
+            for e, a, b in zip(new.tolist(), self._eu[new].tolist(), self._ev[new].tolist()):
+                nbrs[a].append(b)
+                eids[a].append(e)
+                nbrs[b].append(a)
+                eids[b].append(e)
+        self._py_adj = (self._removal_version, self._n_nodes, self._n_edges, nbrs, eids)
+        return nbrs, eids
+
+    def python_weights(self) -> list[float]:
+        """The roadmap weights as a Python list indexed by edge id (cached per ``weights_version``).
+
+        Small weight updates patch the cached list in place: callers must not keep or modify it.
+        """
+        if self._py_weights is not None and self._py_weights[0] == self.weights_version:
+            return self._py_weights[1]
+        lst = self._weights[: self._n_edges].tolist()
+        self._py_weights = (self.weights_version, lst)
+        return lst
+
+    # ------------------------------------------------------------------ internals
+    def _weights_written(self, ids: np.ndarray, vals: np.ndarray) -> None:
+        """Bump ``weights_version``; patch the cached Python weight list in place for small updates."""
+        cache = self._py_weights
+        self.weights_version += 1
+        if cache is None or cache[0] != self.weights_version - 1 or ids.size > _PATCH_LIMIT:
+            self._py_weights = None
+            return
+        lst = cache[1]
+        if len(lst) < self._n_edges:
+            lst.extend([0.0] * (self._n_edges - len(lst)))
+        for e, val in zip(ids.tolist(), vals.tolist()):
+            lst[e] = val
+        self._py_weights = (self.weights_version, lst)
+
+    def _structure_changed(self) -> None:
+        self.structure_version += 1
+
+    @staticmethod
+    def _check_weights(w: np.ndarray) -> None:
+        if w.size and (np.isnan(w).any() or (w < 0).any()):
+            raise ValueError("edge weights must be non-negative (Eq. 2 gives c in [0, 2])")
+
+    @staticmethod
+    def _as_ids(ids: Iterable[int] | np.ndarray | slice, n: int, what: str) -> np.ndarray:
+        if isinstance(ids, slice):
+            return np.arange(n, dtype=np.int64)[ids]
+        arr = np.asarray(list(ids) if not isinstance(ids, np.ndarray) else ids, dtype=np.int64).reshape(-1)
+        if arr.size and (arr.min() < 0 or arr.max() >= n):
+            raise ValueError(f"{what} id out of range")
+        return arr
+
+    def __repr__(self) -> str:
+        return (
+            f"Roadmap(nodes={self.num_valid_nodes}/{self._n_nodes}, edges={self.num_valid_edges}/{self._n_edges}, "
+            f"dof={self.dof})"
+        )

@@ -1,0 +1,387 @@
+"""Tests of the roadmap graph and the searches (paper Eqs. 1-6).
+
+Run ``python tests/test_graph_search.py`` for the query-time micro-benchmark (not a test).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+import statistics
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from psprm_core.planning.graph import Roadmap
+from psprm_core.planning.graph_search import (
+    EdgeCheck,
+    astar,
+    combined_weight,
+    dijkstra,
+    edge_perception,
+    heuristic_consistency_gap,
+    hop_distances,
+    hop_heuristic,
+    lazy_astar,
+    min_edge_cost,
+    path_cost,
+)
+
+SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+
+# ---------------------------------------------------------------------------- reference implementation
+def reference_dijkstra(n: int, edges: list[tuple[int, int, float]], sources: list[int]) -> list[float]:
+    """Textbook multi-source Dijkstra on an explicit undirected edge list (independent of Roadmap/scipy)."""
+    adj: list[list[tuple[int, float]]] = [[] for _ in range(n)]
+    for a, b, w in edges:
+        if math.isfinite(w):
+            adj[a].append((b, w))
+            adj[b].append((a, w))
+    dist = [math.inf] * n
+    heap = []
+    for s in sources:
+        dist[s] = 0.0
+        heap.append((0.0, s))
+    heapq.heapify(heap)
+    while heap:
+        d, u = heapq.heappop(heap)
+        if d > dist[u]:
+            continue
+        for v, w in adj[u]:
+            if d + w < dist[v]:
+                dist[v] = d + w
+                heapq.heappush(heap, (d + w, v))
+    return dist
+
+
+def valid_edge_list(g: Roadmap, w: np.ndarray | None = None) -> list[tuple[int, int, float]]:
+    w = np.asarray(g.weights) if w is None else w
+    ids = g.valid_edge_ids()
+    return list(zip(np.asarray(g.edge_u)[ids].tolist(), np.asarray(g.edge_v)[ids].tolist(), w[ids].tolist()))
+
+
+def assert_valid_path(g: Roadmap, res: Any, start: int, goals: set[int], w: np.ndarray | None = None) -> None:
+    assert res.success, res.reason
+    assert res.path[0] == start and res.path[-1] in goals and res.goal == res.path[-1]
+    assert len(res.edges) == len(res.path) - 1
+    for a, b, e in zip(res.path[:-1], res.path[1:], res.edges):
+        assert g.edge_id(a, b) == e and g.edge_valid[e]
+    assert abs(path_cost(g, res.path, w) - res.cost) <= 1e-9 * max(1.0, res.cost)
+
+
+# ---------------------------------------------------------------------------- strategies
+weight_st = st.one_of(st.just(0.0), st.floats(0.0, 10.0, allow_nan=False), st.sampled_from([0.5, 1.0, 2.0]))
+
+
+@st.composite
+def random_graphs(draw: Any) -> dict[str, Any]:
+    """Random roadmap: random size, possibly disconnected, zero weights, removed edges/nodes, multiple goals."""
+    n = draw(st.integers(1, 28))
+    max_e = n * (n - 1) // 2
+    pairs = draw(
+        st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=min(max_e * 2, 90))
+    )
+    pairs = [(a, b) for a, b in pairs if a != b]
+    weights = draw(st.lists(weight_st, min_size=len(pairs), max_size=len(pairs)))
+    g = Roadmap.from_edges(n, np.asarray(pairs, dtype=np.int64).reshape(-1, 2), np.asarray(weights, dtype=float))
+    if g.n_edges and draw(st.booleans()):
+        g.remove_edges(draw(st.lists(st.integers(0, g.n_edges - 1), max_size=5)))
+    if n > 2 and draw(st.booleans()):
+        g.remove_nodes(draw(st.lists(st.integers(0, n - 1), max_size=2)))
+    start = draw(st.integers(0, n - 1))
+    goals = draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=4))
+    return {"g": g, "start": start, "goals": goals}
+
+
+# ---------------------------------------------------------------------------- property tests
+@SETTINGS
+@given(random_graphs())
+def test_astar_hop_matches_dijkstra(case: dict[str, Any]) -> None:
+    g, start, goals = case["g"], case["start"], case["goals"]
+    valid_goals = [q for q in goals if g.node_valid[q]]
+    res = astar(g, start, goals, heuristic="hop")
+    if not g.node_valid[start] or not valid_goals:
+        assert not res.success and res.reason
+        return
+    ref = reference_dijkstra(g.n_nodes, valid_edge_list(g), valid_goals)[start]
+    sp_dist, sp_parent = dijkstra(g, valid_goals)
+    if math.isinf(ref):
+        assert not res.success and "reachable" in res.reason and res.path == [] and math.isinf(res.cost)
+        assert math.isinf(sp_dist[start])
+        return
+    assert_valid_path(g, res, start, set(valid_goals))
+    assert abs(res.cost - ref) <= 1e-9 * max(1.0, ref)
+    assert abs(sp_dist[start] - ref) <= 1e-9 * max(1.0, ref)
+    # Dijkstra parent chain leads to a goal with the same cost.
+    node, acc = start, 0.0
+    while sp_parent[node] >= 0:
+        acc += g.weights[g.edge_id(node, sp_parent[node])]
+        node = int(sp_parent[node])
+    assert node in valid_goals and abs(acc - ref) <= 1e-9 * max(1.0, ref)
+    res0 = astar(g, start, goals, heuristic="zero")
+    assert abs(res0.cost - ref) <= 1e-9 * max(1.0, ref)
+    assert res.expanded <= res0.expanded + 1 or res.expanded <= g.n_nodes
+
+
+@SETTINGS
+@given(random_graphs())
+def test_hop_heuristic_is_consistent(case: dict[str, Any]) -> None:
+    g, goals = case["g"], [q for q in case["goals"] if case["g"].node_valid[q]]
+    h = hop_heuristic(g, goals)
+    assert heuristic_consistency_gap(g, h) <= 0.0  # Eqs. 5-6, exactly (c_min carries a 1e-12 safety shrink)
+    hops = hop_distances(g, goals)
+    for q in goals:
+        assert hops[q] == 0 and h[q] == 0
+    # Eq. 3 admissibility: h <= true optimal cost to go.
+    true = reference_dijkstra(g.n_nodes, valid_edge_list(g), goals) if goals else [math.inf] * g.n_nodes
+    for q in range(g.n_nodes):
+        if math.isfinite(true[q]):
+            assert h[q] <= true[q] + 1e-12
+        else:
+            assert math.isinf(h[q]) or not g.node_valid[q]
+
+
+@SETTINGS
+@given(random_graphs(), st.data())
+def test_graph_additions_after_cached_search(case: dict[str, Any], data: Any) -> None:
+    """Adding nodes/edges after a search (start/goal connection) keeps searches exact (incremental adjacency)."""
+    g, start, goals = case["g"], case["start"], case["goals"]
+    astar(g, start, goals)
+    hop_distances(g, [q for q in goals if g.node_valid[q]])  # cached, then updated incrementally below
+    new = g.add_node()
+    k = data.draw(st.integers(0, 4))
+    others = [int(x) for x in g.valid_node_ids() if x != new]
+    nb = data.draw(st.lists(st.sampled_from(others), max_size=k, unique=True)) if others else []
+    ws = data.draw(st.lists(weight_st, min_size=len(nb), max_size=len(nb)))
+    if nb:
+        g.add_edges([new] * len(nb), nb, ws)
+    if len(others) > 1:  # repair edges between existing nodes
+        extra = data.draw(st.lists(st.tuples(st.sampled_from(others), st.sampled_from(others)), max_size=3))
+        extra = [(a, b) for a, b in extra if a != b]
+        if extra:
+            g.add_edges([a for a, _ in extra], [b for _, b in extra], data.draw(weight_st))
+    valid_goals = [q for q in goals if g.node_valid[q]]
+    if not valid_goals:
+        return
+    res = astar(g, new, valid_goals)
+    ref = reference_dijkstra(g.n_nodes, valid_edge_list(g), valid_goals)[new]
+    if math.isinf(ref):
+        assert not res.success
+    else:
+        assert_valid_path(g, res, new, set(valid_goals))
+        assert abs(res.cost - ref) <= 1e-9 * max(1.0, ref)
+    np.testing.assert_array_equal(hop_distances(g, valid_goals), hop_distances(g, valid_goals, use_cache=False))
+    assert heuristic_consistency_gap(g, hop_heuristic(g, valid_goals)) <= 0.0
+
+
+@SETTINGS
+@given(random_graphs(), st.data())
+def test_lazy_astar_avoids_invalid_edges_and_is_optimal(case: dict[str, Any], data: Any) -> None:
+    g, start, goals = case["g"], case["start"], case["goals"]
+    valid_goals = [q for q in goals if g.node_valid[q]]
+    if not g.node_valid[start] or not valid_goals:
+        return
+    ne = g.n_edges
+    bad = set(data.draw(st.lists(st.integers(0, max(ne - 1, 0)), max_size=ne))) if ne else set()
+    extra = np.asarray(data.draw(st.lists(weight_st, min_size=ne, max_size=ne)), dtype=float)
+    w0 = np.asarray(g.weights).copy()
+    true_w = w0 + extra  # verified weights are >= the optimistic initial ones
+    calls: list[list[int]] = []
+
+    def verify(edge_ids: np.ndarray, path: list[int]) -> EdgeCheck:
+        ids = edge_ids.tolist()
+        assert not set(ids) & {e for c in calls for e in c}, "an edge was verified twice"
+        calls.append(ids)
+        return EdgeCheck(invalid=[e for e in ids if e in bad], weights={e: true_w[e] for e in ids if e not in bad})
+
+    res = lazy_astar(g, start, goals, verify)
+    final_w = true_w.copy()
+    final_w[list(bad)] = np.inf
+    ref = reference_dijkstra(g.n_nodes, valid_edge_list(g, final_w), valid_goals)[start]
+    if math.isinf(ref):
+        assert not res.success and res.reason
+    else:
+        assert_valid_path(g, res, start, set(valid_goals), final_w)
+        assert not set(res.edges) & bad
+        assert abs(res.cost - ref) <= 1e-9 * max(1.0, ref)
+        assert set(res.edges) <= set(res.verified_edges)
+    assert set(res.invalidated_edges) <= bad
+    np.testing.assert_array_equal(np.asarray(g.weights), w0)  # apply_to_graph=False leaves the roadmap alone
+
+
+# ---------------------------------------------------------------------------- unit tests
+def _two_components() -> Roadmap:
+    return Roadmap.from_edges(6, np.array([[0, 1], [1, 2], [3, 4], [4, 5]]), np.array([1.0, 1.0, 1.0, 1.0]))
+
+
+def test_unreachable_returns_failure_not_exception() -> None:
+    g = _two_components()
+    res = astar(g, 0, [4, 5])
+    assert not res.success and "component" in res.reason and res.path == [] and math.isinf(res.cost)
+    assert not astar(g, 0, [4, 5], heuristic="zero").success
+    assert not astar(g, 0, []).success
+    g.remove_nodes([2])
+    assert not astar(g, 0, [2]).success
+    assert not astar(g, 2, [0]).success
+    res = lazy_astar(g, 0, [1], lambda e, p: list(e))  # every edge rejected
+    assert not res.success and res.invalidated_edges == [g.edge_id(0, 1)]
+
+
+def test_goal_region_picks_cheapest_goal_and_zero_weights() -> None:
+    # 0 -1- 1 -1- 2 (goal), 0 -0- 3 -0- 4 -5- 2, 4 is also a goal at cost 0
+    g = Roadmap.from_edges(5, np.array([[0, 1], [1, 2], [0, 3], [3, 4], [4, 2]]), np.array([1, 1, 0, 0, 5.0]))
+    res = astar(g, 0, [2, 4])
+    assert res.success and res.goal == 4 and res.cost == 0.0 and res.path == [0, 3, 4]
+    assert astar(g, 2, [2]).path == [2]
+
+
+def test_roadmap_mutations() -> None:
+    g = Roadmap(dof=2)
+    ids = g.add_nodes(np.arange(8.0).reshape(4, 2))
+    assert ids.tolist() == [0, 1, 2, 3]
+    e = g.add_edges([0, 1, 2, 1], [1, 2, 3, 0], [1.0, 2.0, 3.0, 4.0])
+    assert e.tolist() == [0, 1, 2, 0] and g.weights[0] == 4.0 and g.num_valid_edges == 3
+    with pytest.raises(ValueError):
+        g.add_edge(1, 1)
+    with pytest.raises(ValueError):
+        g.add_edge(0, 1, -1.0)
+    assert astar(g, 0, 3).cost == 9.0
+    g.set_weights([1], 0.5)
+    assert astar(g, 0, 3).cost == 7.5
+    removed = g.remove_nodes([1])
+    assert set(removed.tolist()) == {0, 1} and g.edge_id(0, 1) is None
+    assert not astar(g, 0, 3).success
+    g.restore_nodes([1])
+    assert g.restore_edges(removed).tolist() == [0, 1]
+    assert astar(g, 0, 3).cost == 7.5
+    s = g.add_node([0.5, 0.5])
+    g.add_edge(s, 3, 0.25, c_m=0.1)
+    g.add_edge(s, 0, 0.25)
+    assert astar(g, 0, 3).path == [0, s, 3]
+    assert g.edge_attribute("c_m")[g.edge_id(s, 3)] == pytest.approx(0.1)
+    nb, eids = g.neighbors(s)
+    assert sorted(nb.tolist()) == [0, 3] and g.degree()[s] == 2
+
+
+def test_lazy_astar_updates_and_apply_to_graph() -> None:
+    # Two routes 0-1-3 (cheap but 1-3 invalid) and 0-2-3.
+    g = Roadmap.from_edges(4, np.array([[0, 1], [1, 3], [0, 2], [2, 3]]), np.array([0.1, 0.1, 0.5, 0.5]))
+    bad = g.edge_id(1, 3)
+    res = lazy_astar(g, 0, 3, lambda e, p: EdgeCheck(invalid=[x for x in e if x == bad],
+                                                    weights={int(x): 0.6 for x in e if x != bad}),
+                     apply_to_graph=True)
+    assert res.success and res.path == [0, 2, 3] and res.iterations == 3 and res.cost == pytest.approx(1.2)
+    assert g.edge_id(1, 3) is None and g.weights[g.edge_id(2, 3)] == pytest.approx(0.6)
+
+
+def test_edge_weight_equations_numpy_and_torch() -> None:
+    torch = pytest.importorskip("torch")
+    su, sv = np.array([1.0, 0.0]), np.array([0.5, 0.0])
+    interior = np.array([[0.5, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    cp = edge_perception(su, sv, interior)  # Eq. 1
+    np.testing.assert_allclose(cp, [3.0 / 5.0, 1.0 / 5.0])
+    np.testing.assert_allclose(edge_perception(su, sv, np.zeros((2, 0))), [0.75, 0.0])
+    cpt = edge_perception(torch.tensor(su), torch.tensor(sv), torch.tensor(interior))
+    assert isinstance(cpt, torch.Tensor) and np.allclose(cpt.numpy(), cp)
+    cm = np.array([0.2, 1.0])
+    w = combined_weight(cp, cm, 0.7)  # Eq. 2
+    np.testing.assert_allclose(w, 1 - 0.7 * cp + 0.3 * cm)
+    assert np.all((w >= 0) & (w <= 2))
+    assert np.allclose(combined_weight(torch.tensor(cp), torch.tensor(cm), 0.7).numpy(), w)
+    assert combined_weight(1.0, 0.0, 1.0) == 0.0
+    with pytest.raises(ValueError):
+        combined_weight(cp, cm, 1.5)
+
+
+def test_min_edge_cost_and_hop_cache() -> None:
+    g = _two_components()
+    g.set_weights([2], 0.25)
+    assert min_edge_cost(g) == 0.25  # Eq. 4
+    h1 = hop_distances(g, [2])
+    assert hop_distances(g, [2]) is h1  # cached per goal set
+    np.testing.assert_array_equal(h1, [2, 1, 0, np.inf, np.inf, np.inf])
+    g.add_edge(2, 3, 1.0)
+    h2 = hop_distances(g, [2])  # structure changed: recomputed
+    assert h2 is not h1 and h2[5] == 3
+
+
+def test_benchmark_smoke() -> None:
+    stats = benchmark_query_time(n=400, k=8, n_queries=10)
+    assert stats["median_ms"] > 0
+
+
+# ---------------------------------------------------------------------------- micro-benchmark (not a test)
+def random_geometric_roadmap(n: int = 3000, k: int = 15, dim: int = 7, alpha: float = 0.5,
+                             seed: int = 0) -> Roadmap:
+    """kNN roadmap on uniform samples of [0, 1]^dim with Eq. 2 weights (random perception scores)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(seed)
+    x = rng.random((n, dim))
+    _, idx = cKDTree(x).query(x, k + 1)
+    u = np.repeat(np.arange(n), k)
+    v = idx[:, 1:].reshape(-1)
+    pairs = np.unique(np.stack([np.minimum(u, v), np.maximum(u, v)], axis=1), axis=0)
+    c_m = np.linalg.norm(x[pairs[:, 0]] - x[pairs[:, 1]], axis=1)
+    c_m /= c_m.max()
+    scores = rng.random(n)
+    c_p = edge_perception(scores[pairs[:, 0]], scores[pairs[:, 1]], rng.random((len(pairs), 3)))
+    return Roadmap.from_edges(n, pairs, combined_weight(c_p, c_m, alpha), configs=x)
+
+
+def benchmark_query_time(n: int = 3000, k: int = 15, dim: int = 7, n_queries: int = 100, n_goals: int = 3,
+                         seed: int = 0) -> dict[str, float]:
+    """Median/p90 A* query times (ms) on a random geometric roadmap.
+
+    ``median_ms``: hop-heuristic A* between roadmap nodes, same goal set (hop BFS cached);
+    ``median_new_goals_ms``: a new random goal set for every query (hop BFS recomputed);
+    ``median_connect_ms``: a new start node connected with k edges before every query (as the planner does), which
+    changes the structure and thus recomputes the hop BFS; ``median_dijkstra_ms``: heuristic "zero".
+    """
+    g = random_geometric_roadmap(n, k, dim, seed=seed)
+    rng = np.random.default_rng(seed + 1)
+    goals = rng.choice(n, n_goals, replace=False)
+    astar(g, 0, goals)  # warm caches (adjacency lists, weights list, hop BFS)
+
+    def timed(fn: Any) -> tuple[float, int]:
+        t0 = time.perf_counter()
+        r = fn()
+        return (time.perf_counter() - t0) * 1e3, r.expanded
+
+    same = [timed(lambda: astar(g, int(rng.integers(n)), goals)) for _ in range(n_queries)]
+    new_goals = [timed(lambda: astar(g, int(rng.integers(n)), rng.choice(n, n_goals, replace=False)))
+                 for _ in range(n_queries)]
+    zero = [timed(lambda: astar(g, int(rng.integers(n)), goals, heuristic="zero")) for _ in range(n_queries)]
+    connect = []
+    for _ in range(n_queries):
+        t0 = time.perf_counter()
+        s = g.add_node(rng.random(dim))
+        d = np.linalg.norm(g.configs[:n] - g.configs[s], axis=1)
+        nb = np.argsort(d)[:k]
+        g.add_edges(np.full(k, s), nb, d[nb] / d[nb].max())
+        astar(g, s, goals)
+        connect.append(((time.perf_counter() - t0) * 1e3, 0))
+
+    def med(xs: list[tuple[float, int]]) -> float:
+        return statistics.median(t for t, _ in xs)
+
+    return {
+        "n_nodes": float(n),
+        "n_edges": float(g.num_valid_edges),
+        "median_ms": med(same),
+        "p90_ms": float(np.percentile([t for t, _ in same], 90)),
+        "median_expanded": statistics.median(e for _, e in same),
+        "median_new_goals_ms": med(new_goals),
+        "median_dijkstra_ms": med(zero),
+        "median_connect_ms": med(connect),
+    }
+
+
+if __name__ == "__main__":
+    for key, val in benchmark_query_time().items():
+        print(f"{key:>22s}: {val:.3f}")
