@@ -1,0 +1,143 @@
+"""Visibility manifolds h_M(q) = 0 and their batched Newton projection (paper Sec. "Sampling with Visibility
+Constraints").
+
+Two camera models, both functions of the camera pose from batched FK and the target centroid p:
+
+* **line of sight**: the target centroid lies on the optical axis in front of the camera. With p_c = R^T (p - t)
+  the target in the optical frame, h_line(q) = (p_c,x, p_c,y) in metres: its norm is the distance from p to the
+  optical axis (the paper's scalar h_M); the 2-vector form gives Gauss-Newton a well-conditioned Jacobian.
+* **frustum**: the target (centroid plus a margin of its radius) lies inside the camera's viewing frustum:
+  h_frustum(q) = max(0, sd_f(q, p)) with sd_f the largest signed distance of p to the four side planes and the near
+  and far planes (exact inside the frustum, a lower bound outside, zero exactly on the manifold).
+
+Projection (Alg. 1, line 7): q <- q - J^+ h(q), with J = dh/dq from autograd through batched FK and J^+ the
+(damped) Moore-Penrose pseudo-inverse, clamped to joint limits after each step, until |h| < tol or ``max_iters``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from ..camera import CameraIntrinsics
+from ..geometry import wrap_angle
+from ..robot import RobotModel
+
+
+@dataclass(frozen=True)
+class ProjectionSettings:
+    tolerance: float = 0.02  # line: metres off the optical axis; frustum: metres outside the frustum
+    max_iters: int = 20
+    damping: float = 1e-4
+    max_step: float = 0.5  # max norm of one Newton step in configuration units
+
+
+class VisibilityConstraint:
+    """h_M(q) for one robot, camera model and target point; batched and device-following.
+
+    Parameters
+    ----------
+    robot : RobotModel
+    kind : {"line", "frustum"}
+    target : (3,) tensor-like
+        Point to keep in view (a target centroid, or the midpoint of several targets).
+    margin : float
+        Frustum model: keep this much room around the point (e.g. the target's radius).
+    min_distance : float
+        The target must be at least this far in front of the camera (default: near plane + 0.2 m).
+    """
+
+    def __init__(self, robot: RobotModel, kind: str, target, margin: float = 0.0, min_distance: float | None = None):
+        if kind not in ("line", "frustum"):
+            raise ValueError(f"unknown visibility model '{kind}' (line or frustum)")
+        self.robot = robot
+        self.kind = kind
+        self.intr: CameraIntrinsics = robot.config.intrinsics
+        self.target = torch.as_tensor(target, dtype=torch.float64).reshape(3)
+        self.margin = float(margin)
+        self.min_distance = self.intr.near + 0.2 if min_distance is None else float(min_distance)
+
+    @property
+    def dim(self) -> int:
+        return 3 if self.kind == "line" else 1
+
+    def set_target(self, target) -> None:
+        self.target = torch.as_tensor(target, dtype=torch.float64).reshape(3)
+
+    def target_in_camera(self, q: torch.Tensor) -> torch.Tensor:
+        """Target position in the optical frame (B, 3)."""
+        T = self.robot.camera_poses(q)
+        p = self.target.to(q.device, q.dtype)
+        return ((p - T[:, :3, 3]).unsqueeze(1) @ T[:, :3, :3]).squeeze(1)
+
+    def residual(self, q: torch.Tensor) -> torch.Tensor:
+        """h_M(q): (B, 3) for the line model, (B, 1) for the frustum model."""
+        pc = self.target_in_camera(q)
+        return self.residual_from_camera_points(pc)
+
+    def residual_from_camera_points(self, pc: torch.Tensor) -> torch.Tensor:
+        if self.kind == "line":
+            # (x, y) off the axis, and how far the target is short of the minimum distance in front
+            return torch.stack([pc[:, 0], pc[:, 1], (self.min_distance - pc[:, 2]).clamp_min(0)], -1)
+        return self.frustum_distance(pc).clamp_min(0).unsqueeze(-1)
+
+    def frustum_distance(self, pc: torch.Tensor) -> torch.Tensor:
+        """Signed distance (B,) of the target (with margin) to the frustum: <= 0 inside."""
+        th, tv = self.intr.tan_half_h, self.intr.tan_half_v
+        nh, nv = math.sqrt(1 + th * th), math.sqrt(1 + tv * tv)
+        x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+        d = torch.stack([
+            (x - th * z) / nh, (-x - th * z) / nh, (y - tv * z) / nv, (-y - tv * z) / nv,
+            self.min_distance - z, z - self.intr.far,
+        ], -1)
+        return d.max(-1).values + self.margin
+
+    def error(self, q: torch.Tensor) -> torch.Tensor:
+        """|h_M(q)| (B,)."""
+        return self.residual(q).norm(dim=-1)
+
+    def in_view(self, q: torch.Tensor, slack: float = 0.0) -> torch.Tensor:
+        """Target centroid inside the frustum, up to ``slack`` metres (B,) bool (keeps edges near the manifold)."""
+        return self.frustum_distance(self.target_in_camera(q)) - self.margin <= slack
+
+    # ---- projection --------------------------------------------------------------------------------------------------
+    def project(self, q: torch.Tensor, settings: ProjectionSettings = ProjectionSettings(),
+                lower: torch.Tensor | None = None, upper: torch.Tensor | None = None) -> tuple:
+        """Project configurations (B, dof) onto h_M = 0 with damped Gauss-Newton steps.
+
+        Returns
+        -------
+        q : (B, dof) projected configurations (joint limits respected; base theta wrapped)
+        converged : (B,) bool, |h_M| < tolerance
+        """
+        robot = self.robot
+        lo = torch.as_tensor(robot.lower, dtype=q.dtype, device=q.device) if lower is None else lower
+        hi = torch.as_tensor(robot.upper, dtype=q.dtype, device=q.device) if upper is None else upper
+        q = q.detach().clone()
+        active = torch.ones(q.shape[0], dtype=torch.bool, device=q.device)
+        eye = torch.eye(self.dim, dtype=q.dtype, device=q.device)
+        for _ in range(settings.max_iters):
+            idx = torch.nonzero(active, as_tuple=True)[0]
+            if len(idx) == 0:
+                break
+            qa = q[idx].requires_grad_(True)
+            h = self.residual(qa)  # (n, m)
+            err = h.detach().norm(dim=-1)
+            done = err < settings.tolerance
+            J = torch.stack([torch.autograd.grad(h[:, i].sum(), qa, retain_graph=i + 1 < self.dim)[0]
+                             for i in range(self.dim)], 1)  # (n, m, dof)
+            JJt = J @ J.transpose(1, 2) + settings.damping * eye
+            step = (J.transpose(1, 2) @ torch.linalg.solve(JJt, h.detach().unsqueeze(-1))).squeeze(-1)
+            norm = step.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            step = step * (settings.max_step / norm).clamp(max=1.0)
+            step[done] = 0
+            qn = q[idx] - step
+            qn = torch.maximum(torch.minimum(qn, hi), lo)
+            if robot.mobile:
+                qn[:, 2] = wrap_angle(qn[:, 2])
+            q[idx] = qn.detach()
+            active[idx[done]] = False
+        err = self.error(q).detach()
+        return q, err < settings.tolerance
