@@ -20,6 +20,7 @@ SUBCOMMAND_MODULES = [
     "psprm_core.commands.perf",
     "psprm_core.commands.perception",
     "psprm_core.commands.planning",
+    "psprm_core.commands.surrogate",
 ]
 
 

@@ -1,0 +1,770 @@
+"""Perception-score datasets for training the neural surrogate (Sec. "Neural Surrogate Perception Score Models").
+
+The paper samples 50,000 camera transforms "where the object or human are in the field of view uniformly at
+random", renders each view and labels it with the perception model's score. This module does the sampling, runs a
+labelling function (the rendering oracle, or any ``score(pose_4x4, target_name) -> float``) in parallel worker
+processes, and stores the result in resumable chunks.
+
+Sampling (:func:`sample_camera_poses`), per target, in the target's frame:
+
+* distance camera -> target centroid uniform in ``distance`` (default [0.4, 4.0] m);
+* azimuth around the target uniform in ``azimuth`` relative to the target's facing direction (default all around,
+  0 = in front of the target, +-pi = behind it);
+* camera height uniform in ``camera_height`` (default [0.3, 1.6] m, what a mobile robot's camera reaches),
+  restricted for each distance to the heights that distance can reach (and to elevations below 85 degrees);
+* orientation: a roll-free pan/tilt camera (image x axis horizontal) aimed so that the target centroid lands on a
+  pixel drawn uniformly over the image (minus ``image_margin`` on each side; redrawn in the rare steep views where
+  no pan/tilt achieves it), then rolled by a uniform angle within ``+-roll_deg`` about the line of sight (which
+  keeps the centroid on that pixel). The target centroid is therefore always inside the field of view, but not
+  always centred.
+
+All samples come from one ``numpy.random.default_rng(seed)`` in a fixed order (targets in the given order), so a
+dataset is a pure function of (targets, n_samples, sampling config, seed); chunks are contiguous index ranges.
+
+On-disk layout (``out_dir``)::
+
+    metadata.json           # format, seed, sampling ranges, targets, classes, counts, scorer description, chunks done
+    chunk_00000.npz         # index, camera_poses (n,4,4), target_index, scores, distance, azimuth, height, u, v, roll
+    chunk_00001.npz
+    ...
+
+Re-running :func:`build_dataset` on the same directory with the same configuration labels only the missing chunks
+(chunks already on disk are verified against the regenerated poses). :func:`split_by_viewpoint` makes
+train/val/test splits in which whole viewpoint cells (azimuth x distance) go to one split.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import multiprocessing as mp
+import os
+import queue
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence, Union
+
+import numpy as np
+
+from ..camera import CameraIntrinsics
+from ..scene import Target
+
+log = logging.getLogger(__name__)
+
+DATASET_FORMAT = "psprm-perception-dataset"
+DATASET_VERSION = 1
+METADATA_FILE = "metadata.json"
+_MAX_ELEVATION = math.radians(85.0)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Configuration
+# ------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SamplingConfig:
+    """Ranges of the camera-pose sampler (see the module docstring).
+
+    Attributes
+    ----------
+    distance : (float, float)
+        Camera-to-target-centroid distance range, metres (must start beyond the near plane).
+    camera_height : (float, float)
+        Camera height range in the scene frame, metres.
+    azimuth : (float, float)
+        Azimuth range around the target, radians, relative to its facing direction (0 = in front).
+    image_margin : float
+        Fraction of the image width/height kept free on each side when drawing the target's pixel (0 = anywhere).
+    roll_deg : float
+        Maximum absolute roll about the line of sight, degrees.
+    intrinsics : CameraIntrinsics
+        Camera model (field of view, image size, clipping planes).
+    """
+
+    distance: tuple = (0.4, 4.0)
+    camera_height: tuple = (0.3, 1.6)
+    azimuth: tuple = (-math.pi, math.pi)
+    image_margin: float = 0.05
+    roll_deg: float = 5.0
+    intrinsics: CameraIntrinsics = field(default_factory=CameraIntrinsics)
+
+    def validate(self) -> None:
+        d0, d1 = self.distance
+        h0, h1 = self.camera_height
+        a0, a1 = self.azimuth
+        if not 0 < d0 <= d1:
+            raise ValueError(f"distance range must satisfy 0 < min <= max, got {self.distance}")
+        if d0 < self.intrinsics.near or d1 > self.intrinsics.far:
+            raise ValueError(f"distance range {self.distance} must lie within the clipping range "
+                             f"[{self.intrinsics.near}, {self.intrinsics.far}]")
+        if not h0 <= h1:
+            raise ValueError(f"camera_height range must satisfy min <= max, got {self.camera_height}")
+        if not a0 <= a1:
+            raise ValueError(f"azimuth range must satisfy min <= max, got {self.azimuth}")
+        if not 0 <= self.image_margin < 0.5:
+            raise ValueError(f"image_margin must be in [0, 0.5), got {self.image_margin}")
+        if not 0 <= self.roll_deg <= 180:
+            raise ValueError(f"roll_deg must be in [0, 180], got {self.roll_deg}")
+
+    def to_dict(self) -> dict:
+        return {"distance": [float(v) for v in self.distance], "camera_height": [float(v) for v in self.camera_height],
+                "azimuth": [float(v) for v in self.azimuth], "image_margin": float(self.image_margin),
+                "roll_deg": float(self.roll_deg), "intrinsics": dataclasses.asdict(self.intrinsics)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SamplingConfig":
+        d = dict(d)
+        intr = CameraIntrinsics.from_dict(d.pop("intrinsics", {}))
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}, intrinsics=intr)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Pose sampling
+# ------------------------------------------------------------------------------------------------------------------
+def _rodrigues(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    """Batched rotation matrices (n, 3, 3) about unit axes (n, 3) by angles (n,)."""
+    x, y, z = axis[:, 0], axis[:, 1], axis[:, 2]
+    c, s = np.cos(angle), np.sin(angle)
+    C = 1 - c
+    return np.stack([
+        np.stack([c + x * x * C, x * y * C - z * s, x * z * C + y * s], -1),
+        np.stack([y * x * C + z * s, c + y * y * C, y * z * C - x * s], -1),
+        np.stack([z * x * C - y * s, z * y * C + x * s, c + z * z * C], -1),
+    ], 1)
+
+
+def _pan_tilt_for_pixel(w: np.ndarray, ray: np.ndarray) -> tuple:
+    """Pan/tilt (yaw, pitch) of a roll-free optical frame that sees world direction ``w`` (n, 3) along camera ray
+    ``ray`` (n, 3) (both unit). Returns ``(yaw, pitch, feasible)``; infeasible when the target is too steep for that
+    pixel column."""
+    a = np.hypot(ray[:, 1], ray[:, 2])
+    ratio = w[:, 2] / a
+    feasible = np.abs(ratio) <= 1.0
+    pitch = np.arctan2(ray[:, 1], ray[:, 2]) + np.arcsin(np.clip(ratio, -1.0, 1.0))
+    b = ray[:, 1] * np.sin(pitch) + ray[:, 2] * np.cos(pitch)
+    yaw = np.arctan2(w[:, 1], w[:, 0]) - np.arctan2(-ray[:, 0], b)
+    return yaw, pitch, feasible & (np.abs(pitch) < math.pi / 2)
+
+
+def _pan_tilt_matrix(yaw: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """Optical-frame rotations (n, 3, 3) with optical axis at (yaw, pitch) and a horizontal image x axis."""
+    cy, sy, cp, sp = np.cos(yaw), np.sin(yaw), np.cos(pitch), np.sin(pitch)
+    x = np.stack([sy, -cy, np.zeros_like(yaw)], 1)
+    y = np.stack([sp * cy, sp * sy, -cp], 1)
+    z = np.stack([cp * cy, cp * sy, sp], 1)
+    return np.stack([x, y, z], axis=2)
+
+
+def _pixel_rays(u: np.ndarray, v: np.ndarray, intr: CameraIntrinsics) -> np.ndarray:
+    ray = np.stack([(u - intr.width / 2) / intr.fx, (v - intr.height / 2) / intr.fy, np.ones_like(u)], axis=1)
+    return ray / np.linalg.norm(ray, axis=1, keepdims=True)
+
+
+def _aim_with_pixel(to_target: np.ndarray, u: np.ndarray, v: np.ndarray, roll: np.ndarray, intr: CameraIntrinsics,
+                    rng: np.random.Generator, margin: float) -> np.ndarray:
+    """Camera rotations that put the target (direction ``to_target``) on pixel (u, v), then roll about the line of
+    sight. ``u``/``v`` are redrawn in place (from ``rng``) where a roll-free pan/tilt camera cannot do it (views
+    steeper than the pixel's column allows)."""
+    w = to_target / np.linalg.norm(to_target, axis=1, keepdims=True)
+    yaw, pitch, ok = _pan_tilt_for_pixel(w, _pixel_rays(u, v, intr))
+    for _ in range(1000):
+        bad = np.flatnonzero(~ok)
+        if bad.size == 0:
+            break
+        u[bad] = rng.uniform(margin, 1 - margin, size=bad.size) * intr.width
+        v[bad] = rng.uniform(margin, 1 - margin, size=bad.size) * intr.height
+        yaw[bad], pitch[bad], ok[bad] = _pan_tilt_for_pixel(w[bad], _pixel_rays(u[bad], v[bad], intr))
+    if not ok.all():  # practically unreachable with the 85-degree elevation cap: centre the target instead
+        bad = np.flatnonzero(~ok)
+        u[bad], v[bad] = intr.width / 2, intr.height / 2
+        yaw[bad], pitch[bad], ok[bad] = _pan_tilt_for_pixel(w[bad], _pixel_rays(u[bad], v[bad], intr))
+    return _rodrigues(w, roll) @ _pan_tilt_matrix(yaw, pitch)
+
+
+def sample_camera_poses(target: Target, n: int, config: SamplingConfig, rng: np.random.Generator) -> tuple:
+    """Sample ``n`` optical-frame camera poses that see ``target``'s centroid (see the module docstring).
+
+    Parameters
+    ----------
+    target : Target
+    n : int
+    config : SamplingConfig
+    rng : numpy Generator
+        Consumed in a fixed order (one vectorised draw per quantity, then redraws of the pixels of steep views), so
+        results depend only on its state.
+
+    Returns
+    -------
+    poses : (n, 4, 4) ndarray
+        Optical-frame poses in the scene frame.
+    params : dict of (n,) ndarrays
+        ``distance``, ``azimuth`` (relative to the target's facing, radians), ``height``, ``u``, ``v`` (pixel of the
+        target centroid), ``roll`` (radians).
+
+    Raises
+    ------
+    ValueError
+        If no camera height in range can see the target from some distance in range.
+    """
+    config.validate()
+    intr = config.intrinsics
+    centre = np.asarray(target.center, float)
+    tz = centre[2]
+    d = rng.uniform(*config.distance, size=n)
+    az = rng.uniform(*config.azimuth, size=n)
+    # heights reachable from distance d: |h - tz| <= d sin(85 deg), intersected with the configured height range
+    reach = d * math.sin(_MAX_ELEVATION)
+    lo = np.maximum(config.camera_height[0], tz - reach)
+    hi = np.minimum(config.camera_height[1], tz + reach)
+    if np.any(lo > hi):
+        raise ValueError(f"target '{target.name}' at height {tz:.2f} m cannot be seen from camera heights "
+                         f"{config.camera_height} at distances {config.distance}")
+    h = lo + (hi - lo) * rng.uniform(size=n)
+    u = rng.uniform(config.image_margin, 1 - config.image_margin, size=n) * intr.width
+    v = rng.uniform(config.image_margin, 1 - config.image_margin, size=n) * intr.height
+    roll = np.radians(rng.uniform(-config.roll_deg, config.roll_deg, size=n))
+
+    facing = np.asarray(target.facing, float)
+    yaw0 = math.atan2(facing[1], facing[0]) if np.hypot(facing[0], facing[1]) > 1e-9 else 0.0
+    dz = h - tz
+    r = np.sqrt(np.clip(d ** 2 - dz ** 2, 0.0, None))
+    cam = np.stack([centre[0] + r * np.cos(yaw0 + az), centre[1] + r * np.sin(yaw0 + az), h], axis=1)
+
+    rot = _aim_with_pixel(centre - cam, u, v, roll, intr, rng, config.image_margin)
+    poses = np.tile(np.eye(4), (n, 1, 1))
+    poses[:, :3, :3] = rot
+    poses[:, :3, 3] = cam
+    return poses, {"distance": d, "azimuth": az, "height": h, "u": u, "v": v, "roll": roll}
+
+
+def target_in_fov(poses: np.ndarray, point: np.ndarray, intrinsics: CameraIntrinsics,
+                  tol_px: float = 1e-6) -> np.ndarray:
+    """Whether ``point`` (3,) is inside the viewing frustum of each optical-frame pose (n, 4, 4)."""
+    rel = np.einsum("nji,nj->ni", poses[:, :3, :3], np.asarray(point, float) - poses[:, :3, 3])
+    z = rel[:, 2]
+    px = intrinsics.project(rel)
+    inside = (px[:, 0] >= -tol_px) & (px[:, 0] <= intrinsics.width + tol_px)
+    inside &= (px[:, 1] >= -tol_px) & (px[:, 1] <= intrinsics.height + tol_px)
+    return inside & (z >= intrinsics.near) & (z <= intrinsics.far)
+
+
+def _target_dict(t: Target) -> dict:
+    return {"name": t.name, "class": t.detector_class, "center": [float(v) for v in t.center],
+            "size": [float(v) for v in t.size], "quat": [float(v) for v in t.quat]}
+
+
+def _target_from_dict(d: dict) -> Target:
+    return Target(name=d["name"], detector_class=d["class"], center=np.array(d["center"]), size=np.array(d["size"]),
+                  quat=np.array(d["quat"]))
+
+
+def _per_target_counts(n_samples: int, n_targets: int) -> list:
+    base, extra = divmod(n_samples, n_targets)
+    return [base + (1 if i < extra else 0) for i in range(n_targets)]
+
+
+def generate_samples(targets: Sequence[Target], n_samples: int, config: SamplingConfig, seed: int) -> dict:
+    """All camera poses of a dataset, in dataset order (targets in the given order, ``n_samples`` split evenly).
+
+    Returns a dict with ``camera_poses`` (N, 4, 4), ``target_index`` (N,) and the sampling parameters (N,) each.
+    """
+    rng = np.random.default_rng(seed)
+    counts = _per_target_counts(n_samples, len(targets))
+    poses, params, tidx = [], [], []
+    for i, (t, k) in enumerate(zip(targets, counts)):
+        p, prm = sample_camera_poses(t, k, config, rng)
+        poses.append(p)
+        params.append(prm)
+        tidx.append(np.full(k, i, dtype=np.int32))
+    out = {"camera_poses": np.concatenate(poses), "target_index": np.concatenate(tidx)}
+    for key in params[0]:
+        out[key] = np.concatenate([p[key] for p in params])
+    return out
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Labelling workers
+# ------------------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class OracleFactory:
+    """Picklable factory building the rendering oracle (:class:`psprm_core.perception.oracle.Oracle`) in a worker.
+
+    Parameters
+    ----------
+    scene_path : str
+        Scene YAML file (loaded in the worker).
+    oracle_kwargs : dict
+        Keyword arguments for ``Oracle(scene, **oracle_kwargs)`` (must be picklable).
+    """
+
+    scene_path: str
+    oracle_kwargs: dict = field(default_factory=dict)
+
+    @property
+    def description(self) -> str:
+        extra = f", {self.oracle_kwargs}" if self.oracle_kwargs else ""
+        return f"Oracle(scene={self.scene_path}{extra})"
+
+    def __call__(self) -> Any:
+        from ..scene import load_scene
+        from .oracle import Oracle
+        return Oracle(load_scene(self.scene_path), **self.oracle_kwargs)
+
+
+def _score_fn(scorer: Any) -> Callable[[np.ndarray, str], float]:
+    if hasattr(scorer, "score"):
+        return scorer.score
+    if callable(scorer):
+        return scorer
+    raise TypeError(f"scorer {scorer!r} has neither a score(pose, target_name) method nor is callable")
+
+
+def _label_chunk(score: Callable, poses: np.ndarray, names: Sequence[str], report: Optional[Callable[[int], None]],
+                 every: int) -> np.ndarray:
+    out = np.empty(len(poses))
+    pending = 0
+    for i, (pose, name) in enumerate(zip(poses, names)):
+        result = score(pose, name)
+        out[i] = float(getattr(result, "score", result))  # a float, or a result object such as OracleResult
+        pending += 1
+        if report is not None and pending >= every:
+            report(pending)
+            pending = 0
+    if report is not None and pending:
+        report(pending)
+    return out
+
+
+def _worker_main(factory: Callable[[], Any], tasks, results, every: int) -> None:
+    """Worker process: build a scorer with ``factory()``, then label chunks until the ``None`` sentinel."""
+    try:
+        scorer = factory()
+        score = _score_fn(scorer)
+    except BaseException:  # noqa: BLE001 - reported to the parent
+        results.put(("error", -1, traceback.format_exc()))
+        return
+    try:
+        while True:
+            task = tasks.get()
+            if task is None:
+                break
+            chunk_id, poses, names = task
+            try:
+                scores = _label_chunk(score, poses, names,
+                                      lambda k, c=chunk_id: results.put(("progress", c, k)), every)
+            except BaseException:  # noqa: BLE001
+                results.put(("error", chunk_id, traceback.format_exc()))
+                return
+            results.put(("chunk", chunk_id, scores))
+    finally:
+        close = getattr(scorer, "close", None)
+        if callable(close):
+            try:
+                close()
+            except Exception:  # noqa: BLE001
+                pass
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Chunked, resumable dataset
+# ------------------------------------------------------------------------------------------------------------------
+def _chunk_path(out_dir: Path, i: int) -> Path:
+    return out_dir / f"chunk_{i:05d}.npz"
+
+
+def _write_json(path: Path, data: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, sort_keys=True))
+    os.replace(tmp, path)
+
+
+def _write_chunk(path: Path, arrays: dict) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        np.savez(f, **arrays)
+    os.replace(tmp, path)
+
+
+def _chunk_arrays(samples: dict, lo: int, hi: int, scores: np.ndarray) -> dict:
+    arrays = {k: v[lo:hi] for k, v in samples.items()}
+    arrays["index"] = np.arange(lo, hi, dtype=np.int64)
+    arrays["scores"] = np.asarray(scores, float)
+    return arrays
+
+
+def _chunk_valid(path: Path, samples: dict, lo: int, hi: int) -> bool:
+    try:
+        with np.load(path) as z:
+            ok = (z["index"].shape == (hi - lo,) and int(z["index"][0]) == lo
+                  and np.allclose(z["camera_poses"], samples["camera_poses"][lo:hi], atol=1e-9)
+                  and np.array_equal(z["target_index"], samples["target_index"][lo:hi])
+                  and np.all(np.isfinite(z["scores"])))
+    except Exception as exc:  # noqa: BLE001 - a corrupt chunk is relabelled
+        log.warning("chunk %s is unreadable (%s); it will be relabelled", path.name, exc)
+        return False
+    if not ok:
+        log.warning("chunk %s does not match the dataset configuration; it will be relabelled", path.name)
+    return ok
+
+
+def _describe(factory: Any, description: Optional[str]) -> str:
+    if description:
+        return description
+    desc = getattr(factory, "description", None)
+    if callable(desc):
+        desc = desc()
+    return str(desc) if desc else repr(factory)
+
+
+def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_factory: Callable[[], Any],
+                  n_samples: int = 50_000, sampling: Optional[SamplingConfig] = None, seed: int = 0,
+                  chunk_size: int = 500, workers: int = 2, scorer_description: Optional[str] = None,
+                  progress: bool = True, max_chunks: Optional[int] = None, start_method: str = "spawn",
+                  worker_timeout: Optional[float] = None) -> Path:
+    """Sample camera poses around the targets, label them with a scorer, and write a resumable chunked dataset.
+
+    Parameters
+    ----------
+    out_dir : path
+        Dataset directory (created). If it already holds a dataset with the same configuration, only missing
+        chunks are labelled (resume); a different configuration raises ``ValueError``.
+    targets : sequence of Target
+        Targets to view; their ``detector_class`` values define the classes. ``n_samples`` is split evenly.
+    scorer_factory : picklable callable returning a scorer
+        Each worker process calls it once to build its own scorer: an object with ``score(pose_4x4, target_name)``
+        (e.g. the rendering oracle, see :class:`OracleFactory`) or such a callable, returning a float or an object
+        with a ``score`` attribute (``OracleResult``). If the scorer has ``close()``, it is called at
+        the end. A ``description`` attribute/method (or ``scorer_description``) is recorded in the metadata.
+    n_samples : int
+        Total number of labelled camera poses (paper: 50,000).
+    sampling : SamplingConfig
+        Pose sampling ranges (defaults: distance 0.4-4 m, height 0.3-1.6 m, all azimuths).
+    seed : int
+        Seed of the pose sampler.
+    chunk_size : int
+        Samples per chunk file (the unit of resumption and of work distribution).
+    workers : int
+        Worker processes; ``0`` labels in this process (no multiprocessing). Each worker builds its own scorer, so
+        a scorer's own thread pools (torch, onnxruntime) should be sized for ``cores / workers``.
+    progress : bool
+        Show a tqdm progress bar (per sample).
+    max_chunks : int, optional
+        Label at most this many missing chunks in this call, then return (incremental builds).
+    start_method : {"spawn", "forkserver"}
+        Multiprocessing start method (never ``fork``: scorers may hold GPU/GL contexts or torch threads).
+    worker_timeout : float, optional
+        Abort if no result arrives for this many seconds.
+
+    Returns
+    -------
+    Path
+        ``out_dir``. ``metadata.json`` records seed, ranges, targets, classes, counts, the scorer description and
+        whether the dataset is complete.
+    """
+    if not targets:
+        raise ValueError("build_dataset needs at least one target")
+    names = [t.name for t in targets]
+    if len(set(names)) != len(names):
+        raise ValueError(f"duplicate target names: {names}")
+    if n_samples < 1 or chunk_size < 1:
+        raise ValueError("n_samples and chunk_size must be positive")
+    if start_method == "fork":
+        raise ValueError("start_method 'fork' is not supported; use 'spawn' or 'forkserver'")
+    sampling = sampling or SamplingConfig()
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    classes = sorted({t.detector_class for t in targets})
+    counts = _per_target_counts(n_samples, len(targets))
+    n_chunks = math.ceil(n_samples / chunk_size)
+    config = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "seed": int(seed), "n_samples": int(n_samples),
+              "chunk_size": int(chunk_size), "n_chunks": n_chunks, "sampling": sampling.to_dict(),
+              "targets": [_target_dict(t) for t in targets]}
+    meta_path = out_dir / METADATA_FILE
+    if meta_path.exists():
+        old = json.loads(meta_path.read_text())
+        old_cfg = {k: old.get(k) for k in config}
+        if old_cfg != json.loads(json.dumps(config)):
+            diff = sorted(k for k in config if old_cfg.get(k) != json.loads(json.dumps(config[k])))
+            raise ValueError(f"{out_dir} holds a dataset with a different configuration (differs in: "
+                             f"{', '.join(diff)}); use another directory")
+    description = _describe(scorer_factory, scorer_description)
+    if meta_path.exists() and old.get("scorer") not in (None, description):
+        log.warning("dataset %s was labelled by '%s'; resuming with '%s'", out_dir, old.get("scorer"), description)
+    meta = dict(config)
+    meta.update({"classes": classes, "scorer": description,
+                 "counts": {"per_target": dict(zip(names, counts)),
+                            "per_class": {c: sum(k for t, k in zip(targets, counts) if t.detector_class == c)
+                                          for c in classes}}})
+
+    samples = generate_samples(targets, n_samples, sampling, seed)
+    bounds = [(i, i * chunk_size, min(n_samples, (i + 1) * chunk_size)) for i in range(n_chunks)]
+    missing = [(i, lo, hi) for i, lo, hi in bounds
+               if not (_chunk_path(out_dir, i).exists() and _chunk_valid(_chunk_path(out_dir, i), samples, lo, hi))]
+    done_before = n_chunks - len(missing)
+    todo = missing if max_chunks is None else missing[:max(0, int(max_chunks))]
+    meta.update({"chunks_done": done_before, "complete": done_before == n_chunks})
+    _write_json(meta_path, meta)
+    log.info("dataset %s: %d samples in %d chunks, %d already labelled, %d to label now", out_dir, n_samples,
+             n_chunks, done_before, len(todo))
+    if not todo:
+        return out_dir
+
+    target_names = np.array(names, dtype=object)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+        bar = tqdm(total=n_samples, initial=n_samples - sum(hi - lo for _, lo, hi in missing), unit="view",
+                   desc="labelling", dynamic_ncols=True)
+    written = 0
+
+    def finish(chunk_id: int, scores: np.ndarray) -> None:
+        nonlocal written
+        _, lo, hi = bounds[chunk_id]
+        _write_chunk(_chunk_path(out_dir, chunk_id), _chunk_arrays(samples, lo, hi, scores))
+        written += 1
+        meta["chunks_done"] = done_before + written
+        meta["complete"] = meta["chunks_done"] == n_chunks
+        _write_json(meta_path, meta)
+
+    try:
+        if workers <= 0:
+            scorer = scorer_factory()
+            score = _score_fn(scorer)
+            try:
+                for chunk_id, lo, hi in todo:
+                    names_lo_hi = target_names[samples["target_index"][lo:hi]]
+                    scores = _label_chunk(score, samples["camera_poses"][lo:hi], names_lo_hi,
+                                          bar.update if bar is not None else None, 10)
+                    finish(chunk_id, scores)
+            finally:
+                close = getattr(scorer, "close", None)
+                if callable(close):
+                    close()
+        else:
+            _run_workers(todo, samples, target_names, scorer_factory, min(workers, len(todo)), start_method, bar,
+                         finish, worker_timeout)
+    finally:
+        if bar is not None:
+            bar.close()
+    log.info("dataset %s: %d/%d chunks labelled", out_dir, meta["chunks_done"], n_chunks)
+    return out_dir
+
+
+def _run_workers(todo: list, samples: dict, target_names: np.ndarray, factory: Callable, workers: int,
+                 start_method: str, bar, finish: Callable[[int, np.ndarray], None], timeout: Optional[float]) -> None:
+    ctx = mp.get_context(start_method)
+    tasks = ctx.Queue()
+    results = ctx.Queue()
+    for chunk_id, lo, hi in todo:
+        tasks.put((chunk_id, samples["camera_poses"][lo:hi], list(target_names[samples["target_index"][lo:hi]])))
+    for _ in range(workers):
+        tasks.put(None)
+    # not daemonic: a scorer may need child processes of its own (renderers); cleaned up in the finally block
+    procs = [ctx.Process(target=_worker_main, args=(factory, tasks, results, 10)) for _ in range(workers)]
+    for p in procs:
+        p.start()
+    remaining = {chunk_id for chunk_id, _, _ in todo}
+    last = time.monotonic()
+    try:
+        while remaining:
+            try:
+                kind, chunk_id, payload = results.get(timeout=1.0)
+            except queue.Empty:
+                if timeout is not None and time.monotonic() - last > timeout:
+                    raise TimeoutError(f"no labelling result for {timeout:.0f} s") from None
+                if not any(p.is_alive() for p in procs):
+                    # a last result may still be in flight
+                    try:
+                        kind, chunk_id, payload = results.get(timeout=2.0)
+                    except queue.Empty:
+                        raise RuntimeError(f"all labelling workers exited with {len(remaining)} chunks left "
+                                           f"(exit codes {[p.exitcode for p in procs]})") from None
+                else:
+                    continue
+            last = time.monotonic()
+            if kind == "error":
+                where = "while building its scorer" if chunk_id < 0 else f"on chunk {chunk_id}"
+                raise RuntimeError(f"labelling worker failed {where}:\n{payload}")
+            if kind == "progress":
+                if bar is not None:
+                    bar.update(payload)
+                continue
+            finish(chunk_id, payload)
+            remaining.discard(chunk_id)
+    finally:
+        for p in procs:
+            if p.is_alive() and remaining:
+                p.terminate()
+        for p in procs:
+            p.join(timeout=5)
+        tasks.cancel_join_thread()
+        results.cancel_join_thread()
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# Loading and splitting
+# ------------------------------------------------------------------------------------------------------------------
+@dataclass
+class PerceptionDataset:
+    """A labelled dataset in memory (see :func:`load_dataset`).
+
+    Attributes
+    ----------
+    camera_poses : (N, 4, 4) ndarray
+    target_index : (N,) int ndarray
+        Index into ``targets``.
+    scores : (N,) ndarray
+        Labels in [0, 1].
+    params : dict of (N,) ndarrays
+        Sampling parameters (``distance``, ``azimuth``, ``height``, ``u``, ``v``, ``roll``).
+    targets : list of Target
+    classes : list of str
+        Sorted class names.
+    metadata : dict
+        Content of ``metadata.json``.
+    path : str
+        Directory it was loaded from ("" if built in memory).
+    """
+
+    camera_poses: np.ndarray
+    target_index: np.ndarray
+    scores: np.ndarray
+    params: dict
+    targets: list
+    classes: list
+    metadata: dict = field(default_factory=dict)
+    path: str = ""
+
+    def __len__(self) -> int:
+        return int(self.scores.shape[0])
+
+    @property
+    def target_poses(self) -> np.ndarray:
+        """(N, 4, 4) pose of each sample's target."""
+        from .surrogate import target_pose_matrix
+        per_target = np.stack([target_pose_matrix(t) for t in self.targets])
+        return per_target[self.target_index]
+
+    @property
+    def class_index(self) -> np.ndarray:
+        """(N,) index of each sample's class in ``classes``."""
+        lut = np.array([self.classes.index(t.detector_class) for t in self.targets])
+        return lut[self.target_index]
+
+    @property
+    def target_names(self) -> np.ndarray:
+        return np.array([t.name for t in self.targets], dtype=object)[self.target_index]
+
+    def subset(self, idx: np.ndarray) -> "PerceptionDataset":
+        idx = np.asarray(idx)
+        return PerceptionDataset(self.camera_poses[idx], self.target_index[idx], self.scores[idx],
+                                 {k: v[idx] for k, v in self.params.items()}, self.targets, self.classes, self.metadata,
+                                 self.path)
+
+    def content_hash(self) -> str:
+        """SHA-256 (hex, first 16 chars) of poses, target indices and scores (identifies the training data)."""
+        return dataset_hash(self)
+
+
+def dataset_hash(ds: PerceptionDataset) -> str:
+    """Content hash of a dataset (see :meth:`PerceptionDataset.content_hash`)."""
+    h = hashlib.sha256()
+    for a in (ds.camera_poses.astype(np.float64), ds.target_index.astype(np.int64), ds.scores.astype(np.float64)):
+        h.update(np.ascontiguousarray(a).tobytes())
+    h.update(json.dumps([_target_dict(t) for t in ds.targets], sort_keys=True).encode())
+    return h.hexdigest()[:16]
+
+
+def load_dataset(path: Union[str, Path], allow_incomplete: bool = False) -> PerceptionDataset:
+    """Load a dataset written by :func:`build_dataset` (all chunks, in index order).
+
+    Raises
+    ------
+    FileNotFoundError
+        No ``metadata.json`` in ``path``.
+    ValueError
+        Chunks are missing and ``allow_incomplete`` is false.
+    """
+    path = Path(path)
+    meta_path = path / METADATA_FILE
+    if not meta_path.exists():
+        raise FileNotFoundError(f"no {METADATA_FILE} in {path}: not a perception dataset")
+    meta = json.loads(meta_path.read_text())
+    if meta.get("format") != DATASET_FORMAT:
+        raise ValueError(f"{meta_path}: not a perception dataset (format={meta.get('format')!r})")
+    parts, missing = [], []
+    for i in range(meta["n_chunks"]):
+        p = _chunk_path(path, i)
+        if not p.exists():
+            missing.append(i)
+            continue
+        with np.load(p) as z:
+            parts.append({k: z[k] for k in z.files})
+    if missing and not allow_incomplete:
+        raise ValueError(f"dataset {path} is incomplete: {len(missing)} of {meta['n_chunks']} chunks missing "
+                         f"(re-run the build to resume, or pass allow_incomplete=True)")
+    if not parts:
+        raise ValueError(f"dataset {path} has no labelled chunks")
+    cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    param_keys = ("distance", "azimuth", "height", "u", "v", "roll")
+    return PerceptionDataset(camera_poses=cat["camera_poses"], target_index=cat["target_index"].astype(np.int64),
+                             scores=cat["scores"], params={k: cat[k] for k in param_keys if k in cat},
+                             targets=[_target_from_dict(t) for t in meta["targets"]], classes=list(meta["classes"]),
+                             metadata=meta, path=str(path))
+
+
+def viewpoint_cells(azimuth: np.ndarray, distance: np.ndarray, n_azimuth_cells: int = 24, n_distance_cells: int = 6,
+                    distance_range: Optional[tuple] = None) -> np.ndarray:
+    """Coarse viewpoint cell id of each sample (azimuth x distance grid)."""
+    az = np.mod(np.asarray(azimuth, float) + math.pi, 2 * math.pi)
+    ai = np.minimum((az / (2 * math.pi) * n_azimuth_cells).astype(np.int64), n_azimuth_cells - 1)
+    d = np.asarray(distance, float)
+    d0, d1 = distance_range if distance_range is not None else (d.min(), d.max())
+    di = np.clip(((d - d0) / max(d1 - d0, 1e-12) * n_distance_cells).astype(np.int64), 0, n_distance_cells - 1)
+    return ai * n_distance_cells + di
+
+
+def split_by_viewpoint(azimuth: np.ndarray, distance: np.ndarray, fractions: Sequence[float] = (0.8, 0.1, 0.1),
+                       n_azimuth_cells: int = 24, n_distance_cells: int = 6, seed: int = 0,
+                       distance_range: Optional[tuple] = None) -> dict:
+    """Train/val/test split in which each viewpoint cell (azimuth x distance) goes to exactly one split.
+
+    Cells are shuffled with ``seed`` and assigned one by one to the split furthest below its target share of samples,
+    so nearby viewpoints (same cell) never straddle splits and the split sizes approximate ``fractions``.
+
+    Returns
+    -------
+    dict
+        ``{"train": idx, "val": idx, "test": idx}`` with sorted index arrays (a split may be empty if its fraction is
+        0 or there are fewer cells than splits).
+    """
+    fr = np.asarray(fractions, float)
+    if fr.shape != (3,) or np.any(fr < 0) or fr.sum() <= 0:
+        raise ValueError(f"fractions must be three non-negative numbers, got {fractions}")
+    fr = fr / fr.sum()
+    cells = viewpoint_cells(azimuth, distance, n_azimuth_cells, n_distance_cells, distance_range)
+    ids, counts = np.unique(cells, return_counts=True)
+    order = np.random.default_rng(seed).permutation(len(ids))
+    n = len(cells)
+    filled = np.zeros(3)
+    assign = {}
+    for j in order:
+        deficit = fr * n - filled
+        k = int(np.argmax(deficit))
+        assign[int(ids[j])] = k
+        filled[k] += counts[j]
+    split_of = np.array([assign[int(c)] for c in ids])[np.searchsorted(ids, cells)]
+    return {name: np.flatnonzero(split_of == k) for k, name in enumerate(("train", "val", "test"))}
+
+
+def split_dataset(ds: PerceptionDataset, fractions: Sequence[float] = (0.8, 0.1, 0.1), n_azimuth_cells: int = 24,
+                  n_distance_cells: int = 6, seed: int = 0) -> dict:
+    """:func:`split_by_viewpoint` on a dataset (distance cells span the configured distance range)."""
+    rng = ds.metadata.get("sampling", {}).get("distance")
+    return split_by_viewpoint(ds.params["azimuth"], ds.params["distance"], fractions, n_azimuth_cells,
+                              n_distance_cells, seed, tuple(rng) if rng else None)

@@ -1,0 +1,188 @@
+"""Ray-cast occlusion (Alg. 2, lines 5-7): agreement with pybullet's rayTestBatch and hand-made cases."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from psprm_core.geometry import quat_to_matrix, yaw_to_quat
+from psprm_core.perception.occlusion import (
+    BoxTensors,
+    OcclusionChecker,
+    benchmark_rays_per_s,
+    boxes_to_tensors,
+    occluder_boxes,
+    occlusion_scores,
+    ray_hits,
+    target_sample_points,
+    zero_occluded,
+)
+from psprm_core.scene import Box, Scene, Target
+
+
+def _random_boxes(rng: np.random.Generator, k: int) -> list:
+    boxes = []
+    for i in range(k):
+        q = rng.normal(size=4)
+        boxes.append(Box(name=f"b{i}", center=rng.uniform(-2, 2, 3), size=rng.uniform(0.1, 1.2, 3),
+                         quat=q / np.linalg.norm(q)))
+    return boxes
+
+
+def _pybullet_hits(boxes: list, origins: np.ndarray, ends: np.ndarray) -> np.ndarray:
+    pybullet = pytest.importorskip("pybullet")
+    cid = pybullet.connect(pybullet.DIRECT)
+    try:
+        for b in boxes:
+            col = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=list(b.half_extents),
+                                                physicsClientId=cid)
+            pybullet.createMultiBody(0, col, basePosition=list(b.center), baseOrientation=list(b.quat),
+                                     physicsClientId=cid)
+        out = []
+        for s in range(0, len(origins), 1000):
+            res = pybullet.rayTestBatch(origins[s:s + 1000].tolist(), ends[s:s + 1000].tolist(), physicsClientId=cid)
+            out.extend(r[0] != -1 for r in res)
+        return np.array(out)
+    finally:
+        pybullet.disconnect(cid)
+
+
+@pytest.fixture(scope="module")
+def random_case():
+    rng = np.random.default_rng(1234)
+    boxes = _random_boxes(rng, 25)
+    n = 4000
+    origins = rng.uniform(-3, 3, (n, 3))
+    ends = rng.uniform(-3, 3, (n, 3))
+    # a share of short rays so that "ends before the box" cases are well represented
+    ends[: n // 4] = origins[: n // 4] + rng.normal(scale=0.5, size=(n // 4, 3))
+    return boxes, origins, ends, _pybullet_hits(boxes, origins, ends)
+
+
+def _inside_any(boxes: list, pts: np.ndarray) -> np.ndarray:
+    bt = boxes_to_tensors(boxes, dtype=torch.float64)
+    return bt.contains(torch.as_tensor(pts)).any(dim=1).numpy()
+
+
+def test_matches_pybullet_when_ignoring_start_box(random_case):
+    boxes, origins, ends, pb = random_case
+    ours = ray_hits(torch.as_tensor(origins), torch.as_tensor(ends), boxes_to_tensors(boxes, dtype=torch.float64),
+                    count_inside=False).numpy()
+    assert 0.2 < pb.mean() < 0.8  # the case is informative
+    assert np.array_equal(ours, pb), f"{(ours != pb).sum()} mismatches out of {len(pb)}"
+
+
+def test_default_convention_rays_starting_inside_are_blocked(random_case):
+    boxes, origins, ends, pb = random_case
+    bt = boxes_to_tensors(boxes, dtype=torch.float64)
+    ours = ray_hits(torch.as_tensor(origins), torch.as_tensor(ends), bt).numpy()
+    inside = _inside_any(boxes, origins)
+    assert inside.sum() > 20
+    assert ours[inside].all()
+    assert np.array_equal(ours[~inside], pb[~inside])
+    # pybullet does not report the box a ray starts in: some of those rays are "free" for it
+    assert not pb[inside].all()
+
+
+def test_float32_and_chunking_agree(random_case):
+    boxes, origins, ends, _ = random_case
+    bt = boxes_to_tensors(boxes, dtype=torch.float64)
+    ref = ray_hits(torch.as_tensor(origins), torch.as_tensor(ends), bt)
+    small = ray_hits(torch.as_tensor(origins), torch.as_tensor(ends), bt, chunk_elements=7)
+    assert torch.equal(ref, small)
+    f32 = ray_hits(torch.as_tensor(origins, dtype=torch.float32), torch.as_tensor(ends, dtype=torch.float32), bt)
+    assert (f32 != ref).float().mean() < 1e-3  # only grazing rays may flip
+
+
+def _scene(obstacles, targets) -> Scene:
+    return Scene(name="t", robot="r", frame="map", workspace=np.array([[-5, 5], [-5, 5]]), obstacles=tuple(obstacles),
+                 targets=tuple(targets))
+
+
+TARGET = Target(name="cube", detector_class="cup", center=np.array([0.0, 0.0, 0.5]), size=np.array([1.0, 1.0, 1.0]))
+
+
+def test_hand_made_half_wall():
+    # Camera on +x looking at a unit cube; a thin wall covers only y < -0.01 halfway between them.
+    wall = Box(name="wall", center=np.array([2.5, -1.51, 0.5]), size=np.array([0.05, 3.0, 3.0]))
+    checker = OcclusionChecker.from_scene(_scene([wall], [TARGET]), "cube")
+    assert checker.target_points.shape == (15, 3)
+    cams = torch.tensor([[5.0, 0.0, 0.5], [-5.0, 0.0, 0.5], [5.0, -3.0, 0.5], [5.0, 3.0, 0.5]])
+    s = checker.score(cams)
+    # 4 corners + the -y face centre have y < 0 -> 5 of 15 rays blocked; behind the target nothing blocks;
+    # from y = -3 every ray crosses the wall; from y = +3 the rays cross x = 2.5 at y > 0.
+    assert s[0].item() == pytest.approx(5 / 15)
+    assert s[1].item() == 0.0
+    assert s[2].item() == 1.0
+    assert s[3].item() == 0.0
+    assert checker.occluded(cams).tolist() == [False, False, True, False]
+    scores = torch.ones(4)
+    assert checker.apply(scores, cams).tolist() == [1.0, 1.0, 0.0, 1.0]
+    assert zero_occluded(scores, s, tau=0.2).tolist() == [0.0, 1.0, 0.0, 1.0]
+
+
+def test_oriented_box_is_not_its_aabb():
+    # A 45-degree rotated thin slab: a ray through its AABB corner region misses the box itself.
+    slab = Box(name="slab", center=np.zeros(3), size=np.array([2.0, 0.1, 2.0]), quat=yaw_to_quat(math.pi / 4))
+    bt = boxes_to_tensors([slab], dtype=torch.float64)
+    o = torch.tensor([[0.6, -0.6, -3.0], [0.0, 0.0, -3.0]], dtype=torch.float64)
+    e = torch.tensor([[0.6, -0.6, 3.0], [0.0, 0.0, 3.0]], dtype=torch.float64)
+    assert ray_hits(o, e, bt).tolist() == [False, True]
+    # the segment stopping before the box is not blocked
+    assert not ray_hits(o[1:], torch.tensor([[0.0, 0.0, -1.1]], dtype=torch.float64), bt).item()
+
+
+def test_exclusion_of_target_and_containing_boxes():
+    body = Box(name="body", center=np.array([0.0, 0.0, 0.5]), size=np.array([1.5, 1.5, 1.5]))
+    other = Target(name="other", detector_class="tv", center=np.array([2.5, 0.0, 0.5]), size=np.array([0.1, 3.0, 3.0]))
+    scene = _scene([body], [TARGET, other])
+    bt = occluder_boxes(scene, "cube")
+    assert bt.names == ("other",)  # the target and the body containing it are gone, the other target occludes
+    checker = OcclusionChecker.from_scene(scene, "cube", exclude=["other"])
+    assert checker.boxes.count == 0
+    assert checker.score(torch.tensor([[5.0, 0.0, 0.5]])).item() == 0.0
+    checker = OcclusionChecker.from_scene(scene, "cube")
+    assert checker.score(torch.tensor([[5.0, 0.0, 0.5]])).item() == 1.0
+
+
+def test_camera_inside_obstacle_is_occluded():
+    cupboard = Box(name="cupboard", center=np.array([4.0, 0.0, 0.5]), size=np.array([1.0, 1.0, 1.0]))
+    checker = OcclusionChecker.from_scene(_scene([cupboard], [TARGET]), "cube")
+    assert checker.score(torch.tensor([[4.0, 0.0, 0.5]])).item() == 1.0
+    relaxed = OcclusionChecker.from_scene(_scene([cupboard], [TARGET]), "cube", count_inside=False)
+    assert relaxed.score(torch.tensor([[4.0, 0.0, 0.5]])).item() == 0.0
+
+
+def test_scores_shapes_dtypes_poses_and_chunks():
+    rng = np.random.default_rng(0)
+    boxes = boxes_to_tensors(_random_boxes(rng, 12))
+    pts = target_sample_points(TARGET, grid=3)
+    assert pts.shape == (27, 3)
+    cams = torch.as_tensor(rng.uniform(-4, 4, (300, 3)), dtype=torch.float32)
+    s = occlusion_scores(cams, pts, boxes)
+    assert s.shape == (300,) and s.dtype == torch.float32 and s.device == cams.device
+    assert torch.equal(s, occlusion_scores(cams, pts, boxes, chunk_elements=100))
+    poses = torch.eye(4).repeat(300, 1, 1)
+    poses[:, :3, 3] = cams
+    assert torch.equal(s, occlusion_scores(poses, pts, boxes))
+    # agrees with per-ray ray_hits
+    o = cams.repeat_interleave(len(pts), 0)
+    e = torch.as_tensor(pts, dtype=torch.float32).repeat(300, 1)
+    assert torch.allclose(s, ray_hits(o, e, boxes).float().reshape(300, -1).mean(1))
+    assert occlusion_scores(cams, pts, BoxTensors.empty()).eq(0).all()
+
+
+def test_default_points_lie_inside_the_target_box():
+    t = Target(name="t", detector_class="face", center=np.array([1.0, 2.0, 1.5]), size=np.array([0.2, 0.3, 0.4]),
+               quat=yaw_to_quat(0.7))
+    pts = target_sample_points(t, shrink=0.9)
+    local = (pts - t.center) @ quat_to_matrix(t.quat)
+    assert np.all(np.abs(local) <= t.size / 2 * 0.9 + 1e-12)
+    assert np.allclose(pts[-1], t.center)
+
+
+def test_benchmark_runs():
+    assert benchmark_rays_per_s(n_cameras=200, n_points=15, n_boxes=10, repeats=1) > 0
