@@ -11,7 +11,8 @@ Two camera models, both functions of the camera pose from batched FK and the tar
   and far planes (exact inside the frustum, a lower bound outside, zero exactly on the manifold).
 
 Projection (Alg. 1, line 7): q <- q - J^+ h(q), with J = dh/dq from autograd through batched FK and J^+ the
-(damped) Moore-Penrose pseudo-inverse, clamped to joint limits after each step, until |h| < tol or ``max_iters``.
+(damped) Moore-Penrose pseudo-inverse (J by forward differences in one batched FK call, over the
+joints that move the camera), clamped to joint limits after each step, until |h| < tol or ``max_iters``.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from ..camera import CameraIntrinsics
@@ -102,10 +104,20 @@ class VisibilityConstraint:
         """Target centroid inside the frustum, up to ``slack`` metres (B,) bool (keeps edges near the manifold)."""
         return self.frustum_distance(self.target_in_camera(q)) - self.margin <= slack
 
+    def _camera_joints(self) -> np.ndarray:
+        """Planning joints that move the camera (the only ones the constraint depends on)."""
+        from .psprm import camera_joint_mask
+
+        return camera_joint_mask(self.robot)
+
     # ---- projection --------------------------------------------------------------------------------------------------
     def project(self, q: torch.Tensor, settings: ProjectionSettings = ProjectionSettings(),
-                lower: torch.Tensor | None = None, upper: torch.Tensor | None = None) -> tuple:
+                lower: torch.Tensor | None = None, upper: torch.Tensor | None = None,
+                joints: np.ndarray | None = None) -> tuple:
         """Project configurations (B, dof) onto h_M = 0 with damped Gauss-Newton steps.
+
+        ``joints`` restricts the update to those planning-joint indices (default: every joint that moves the camera);
+        edges use it to let only the non-base camera joints track the target while the base follows its path.
 
         Returns
         -------
@@ -118,26 +130,36 @@ class VisibilityConstraint:
         q = q.detach().clone()
         active = torch.ones(q.shape[0], dtype=torch.bool, device=q.device)
         eye = torch.eye(self.dim, dtype=q.dtype, device=q.device)
+        cols = torch.as_tensor(np.nonzero(self._camera_joints())[0] if joints is None else np.asarray(joints),
+                               dtype=torch.long, device=q.device)
+        if len(cols) == 0:
+            return q.detach().clone(), self.error(q).detach() < settings.tolerance
+        eps = 1e-3 if q.dtype == torch.float32 else 1e-6
         for _ in range(settings.max_iters):
             idx = torch.nonzero(active, as_tuple=True)[0]
             if len(idx) == 0:
                 break
-            qa = q[idx].requires_grad_(True)
-            h = self.residual(qa)  # (n, m)
-            err = h.detach().norm(dim=-1)
+            qa = q[idx]
+            n, m, k = len(idx), self.dim, len(cols)
+            # one batched FK for the point and its forward perturbations along the camera joints
+            pert = qa.unsqueeze(1).repeat(1, k + 1, 1)
+            pert[:, 1:, cols] += eps * torch.eye(k, dtype=q.dtype, device=q.device)
+            hh = self.residual(pert.reshape(-1, q.shape[1])).reshape(n, k + 1, m)
+            h = hh[:, 0]
+            J = ((hh[:, 1:] - h.unsqueeze(1)) / eps).transpose(1, 2)  # (n, m, k)
+            err = h.norm(dim=-1)
             done = err < settings.tolerance
-            J = torch.stack([torch.autograd.grad(h[:, i].sum(), qa, retain_graph=i + 1 < self.dim)[0]
-                             for i in range(self.dim)], 1)  # (n, m, dof)
             JJt = J @ J.transpose(1, 2) + settings.damping * eye
-            step = (J.transpose(1, 2) @ torch.linalg.solve(JJt, h.detach().unsqueeze(-1))).squeeze(-1)
-            norm = step.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-            step = step * (settings.max_step / norm).clamp(max=1.0)
-            step[done] = 0
-            qn = q[idx] - step
+            step_k = (J.transpose(1, 2) @ torch.linalg.solve(JJt, h.unsqueeze(-1))).squeeze(-1)
+            norm = step_k.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+            step_k = step_k * (settings.max_step / norm).clamp(max=1.0)
+            step_k[done] = 0
+            qn = qa.clone()
+            qn[:, cols] -= step_k
             qn = torch.maximum(torch.minimum(qn, hi), lo)
             if robot.mobile:
                 qn[:, 2] = wrap_angle(qn[:, 2])
-            q[idx] = qn.detach()
+            q[idx] = qn
             active[idx[done]] = False
         err = self.error(q).detach()
         return q, err < settings.tolerance

@@ -36,7 +36,7 @@ from ..scene import Scene
 from ..yamlio import Fields, load_yaml
 from .constraints import ProjectionSettings, VisibilityConstraint
 from .graph import Roadmap
-from .graph_search import astar, combined_weight, edge_perception
+from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, lazy_astar
 
 log = logging.getLogger(__name__)
 
@@ -54,14 +54,18 @@ class PSPRMSettings:
 
     n_nodes: int = 3000
     k_neighbors: int = 15
-    max_edge_length: float = 2.0  # motion-cost units (m + weighted rad)
+    k_long: int = 10  # extra random neighbours within max_edge_length (long edges: fewer hops per path, Eq. 2)
+    max_edge_length: float = 2.0  # motion-cost units (m + weighted rad), the geodesic radius delta of Alg. 1
     alpha: float = 0.8  # Eq. 2 (paper: 0.75 with the oracle, 0.8 with the surrogate)
+    lazy_edges: bool = False  # score edge interiors (Eq. 1) only for edges on candidate paths (slow scorers)
     n_interp: int = 5  # N of Eq. 1
     constraint: str = "line"  # visibility model: line | frustum
     sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
-    edge_view_slack: float = 0.05  # interior configurations must keep the target centroid within the frustum
+    edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
+    # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
     connect_k: int = 25  # neighbours tried when connecting a start or goal
+    track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     sample_batch: int = 2048
     build_timeout_s: float = 120.0
     min_view_distance: float = 0.5
@@ -83,10 +87,12 @@ class PSPRMSettings:
                 p.check_keys([x.name for x in dataclasses.fields(ProjectionSettings)])
                 kw["projection"] = ProjectionSettings(**{k: p.float(k) if k != "max_iters" else p.int(k, lo=1)
                                                          for k in p.data})
-            elif fl.type in ("int",) or isinstance(fl.default, int) and not isinstance(fl.default, bool):
+            elif isinstance(fl.default, bool):
+                kw[fl.name] = f.bool(fl.name)
+            elif isinstance(fl.default, int):
                 kw[fl.name] = f.int(fl.name, lo=0)
             elif isinstance(fl.default, float):
-                kw[fl.name] = f.float(fl.name, lo=0.0)
+                kw[fl.name] = f.float(fl.name, lo=None if fl.name == "edge_view_slack" else 0.0)
             else:
                 kw[fl.name] = f.str(fl.name)
         kw.update({k: v for k, v in overrides.items() if v is not None})
@@ -175,6 +181,14 @@ class PSPRM:
                                                    device=self.device)
         self.constraint = VisibilityConstraint(robot, settings.constraint, focus, margin=settings.frustum_margin,
                                                min_distance=settings.min_view_distance)
+        mask = camera_joint_mask(robot)
+        mask[: robot.base_dof] = False
+        self.track_cols = np.nonzero(mask)[0]  # joints that re-aim the camera along an edge
+        lo = self._t(np.where(np.isfinite(robot.lower), robot.lower, -1e9))
+        hi = self._t(np.where(np.isfinite(robot.upper), robot.upper, 1e9))
+        if robot.mobile:
+            lo[:2], hi[:2] = self._t(scene.workspace[:, 0]), self._t(scene.workspace[:, 1])
+        self._lo, self._hi = lo, hi
         self.graph: Optional[Roadmap] = None
         self.node_scores: Optional[np.ndarray] = None
         self.stats: dict = {}
@@ -216,10 +230,7 @@ class PSPRM:
         self.template = template
         t0 = time.perf_counter()
         nodes, tried = [], 0
-        lo = self._t(np.where(np.isfinite(self.robot.lower), self.robot.lower, -1e9))
-        hi = self._t(np.where(np.isfinite(self.robot.upper), self.robot.upper, 1e9))
-        if self.robot.mobile:
-            lo[:2], hi[:2] = self._t(self.scene.workspace[:, 0]), self._t(self.scene.workspace[:, 1])
+        lo, hi = self._lo, self._hi
         have = 0
         while have < s.n_nodes:
             if time.perf_counter() - t0 > s.build_timeout_s:
@@ -238,13 +249,14 @@ class PSPRM:
             return self.stats
         Q = torch.cat(nodes)[: s.n_nodes]
         t1 = time.perf_counter()
-        eu, ev, dist = self._neighbours(Q, Q, s.k_neighbors, exclude_self=True)
-        valid = self._edges_valid(Q[eu], Q[ev])
-        eu, ev, dist = eu[valid], ev[valid], dist[valid]
+        eu, ev, dist = self._neighbours(Q, Q, s.k_neighbors, exclude_self=True, k_long=s.k_long, rng=rng)
+        valid, p_edge = self._edges_valid(Q[eu], Q[ev])
+        eu, ev, dist, p_edge = eu[valid], ev[valid], dist[valid], p_edge[valid]
         t_edges = time.perf_counter() - t1
         t2 = time.perf_counter()
         node_scores = self.score_configs(Q)
-        p_edge = self._edge_perception(Q[eu], Q[ev], node_scores[eu], node_scores[ev])
+        if s.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
+            p_edge = edge_perception(node_scores[eu], node_scores[ev])
         t_score = time.perf_counter() - t2
         self.max_motion = float(dist.max()) if len(dist) else 1.0
         c_m = (dist / self.max_motion).clamp(0, 1)
@@ -252,7 +264,8 @@ class PSPRM:
         g.add_nodes(Q.double().cpu().numpy())
         g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
                     combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
-                    c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy())
+                    c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
+                    verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0))
         self.graph = g
         self.node_scores = node_scores.double().cpu().numpy()
         self.n_roadmap_nodes = len(Q)
@@ -271,17 +284,28 @@ class PSPRM:
         w = self.motion.w_rot
         return torch.cat([q[:, :2], w * torch.cos(q[:, 2:3]), w * torch.sin(q[:, 2:3]), q[:, 3:]], -1)
 
-    def _neighbours(self, A: torch.Tensor, B: torch.Tensor, k: int, exclude_self: bool = False) -> tuple:
-        """k nearest nodes of B for each row of A under the motion metric (candidates from a Euclidean embedding).
-        Returns unique undirected pairs (u in A, v in B) and their motion costs."""
+    def _neighbours(self, A: torch.Tensor, B: torch.Tensor, k: int, exclude_self: bool = False, k_long: int = 0,
+                    rng: Optional[np.random.Generator] = None) -> tuple:
+        """k nearest nodes of B for each row of A under the motion metric (candidates from a Euclidean embedding),
+        plus ``k_long`` random nodes within ``max_edge_length`` (embedding distance). Returns unique undirected pairs
+        (u in A, v in B) and their motion costs."""
         ea, eb = self._embed(A), self._embed(B)
         kk = min(2 * k + (1 if exclude_self else 0), B.shape[0])
-        rows, cols = [], []
+        rows, cols, lrows, lcols = [], [], [], []
+        gen = torch.Generator(device="cpu").manual_seed(int(rng.integers(2**31)) if rng is not None else 0)
         for s in range(0, A.shape[0], 2048):
             d = torch.cdist(ea[s:s + 2048], eb)
             idx = d.topk(kk, largest=False).indices
             rows.append(torch.arange(s, s + idx.shape[0], device=A.device).repeat_interleave(kk))
             cols.append(idx.reshape(-1))
+            if k_long > 0:  # random long edges: random keys, masked to the radius, take the k_long smallest keys
+                key = torch.rand(d.shape, generator=gen).to(d.device)
+                key[d > self.settings.max_edge_length] = 2.0
+                lidx = key.topk(min(k_long, d.shape[1]), largest=False).indices
+                okl = torch.gather(key, 1, lidx) < 2.0
+                r = torch.arange(s, s + idx.shape[0], device=A.device).unsqueeze(1).expand_as(lidx)
+                lrows.append(r[okl])
+                lcols.append(lidx[okl])
         u, v = torch.cat(rows), torch.cat(cols)
         if exclude_self:
             keep = u != v
@@ -294,6 +318,14 @@ class PSPRM:
         rank = torch.arange(len(u), device=u.device) - torch.searchsorted(u, u, right=False)
         keep = (rank < k) & (dist <= self.settings.max_edge_length) & first
         u, v, dist = u[keep], v[keep], dist[keep]
+        if lrows:
+            lu, lv = torch.cat(lrows), torch.cat(lcols)
+            if exclude_self:
+                m = lu != lv
+                lu, lv = lu[m], lv[m]
+            ld = self.motion.distance(A[lu], B[lv])
+            m = ld <= self.settings.max_edge_length
+            u, v, dist = torch.cat([u, lu[m]]), torch.cat([v, lv[m]]), torch.cat([dist, ld[m]])
         if exclude_self:  # undirected, unique
             a, b = torch.minimum(u, v), torch.maximum(u, v)
             key = torch.unique(a * B.shape[0] + b)
@@ -301,28 +333,88 @@ class PSPRM:
             dist = self.motion.distance(A[u], B[v])
         return u, v, dist
 
-    def _edges_valid(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
-        """Collision-free local motion whose N interior configurations keep the target in view."""
-        ok = torch.ones(qa.shape[0], dtype=torch.bool, device=self.device)
-        n = self.settings.n_interp
-        if n > 0 and qa.shape[0]:
-            s = torch.arange(1, n + 1, dtype=self.dtype, device=self.device) / (n + 1)
-            qi = self.motion.interpolate(qa.repeat_interleave(n, 0), qb.repeat_interleave(n, 0), s.repeat(qa.shape[0]))
-            view = self.constraint.in_view(qi, slack=self.settings.edge_view_slack).reshape(-1, n).all(-1)
-            ok &= view
-        idx = torch.nonzero(ok, as_tuple=True)[0]
-        if len(idx):
-            ok[idx] = self.motion.motion_valid(self.checker, qa[idx], qb[idx], self.settings.edge_resolution)
+    # ---- edges: knots on the manifold ---------------------------------------------------------------------------
+    def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
+        """Knots of the local motions qa -> qb (E, dof): (knots (E, M, dof), interior index (E, N)).
+
+        The base follows its differential-drive path (rotate, translate, rotate); the knots are the endpoints, the
+        two drive corners and the N Eq. 1 samples s = i / (N + 1), sorted along the motion, and at every interior
+        knot the non-base camera joints are re-projected onto the visibility manifold (a few Newton steps from the
+        interpolated value), so the camera keeps tracking the target along the edge. Consecutive knots always lie in
+        the same drive phase, so joint-space interpolation between them is a motion the base can execute.
+        """
+        E, n = qa.shape[0], self.settings.n_interp
+        dt, dev = qa.dtype, qa.device
+        if self.robot.mobile:
+            _, r1, d, r2 = self.motion._base_plan(qa, qb)
+            l1, l2, l3 = self.motion.w_rot * r1.abs(), d, self.motion.w_rot * r2.abs()
+            tot = (l1 + l2 + l3).clamp_min(1e-12)
+            corners = torch.stack([l1 / tot, (l1 + l2) / tot], -1)
+        else:
+            corners = torch.zeros(E, 0, dtype=dt, device=dev)
+        samples = (torch.arange(1, n + 1, dtype=dt, device=dev) / (n + 1)).expand(E, n)
+        s_all = torch.cat([torch.zeros(E, 1, dtype=dt, device=dev), samples, corners,
+                           torch.ones(E, 1, dtype=dt, device=dev)], -1)
+        order = torch.argsort(s_all, dim=-1, stable=True)
+        s_sorted = torch.gather(s_all, 1, order)
+        inv = torch.argsort(order, dim=-1)
+        interior_idx = inv[:, 1:1 + n]
+        M = s_all.shape[1]
+        knots = self.motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0), s_sorted.reshape(-1))
+        knots = knots.reshape(E, M, -1)
+        if len(self.track_cols) and M > 2:
+            inner = knots[:, 1:-1].reshape(-1, knots.shape[-1])
+            ps = dataclasses.replace(self.settings.projection, max_iters=self.settings.track_iters)
+            proj, _ = self.constraint.project(inner, ps, self._lo, self._hi, joints=self.track_cols)
+            knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
+        return knots, interior_idx
+
+    def _knots_valid(self, knots: torch.Tensor) -> torch.Tensor:
+        """Collision-free flags (E,) of knot sequences, checked every ``edge_resolution`` between knots."""
+        E, M, dof = knots.shape
+        a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
+        ok = self.checker.valid(knots[:, 1:-1].reshape(-1, dof)).reshape(E, M - 2).all(-1) if M > 2 else \
+            torch.ones(E, dtype=torch.bool, device=knots.device)
+        diff = b - a
+        if self.robot.mobile:
+            diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
+        length = self.motion.distance(a, b)
+        steps = torch.ceil(length / self.settings.edge_resolution).long().clamp(1, 200) - 1
+        seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), steps)
+        if len(seg):
+            k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(steps, 0) - steps, steps)
+            frac = ((k + 1).to(a.dtype) / (steps[seg] + 1).to(a.dtype)).unsqueeze(-1)
+            bad = self.checker.check(a[seg] + diff[seg] * frac)
+            seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
+            seg_ok[seg[bad]] = False
+            ok &= seg_ok.reshape(E, M - 1).all(-1)
         return ok
 
-    def _edge_perception(self, qa, qb, sa, sb) -> torch.Tensor:
-        """Eq. 1: mean score of both ends and the N interpolated configurations."""
-        n = self.settings.n_interp
-        if n == 0 or qa.shape[0] == 0:
-            return edge_perception(sa, sb)
-        s = torch.arange(1, n + 1, dtype=self.dtype, device=self.device) / (n + 1)
-        qi = self.motion.interpolate(qa.repeat_interleave(n, 0), qb.repeat_interleave(n, 0), s.repeat(qa.shape[0]))
-        return edge_perception(sa, sb, self.score_configs(qi).reshape(-1, n))
+    def _edges_valid(self, qa: torch.Tensor, qb: torch.Tensor, chunk: int = 4096) -> tuple:
+        """Valid flags (E,) and Eq. 1 perception (E,) of local motions (NaN where invalid)."""
+        ok = torch.zeros(qa.shape[0], dtype=torch.bool, device=self.device)
+        p = torch.full((qa.shape[0],), float("nan"), dtype=self.dtype, device=self.device)
+        for s0 in range(0, qa.shape[0], chunk):
+            a, b = qa[s0:s0 + chunk], qb[s0:s0 + chunk]
+            knots, interior = self.edge_knots(a, b)
+            v = self._knots_valid(knots)
+            if self.settings.edge_view_slack >= 0:
+                inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, knots.shape[-1]))
+                v &= self.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
+                                             slack=self.settings.edge_view_slack).reshape(v.shape[0], -1).all(-1)
+            ok[s0:s0 + chunk] = v
+            if not self.settings.lazy_edges and v.any():
+                p[s0:s0 + chunk][v] = self._knots_perception(knots[v], interior[v])
+        return ok, p
+
+    def _knots_perception(self, knots: torch.Tensor, interior: torch.Tensor) -> torch.Tensor:
+        """Eq. 1 from knots: mean score of both ends and the N interior samples."""
+        E, M, dof = knots.shape
+        n = interior.shape[1]
+        pts = torch.cat([knots[:, :1], torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, dof)),
+                         knots[:, -1:]], 1)
+        sc = self.score_configs(pts.reshape(-1, dof)).reshape(E, n + 2)
+        return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1])
 
     # ---- query -----------------------------------------------------------------------------------------------------
     def set_alpha(self, alpha: float) -> None:
@@ -359,10 +451,8 @@ class PSPRM:
             rm = torch.as_tensor(g.configs[: self.n_roadmap_nodes][g.node_valid[: self.n_roadmap_nodes]],
                                  dtype=self.dtype, device=self.device)
             rm_ids = np.nonzero(g.node_valid[: self.n_roadmap_nodes])[0]
-            scores_new = self.score_configs(qs)
             for qi, nid in [(0, s_id)] + [(1 + k, gid) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]:
-                e = self._connect(qs[qi:qi + 1], int(nid), rm, rm_ids, float(scores_new[qi]))
-                added_edges.extend(e)
+                added_edges.extend(self._connect(qs[qi:qi + 1], int(nid), rm, rm_ids))
             # a start that can reach a goal directly
             if goal_ids:
                 qg = self._t(g.configs[goal_ids])
@@ -371,13 +461,17 @@ class PSPRM:
                 near = d <= self.settings.max_edge_length
                 if near.any():
                     idx = torch.nonzero(near, as_tuple=True)[0]
-                    okm = self.motion.motion_valid(self.checker, qa[idx], qg[idx], self.settings.edge_resolution)
-                    for j, okj in zip(idx.tolist(), okm.tolist()):
+                    okm, pm = self._query_edges(qa[idx], qg[idx])
+                    for j, okj, pj in zip(idx.tolist(), okm.tolist(), pm):
                         if okj:
-                            added_edges.extend(self._add_query_edges(qa[j:j + 1], qg[j:j + 1],
-                                                                     [s_id], [goal_ids[j]],
-                                                                     scores_new[0:1], scores_new[1 + j:2 + j]))
-            res = astar(g, s_id, goal_ids) if goal_ids else None
+                            added_edges.extend(self._add_query_edges(qa[j:j + 1], qg[j:j + 1], [s_id],
+                                                                     [goal_ids[j]], pj.reshape(1)))
+            if not goal_ids:
+                res = None
+            elif self.settings.lazy_edges:
+                res = lazy_astar(g, s_id, goal_ids, self._verify_edges, apply_to_graph=True)
+            else:
+                res = astar(g, s_id, goal_ids)
             if res is None or not res.success:
                 return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
                                   query_ms=(time.perf_counter() - t0) * 1e3)
@@ -392,15 +486,40 @@ class PSPRM:
             if added_nodes:
                 g.remove_nodes(added_nodes)
 
-    def _add_query_edges(self, qa, qb, ua, vb, sa, sb) -> list:
+    def _verify_edges(self, edge_ids: np.ndarray, path) -> "EdgeCheck":
+        """Lazy Eq. 1: score the interpolated configurations of not-yet-verified edges and return their weights."""
+        g = self.graph
+        ver = g.edge_attribute("verified")
+        todo = np.asarray([e for e in edge_ids if ver[e] < 0.5], dtype=np.int64)
+        if len(todo) == 0:
+            return EdgeCheck()
+        u, v = g.edge_u[todo], g.edge_v[todo]
+        knots, interior = self.edge_knots(self._t(g.configs[u]), self._t(g.configs[v]))
+        p = self._knots_perception(knots, interior).double().cpu().numpy()
+        g.edge_attribute("c_p")[todo] = p
+        ver[todo] = 1.0
+        w = combined_weight(p, g.edge_attribute("c_m")[todo], self.settings.alpha)
+        return EdgeCheck(invalid=(), weights={int(e): float(x) for e, x in zip(todo, w)})
+
+    def _add_query_edges(self, qa, qb, ua, vb, p) -> list:
+        """Add already-validated query edges with their Eq. 1 perception ``p`` (E,)."""
         dist = self.motion.distance(qa, qb)
-        p = self._edge_perception(qa, qb, sa, sb)
         c_m = (dist / self.max_motion).clamp(0, 1)
         w = combined_weight(p, c_m, self.settings.alpha)
         return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.double().cpu().numpy(),
-                                         c_m=c_m.double().cpu().numpy(), c_p=p.double().cpu().numpy()))
+                                         c_m=c_m.double().cpu().numpy(), c_p=p.double().cpu().numpy(),
+                                         verified=np.ones(len(ua))))
 
-    def _connect(self, q: torch.Tensor, nid: int, rm: torch.Tensor, rm_ids: np.ndarray, score: float) -> list:
+    def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
+        """Validity and Eq. 1 perception of query edges (always scored in full, never lazily)."""
+        knots, interior = self.edge_knots(qa, qb)
+        ok = self._knots_valid(knots)
+        p = torch.zeros(qa.shape[0], dtype=self.dtype, device=self.device)
+        if ok.any():
+            p[ok] = self._knots_perception(knots[ok], interior[ok])
+        return ok, p
+
+    def _connect(self, q: torch.Tensor, nid: int, rm: torch.Tensor, rm_ids: np.ndarray) -> list:
         k = self.settings.connect_k
         d = self.motion.distance(q.expand(rm.shape[0], -1), rm)
         kk = min(k, rm.shape[0])
@@ -409,29 +528,27 @@ class PSPRM:
         if len(cand) == 0:
             return []
         qa = q.expand(len(cand), -1)
-        ok = self.motion.motion_valid(self.checker, qa, rm[cand], self.settings.edge_resolution)
-        cand = cand[ok]
+        ok, p = self._query_edges(qa, rm[cand])
+        cand, p = cand[ok], p[ok]
         if len(cand) == 0:
             return []
-        ns = torch.as_tensor(self.node_scores[rm_ids[cand.cpu().numpy()]], dtype=self.dtype, device=self.device)
-        sa = torch.full((len(cand),), score, dtype=self.dtype, device=self.device)
         return self._add_query_edges(q.expand(len(cand), -1), rm[cand], [nid] * len(cand),
-                                     rm_ids[cand.cpu().numpy()], sa, ns)
+                                     rm_ids[cand.cpu().numpy()], p)
 
     def _finish(self, path: list, cost: float, timing: bool) -> PlanResult:
         g = self.graph
-        Q = torch.as_tensor(g.configs[path], dtype=torch.float64)
-        corners = [Q[0:1]]
-        for a, b in zip(Q[:-1], Q[1:]):
-            corners.append(self.motion.base_waypoints(a, b)[1:])
-        W = torch.cat(corners)
+        Q = self._t(g.configs[path])
+        if len(Q) > 1:
+            knots, _ = self.edge_knots(Q[:-1], Q[1:])
+            W = torch.cat([Q[0:1], knots[:, 1:].reshape(-1, Q.shape[1])]).double()
+        else:
+            W = Q.double()
         keep = torch.ones(len(W), dtype=torch.bool)
-        keep[1:] = (W[1:] - W[:-1]).abs().max(-1).values > 1e-9
+        keep[1:] = (W[1:] - W[:-1]).abs().max(-1).values > 1e-7
         W = W[keep]
-        edge, s, dense = self.motion.dense(Q[:-1], Q[1:], self.settings.edge_resolution)
-        dense = torch.cat([Q[0:1], dense, Q[-1:]]) if len(dense) else Q
+        dense = self.densify(W)
         dense_scores = self.score_configs(dense.to(self.dtype)).double().cpu().numpy()
-        length = float(self.motion.distance(Q[:-1], Q[1:]).sum()) if len(Q) > 1 else 0.0
+        length = float(self.motion.distance(W[:-1], W[1:]).sum()) if len(W) > 1 else 0.0
         traj = None
         if timing and len(W) > 1:
             from .timing import time_parameterize
@@ -446,6 +563,21 @@ class PSPRM:
         return PlanResult(True, "ok", path_nodes=list(path), waypoints=W.numpy(), dense=dense.numpy(),
                           dense_scores=dense_scores, trajectory=traj, cost=float(cost), path_length=length,
                           mean_score=float(dense_scores.mean()))
+
+    def densify(self, W: torch.Tensor) -> torch.Tensor:
+        """Configurations every ``edge_resolution`` along the piecewise-linear knot path ``W`` (K, dof)."""
+        if len(W) < 2:
+            return W
+        a, b = W[:-1], W[1:]
+        diff = b - a
+        if self.robot.mobile:
+            diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
+        steps = torch.ceil(self.motion.distance(a, b) / self.settings.edge_resolution).long().clamp(1, 1000)
+        seg = torch.repeat_interleave(torch.arange(len(a)), steps)
+        k = torch.arange(len(seg)) - torch.repeat_interleave(torch.cumsum(steps, 0) - steps, steps)
+        frac = (k.to(W.dtype) / steps[seg].to(W.dtype)).unsqueeze(-1)
+        out = a[seg] + diff[seg] * frac
+        return torch.cat([out, W[-1:]])
 
     # ---- persistence -----------------------------------------------------------------------------------------------
     def fingerprint(self) -> str:
@@ -465,6 +597,7 @@ class PSPRM:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, configs=g.configs[:n], node_valid=g.node_valid[:n], eu=g.edge_u[e], ev=g.edge_v[e],
                             c_m=g.edge_attribute("c_m")[e], c_p=g.edge_attribute("c_p")[e],
+                            verified=g.edge_attribute("verified")[e],
                             node_scores=self.node_scores[:n], max_motion=self.max_motion,
                             fingerprint=self.fingerprint(), stats=json.dumps(self.stats))
         return path
@@ -477,7 +610,7 @@ class PSPRM:
         g.add_nodes(data["configs"])
         bad = np.nonzero(~data["node_valid"])[0]
         w = combined_weight(data["c_p"], data["c_m"], self.settings.alpha)
-        g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"])
+        g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"], verified=data["verified"])
         if len(bad):
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]

@@ -1,0 +1,91 @@
+"""Build planners by variant name (``neural-psprm-line``, ``psprm-frustum``, ...) for a scene and target(s)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..errors import ConfigError, PsprmError
+from ..paths import config_dir, project_root
+from ..robot import RobotModel
+from ..scene import Scene
+from .psprm import PSPRM, VARIANTS, PSPRMSettings
+
+log = logging.getLogger(__name__)
+
+DEFAULT_ALPHA = {"oracle": 0.75, "neural": 0.8}
+
+
+def default_checkpoint() -> Path:
+    """The shipped surrogate checkpoint (``psprm_core/data/surrogate.pt``)."""
+    return project_root() / "psprm_core" / "data" / "surrogate.pt"
+
+
+def make_scorer(kind: str, scene: Scene, targets: Sequence[str], intrinsics, checkpoint: Optional[Path] = None,
+                multi_mode: str = "mean", oracle=None):
+    """Scorer of one or several targets: ``neural`` (surrogate + ray casting), ``oracle`` or ``geometric``."""
+    from ..perception.scoring import GeometricScorer, MultiTargetScorer, NeuralScorer, OracleScorer
+
+    for t in targets:
+        scene.target(t)  # clear error for unknown targets
+    if kind == "neural":
+        from ..perception.surrogate import load_surrogate
+
+        ck = Path(checkpoint) if checkpoint else default_checkpoint()
+        if not ck.is_file():
+            raise PsprmError(f"surrogate checkpoint not found: {ck} (train one with `psprm dataset` + `psprm train`)")
+        model = load_surrogate(ck)
+        per = [NeuralScorer(model, scene, t) for t in targets]
+    elif kind == "oracle":
+        from ..perception.oracle import Oracle
+
+        oracle = oracle or Oracle(scene, intrinsics=intrinsics)
+        per = [OracleScorer(oracle, t) for t in targets]
+    elif kind == "geometric":
+        per = [GeometricScorer(scene, t, intrinsics) for t in targets]
+    else:
+        raise PsprmError(f"unknown scorer '{kind}' (neural, oracle, geometric)")
+    if len(per) == 1:
+        return per[0]
+    return MultiTargetScorer(per, [scene.target(t).center for t in targets], mode=multi_mode)
+
+
+def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Optional[RobotModel] = None,
+                 settings: Optional[PSPRMSettings] = None, checkpoint: Optional[Path] = None,
+                 multi_mode: str = "mean", device: str = "cpu", **overrides) -> PSPRM:
+    """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint."""
+    if variant not in VARIANTS:
+        raise PsprmError(f"unknown planner '{variant}' (choose from {', '.join(sorted(VARIANTS))})")
+    constraint, kind = VARIANTS[variant]
+    robot = robot or RobotModel.load(scene.robot)
+    if settings is None:
+        path = config_dir() / "planners" / "psprm.yaml"
+        settings = PSPRMSettings.from_yaml(path) if path.is_file() else PSPRMSettings()
+    alpha = overrides.pop("alpha", None)
+    settings = dataclasses.replace(settings, constraint=constraint,
+                                   alpha=DEFAULT_ALPHA[kind] if alpha is None else alpha,
+                                   lazy_edges=settings.lazy_edges or kind == "oracle",
+                                   **{k: v for k, v in overrides.items() if v is not None})
+    scorer = make_scorer(kind, scene, targets, robot.config.intrinsics, checkpoint, multi_mode)
+    focus = np.mean([scene.target(t).center for t in targets], axis=0)
+    return PSPRM(robot, scene, scorer, focus, settings, device=device)
+
+
+def problem_configurations(robot: RobotModel, scene: Scene, problem) -> tuple:
+    """Start (dof,) and goal configurations (G, dof) of a scene problem (goal regions -> their centre poses)."""
+    start = robot.configuration(problem.start)
+    goals = []
+    if problem.goal:
+        goals.append(robot.configuration(problem.goal))
+    for name in problem.goal_regions:
+        gr = scene.goal(name)
+        vals = dict(gr.joints)
+        vals.update(base_x=gr.base[0], base_y=gr.base[1], base_theta=gr.base[2])
+        goals.append(robot.configuration(vals))
+    if not goals:
+        raise ConfigError(scene.source, f"problems.{problem.name}", "problem has no goal")
+    return start, np.stack(goals)
