@@ -64,7 +64,7 @@ class PSPRMSettings:
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
-    connect_k: int = 25  # neighbours tried when connecting a start or goal
+    connect_k: int = 12  # neighbours tried when connecting a start or goal
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     sample_batch: int = 2048
     build_timeout_s: float = 120.0
@@ -448,24 +448,33 @@ class PSPRM:
             ids = g.add_nodes(qs.double().cpu().numpy())
             added_nodes = list(ids)
             s_id, goal_ids = int(ids[0]), [int(i) for i, b in zip(ids[1:], bad[1:].tolist()) if not b]
-            rm = torch.as_tensor(g.configs[: self.n_roadmap_nodes][g.node_valid[: self.n_roadmap_nodes]],
-                                 dtype=self.dtype, device=self.device)
-            rm_ids = np.nonzero(g.node_valid[: self.n_roadmap_nodes])[0]
-            for qi, nid in [(0, s_id)] + [(1 + k, gid) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]:
-                added_edges.extend(self._connect(qs[qi:qi + 1], int(nid), rm, rm_ids))
-            # a start that can reach a goal directly
-            if goal_ids:
-                qg = self._t(g.configs[goal_ids])
-                qa = qs[0:1].expand(len(goal_ids), -1)
-                d = self.motion.distance(qa, qg)
-                near = d <= self.settings.max_edge_length
-                if near.any():
-                    idx = torch.nonzero(near, as_tuple=True)[0]
-                    okm, pm = self._query_edges(qa[idx], qg[idx])
-                    for j, okj, pj in zip(idx.tolist(), okm.tolist(), pm):
-                        if okj:
-                            added_edges.extend(self._add_query_edges(qa[j:j + 1], qg[j:j + 1], [s_id],
-                                                                     [goal_ids[j]], pj.reshape(1)))
+            n = self.n_roadmap_nodes
+            rm_ids = np.nonzero(g.node_valid[:n])[0]
+            rm = self._roadmap_tensor(rm_ids)
+            # candidate edges of the start and every goal, plus start-goal, checked in one batch
+            queries = [(0, s_id)] + [(1 + k, int(gid)) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]
+            qq = qs[[i for i, _ in queries]]
+            d = torch.cdist(self._embed(qq), self._embed(rm))
+            kk = min(self.settings.connect_k, rm.shape[0])
+            cand = d.topk(kk, largest=False).indices  # (Q, kk)
+            src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
+            dst = cand.reshape(-1)
+            qa, qb = qq[src], rm[dst]
+            u_ids = [queries[i][1] for i in src.tolist()]
+            v_ids = rm_ids[dst.cpu().numpy()].tolist()
+            for j, gid in enumerate(goal_ids):  # direct start -> goal motions
+                qa = torch.cat([qa, qs[0:1]])
+                qb = torch.cat([qb, self._t(g.configs[gid])[None]])
+                u_ids.append(s_id)
+                v_ids.append(gid)
+            dist = self.motion.distance(qa, qb)
+            near = torch.nonzero(dist <= 2 * self.settings.max_edge_length, as_tuple=True)[0]
+            if len(near):
+                ok, pe = self._query_edges(qa[near], qb[near])
+                keep = near[ok]
+                if len(keep):
+                    added_edges.extend(self._add_query_edges(qa[keep], qb[keep], np.asarray(u_ids)[keep.cpu().numpy()],
+                                                             np.asarray(v_ids)[keep.cpu().numpy()], pe[ok]))
             if not goal_ids:
                 res = None
             elif self.settings.lazy_edges:
@@ -501,6 +510,14 @@ class PSPRM:
         w = combined_weight(p, g.edge_attribute("c_m")[todo], self.settings.alpha)
         return EdgeCheck(invalid=(), weights={int(e): float(x) for e, x in zip(todo, w)})
 
+    def _roadmap_tensor(self, ids: np.ndarray) -> torch.Tensor:
+        """Roadmap node configurations as a tensor on the planner's device (cached until the node set changes)."""
+        key = hash(np.packbits(self.graph.node_valid[: self.n_roadmap_nodes]).tobytes())
+        if getattr(self, "_rm_cache_key", None) != key:
+            self._rm_cache = torch.as_tensor(self.graph.configs[ids], dtype=self.dtype, device=self.device)
+            self._rm_cache_key = key
+        return self._rm_cache
+
     def _add_query_edges(self, qa, qb, ua, vb, p) -> list:
         """Add already-validated query edges with their Eq. 1 perception ``p`` (E,)."""
         dist = self.motion.distance(qa, qb)
@@ -518,22 +535,6 @@ class PSPRM:
         if ok.any():
             p[ok] = self._knots_perception(knots[ok], interior[ok])
         return ok, p
-
-    def _connect(self, q: torch.Tensor, nid: int, rm: torch.Tensor, rm_ids: np.ndarray) -> list:
-        k = self.settings.connect_k
-        d = self.motion.distance(q.expand(rm.shape[0], -1), rm)
-        kk = min(k, rm.shape[0])
-        cand = torch.topk(d, kk, largest=False).indices
-        cand = cand[d[cand] <= 2 * self.settings.max_edge_length]
-        if len(cand) == 0:
-            return []
-        qa = q.expand(len(cand), -1)
-        ok, p = self._query_edges(qa, rm[cand])
-        cand, p = cand[ok], p[ok]
-        if len(cand) == 0:
-            return []
-        return self._add_query_edges(q.expand(len(cand), -1), rm[cand], [nid] * len(cand),
-                                     rm_ids[cand.cpu().numpy()], p)
 
     def _finish(self, path: list, cost: float, timing: bool) -> PlanResult:
         g = self.graph

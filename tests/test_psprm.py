@@ -1,0 +1,122 @@
+"""PS-PRM planner: projection onto the visibility manifold, paths that are collision-free (pybullet's exact check),
+executable by a differential drive and within the joint limits, perception better than a plain shortest-path
+roadmap, clear failures for bad queries, save/load."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from psprm_core.errors import ConfigError
+from psprm_core.paths import resolve_named
+from psprm_core.perception.scoring import GeometricScorer
+from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
+from psprm_core.planning.factory import problem_configurations
+from psprm_core.planning.psprm import PSPRM, PSPRMSettings
+from psprm_core.planning.timing import check_base_segments, max_limit_violation
+from psprm_core.reference import PybulletWorld, sample_uniform
+from psprm_core.scene import load_scene
+
+N_NODES = 700
+
+
+@pytest.fixture(scope="module")
+def home(load_robot):
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    prob = scene.problem("tv_west_to_southeast")
+    scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
+    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings(n_nodes=N_NODES, seed=1))
+    stats = planner.build(template=problem_configurations(robot, scene, prob)[0])
+    assert stats["success"] and stats["n_nodes"] == N_NODES
+    return scene, robot, planner
+
+
+@pytest.mark.parametrize("kind", ["line", "frustum"])
+def test_projection_reaches_the_manifold(kind, load_robot):
+    robot = load_robot("ur5_mobile")
+    target = [2.0, 1.0, 0.9]
+    c = VisibilityConstraint(robot, kind, target, margin=0.05)
+    q = torch.as_tensor(sample_uniform(robot, 300, np.random.default_rng(0), base_box=np.array([[0, 4.0], [0, 3.0]])),
+                        dtype=torch.float64)
+    qp, ok = c.project(q, ProjectionSettings(tolerance=0.01))
+    assert ok.float().mean() > 0.8
+    assert (c.error(qp[ok]) < 0.01).all()
+    lo, hi = torch.as_tensor(robot.lower), torch.as_tensor(robot.upper)
+    assert ((qp >= lo - 1e-9) & (qp <= hi + 1e-9)).all()
+    if kind == "line":  # the target is on the optical axis, in front of the camera
+        pc = c.target_in_camera(qp[ok])
+        assert (pc[:, 2] > 0.45).all() and (pc[:, :2].norm(dim=-1) < 0.011).all()
+
+
+def test_path_is_collision_free_drivable_and_timed(home):
+    scene, robot, planner = home
+    start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
+    res = planner.plan(start, goals)
+    assert res.success, res.reason
+    assert np.allclose(res.waypoints[0], start, atol=1e-5) and np.allclose(res.waypoints[-1], goals[0], atol=1e-5)
+    # every configuration along the executed path is free under pybullet's exact mesh check
+    world = PybulletWorld(robot, scene.collision_boxes())
+    try:
+        assert not world.in_collision(res.dense).any()
+    finally:
+        world.close()
+    assert check_base_segments(res.waypoints, (0, 1, 2), 1e-5) == []  # rotate or drive straight, never sideways
+    traj = res.trajectory
+    assert max_limit_violation(traj, robot.velocity, robot.acceleration) < 1e-6
+    assert np.all(np.diff(traj.times) > 0)
+    assert 0.0 <= res.mean_score <= 1.0 and res.path_length > 0
+
+
+def test_perception_weighting_beats_shortest_path(home):
+    """Same roadmap, same problems: alpha = 0.8 keeps the target better in view than alpha = 0 (Eq. 2)."""
+    scene, robot, planner = home
+    probs = [p for p in scene.problems if p.target == "tv"]
+    scores = {}
+    for alpha in (0.0, 0.8):
+        planner.set_alpha(alpha)
+        vals = []
+        for p in probs:
+            res = planner.plan(*problem_configurations(robot, scene, p), timing=False)
+            assert res.success, res.reason
+            vals.append(res.mean_score)
+        scores[alpha] = float(np.mean(vals))
+    planner.set_alpha(0.8)
+    assert scores[0.8] > scores[0.0] + 0.02, scores
+
+
+def test_bad_queries_fail_cleanly(home):
+    scene, robot, planner = home
+    start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
+    table = scene.obstacle("table")
+    inside = start.copy()
+    inside[:2] = table.center[:2]
+    res = planner.plan(inside, goals)
+    assert not res.success and "start" in res.reason and "environment" in res.reason
+    res = planner.plan(start, inside)
+    assert not res.success and "goal" in res.reason
+    nan = start.copy()
+    nan[0] = math.nan
+    res = planner.plan(nan, goals)
+    assert not res.success and "NaN" in res.reason
+    outside = goals[0].copy()
+    outside[:2] = [50.0, 50.0]
+    assert not planner.plan(start, outside).success
+
+
+def test_save_load_roundtrip(home, tmp_path):
+    scene, robot, planner = home
+    start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
+    a = planner.plan(start, goals, timing=False)
+    path = planner.save(tmp_path / "roadmap.npz")
+    other = PSPRM(robot, scene, planner.scorer, planner.constraint.target.numpy(), planner.settings)
+    other.load(path)
+    b = other.plan(start, goals, timing=False)
+    assert b.success and abs(a.cost - b.cost) < 1e-6
+    moved = scene.with_obstacle_pose("table", scene.obstacle("table").center + np.array([0.5, 0, 0]))
+    stale = PSPRM(robot, moved, planner.scorer, planner.constraint.target.numpy(), planner.settings)
+    with pytest.raises(ConfigError, match="fingerprint"):
+        stale.load(path)
