@@ -62,9 +62,19 @@ class BoxTensors:
 
 def point_box_sqdist(points: torch.Tensor, box_center: torch.Tensor, box_rot: torch.Tensor,
                      box_half: torch.Tensor) -> torch.Tensor:
-    """Squared distance from points (..., 3) to boxes (broadcast shapes (..., 3), (..., 3, 3), (..., 3))."""
-    local = ((points - box_center).unsqueeze(-2) @ box_rot).squeeze(-2)
+    """Squared distance from points (n, 3) to paired boxes (n, 3), (n, 3, 3), (n, 3) -> (n,)."""
+    local = ((points - box_center).unsqueeze(-1) * box_rot).sum(-2)
     d = local - torch.maximum(torch.minimum(local, box_half), -box_half)
+    return (d * d).sum(-1)
+
+
+def point_boxes_sqdist(points: torch.Tensor, boxes: "BoxTensors") -> torch.Tensor:
+    """Squared distance from every point (n, 3) to every box -> (n, K), with one matrix product."""
+    K = len(boxes)
+    Rcat = boxes.rotation.transpose(0, 1).reshape(3, 3 * K)  # column block k = R_k
+    off = (boxes.center.unsqueeze(1) @ boxes.rotation).reshape(3 * K)  # R_k^T c_k, flattened
+    local = (points @ Rcat - off).reshape(-1, K, 3)
+    d = local - torch.maximum(torch.minimum(local, boxes.half), -boxes.half)
     return (d * d).sum(-1)
 
 
@@ -194,7 +204,7 @@ class CollisionChecker:
         R, t = poses
         body = self.el_body[e_idx]
         Rb = R[b_idx, body]
-        c = (Rb @ self.el_c[e_idx].unsqueeze(-1)).squeeze(-1) + t[b_idx, body]
+        c = (Rb * self.el_c[e_idx].unsqueeze(-2)).sum(-1) + t[b_idx, body]
         return c, Rb @ self.el_R[e_idx]
 
     def _env(self, poses) -> torch.Tensor:
@@ -206,8 +216,8 @@ class CollisionChecker:
         bx = self.boxes
         # level 1: body bounding spheres vs boxes, (B, NBe, K)
         bodies = self.bodies_with_elements
-        bc = (R[:, bodies] @ self.body_c[bodies].unsqueeze(-1)).squeeze(-1) + t[:, bodies]
-        d2 = point_box_sqdist(bc.unsqueeze(2), bx.center, bx.rotation, bx.half)
+        bc = (R[:, bodies] * self.body_c[bodies].unsqueeze(-2)).sum(-1) + t[:, bodies]  # (B, NBe, 3)
+        d2 = point_boxes_sqdist(bc.reshape(-1, 3), bx).reshape(B, len(bodies), -1)
         b_i, nb_i, k_i = torch.nonzero(d2 < self.body_r[bodies].unsqueeze(-1) ** 2, as_tuple=True)
         if len(b_i) == 0:
             return hit
@@ -239,7 +249,7 @@ class CollisionChecker:
         ea, eb = self.self_pairs[:, 0], self.self_pairs[:, 1]
         # element centres for all configurations (B, E, 3) once, then pair distances (B, P)
         body = self.el_body
-        c_all = (R[:, body] @ self.el_c.unsqueeze(-1)).squeeze(-1) + t[:, body]
+        c_all = (R[:, body] * self.el_c.unsqueeze(-2)).sum(-1) + t[:, body]
         d2 = ((c_all[:, ea] - c_all[:, eb]) ** 2).sum(-1)
         b_i, p_i = torch.nonzero(d2 < (self.el_r[ea] + self.el_r[eb]) ** 2, as_tuple=True)
         if len(b_i) == 0:

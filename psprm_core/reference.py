@@ -100,6 +100,12 @@ class PybulletWorld:
                 self.joint_index[info[1].decode()] = i
         self.link_index = {v: k for k, v in self.link_name.items()}
         self.allowed = load_acm(robot) if allowed_pairs is None else allowed_pairs
+        # let pybullet skip allowed pairs itself (its fastest loop); contacts are still filtered below
+        for pair in self.allowed:
+            a, b = tuple(pair)
+            if a in self.link_index and b in self.link_index:
+                p.setCollisionFilterPair(self.body, self.body, self.link_index[a], self.link_index[b], 0,
+                                         physicsClientId=self.cid)
         self.box_bodies = {}
         for b in boxes:
             self.add_box(b)
