@@ -92,3 +92,68 @@ def kinematics_benchmark(robot_name: str, scene_name: str, n: int = 10000, seed:
         "fk_max_position_error_m": pos_err,
         "fk_max_rotation_error_rad": rot_err,
     }
+
+
+def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, template: np.ndarray,
+                    target_center: np.ndarray, min_distance: float = 1.0) -> list:
+    """``n`` random collision-free (start, goal) pairs: base poses uniform over the workspace, the camera joints
+    aimed at the target (projection onto the line-of-sight manifold with the non-base joints), others at
+    ``template``; start and goal at least ``min_distance`` apart."""
+    from .planning.constraints import ProjectionSettings, VisibilityConstraint
+    from .planning.psprm import camera_joint_mask
+
+    mask = camera_joint_mask(robot)
+    mask[: robot.base_dof] = False
+    cols = np.nonzero(mask)[0]
+    con = VisibilityConstraint(robot, "line", target_center)
+    out = []
+    while len(out) < n:
+        q = np.tile(template, (4 * n, 1))
+        q[:, 0] = rng.uniform(*scene.workspace[0], 4 * n)
+        q[:, 1] = rng.uniform(*scene.workspace[1], 4 * n)
+        q[:, 2] = rng.uniform(-np.pi, np.pi, 4 * n)
+        qt = torch.as_tensor(q, dtype=torch.float32)
+        qt, _ = con.project(qt, ProjectionSettings(max_iters=10), joints=cols)
+        qt = qt[checker.valid(qt)]
+        qs = qt.double().numpy()
+        for a, b in zip(qs[0::2], qs[1::2]):
+            if np.linalg.norm(a[:2] - b[:2]) >= min_distance and len(out) < n:
+                out.append((a, b))
+    return out
+
+
+def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000, queries: int = 50,
+                      seed: int = 0, threads: int = 2, target: str | None = None) -> dict:
+    """Build time (sampling, projection, collision, neural scoring with occlusion) and query times of PS-PRM."""
+    from .collision import CollisionChecker
+    from .paths import resolve_named
+    from .planning.factory import make_planner
+    from .robot import RobotModel
+    from .scene import load_scene
+
+    torch.set_num_threads(threads)
+    scene = load_scene(resolve_named("scene", scene_name))
+    robot = RobotModel.load(scene.robot)
+    target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
+    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
+    stats = p.build()
+    rng = np.random.default_rng(seed + 1)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    probs = random_problems(robot, scene, checker, queries, rng, robot.default_configuration(),
+                            scene.target(target).center)
+    times, search, ok, scores = [], [], 0, []
+    for a, b in probs:
+        res = p.plan(a, b, timing=False)
+        times.append(res.query_ms)
+        ok += res.success
+        if res.success:
+            scores.append(res.mean_score)
+    return {
+        "scene": scene.name, "planner": planner, "target": target, "threads": threads,
+        "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
+        "build_s": stats.get("build_s"), "sample_s": stats.get("sample_s"), "edges_s": stats.get("edges_s"),
+        "score_s": stats.get("score_s"),
+        "queries": len(probs), "success_rate": ok / len(probs),
+        "query_ms": float(np.median(times)), "query_p95_ms": float(np.percentile(times, 95)),
+        "mean_perception_score": float(np.mean(scores)) if scores else float("nan"),
+    }

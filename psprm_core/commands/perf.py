@@ -17,6 +17,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--threads", type=int, default=2)
     k.add_argument("--json", action="store_true", help="print one JSON object")
     k.set_defaults(func=_kinematics)
+    pl = ps.add_parser("planner", help="PS-PRM build time (incl. neural scoring, occlusion, collision) and query time")
+    pl.add_argument("--scene", required=True)
+    pl.add_argument("--planner", default="neural-psprm-line")
+    pl.add_argument("--target", default=None)
+    pl.add_argument("--nodes", type=int, default=3000)
+    pl.add_argument("--queries", type=int, default=50)
+    pl.add_argument("--seed", type=int, default=0)
+    pl.add_argument("--threads", type=int, default=2)
+    pl.add_argument("--json", action="store_true")
+    pl.set_defaults(func=_planner)
 
 
 def _kinematics(args) -> int:
@@ -28,4 +38,17 @@ def _kinematics(args) -> int:
     else:
         for k, v in res.items():
             print(f"{k:28s} {v:.6g}" if isinstance(v, float) else f"{k:28s} {v}")
+    return 0
+
+
+def _planner(args) -> int:
+    from ..benchmarks import planner_benchmark
+
+    res = planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
+                            threads=args.threads, target=args.target)
+    if args.json:
+        print(json.dumps(res))
+    else:
+        for k, v in res.items():
+            print(f"{k:24s} {v:.6g}" if isinstance(v, float) else f"{k:24s} {v}")
     return 0
