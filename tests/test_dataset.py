@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 import json
-import math
 import pickle
 
 import numpy as np
 import pytest
 
 from psprm_core.camera import CameraIntrinsics
-from psprm_core.geometry import yaw_to_quat
 from psprm_core.perception.dataset import (
     OracleFactory,
     SamplingConfig,
@@ -25,23 +23,7 @@ from psprm_core.perception.dataset import (
 )
 from psprm_core.scene import Target
 
-FACE = Target(name="alice", detector_class="face", center=np.array([1.0, 2.0, 1.5]), size=np.array([0.1, 0.2, 0.25]),
-              quat=yaw_to_quat(2.0))
-CUP = Target(name="cup1", detector_class="cup", center=np.array([-1.0, 0.5, 0.8]), size=np.array([0.08, 0.08, 0.1]))
-
-
-class AnalyticScorer:
-    """Stand-in for the rendering oracle: falls with distance and with the angle between facing and camera."""
-
-    def __init__(self, targets):
-        self.targets = {t.name: t for t in targets}
-
-    def score(self, pose: np.ndarray, target_name: str) -> float:
-        t = self.targets[target_name]
-        to_cam = pose[:3, 3] - t.center
-        d = float(np.linalg.norm(to_cam))
-        facing_cos = float(t.facing @ to_cam) / d
-        return float(1 / (1 + math.exp(-(4 * facing_cos - 1.5 * d + 2))))
+from synthetic_targets import CUP, FACE, AnalyticScorer  # noqa: E402
 
 
 class AnalyticScorerFactory:
