@@ -141,7 +141,7 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     probs = random_problems(robot, scene, checker, queries, rng, robot.default_configuration(),
                             scene.target(target).center)
-    times, search, ok, scores = [], [], 0, []
+    times, ok, scores = [], 0, []
     for a, b in probs:
         res = p.plan(a, b, timing=False)
         times.append(res.query_ms)

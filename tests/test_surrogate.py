@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core.geometry import make_transform, yaw_to_quat
+from psprm_core.geometry import make_transform
 from psprm_core.perception.dataset import build_dataset, load_dataset
 from psprm_core.perception.occlusion import OcclusionChecker
 from psprm_core.perception.surrogate import (
@@ -28,7 +28,7 @@ from psprm_core.perception.training import (
     perception_metrics,
     train_surrogate,
 )
-from psprm_core.scene import Box, Scene, Target
+from psprm_core.scene import Box, Scene
 
 from synthetic_targets import CUP, FACE, AnalyticScorer  # noqa: E402
 

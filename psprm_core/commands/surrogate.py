@@ -79,7 +79,6 @@ def _train(args) -> int:
 def _eval(args) -> int:
     from ..errors import PsprmError
     from ..paths import resolve_named
-    from ..perception.dataset import load_dataset
     from ..perception.surrogate import load_surrogate
     from ..perception.training import evals_per_s, evaluate_surrogate
     from ..scene import load_scene
@@ -94,14 +93,12 @@ def _eval(args) -> int:
     occ_dir = Path(args.occluded)
     if occ_dir.is_dir():
         meta = json.loads((occ_dir / "metadata.json").read_text())
-        scene_name = meta.get("scene") or meta.get("scorer", "")
         scene = load_scene(resolve_named("scene", _scene_from_meta(meta)))
         occ = evaluate_surrogate(model, args.occluded, split="all", scene=scene)
         out["occluded_fraction"] = occ.get("occluded_fraction")
         out["occluded_rmse_surrogate"] = occ.get("occluded_rmse_surrogate", occ.get("occluded", {}).get("rmse"))
         out["occluded_rmse_raycast"] = occ.get("occluded_rmse_raycast", occ.get("occluded_raycast", {}).get("rmse"))
         out["occluded_details"] = {k: v for k, v in occ.items() if k.startswith("occluded")}
-        del scene_name
     out["evals_per_s"] = evals_per_s(model, threads=2)
     print(json.dumps(out, default=float) if args.json else "\n".join(f"{k:28s} {v}" for k, v in out.items()))
     return 0

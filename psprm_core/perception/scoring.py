@@ -14,8 +14,7 @@ planner obtains camera poses from batched FK.
 from __future__ import annotations
 
 import logging
-import math
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 import torch
