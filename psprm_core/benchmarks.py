@@ -157,3 +157,77 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
         "query_ms": float(np.median(times)), "query_p95_ms": float(np.percentile(times, 95)),
         "mean_perception_score": float(np.mean(scores)) if scores else float("nan"),
     }
+
+
+def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames: int = 12) -> dict:
+    """Judge an executed path with the real detector: ``frames`` camera frames evenly spaced along ``dense``.
+
+    Returns the mean confidence and the detection rate (frames at or above the detector's calibrated threshold),
+    averaged over the targets (several targets: the nursing-style average).
+    """
+    idx = np.unique(np.linspace(0, len(dense) - 1, frames).round().astype(int))
+    cams = robot.camera_poses(torch.as_tensor(dense[idx], dtype=torch.float64)).numpy()
+    conf, det = [], []
+    for t in targets:
+        res = oracle.score_many(list(cams), t)
+        conf.append([r.score for r in res])
+        det.append([r.detected for r in res])
+    return {"oracle_confidence": float(np.mean(conf)), "oracle_detection_rate": float(np.mean(det)),
+            "frames": int(len(idx))}
+
+
+def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000,
+                               problems: int = 100, frames: int = 12, seed: int = 0, threads: int = 2,
+                               target: str | None = None, oracle_problems: int | None = None) -> dict:
+    """Issue 4's evidence: success over random problems, and oracle-measured perception along the paths of PS-PRM
+    vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2)."""
+    from .collision import CollisionChecker
+    from .paths import resolve_named
+    from .perception.oracle import Oracle
+    from .planning.factory import make_planner
+    from .robot import RobotModel
+    from .scene import load_scene
+
+    torch.set_num_threads(threads)
+    scene = load_scene(resolve_named("scene", scene_name))
+    robot = RobotModel.load(scene.robot)
+    target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
+    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
+    stats = p.build()
+    alpha = p.settings.alpha
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    probs = random_problems(robot, scene, checker, problems, np.random.default_rng(seed + 1),
+                            robot.default_configuration(), scene.target(target).center)
+    oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
+    n_oracle = len(probs) if oracle_problems is None else min(oracle_problems, len(probs))
+    rows = {"psprm": [], "shortest": []}
+    try:
+        for i, (a, b) in enumerate(probs):
+            for key, al in (("psprm", alpha), ("shortest", 0.0)):
+                p.set_alpha(al)
+                res = p.plan(a, b, timing=False)
+                row = {"success": res.success, "length": res.path_length, "predicted": res.mean_score}
+                if res.success and i < n_oracle:
+                    row.update(oracle_path_metrics(oracle, robot, res.dense, [target], frames))
+                rows[key].append(row)
+    finally:
+        oracle.close()
+        p.set_alpha(alpha)
+
+    def summary(rs):
+        ok = [r for r in rs if r["success"]]
+        judged = [r for r in ok if "oracle_confidence" in r]
+        return {
+            "success_rate": len(ok) / len(rs),
+            "path_length": float(np.mean([r["length"] for r in ok])) if ok else float("nan"),
+            "predicted_score": float(np.mean([r["predicted"] for r in ok])) if ok else float("nan"),
+            "oracle_confidence": float(np.mean([r["oracle_confidence"] for r in judged])) if judged else float("nan"),
+            "oracle_detection_rate": float(np.mean([r["oracle_detection_rate"] for r in judged]))
+            if judged else float("nan"),
+            "judged_paths": len(judged),
+        }
+
+    return {"scene": scene.name, "planner": planner, "target": target, "alpha": alpha, "problems": len(probs),
+            "frames_per_path": frames, "build_s": stats.get("build_s"), "n_nodes": stats.get("n_nodes"),
+            "n_edges": stats.get("n_edges"), planner: summary(rows["psprm"]), "shortest_path_alpha0":
+            summary(rows["shortest"])}

@@ -27,6 +27,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--threads", type=int, default=2)
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=_planner)
+    cp = ps.add_parser("compare", help="success over random problems and oracle-judged perception: PS-PRM vs the "
+                                       "same roadmap with alpha = 0 (shortest path)")
+    cp.add_argument("--scene", required=True)
+    cp.add_argument("--planner", default="neural-psprm-line")
+    cp.add_argument("--target", default=None)
+    cp.add_argument("--nodes", type=int, default=3000)
+    cp.add_argument("--problems", type=int, default=100)
+    cp.add_argument("--oracle-problems", type=int, default=None, help="judge only the first N paths with the oracle")
+    cp.add_argument("--frames", type=int, default=12, help="oracle frames per path")
+    cp.add_argument("--seed", type=int, default=0)
+    cp.add_argument("--threads", type=int, default=2)
+    cp.add_argument("--json", action="store_true")
+    cp.set_defaults(func=_compare)
 
 
 def _kinematics(args) -> int:
@@ -51,4 +64,14 @@ def _planner(args) -> int:
     else:
         for k, v in res.items():
             print(f"{k:24s} {v:.6g}" if isinstance(v, float) else f"{k:24s} {v}")
+    return 0
+
+
+def _compare(args) -> int:
+    from ..benchmarks import compare_with_shortest_path
+
+    res = compare_with_shortest_path(args.scene, args.planner, nodes=args.nodes, problems=args.problems,
+                                     frames=args.frames, seed=args.seed, threads=args.threads, target=args.target,
+                                     oracle_problems=args.oracle_problems)
+    print(json.dumps(res) if args.json else json.dumps(res, indent=2))
     return 0
