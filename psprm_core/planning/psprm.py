@@ -58,6 +58,7 @@ class PSPRMSettings:
     max_edge_length: float = 2.0  # motion-cost units (m + weighted rad), the geodesic radius delta of Alg. 1
     alpha: float = 0.8  # Eq. 2 (paper: 0.75 with the oracle, 0.8 with the surrogate)
     lazy_edges: bool = False  # score edge interiors (Eq. 1) only for edges on candidate paths (slow scorers)
+    lazy_collision: bool = True  # Lazy PRM: check an edge's dense interior when a search first uses it
     n_interp: int = 5  # N of Eq. 1
     constraint: str = "line"  # visibility model: line | frustum
     sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
@@ -265,7 +266,8 @@ class PSPRM:
         g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
                     combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
                     c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
-                    verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0))
+                    verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
+                    checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
         self.graph = g
         self.node_scores = node_scores.double().cpu().numpy()
         self.n_roadmap_nodes = len(Q)
@@ -369,12 +371,23 @@ class PSPRM:
             knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
         return knots, interior_idx
 
-    def _knots_valid(self, knots: torch.Tensor) -> torch.Tensor:
-        """Collision-free flags (E,) of knot sequences, checked every ``edge_resolution`` between knots."""
+    def _knots_valid(self, knots: torch.Tensor, dense: bool = True) -> torch.Tensor:
+        """Collision-free flags (E,) of knot sequences: the knots, and with ``dense`` every ``edge_resolution``
+        between them (only for sequences whose knots are free)."""
         E, M, dof = knots.shape
-        a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
         ok = self.checker.valid(knots[:, 1:-1].reshape(-1, dof)).reshape(E, M - 2).all(-1) if M > 2 else \
             torch.ones(E, dtype=torch.bool, device=knots.device)
+        if not dense or not ok.any():
+            return ok
+        idx = torch.nonzero(ok, as_tuple=True)[0]
+        ok[idx] = self._dense_valid(knots[idx])
+        return ok
+
+    def _dense_valid(self, knots: torch.Tensor) -> torch.Tensor:
+        """Collision-free flags (E,) of the straight pieces between consecutive knots (endpoints excluded)."""
+        E, M, dof = knots.shape
+        ok = torch.ones(E, dtype=torch.bool, device=knots.device)
+        a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
         diff = b - a
         if self.robot.mobile:
             diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
@@ -397,7 +410,7 @@ class PSPRM:
         for s0 in range(0, qa.shape[0], chunk):
             a, b = qa[s0:s0 + chunk], qb[s0:s0 + chunk]
             knots, interior = self.edge_knots(a, b)
-            v = self._knots_valid(knots)
+            v = self._knots_valid(knots, dense=not self.settings.lazy_collision)
             if self.settings.edge_view_slack >= 0:
                 inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, knots.shape[-1]))
                 v &= self.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
@@ -477,7 +490,7 @@ class PSPRM:
                                                              np.asarray(v_ids)[keep.cpu().numpy()], pe[ok]))
             if not goal_ids:
                 res = None
-            elif self.settings.lazy_edges:
+            elif self.settings.lazy_edges or self.settings.lazy_collision:
                 res = lazy_astar(g, s_id, goal_ids, self._verify_edges, apply_to_graph=True)
             else:
                 res = astar(g, s_id, goal_ids)
@@ -496,19 +509,32 @@ class PSPRM:
                 g.remove_nodes(added_nodes)
 
     def _verify_edges(self, edge_ids: np.ndarray, path) -> "EdgeCheck":
-        """Lazy Eq. 1: score the interpolated configurations of not-yet-verified edges and return their weights."""
+        """Lazy evaluation of the edges a search wants to use: dense collision check (Lazy PRM) and the Eq. 1
+        interior scores; colliding edges are invalidated, scored ones get their Eq. 2 weight."""
         g = self.graph
-        ver = g.edge_attribute("verified")
-        todo = np.asarray([e for e in edge_ids if ver[e] < 0.5], dtype=np.int64)
+        ver, chk = g.edge_attribute("verified"), g.edge_attribute("checked")
+        todo = np.asarray([e for e in edge_ids if ver[e] < 0.5 or chk[e] < 0.5], dtype=np.int64)
         if len(todo) == 0:
             return EdgeCheck()
-        u, v = g.edge_u[todo], g.edge_v[todo]
-        knots, interior = self.edge_knots(self._t(g.configs[u]), self._t(g.configs[v]))
-        p = self._knots_perception(knots, interior).double().cpu().numpy()
-        g.edge_attribute("c_p")[todo] = p
-        ver[todo] = 1.0
-        w = combined_weight(p, g.edge_attribute("c_m")[todo], self.settings.alpha)
-        return EdgeCheck(invalid=(), weights={int(e): float(x) for e, x in zip(todo, w)})
+        knots, interior = self.edge_knots(self._t(g.configs[g.edge_u[todo]]), self._t(g.configs[g.edge_v[todo]]))
+        ok = torch.ones(len(todo), dtype=torch.bool, device=self.device)
+        need = torch.as_tensor(chk[todo] < 0.5, device=self.device)
+        if need.any():
+            ok[need] = self._dense_valid(knots[need])
+        chk[todo] = 1.0
+        invalid = todo[~ok.cpu().numpy()]
+        if len(invalid):
+            g.remove_edges(invalid)
+        weights = {}
+        score = torch.as_tensor(ver[todo] < 0.5, device=self.device) & ok
+        if score.any():
+            sel = todo[score.cpu().numpy()]
+            p = self._knots_perception(knots[score], interior[score]).double().cpu().numpy()
+            g.edge_attribute("c_p")[sel] = p
+            ver[sel] = 1.0
+            w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
+            weights = {int(e): float(x) for e, x in zip(sel, w)}
+        return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
 
     def _roadmap_tensor(self, ids: np.ndarray) -> torch.Tensor:
         """Roadmap node configurations as a tensor on the planner's device (cached until the node set changes)."""
@@ -525,7 +551,7 @@ class PSPRM:
         w = combined_weight(p, c_m, self.settings.alpha)
         return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.double().cpu().numpy(),
                                          c_m=c_m.double().cpu().numpy(), c_p=p.double().cpu().numpy(),
-                                         verified=np.ones(len(ua))))
+                                         verified=np.ones(len(ua)), checked=np.ones(len(ua))))
 
     def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily)."""
@@ -598,7 +624,7 @@ class PSPRM:
         path.parent.mkdir(parents=True, exist_ok=True)
         np.savez_compressed(path, configs=g.configs[:n], node_valid=g.node_valid[:n], eu=g.edge_u[e], ev=g.edge_v[e],
                             c_m=g.edge_attribute("c_m")[e], c_p=g.edge_attribute("c_p")[e],
-                            verified=g.edge_attribute("verified")[e],
+                            verified=g.edge_attribute("verified")[e], checked=g.edge_attribute("checked")[e],
                             node_scores=self.node_scores[:n], max_motion=self.max_motion,
                             fingerprint=self.fingerprint(), stats=json.dumps(self.stats))
         return path
@@ -611,7 +637,8 @@ class PSPRM:
         g.add_nodes(data["configs"])
         bad = np.nonzero(~data["node_valid"])[0]
         w = combined_weight(data["c_p"], data["c_m"], self.settings.alpha)
-        g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"], verified=data["verified"])
+        g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"], verified=data["verified"],
+                    checked=data["checked"])
         if len(bad):
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
