@@ -528,12 +528,22 @@ class RobotModel:
             }
         return self._tensor_cache[key]
 
-    def body_poses(self, q: torch.Tensor) -> tuple:
+    @cached_property
+    def camera_chain(self) -> list:
+        """Bodies from the root to the camera's body (the only ones camera-only FK needs)."""
+        chain, b = [], self.camera_body
+        while b >= 0:
+            chain.append(b)
+            b = self.parent_body[b]
+        return chain[::-1]
+
+    def body_poses(self, q: torch.Tensor, only: Optional[list] = None) -> tuple:
         """World rotation (B, NB, 3, 3) and translation (B, NB, 3) of every body for configurations ``q`` (B, dof).
 
         The base pose composes T = Trans(x, y, 0) Rz(theta) with the URDF root; every driven joint then applies
         ``T_child = T_parent T_origin Motion(axis, value)`` (a rotation for revolute/continuous joints, a translation
-        for prismatic ones).
+        for prismatic ones). With ``only`` (a root-first chain of bodies, e.g. :attr:`camera_chain`), only those
+        bodies are computed; the others are left as zeros.
         """
         if q.dim() != 2 or q.shape[1] != self.dof:
             raise ValueError(f"expected q of shape (B, {self.dof}), got {tuple(q.shape)}")
@@ -548,24 +558,26 @@ class RobotModel:
             R0 = torch.eye(3, dtype=q.dtype, device=q.device).expand(B, 3, 3)
             t0 = torch.zeros(B, 3, dtype=q.dtype, device=q.device)
         values = q @ T["D"] + T["off"]
-        Rs, ts = [R0], [t0]
-        for b in range(1, len(self.bodies)):
+        Rs, ts = [R0] + [None] * (len(self.bodies) - 1), [t0] + [None] * (len(self.bodies) - 1)
+        for b in (only[1:] if only is not None else range(1, len(self.bodies))):
             j = self.body_joint[b]
             Rp, tp = Rs[self.parent_body[b]], ts[self.parent_body[b]]
             Rj = Rp @ T["R_off"][b]
             tj = tp + (Rp @ T["t_off"][b].unsqueeze(-1)).squeeze(-1)
             v = values[:, b]
             if j.type == "prismatic":
-                Rs.append(Rj)
-                ts.append(tj + (Rj @ T["axis"][b]) * v.unsqueeze(-1))
+                Rs[b], ts[b] = Rj, tj + (Rj @ T["axis"][b]) * v.unsqueeze(-1)
             else:
-                Rs.append(Rj @ axis_angle_matrix_torch(T["axis"][b], v))
-                ts.append(tj)
+                Rs[b], ts[b] = Rj @ axis_angle_matrix_torch(T["axis"][b], v), tj
+        if only is not None:
+            zR, zt = torch.zeros_like(R0), torch.zeros_like(t0)
+            Rs = [r if r is not None else zR for r in Rs]
+            ts = [x if x is not None else zt for x in ts]
         return torch.stack(Rs, 1), torch.stack(ts, 1)
 
     def camera_poses(self, q: torch.Tensor, body_poses: Optional[tuple] = None) -> torch.Tensor:
         """Camera optical-frame poses (B, 4, 4) in the scene frame."""
-        R, t = body_poses if body_poses is not None else self.body_poses(q)
+        R, t = body_poses if body_poses is not None else self.body_poses(q, only=self.camera_chain)
         T = self.tensors(q.device, q.dtype)
         Rb, tb = R[:, self.camera_body], t[:, self.camera_body]
         out = torch.zeros(q.shape[0], 4, 4, dtype=q.dtype, device=q.device)
