@@ -29,7 +29,8 @@ def test_perf_kinematics_json(capsys):
 
 
 def test_demo_writes_picture(tmp_path, capsys):
-    assert main(["demo", "--scene", "cup_table", "--samples", "2000", "--out", str(tmp_path), "--json"]) == 0
+    assert main(["demo", "--scene", "cup_table", "--samples", "2000", "--nodes", "0", "--out", str(tmp_path),
+                 "--json"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["collision_free"] > 0 and (tmp_path / "demo_cup_table.png").stat().st_size > 10000
     assert all(p["start"] == "free" for p in res["problems"])

@@ -1,7 +1,9 @@
 """``psprm demo``: the end-to-end run on a shipped scene (the README's main job).
 
-Today it loads the scene and its robot, samples configurations and checks them with the batched collision checker,
-checks every named problem's start and goal, and writes a top-view picture with the robot at a start configuration.
+It loads the scene and its robot, samples configurations and checks them with the batched collision checker, checks
+every named problem's start and goal, writes a top-view picture with the robot at a start configuration, then builds a
+neural PS-PRM roadmap for the first problem's target, plans it, compares with the same roadmap at alpha = 0 (shortest
+path) and writes the plan figure.
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default="out", help="output folder for the picture")
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
+    p.add_argument("--planner", default="neural-psprm-line", help="PS-PRM variant for the planning step")
+    p.add_argument("--nodes", type=int, default=3000, help="roadmap size for the planning step (0: skip planning)")
     p.set_defaults(func=run)
 
 
@@ -78,6 +82,7 @@ def run(args) -> int:
     fig.tight_layout()
     picture = out / f"demo_{scene.name}.png"
     fig.savefig(picture)
+    planning = _plan(args, scene, robot, out) if args.nodes > 0 and scene.problems else None
     summary = {
         "scene": scene.name, "robot": robot.name, "dof": robot.dof, "joints": robot.joint_names,
         "obstacles": len(scene.obstacles), "targets": scene.target_names,
@@ -85,7 +90,7 @@ def run(args) -> int:
         "checks_per_s": round(len(qs) / t_check), "load_s": round(t_load, 3),
         "camera_height_range_m": [round(float(cams[:, 2, 3].min()), 3), round(float(cams[:, 2, 3].max()), 3)]
         if len(cams) else None,
-        "problems": problems, "picture": str(picture),
+        "problems": problems, "picture": str(picture), "planning": planning,
     }
     if args.json:
         print(json.dumps(summary))
@@ -98,4 +103,45 @@ def run(args) -> int:
             print(f"  problem {row['problem']:24s} target {row['target']:14s} start {row.get('start', '-')}, "
                   f"goal {row.get('goal', '-')}")
         print(f"  picture: {picture}")
+        if planning:
+            if "skipped" in planning:
+                print(f"  planning skipped: {planning['skipped']}")
+            else:
+                print(f"  {planning['planner']} on problem {planning['problem']} (target {planning['target']}): "
+                      f"{planning['n_nodes']} nodes / {planning['n_edges']} edges built in {planning['build_s']:.1f} s")
+                for key in ("psprm", "shortest_path_alpha0"):
+                    r = planning[key]
+                    print(f"    {key:22s} success {r['success']}, path length {r['path_length_rad']:.2f}, "
+                          f"mean predicted score {r['mean_perception_score']:.3f}, query {r['query_ms']:.0f} ms")
+                print(f"  plan figure: {planning['figure']}")
     return 0
+
+
+def _plan(args, scene, robot, out: Path) -> dict:
+    """Plan the scene's first problem with PS-PRM and with the same roadmap at alpha = 0."""
+    from ..errors import PsprmError
+    from ..planning.factory import make_planner, problem_configurations
+    from .planning import plot_plan
+
+    prob = scene.problems[0]
+    try:
+        planner = make_planner(args.planner, scene, [prob.target], robot=robot, n_nodes=args.nodes, seed=args.seed)
+    except PsprmError as exc:
+        return {"skipped": str(exc)}
+    start, goals = problem_configurations(robot, scene, prob)
+    stats = planner.build(template=start)
+    if not stats.get("success"):
+        return {"skipped": stats.get("reason", "roadmap build failed")}
+    res = planner.plan(start, goals)
+    figure = out / f"plan_{scene.name}.png"
+    if res.success:
+        plot_plan(planner, res, str(figure), title=f"{args.planner} on {scene.name}/{prob.name}")
+    alpha = planner.settings.alpha
+    planner.set_alpha(0.0)
+    res0 = planner.plan(start, goals, timing=False)
+    planner.set_alpha(alpha)
+    keep = ("success", "reason", "path_length_rad", "mean_perception_score", "query_ms")
+    return {"planner": args.planner, "problem": prob.name, "target": prob.target, "n_nodes": stats["n_nodes"],
+            "n_edges": stats["n_edges"], "build_s": stats["build_s"], "figure": str(figure),
+            "psprm": {k: v for k, v in res.to_dict().items() if k in keep},
+            "shortest_path_alpha0": {k: v for k, v in res0.to_dict().items() if k in keep}}
