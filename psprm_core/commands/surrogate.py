@@ -76,31 +76,107 @@ def _train(args) -> int:
     return 0
 
 
+def class_thresholds(classes) -> dict:
+    """Calibrated "detected" threshold of the built-in detector of each class (oracle.DETECTION_THRESHOLDS)."""
+    from ..perception.detectors import default_detector_name
+    from ..perception.oracle import DEFAULT_THRESHOLD, DETECTION_THRESHOLDS
+
+    out = {}
+    for c in classes:
+        det = default_detector_name(c)
+        out[c] = float(DETECTION_THRESHOLDS.get(f"{det}:{c}", DETECTION_THRESHOLDS.get(det, DEFAULT_THRESHOLD)))
+    return out
+
+
+def line_of_sight_blocked(scene, ds):
+    """Ground-truth occlusion as in the paper: pybullet ray from the camera to the target centroid hits an obstacle
+    (a box other than the target itself)."""
+    import numpy as np
+    import pybullet as pb
+
+    cid = pb.connect(pb.DIRECT)
+    try:
+        names = {}
+        for box in scene.collision_boxes():
+            shape = pb.createCollisionShape(pb.GEOM_BOX, halfExtents=list(box.half_extents), physicsClientId=cid)
+            names[pb.createMultiBody(0, shape, basePosition=list(box.center), baseOrientation=list(box.quat),
+                                     physicsClientId=cid)] = box.name
+        starts = ds.camera_poses[:, :3, 3]
+        ends = np.stack([ds.targets[i].center for i in ds.target_index])
+        blocked = np.zeros(len(ds), dtype=bool)
+        for s0 in range(0, len(ds), 4000):
+            hits = pb.rayTestBatch(starts[s0:s0 + 4000].tolist(), ends[s0:s0 + 4000].tolist(), physicsClientId=cid)
+            for k, h in enumerate(hits):
+                i = s0 + k
+                blocked[i] = h[0] >= 0 and names.get(h[0]) != ds.targets[ds.target_index[i]].name
+        return blocked
+    finally:
+        pb.disconnect(cid)
+
+
 def _eval(args) -> int:
+    import numpy as np
+    import torch
+
     from ..errors import PsprmError
     from ..paths import resolve_named
+    from ..perception.dataset import load_dataset
+    from ..perception.occlusion import OcclusionChecker
     from ..perception.surrogate import load_surrogate
-    from ..perception.training import evals_per_s, evaluate_surrogate
+    from ..perception.training import _splits, TrainConfig, evals_per_s, occlusion_metrics, perception_metrics
     from ..scene import load_scene
 
     ck = Path(args.checkpoint)
     if not ck.is_file():
         raise PsprmError(f"checkpoint not found: {ck}")
     model = load_surrogate(ck)
-    res = evaluate_surrogate(model, args.dataset, split="test")
-    out = {k: res[k] for k in ("rmse", "mae", "spearman", "accuracy", "precision", "recall", "f1") if k in res}
-    out["n_test"] = res.get("n", res.get("count"))
+
+    def predict(ds):
+        pred = np.zeros(len(ds))
+        for ti, t in enumerate(ds.targets):
+            sel = ds.target_index == ti
+            if sel.any():
+                pose = np.eye(4)
+                pose[:3, :3], pose[:3, 3] = t.rotation, t.center
+                pred[sel] = model.predict(torch.as_tensor(ds.camera_poses[sel]), torch.as_tensor(pose),
+                                          t.detector_class).double().numpy()
+        return pred
+
+    def thresholds(ds):
+        thr = class_thresholds({t.detector_class for t in ds.targets})
+        return np.array([thr[ds.targets[i].detector_class] for i in ds.target_index])
+
+    full = load_dataset(args.dataset)
+    test = full.subset(_splits(full, TrainConfig.from_dict(model.metadata.get("training", {})))["test"])
+    pred = predict(test)
+    out = perception_metrics(pred, test.scores, thresholds(test))
+    out["thresholds"] = class_thresholds(sorted({t.detector_class for t in test.targets}))
+    out["per_class"] = {}
+    for c in sorted({t.detector_class for t in test.targets}):
+        sel = np.array([test.targets[i].detector_class == c for i in test.target_index])
+        out["per_class"][c] = perception_metrics(pred[sel], test.scores[sel], out["thresholds"][c])
     occ_dir = Path(args.occluded)
     if occ_dir.is_dir():
-        meta = json.loads((occ_dir / "metadata.json").read_text())
-        scene = load_scene(resolve_named("scene", _scene_from_meta(meta)))
-        occ = evaluate_surrogate(model, args.occluded, split="all", scene=scene)
-        out["occluded_fraction"] = occ.get("occluded_fraction")
-        out["occluded_rmse_surrogate"] = occ.get("occluded_rmse_surrogate", occ.get("occluded", {}).get("rmse"))
-        out["occluded_rmse_raycast"] = occ.get("occluded_rmse_raycast", occ.get("occluded_raycast", {}).get("rmse"))
-        out["occluded_details"] = {k: v for k, v in occ.items() if k.startswith("occluded")}
+        occ = load_dataset(occ_dir)
+        scene = load_scene(resolve_named("scene", _scene_from_meta(occ.metadata)))
+        blocked = line_of_sight_blocked(scene, occ)
+        rc = np.zeros(len(occ), dtype=bool)
+        for ti, t in enumerate(occ.targets):
+            sel = occ.target_index == ti
+            if sel.any():
+                rc[sel] = OcclusionChecker.from_scene(scene, t.name).occluded(
+                    torch.as_tensor(occ.camera_poses[sel])).numpy()
+        om = occlusion_metrics(predict(occ), occ.scores, blocked, rc, thresholds(occ))
+        out["occluded_scene"] = scene.name
+        out["occluded_fraction"] = om["fraction_occluded"]
+        out["occluded_rmse_surrogate"] = om["occluded_raw"]["rmse"]
+        out["occluded_rmse_raycast"] = om["occluded_zeroed"]["rmse"]
+        out["occluded_mean_error_surrogate"] = om["occluded_mean_error_raw"]
+        out["raycast_agreement_with_line_of_sight"] = om.get("raycast_agreement")
+        out["cluttered_scene_rmse_surrogate"] = om["all_raw"]["rmse"]
+        out["cluttered_scene_rmse_raycast"] = om["all_zeroed"]["rmse"]
     out["evals_per_s"] = evals_per_s(model, threads=2)
-    print(json.dumps(out, default=float) if args.json else "\n".join(f"{k:28s} {v}" for k, v in out.items()))
+    print(json.dumps(out, default=float) if args.json else json.dumps(out, indent=2, default=float))
     return 0
 
 
