@@ -47,12 +47,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _dataset(args) -> int:
-    from ..paths import resolve_named
+    from ..paths import project_root, resolve_named
     from ..perception.dataset import OracleFactory, SamplingConfig, build_dataset
     from ..scene import load_scene
 
     path = resolve_named("scene", args.scene)
     scene = load_scene(path)
+    try:  # record a project-relative scene path in the dataset's metadata, never a path of this machine
+        path = path.resolve().relative_to(project_root())
+    except ValueError:
+        pass
     names = args.targets.split(",") if args.targets else scene.target_names
     targets = [scene.target(n) for n in names]
     t0 = time.perf_counter()
@@ -183,5 +187,5 @@ def _eval(args) -> int:
 def _scene_from_meta(meta: dict) -> str:
     desc = str(meta.get("scorer_description") or meta.get("scorer") or "")
     if "scene=" in desc:
-        return desc.split("scene=")[1].split(",")[0].rstrip(")")
+        return Path(desc.split("scene=")[1].split(",")[0].rstrip(")")).stem  # resolved by name in config/scenes
     raise ValueError("dataset metadata does not name its scene")
