@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the summary as one JSON object")
     p.add_argument("--planner", default="neural-psprm-line", help="PS-PRM variant for the planning step")
     p.add_argument("--nodes", type=int, default=3000, help="roadmap size for the planning step (0: skip planning)")
+    p.add_argument("--problem", default=None, help="named problem for the planning step (default: the first)")
     p.set_defaults(func=run)
 
 
@@ -123,7 +124,10 @@ def _plan(args, scene, robot, out: Path) -> dict:
     from ..planning.factory import make_planner, problem_configurations
     from .planning import plot_plan
 
-    prob = scene.problems[0]
+    try:
+        prob = scene.problem(args.problem) if args.problem else scene.problems[0]
+    except KeyError as exc:
+        raise PsprmError(str(exc).strip("'\"")) from None
     try:
         planner = make_planner(args.planner, scene, [prob.target], robot=robot, n_nodes=args.nodes, seed=args.seed)
     except PsprmError as exc:
