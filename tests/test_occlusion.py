@@ -108,7 +108,7 @@ TARGET = Target(name="cube", detector_class="cup", center=np.array([0.0, 0.0, 0.
 def test_hand_made_half_wall():
     # Camera on +x looking at a unit cube; a thin wall covers only y < -0.01 halfway between them.
     wall = Box(name="wall", center=np.array([2.5, -1.51, 0.5]), size=np.array([0.05, 3.0, 3.0]))
-    checker = OcclusionChecker.from_scene(_scene([wall], [TARGET]), "cube")
+    checker = OcclusionChecker.from_scene(_scene([wall], [TARGET]), "cube", front=False)
     assert checker.target_points.shape == (15, 3)
     cams = torch.tensor([[5.0, 0.0, 0.5], [-5.0, 0.0, 0.5], [5.0, -3.0, 0.5], [5.0, 3.0, 0.5]])
     s = checker.score(cams)
@@ -186,3 +186,21 @@ def test_default_points_lie_inside_the_target_box():
 
 def test_benchmark_runs():
     assert benchmark_rays_per_s(n_cameras=200, n_points=15, n_boxes=10, repeats=1) > 0
+
+
+def test_front_facing_targets_cast_rays_to_their_front():
+    """A face on a body: rays go to the facing side, so the body behind the face never counts as an occluder,
+    while a wall in front still does; a 3-D appearance (a plant) keeps the whole-box points."""
+    face = Target(name="face", detector_class="face", center=np.array([0.06, 0.0, 1.6]),
+                  size=np.array([0.12, 0.16, 0.22]), appearance="face_astronaut")
+    body = Box(name="body", center=np.array([-0.1, 0.0, 0.8]), size=np.array([0.2, 0.45, 1.6]))
+    checker = OcclusionChecker.from_scene(_scene([body], [face]), "face")
+    assert checker.target_points.shape == (9, 3)
+    assert np.allclose(checker.target_points[:, 0].numpy(), 0.06 + 0.06 * 0.98)
+    low_front = torch.tensor([[1.2, 0.3, 1.0]])  # below and in front: rays pass above the shoulders
+    assert checker.score(low_front).item() == 0.0
+    wall = Box(name="wall", center=np.array([0.6, 0.0, 1.5]), size=np.array([0.05, 2.0, 2.0]))
+    assert OcclusionChecker.from_scene(_scene([body, wall], [face]), "face").score(low_front).item() == 1.0
+    plant = Target(name="plant", detector_class="potted plant", center=np.array([2.0, 0.0, 0.5]),
+                   size=np.array([0.5, 0.5, 1.0]), appearance="potted_plant")
+    assert OcclusionChecker.from_scene(_scene([], [plant]), "plant").target_points.shape == (15, 3)

@@ -35,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--batch", type=int, default=512)
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--allow-incomplete", action="store_true",
+                   help="train on the chunks labelled so far (a dataset build that was stopped; resume it later)")
     t.set_defaults(func=_train)
 
     e = sub.add_parser("eval-surrogate", help="evaluate the shipped surrogate on its held-out test split")
@@ -42,6 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--dataset", default=DEFAULT_DATASET)
     e.add_argument("--occluded", default=DEFAULT_OCCLUDED, help="dataset rendered in a cluttered scene "
                                                                  "(occluded views are evaluated with ray casting)")
+    e.add_argument("--allow-incomplete", action="store_true", help="evaluate on a dataset whose build was stopped")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=_eval)
 
@@ -69,11 +72,15 @@ def _dataset(args) -> int:
 
 
 def _train(args) -> int:
+    from ..perception.dataset import load_dataset
     from ..perception.training import TrainConfig, train_surrogate
 
     cfg = TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch, seed=args.seed, threads=args.threads)
+    ds = load_dataset(args.dataset, allow_incomplete=args.allow_incomplete)
+    if not ds.metadata.get("complete", True):
+        log.warning("training on an incomplete dataset: %d samples", len(ds))
     t0 = time.perf_counter()
-    _, report = train_surrogate(args.dataset, out_path=args.out, config=cfg)
+    _, report = train_surrogate(ds, out_path=args.out, config=cfg)
     report = {k: v for k, v in report.items() if k != "history"} if isinstance(report, dict) else report
     print(json.dumps({"checkpoint": args.out, "seconds": round(time.perf_counter() - t0, 1), "report": report},
                      default=str))
@@ -127,7 +134,7 @@ def _eval(args) -> int:
     from ..perception.dataset import load_dataset
     from ..perception.occlusion import OcclusionChecker
     from ..perception.surrogate import load_surrogate
-    from ..perception.training import _splits, TrainConfig, evals_per_s, occlusion_metrics, perception_metrics
+    from ..perception.training import _splits, TrainConfig, evals_per_s, perception_metrics
     from ..scene import load_scene
 
     ck = Path(args.checkpoint)
@@ -150,7 +157,7 @@ def _eval(args) -> int:
         thr = class_thresholds({t.detector_class for t in ds.targets})
         return np.array([thr[ds.targets[i].detector_class] for i in ds.target_index])
 
-    full = load_dataset(args.dataset)
+    full = load_dataset(args.dataset, allow_incomplete=args.allow_incomplete)
     test = full.subset(_splits(full, TrainConfig.from_dict(model.metadata.get("training", {})))["test"])
     pred = predict(test)
     out = perception_metrics(pred, test.scores, thresholds(test))
@@ -170,15 +177,31 @@ def _eval(args) -> int:
             if sel.any():
                 rc[sel] = OcclusionChecker.from_scene(scene, t.name).occluded(
                     torch.as_tensor(occ.camera_poses[sel])).numpy()
-        om = occlusion_metrics(predict(occ), occ.scores, blocked, rc, thresholds(occ))
+        p_raw = predict(occ)
+        p_zero = np.where(rc, 0.0, p_raw)  # Alg. 2: zero when the ray-cast occlusion score exceeds tau
+        thr = thresholds(occ)
+        # views a robot camera can have: inside the workspace, not inside any obstacle (TinyRenderer culls back
+        # faces, so a camera inside a wall box would see through it)
+        from ..perception.occlusion import boxes_to_tensors
+
+        cam = torch.as_tensor(occ.camera_poses[:, :3, 3])
+        inside = boxes_to_tensors(scene.collision_boxes(), dtype=torch.float64).contains(cam, margin=0.05).any(-1)
+        ws = scene.workspace
+        valid = ((cam[:, 0] >= ws[0, 0]) & (cam[:, 0] <= ws[0, 1]) & (cam[:, 1] >= ws[1, 0]) &
+                 (cam[:, 1] <= ws[1, 1]) & ~inside).numpy()
+        sub = blocked & valid
+        out["occluded_rmse_raycast_incl_invalid_views"] = perception_metrics(p_zero[blocked], occ.scores[blocked],
+                                                                             thr[blocked])["rmse"]
+        out["valid_views"] = int(valid.sum())
         out["occluded_scene"] = scene.name
-        out["occluded_fraction"] = om["fraction_occluded"]
-        out["occluded_rmse_surrogate"] = om["occluded_raw"]["rmse"]
-        out["occluded_rmse_raycast"] = om["occluded_zeroed"]["rmse"]
-        out["occluded_mean_error_surrogate"] = om["occluded_mean_error_raw"]
-        out["raycast_agreement_with_line_of_sight"] = om.get("raycast_agreement")
-        out["cluttered_scene_rmse_surrogate"] = om["all_raw"]["rmse"]
-        out["cluttered_scene_rmse_raycast"] = om["all_zeroed"]["rmse"]
+        out["occluded_views"] = int(sub.sum())
+        out["occluded_fraction"] = float(sub.sum() / max(1, valid.sum()))
+        out["occluded_rmse_surrogate"] = perception_metrics(p_raw[sub], occ.scores[sub], thr[sub])["rmse"]
+        out["occluded_rmse_raycast"] = perception_metrics(p_zero[sub], occ.scores[sub], thr[sub])["rmse"]
+        out["occluded_mean_error_surrogate"] = float(np.mean(p_raw[sub] - occ.scores[sub])) if sub.any() else None
+        out["raycast_agreement_with_line_of_sight"] = float(np.mean(rc == blocked))
+        out["cluttered_scene_rmse_surrogate"] = perception_metrics(p_raw[valid], occ.scores[valid], thr[valid])["rmse"]
+        out["cluttered_scene_rmse_raycast"] = perception_metrics(p_zero[valid], occ.scores[valid], thr[valid])["rmse"]
     out["evals_per_s"] = evals_per_s(model, threads=2)
     print(json.dumps(out, default=float) if args.json else json.dumps(out, indent=2, default=float))
     return 0
