@@ -92,7 +92,9 @@ def test_scene_loads(scene):
     assert scene.name == Path(scene.source).stem
     assert scene.robot in CLEARANCE
     assert scene.frame == "map"
-    assert scene.obstacles and scene.targets and scene.problems
+    assert scene.obstacles and scene.targets
+    if scene.name in EXPECTED_SCENES:  # planning scenes; data-collection scenes (surrogate_studio) have no problems
+        assert scene.problems
     raw = yaml.safe_load(Path(scene.source).read_text())
     assert isinstance(raw.get("description"), str) and len(raw["description"]) > 20
     for t in scene.targets:

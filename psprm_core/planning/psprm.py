@@ -59,6 +59,7 @@ class PSPRMSettings:
     alpha: float = 0.8  # Eq. 2 (paper: 0.75 with the oracle, 0.8 with the surrogate)
     lazy_edges: bool = False  # score edge interiors (Eq. 1) only for edges on candidate paths (slow scorers)
     lazy_collision: bool = True  # Lazy PRM: check an edge's dense interior when a search first uses it
+    normalize_scores: bool = True  # c_p = min(1, score / q99(node scores)): the paper's normalised score in [0, 1]
     n_interp: int = 5  # N of Eq. 1
     constraint: str = "line"  # visibility model: line | frustum
     sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
@@ -249,16 +250,19 @@ class PSPRM:
             self.stats = {"success": False, "reason": "could not sample configurations on the visibility manifold"}
             return self.stats
         Q = torch.cat(nodes)[: s.n_nodes]
+        t2 = time.perf_counter()
+        node_scores = self.score_configs(Q)
+        self.score_scale = 1.0
+        if s.normalize_scores:  # the normalised score of Eq. 1 (c_p in [0, 1]) is relative to this roadmap
+            self.score_scale = 1.0 / max(float(torch.quantile(node_scores.double(), 0.99)), 1e-3)
+        t_score = time.perf_counter() - t2
         t1 = time.perf_counter()
         eu, ev, dist = self._neighbours(Q, Q, s.k_neighbors, exclude_self=True, k_long=s.k_long, rng=rng)
         valid, p_edge = self._edges_valid(Q[eu], Q[ev])
         eu, ev, dist, p_edge = eu[valid], ev[valid], dist[valid], p_edge[valid]
-        t_edges = time.perf_counter() - t1
-        t2 = time.perf_counter()
-        node_scores = self.score_configs(Q)
         if s.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
-            p_edge = edge_perception(node_scores[eu], node_scores[ev])
-        t_score = time.perf_counter() - t2
+            p_edge = edge_perception(self._normalized(node_scores[eu]), self._normalized(node_scores[ev]))
+        t_edges = time.perf_counter() - t1
         self.max_motion = float(dist.max()) if len(dist) else 1.0
         c_m = (dist / self.max_motion).clamp(0, 1)
         g = Roadmap(dof=self.robot.dof, node_capacity=len(Q) + 64, edge_capacity=len(eu) + 1024)
@@ -420,13 +424,17 @@ class PSPRM:
                 p[s0:s0 + chunk][v] = self._knots_perception(knots[v], interior[v])
         return ok, p
 
+    def _normalized(self, scores: torch.Tensor) -> torch.Tensor:
+        """Normalised perception score c_p in [0, 1] (scores divided by the roadmap's 99th-percentile node score)."""
+        return (scores * getattr(self, "score_scale", 1.0)).clamp(0.0, 1.0)
+
     def _knots_perception(self, knots: torch.Tensor, interior: torch.Tensor) -> torch.Tensor:
-        """Eq. 1 from knots: mean score of both ends and the N interior samples."""
+        """Eq. 1 from knots: mean normalised score of both ends and the N interior samples."""
         E, M, dof = knots.shape
         n = interior.shape[1]
         pts = torch.cat([knots[:, :1], torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, dof)),
                          knots[:, -1:]], 1)
-        sc = self.score_configs(pts.reshape(-1, dof)).reshape(E, n + 2)
+        sc = self._normalized(self.score_configs(pts.reshape(-1, dof)).reshape(E, n + 2))
         return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1])
 
     # ---- query -----------------------------------------------------------------------------------------------------
@@ -626,6 +634,7 @@ class PSPRM:
                             c_m=g.edge_attribute("c_m")[e], c_p=g.edge_attribute("c_p")[e],
                             verified=g.edge_attribute("verified")[e], checked=g.edge_attribute("checked")[e],
                             node_scores=self.node_scores[:n], max_motion=self.max_motion,
+                            score_scale=getattr(self, "score_scale", 1.0),
                             fingerprint=self.fingerprint(), stats=json.dumps(self.stats))
         return path
 
@@ -644,4 +653,5 @@ class PSPRM:
         self.graph, self.node_scores = g, data["node_scores"]
         self.n_roadmap_nodes = len(data["configs"])
         self.max_motion = float(data["max_motion"])
+        self.score_scale = float(data["score_scale"])
         self.stats = json.loads(str(data["stats"]))
