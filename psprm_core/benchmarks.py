@@ -122,9 +122,9 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
     return out
 
 
-def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000, queries: int = 50,
-                      seed: int = 0, threads: int = 2, target: str | None = None) -> dict:
-    """Build time (sampling, projection, collision, neural scoring with occlusion) and query times of PS-PRM."""
+def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, seed: int, threads: int,
+                   target: str | None) -> tuple:
+    """Scene, robot, target name, built planner, its build stats and ``problems`` random (start, goal) pairs."""
     from .collision import CollisionChecker
     from .paths import resolve_named
     from .planning.factory import make_planner
@@ -137,10 +137,16 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
     target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
     p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
     stats = p.build()
-    rng = np.random.default_rng(seed + 1)
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    probs = random_problems(robot, scene, checker, queries, rng, robot.default_configuration(),
-                            scene.target(target).center)
+    probs = random_problems(robot, scene, checker, problems, np.random.default_rng(seed + 1),
+                            robot.default_configuration(), scene.target(target).center)
+    return scene, robot, target, p, stats, probs
+
+
+def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000, queries: int = 50,
+                      seed: int = 0, threads: int = 2, target: str | None = None) -> dict:
+    """Build time (sampling, projection, collision, neural scoring with occlusion) and query times of PS-PRM."""
+    scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, queries, seed, threads, target)
     times, ok, scores = [], 0, []
     for a, b in probs:
         res = p.plan(a, b, timing=False)
@@ -181,23 +187,11 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
                                target: str | None = None, oracle_problems: int | None = None) -> dict:
     """Issue 4's evidence: success over random problems, and oracle-measured perception along the paths of PS-PRM
     vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2)."""
-    from .collision import CollisionChecker
-    from .paths import resolve_named
     from .perception.oracle import Oracle
-    from .planning.factory import make_planner
-    from .robot import RobotModel
-    from .scene import load_scene
 
-    torch.set_num_threads(threads)
-    scene = load_scene(resolve_named("scene", scene_name))
-    robot = RobotModel.load(scene.robot)
-    target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
-    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
-    stats = p.build()
+    scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
+                                                           target)
     alpha = p.settings.alpha
-    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    probs = random_problems(robot, scene, checker, problems, np.random.default_rng(seed + 1),
-                            robot.default_configuration(), scene.target(target).center)
     oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
     n_oracle = len(probs) if oracle_problems is None else min(oracle_problems, len(probs))
     rows = {"psprm": [], "shortest": []}

@@ -40,3 +40,28 @@ def test_bad_input_gives_one_line_error(capsys):
     assert main(["perf", "kinematics", "--robot", "nope", "--scene", "home", "--n", "10"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown robot 'nope'" in err[0]
+
+
+def test_plan_json_and_plot(tmp_path, capsys):
+    plot = tmp_path / "plan.png"
+    code = main(["plan", "--scene", "cup_table", "--planner", "neural-psprm-line", "--nodes", "400", "--seed", "0",
+                 "--json", "--plot", str(plot)])
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert code == 0 and res["success"], res.get("reason")
+    for key in ("path_length_rad", "mean_perception_score", "build_s", "query_ms", "n_nodes", "n_edges", "waypoints"):
+        assert key in res
+    assert res["n_nodes"] == 400 and len(res["waypoints"][0]) == len(res["joint_names"]) == 8
+    assert plot.stat().st_size > 20000
+
+
+def test_plan_unknown_target_is_a_clear_error(capsys):
+    assert main(["plan", "--scene", "home", "--target", "unicorn"]) == 2
+    assert "unicorn" in capsys.readouterr().err
+
+
+def test_perf_planner_json(capsys):
+    assert main(["perf", "planner", "--scene", "cup_table", "--nodes", "300", "--queries", "3", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("build_s", "query_ms", "query_p95_ms", "success_rate", "n_nodes", "n_edges"):
+        assert key in res
+    assert res["n_nodes"] == 300 and res["queries"] == 3

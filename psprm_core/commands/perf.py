@@ -45,25 +45,24 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _kinematics(args) -> int:
     from ..benchmarks import kinematics_benchmark
 
-    res = kinematics_benchmark(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads)
-    if args.json:
-        print(json.dumps(res))
-    else:
-        for k, v in res.items():
-            print(f"{k:28s} {v:.6g}" if isinstance(v, float) else f"{k:28s} {v}")
+    _print(kinematics_benchmark(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads), args.json)
     return 0
+
+
+def _print(res: dict, as_json: bool) -> None:
+    """One JSON object, or one ``key value`` line per entry."""
+    if as_json:
+        print(json.dumps(res))
+        return
+    for k, v in res.items():
+        print(f"{k:28s} {v:.6g}" if isinstance(v, float) else f"{k:28s} {v}")
 
 
 def _planner(args) -> int:
     from ..benchmarks import planner_benchmark
 
-    res = planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
-                            threads=args.threads, target=args.target)
-    if args.json:
-        print(json.dumps(res))
-    else:
-        for k, v in res.items():
-            print(f"{k:24s} {v:.6g}" if isinstance(v, float) else f"{k:24s} {v}")
+    _print(planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
+                             threads=args.threads, target=args.target), args.json)
     return 0
 
 
