@@ -64,7 +64,7 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
     robot = robot or RobotModel.load(scene.robot)
     if settings is None:
         path = config_dir() / "planners" / "psprm.yaml"
-        settings = PSPRMSettings.from_yaml(path) if path.is_file() else PSPRMSettings()
+        settings = PSPRMSettings.from_yaml(path, robot=robot.name) if path.is_file() else PSPRMSettings()
     alpha = overrides.pop("alpha", None)
     settings = dataclasses.replace(settings, constraint=constraint,
                                    alpha=DEFAULT_ALPHA[kind] if alpha is None else alpha,

@@ -63,6 +63,7 @@ class PSPRMSettings:
     n_interp: int = 5  # N of Eq. 1
     constraint: str = "line"  # visibility model: line | frustum
     sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
+    sample_spread: float = -1.0  # >= 0: non-base joints sampled within +-spread (rad/m) of the template, else uniform
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -76,8 +77,18 @@ class PSPRMSettings:
     seed: int = 0
 
     @classmethod
-    def from_yaml(cls, path: str | Path, **overrides) -> "PSPRMSettings":
-        f = Fields(load_yaml(path), str(path))
+    def from_yaml(cls, path: str | Path, robot: str | None = None, **overrides) -> "PSPRMSettings":
+        """Settings from YAML; a ``robots: {name: {field: value}}`` section overrides fields for one robot."""
+        data = load_yaml(path)
+        per_robot = data.pop("robots", None) or {}
+        if not isinstance(per_robot, dict):
+            raise ConfigError(str(path), "robots", "expected a mapping robot name -> settings")
+        if robot is not None and robot in per_robot:
+            extra = per_robot[robot]
+            if not isinstance(extra, dict):
+                raise ConfigError(str(path), f"robots.{robot}", "expected a mapping of settings")
+            data = {**data, **extra}
+        f = Fields(data, str(path))
         names = [fl.name for fl in dataclasses.fields(cls)]
         f.check_keys(names)
         kw = {}
@@ -94,7 +105,7 @@ class PSPRMSettings:
             elif isinstance(fl.default, int):
                 kw[fl.name] = f.int(fl.name, lo=0)
             elif isinstance(fl.default, float):
-                kw[fl.name] = f.float(fl.name, lo=None if fl.name == "edge_view_slack" else 0.0)
+                kw[fl.name] = f.float(fl.name, lo=None if fl.name in ("edge_view_slack", "sample_spread") else 0.0)
             else:
                 kw[fl.name] = f.str(fl.name)
         kw.update({k: v for k, v in overrides.items() if v is not None})
@@ -216,6 +227,10 @@ class PSPRM:
             lo[2], hi[2] = -np.pi, np.pi
         lo = np.where(np.isfinite(lo), lo, -np.pi)
         hi = np.where(np.isfinite(hi), hi, np.pi)
+        if self.settings.sample_spread >= 0:  # keep an arm near its camera-ready template pose
+            b = r.base_dof
+            lo[b:] = np.maximum(lo[b:], template[b:] - self.settings.sample_spread)
+            hi[b:] = np.minimum(hi[b:], template[b:] + self.settings.sample_spread)
         q = lo + rng.random((n, r.dof)) * (hi - lo)
         if self.settings.sample_joints == "camera":
             mask = camera_joint_mask(r)
