@@ -120,3 +120,18 @@ def test_save_load_roundtrip(home, tmp_path):
     stale = PSPRM(robot, moved, planner.scorer, planner.constraint.target.numpy(), planner.settings)
     with pytest.raises(ConfigError, match="fingerprint"):
         stale.load(path)
+
+
+def test_retired_query_edges_never_change_results(home):
+    """Query nodes/edges are retired lazily (blocked, removed in batches): repeated queries give the same costs
+    whether or not the retired ones were compacted away, and the graph only grows until compaction."""
+    scene, robot, planner = home
+    probs = [problem_configurations(robot, scene, p) for p in scene.problems[:4]]
+    first = [planner.plan(a, b, timing=False).cost for a, b in probs]
+    grown = planner.graph.n_nodes
+    again = [planner.plan(a, b, timing=False).cost for a, b in probs]
+    assert planner.graph.n_nodes > grown  # retired nodes are kept until compaction
+    planner._compact()
+    compacted = [planner.plan(a, b, timing=False).cost for a, b in probs]
+    assert np.allclose(first, again) and np.allclose(first, compacted)
+    assert planner.graph.node_valid[planner.n_roadmap_nodes:].sum() == 2 * len(probs)  # only the last queries'

@@ -40,6 +40,8 @@ from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, la
 
 log = logging.getLogger(__name__)
 
+COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
+
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
     "psprm-frustum": ("frustum", "oracle"),
@@ -203,6 +205,8 @@ class PSPRM:
             lo[:2], hi[:2] = self._t(scene.workspace[:, 0]), self._t(scene.workspace[:, 1])
         self._lo, self._hi = lo, hi
         self.graph: Optional[Roadmap] = None
+        self._dead_edges: list = []
+        self._dead_nodes: list = []
         self.node_scores: Optional[np.ndarray] = None
         self.stats: dict = {}
         self.max_motion = 1.0
@@ -288,6 +292,7 @@ class PSPRM:
                     verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
                     checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
         self.graph = g
+        self._dead_edges, self._dead_nodes = [], []
         self.node_scores = node_scores.double().cpu().numpy()
         self.n_roadmap_nodes = len(Q)
         build_s = time.perf_counter() - t0
@@ -455,6 +460,7 @@ class PSPRM:
     # ---- query -----------------------------------------------------------------------------------------------------
     def set_alpha(self, alpha: float) -> None:
         """Re-weight every edge with a new alpha (Eq. 2) without rebuilding (alpha = 0: shortest-path PRM)."""
+        self._compact()
         g = self.graph
         ids = g.valid_edge_ids()
         w = combined_weight(g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids], alpha)
@@ -526,10 +532,22 @@ class PSPRM:
             result.query_ms = (time.perf_counter() - t0) * 1e3
             return result
         finally:
+            # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
+            # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
             if added_edges:
-                g.remove_edges(added_edges)
-            if added_nodes:
-                g.remove_nodes(added_nodes)
+                g.set_weights(np.asarray(added_edges), np.inf)
+            self._dead_edges.extend(int(e) for e in added_edges)
+            self._dead_nodes.extend(int(n) for n in added_nodes)
+            if len(self._dead_nodes) >= 2 * COMPACT_EVERY:
+                self._compact()
+
+    def _compact(self) -> None:
+        """Remove the retired query nodes and edges from the graph (one adjacency rebuild for many queries)."""
+        if self._dead_edges:
+            self.graph.remove_edges(np.asarray(self._dead_edges))
+        if self._dead_nodes:
+            self.graph.remove_nodes(np.asarray(self._dead_nodes))
+        self._dead_edges, self._dead_nodes = [], []
 
     def _verify_edges(self, edge_ids: np.ndarray, path) -> "EdgeCheck":
         """Lazy evaluation of the edges a search wants to use: dense collision check (Lazy PRM) and the Eq. 1
@@ -640,6 +658,7 @@ class PSPRM:
         return h.hexdigest()[:20]
 
     def save(self, path: str | Path) -> Path:
+        self._compact()
         g = self.graph
         n, e = self.n_roadmap_nodes, g.valid_edge_ids()
         e = e[(g.edge_u[e] < n) & (g.edge_v[e] < n)]
@@ -666,6 +685,7 @@ class PSPRM:
         if len(bad):
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
+        self._dead_edges, self._dead_nodes = [], []
         self.n_roadmap_nodes = len(data["configs"])
         self.max_motion = float(data["max_motion"])
         self.score_scale = float(data["score_scale"])
