@@ -76,21 +76,6 @@ class DiffDriveMotion:
         out = torch.cat([xy, wrap_angle(theta).unsqueeze(-1), joints], dim=-1)
         return out
 
-    def base_waypoints(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
-        """The corner configurations of one local motion: qa, after rotation 1, after translation, qb -> (4, dof).
-
-        Used to turn a roadmap path into a piecewise-linear joint path that a differential drive can follow
-        exactly (each piece a pure rotation or a straight translation along the heading).
-        """
-        qa, qb = qa.reshape(1, -1), qb.reshape(1, -1)
-        if not self.mobile:
-            return torch.cat([qa, qb])
-        phi, r1, d, r2 = self._base_plan(qa, qb)
-        l1, l2, l3 = self.w_rot * r1.abs(), d, self.w_rot * r2.abs()
-        total = (l1 + l2 + l3).clamp_min(1e-12)
-        s1, s2 = l1 / total, (l1 + l2) / total
-        return torch.cat([qa, self.interpolate(qa, qb, s1), self.interpolate(qa, qb, s2), qb])
-
     # ---- validation ------------------------------------------------------------------------------------------------
     def steps(self, qa: torch.Tensor, qb: torch.Tensor, resolution: float, max_steps: int = 200) -> torch.Tensor:
         """Number of interior checks per motion so that consecutive checks are at most ``resolution`` apart."""

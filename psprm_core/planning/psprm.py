@@ -412,16 +412,9 @@ class PSPRM:
         E, M, dof = knots.shape
         ok = torch.ones(E, dtype=torch.bool, device=knots.device)
         a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
-        diff = b - a
-        if self.robot.mobile:
-            diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
-        length = self.motion.distance(a, b)
-        steps = torch.ceil(length / self.settings.edge_resolution).long().clamp(1, 200) - 1
-        seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), steps)
+        seg, pts = self._pieces(a, b, max_steps=200, include_start=False)
         if len(seg):
-            k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(steps, 0) - steps, steps)
-            frac = ((k + 1).to(a.dtype) / (steps[seg] + 1).to(a.dtype)).unsqueeze(-1)
-            bad = self.checker.check(a[seg] + diff[seg] * frac)
+            bad = self.checker.check(pts)
             seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
             seg_ok[seg[bad]] = False
             ok &= seg_ok.reshape(E, M - 1).all(-1)
@@ -636,16 +629,24 @@ class PSPRM:
         """Configurations every ``edge_resolution`` along the piecewise-linear knot path ``W`` (K, dof)."""
         if len(W) < 2:
             return W
-        a, b = W[:-1], W[1:]
+        _, pts = self._pieces(W[:-1], W[1:], max_steps=1000, include_start=True)
+        return torch.cat([pts, W[-1:]])
+
+    def _pieces(self, a: torch.Tensor, b: torch.Tensor, max_steps: int, include_start: bool) -> tuple:
+        """Points every ``edge_resolution`` on the straight pieces a[i] -> b[i] (theta interpolated the short way).
+
+        Each piece is split into n = ceil(length / resolution) steps (at most ``max_steps``); the points are at
+        fractions k / n for k = 0 .. n-1 (``include_start``) or k = 1 .. n-1. Returns (piece index, points).
+        """
         diff = b - a
         if self.robot.mobile:
             diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
-        steps = torch.ceil(self.motion.distance(a, b) / self.settings.edge_resolution).long().clamp(1, 1000)
-        seg = torch.repeat_interleave(torch.arange(len(a)), steps)
-        k = torch.arange(len(seg)) - torch.repeat_interleave(torch.cumsum(steps, 0) - steps, steps)
-        frac = (k.to(W.dtype) / steps[seg].to(W.dtype)).unsqueeze(-1)
-        out = a[seg] + diff[seg] * frac
-        return torch.cat([out, W[-1:]])
+        n = torch.ceil(self.motion.distance(a, b) / self.settings.edge_resolution).long().clamp(1, max_steps)
+        count = n if include_start else n - 1
+        seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), count)
+        k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+        frac = ((k + (0 if include_start else 1)).to(a.dtype) / n[seg].to(a.dtype)).unsqueeze(-1)
+        return seg, a[seg] + diff[seg] * frac
 
     # ---- persistence -----------------------------------------------------------------------------------------------
     def fingerprint(self) -> str:
