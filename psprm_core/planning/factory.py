@@ -72,7 +72,9 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
                                    **{k: v for k, v in overrides.items() if v is not None})
     scorer = make_scorer(kind, scene, targets, robot.config.intrinsics, checkpoint, multi_mode)
     focus = np.mean([scene.target(t).center for t in targets], axis=0)
-    return PSPRM(robot, scene, scorer, focus, settings, device=device)
+    planner = PSPRM(robot, scene, scorer, focus, settings, device=device)
+    planner.targets = list(targets)
+    return planner
 
 
 def problem_configurations(robot: RobotModel, scene: Scene, problem) -> tuple:

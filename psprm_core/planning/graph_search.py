@@ -593,9 +593,11 @@ def lazy_astar(
     weights : array-like, optional
         Initial weights (default: the roadmap's weights).  A private copy is updated; the roadmap is only modified
         when ``apply_to_graph`` is True.
-    heuristic : {"hop", "zero"}
+    heuristic : {"hop", "exact", "zero"}
         The hop heuristic stays consistent across iterations: invalid edges get weight ``inf`` (hop distances on the
         unchanged structure remain lower bounds) and :math:`c^{\\min}` (Eq. 4) is lowered when an update goes below it.
+        ``exact`` uses the true cost-to-go of the current working weights (one compiled multi-source Dijkstra from the
+        goals), recomputed only after a verified weight went down; A* then expands little more than the path.
     max_iterations : int
         Maximum number of searches.
     max_expansions : int, optional
@@ -622,13 +624,20 @@ def lazy_astar(
     updated: dict[int, float] = {}
     checked: list[int] = []
     use_hop = heuristic == "hop"
-    if heuristic not in ("hop", "zero", "none", "dijkstra"):
-        raise ValueError("lazy_astar supports heuristic 'hop' or 'zero'")
+    use_exact = heuristic == "exact"
+    if heuristic not in ("hop", "exact", "zero", "none", "dijkstra"):
+        raise ValueError("lazy_astar supports heuristic 'hop', 'exact' or 'zero'")
     c_min = min_edge_cost(graph, w_arr) if use_hop else 0.0
     total_expanded = 0
     result = _fail("max_iterations is 0")
+    h_arr = None
+    stale = True  # exact heuristic: recompute after a weight decreased (increases keep it a consistent lower bound)
     for it in range(1, max_iterations + 1):
-        h_arr = hop_heuristic(graph, goal_ids, c_min=c_min) if (use_hop and goal_ids.size) else None
+        if use_hop and goal_ids.size:
+            h_arr = hop_heuristic(graph, goal_ids, c_min=c_min)
+        elif use_exact and goal_ids.size and stale:
+            h_arr = dijkstra(graph, goal_ids, w_arr)[0]
+            stale = False
         result = _run_astar(graph, start, goal_ids, w_list, h_arr, max_expansions)
         total_expanded += result.expanded
         result.expanded = total_expanded
@@ -647,6 +656,8 @@ def lazy_astar(
             e, val = int(e), float(val)
             if not (val >= 0):
                 raise ValueError(f"verified weight of edge {e} must be non-negative, got {val}")
+            if val < w_arr[e]:
+                stale = True
             w_arr[e] = val
             w_list[e] = val
             updated[e] = val

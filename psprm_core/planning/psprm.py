@@ -70,6 +70,7 @@ class PSPRMSettings:
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
     connect_k: int = 12  # neighbours tried when connecting a start or goal
+    heuristic: str = "hop"  # A* heuristic: hop (Eq. 3, the paper's) | exact (cost-to-go from a compiled Dijkstra)
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     sample_batch: int = 2048
     build_timeout_s: float = 120.0
@@ -118,6 +119,8 @@ class PSPRMSettings:
     def validate(self, source: str = "settings") -> None:
         if self.constraint not in ("line", "frustum"):
             raise ConfigError(source, "constraint", f"unknown visibility model '{self.constraint}' (line, frustum)")
+        if self.heuristic not in ("hop", "exact"):
+            raise ConfigError(source, "heuristic", f"unknown A* heuristic '{self.heuristic}' (hop, exact)")
         if self.sample_joints not in ("camera", "all"):
             raise ConfigError(source, "sample_joints", "must be 'camera' or 'all'")
         if not 0.0 <= self.alpha <= 1.0:
@@ -207,9 +210,12 @@ class PSPRM:
         self.graph: Optional[Roadmap] = None
         self._dead_edges: list = []
         self._dead_nodes: list = []
-        self.node_scores: Optional[np.ndarray] = None
+        self.node_scores: Optional[np.ndarray] = None  # per node slot (NaN for query nodes)
+        self._roadmap_mask = np.zeros(0, dtype=bool)  # node slots that are roadmap nodes (not start/goal queries)
         self.stats: dict = {}
         self.max_motion = 1.0
+        self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
+        self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
 
     # ---- helpers -----------------------------------------------------------------------------------------------------
     def _t(self, a) -> torch.Tensor:
@@ -293,8 +299,9 @@ class PSPRM:
                     checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
         self.graph = g
         self._dead_edges, self._dead_nodes = [], []
+        self._unverified, self._index = False, None
         self.node_scores = node_scores.double().cpu().numpy()
-        self.n_roadmap_nodes = len(Q)
+        self._roadmap_mask = np.ones(len(Q), dtype=bool)
         build_s = time.perf_counter() - t0
         self.stats = {
             "success": True, "n_nodes": int(len(Q)), "n_edges": int(len(eu)), "samples_tried": int(tried),
@@ -483,8 +490,7 @@ class PSPRM:
             ids = g.add_nodes(qs.double().cpu().numpy())
             added_nodes = list(ids)
             s_id, goal_ids = int(ids[0]), [int(i) for i, b in zip(ids[1:], bad[1:].tolist()) if not b]
-            n = self.n_roadmap_nodes
-            rm_ids = np.nonzero(g.node_valid[:n])[0]
+            rm_ids = self.roadmap_node_ids()
             rm = self._roadmap_tensor(rm_ids)
             # candidate edges of the start and every goal, plus start-goal, checked in one batch
             queries = [(0, s_id)] + [(1 + k, int(gid)) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]
@@ -512,10 +518,11 @@ class PSPRM:
                                                              np.asarray(v_ids)[keep.cpu().numpy()], pe[ok]))
             if not goal_ids:
                 res = None
-            elif self.settings.lazy_edges or self.settings.lazy_collision:
-                res = lazy_astar(g, s_id, goal_ids, self._verify_edges, apply_to_graph=True)
+            elif self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
+                res = lazy_astar(g, s_id, goal_ids, self._verify_edges, heuristic=self.settings.heuristic,
+                                 apply_to_graph=True)
             else:
-                res = astar(g, s_id, goal_ids)
+                res = astar(g, s_id, goal_ids, heuristic=self.settings.heuristic)
             if res is None or not res.success:
                 return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
                                   query_ms=(time.perf_counter() - t0) * 1e3)
@@ -553,8 +560,8 @@ class PSPRM:
         knots, interior = self.edge_knots(self._t(g.configs[g.edge_u[todo]]), self._t(g.configs[g.edge_v[todo]]))
         ok = torch.ones(len(todo), dtype=torch.bool, device=self.device)
         need = torch.as_tensor(chk[todo] < 0.5, device=self.device)
-        if need.any():
-            ok[need] = self._dense_valid(knots[need])
+        if need.any():  # interior knots and the dense pieces between them (obstacles may have moved since build)
+            ok[need] = self._knots_valid(knots[need], dense=True)
         chk[todo] = 1.0
         invalid = todo[~ok.cpu().numpy()]
         if len(invalid):
@@ -570,9 +577,33 @@ class PSPRM:
             weights = {int(e): float(x) for e, x in zip(sel, w)}
         return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
 
+    @property
+    def n_roadmap_nodes(self) -> int:
+        """Number of roadmap node slots (valid or pruned; start/goal query nodes excluded)."""
+        return int(self._roadmap_mask.sum())
+
+    def roadmap_mask(self) -> np.ndarray:
+        """(n_node_slots,) bool: slot holds a roadmap node (valid or not), not a start/goal query node."""
+        g = self.graph
+        m = np.zeros(g.n_nodes, dtype=bool)
+        m[: len(self._roadmap_mask)] = self._roadmap_mask
+        return m
+
+    def roadmap_node_ids(self) -> np.ndarray:
+        """Ids of the valid roadmap nodes."""
+        g = self.graph
+        return np.nonzero(self.roadmap_mask() & g.node_valid[: g.n_nodes])[0]
+
+    def roadmap_edge_ids(self) -> np.ndarray:
+        """Ids of the valid edges between roadmap nodes (start/goal query edges excluded)."""
+        g = self.graph
+        e = g.valid_edge_ids()
+        m = self.roadmap_mask()
+        return e[m[g.edge_u[e]] & m[g.edge_v[e]]]
+
     def _roadmap_tensor(self, ids: np.ndarray) -> torch.Tensor:
         """Roadmap node configurations as a tensor on the planner's device (cached until the node set changes)."""
-        key = hash(np.packbits(self.graph.node_valid[: self.n_roadmap_nodes]).tobytes())
+        key = hash(ids.tobytes())
         if getattr(self, "_rm_cache_key", None) != key:
             self._rm_cache = torch.as_tensor(self.graph.configs[ids], dtype=self.dtype, device=self.device)
             self._rm_cache_key = key
@@ -648,6 +679,197 @@ class PSPRM:
         frac = ((k + (0 if include_start else 1)).to(a.dtype) / n[seg].to(a.dtype)).unsqueeze(-1)
         return seg, a[seg] + diff[seg] * frac
 
+    # ---- dynamic scenes (used by the replanner) ----------------------------------------------------------------------
+    def set_scene(self, scene: Scene) -> None:
+        """Adopt moved targets/obstacles: the scorer's occluders and the collision checker's boxes follow ``scene``.
+
+        Nothing is re-scored or re-checked here; see :meth:`rescore` and :meth:`invalidate_near`."""
+        self.scene = scene
+        self.scorer.set_scene(scene)
+        self.checker.set_boxes(scene.collision_boxes())
+
+    def set_focus(self, focus) -> None:
+        """Move the point the visibility constraint aims at (edges re-aim their camera joints at it)."""
+        self.constraint.set_target(np.asarray(focus, float))
+
+    def _node_score_slots(self) -> np.ndarray:
+        g = self.graph
+        if len(self.node_scores) < g.n_nodes:
+            self.node_scores = np.concatenate([self.node_scores, np.full(g.n_nodes - len(self.node_scores), np.nan)])
+        return self.node_scores
+
+    def rescore(self, full: bool = False, tol: float = 1e-4) -> dict:
+        """Re-score the roadmap after the target or an occluder moved.
+
+        Every valid roadmap node is scored in one batch (FK -> scorer). ``full=False`` (lazy): the edges at a node
+        whose score changed by more than ``tol`` get the Eq. 1 estimate from their two ends only and are marked
+        unverified; a search then scores the N interior configurations (Eq. 1) only for the edges on its candidate
+        paths (:meth:`_verify_edges` via :func:`lazy_astar`). ``full=True`` scores the interiors of every edge now
+        (what a planner without lazy evaluation pays on every replan).
+        Returns counts and timings.
+        """
+        t0 = time.perf_counter()
+        g = self.graph
+        ids = self.roadmap_node_ids()
+        scores = self._node_score_slots()
+        new = self.score_configs(self._roadmap_tensor(ids)).double().cpu().numpy()
+        changed = np.abs(new - scores[ids]) > tol
+        scores[ids] = new
+        e = self.roadmap_edge_ids()
+        if not full:
+            flag = np.zeros(g.n_nodes, dtype=bool)
+            flag[ids[changed]] = True
+            e = e[flag[g.edge_u[e]] | flag[g.edge_v[e]]]
+        t_nodes = time.perf_counter() - t0
+        if len(e):
+            c_p, ver = g.edge_attribute("c_p"), g.edge_attribute("verified")
+            if full:
+                p = np.empty(len(e))
+                for s0 in range(0, len(e), 4096):
+                    sl = e[s0:s0 + 4096]
+                    knots, interior = self.edge_knots(self._t(g.configs[g.edge_u[sl]]),
+                                                      self._t(g.configs[g.edge_v[sl]]))
+                    p[s0:s0 + 4096] = self._knots_perception(knots, interior).double().cpu().numpy()
+                ver[e] = 1.0
+            else:
+                scale = getattr(self, "score_scale", 1.0)
+                p = edge_perception(np.clip(scores[g.edge_u[e]] * scale, 0, 1), np.clip(scores[g.edge_v[e]] * scale, 0, 1))
+                ver[e] = 0.0
+                self._unverified = True
+            c_p[e] = p
+            g.set_weights(e, combined_weight(p, g.edge_attribute("c_m")[e], self.settings.alpha))
+        return {"nodes": int(len(ids)), "changed_nodes": int(changed.sum()), "edges": int(len(e)),
+                "nodes_ms": t_nodes * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
+
+    def _spatial_index(self):
+        """KD-trees over the roadmap's base positions (nodes) and edge midpoints, plus the robot's reach radius
+        (largest xy distance of a collision sphere from the base over the roadmap's nodes) and the longest edge's
+        half length. Built on first use and after :meth:`grow`; removals keep it valid (stale ids are filtered)."""
+        if self._index is None:
+            from scipy.spatial import cKDTree
+
+            g = self.graph
+            ids, e = self.roadmap_node_ids(), self.roadmap_edge_ids()
+            Q = self._roadmap_tensor(ids)
+            reach = 0.0
+            if self.robot.mobile and len(ids):
+                r = torch.as_tensor(self.robot.spheres.radii, dtype=self.dtype, device=self.device)
+                for s0 in range(0, len(Q), 4096):
+                    c = self.robot.sphere_centers(Q[s0:s0 + 4096])
+                    d = (c[..., :2] - Q[s0:s0 + 4096, None, :2]).norm(dim=-1) + r
+                    reach = max(reach, float(d.max()))
+            xy = g.configs[:, :2] if self.robot.mobile else np.zeros((g.n_nodes, 2))
+            a, b = xy[g.edge_u[e]], xy[g.edge_v[e]]
+            half = 0.5 * np.linalg.norm(b - a, axis=1)
+            self._index = {"node_ids": ids, "node_tree": cKDTree(xy[ids]), "edge_ids": e,
+                           "edge_tree": cKDTree(0.5 * (a + b)) if len(e) else None,
+                           "max_half": float(half.max()) if len(e) else 0.0, "reach": reach}
+        return self._index
+
+    def invalidate_near(self, boxes: Sequence, margin: float = 0.05) -> dict:
+        """Obstacle update (after :meth:`set_scene`): re-check only what the moved ``boxes`` (new poses) can touch.
+
+        Roadmap nodes whose base lies within reach of a box are collision-checked against the current boxes and
+        removed when in collision; edges whose base segment passes within reach are marked unchecked, so a search
+        re-checks them densely before using them (Lazy PRM). A fixed-base robot re-checks everything.
+        """
+        g = self.graph
+        if not self.robot.mobile:
+            nodes, edges = self.roadmap_node_ids(), self.roadmap_edge_ids()
+        else:
+            idx = self._spatial_index()
+            nsel, esel = set(), set()
+            for b in boxes:
+                c = np.asarray(b.center, float)[:2]
+                rad = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + idx["reach"] + margin
+                nsel.update(idx["node_tree"].query_ball_point(c, rad))
+                if idx["edge_tree"] is not None:
+                    cand = np.asarray(idx["edge_tree"].query_ball_point(c, rad + idx["max_half"]), dtype=np.int64)
+                    if len(cand):
+                        ee = idx["edge_ids"][cand]
+                        pa, pb = g.configs[g.edge_u[ee], :2], g.configs[g.edge_v[ee], :2]
+                        d = pb - pa
+                        t = np.clip(((c - pa) * d).sum(1) / np.maximum((d * d).sum(1), 1e-12), 0, 1)
+                        dist = np.linalg.norm(pa + t[:, None] * d - c, axis=1)
+                        esel.update(ee[dist <= rad].tolist())
+            nodes = idx["node_ids"][np.asarray(sorted(nsel), dtype=np.int64)] if nsel else np.zeros(0, np.int64)
+            edges = np.asarray(sorted(esel), dtype=np.int64)
+        nodes = nodes[g.node_valid[nodes]]
+        edges = edges[g.edge_valid[edges]] if len(edges) else edges
+        removed = np.zeros(0, dtype=np.int64)
+        if len(nodes):
+            bad = self.checker.check(self._t(g.configs[nodes])).cpu().numpy()
+            removed = nodes[bad]
+            if len(removed):
+                g.remove_nodes(removed)
+        edges = edges[g.edge_valid[edges]] if len(edges) else edges
+        g.edge_attribute("checked")[edges] = 0.0
+        return {"checked_nodes": int(len(nodes)), "removed_nodes": int(len(removed)), "unchecked_edges": int(len(edges))}
+
+    def grow(self, n: int, center: Optional[np.ndarray] = None, radius: float = 1.5,
+             rng: Optional[np.random.Generator] = None, timeout_s: float = 2.0) -> dict:
+        """Roadmap repair: add up to ``n`` collision-free manifold nodes (base within ``radius`` of ``center`` when
+        given) and connect them to their neighbours among all roadmap nodes, as in :meth:`build`. Existing nodes
+        are kept. Returns the number of nodes and edges added."""
+        s, g = self.settings, self.graph
+        rng = rng or np.random.default_rng()
+        t0 = time.perf_counter()
+        got = []
+        have = 0
+        while have < n and time.perf_counter() - t0 < timeout_s:
+            q = self._sample(max(4 * n, 256), rng, self.template)
+            if center is not None and self.robot.mobile:
+                ang = rng.uniform(-np.pi, np.pi, len(q))
+                rr = radius * np.sqrt(rng.random(len(q)))
+                xy = np.asarray(center, float)[:2] + np.stack([rr * np.cos(ang), rr * np.sin(ang)], 1)
+                q[:, :2] = self._t(xy)
+            q, ok = self.constraint.project(q, s.projection, self._lo, self._hi)
+            q = q[ok]
+            q = q[self.checker.valid(q)]
+            got.append(q)
+            have += len(q)
+        if have == 0:
+            return {"added_nodes": 0, "added_edges": 0}
+        Qn = torch.cat(got)[:n]
+        old_ids = self.roadmap_node_ids()
+        new_ids = g.add_nodes(Qn.double().cpu().numpy())
+        mask = self.roadmap_mask()
+        mask[new_ids] = True
+        self._roadmap_mask = mask
+        scores = self._node_score_slots()
+        scores[new_ids] = self.score_configs(Qn).double().cpu().numpy()
+        all_ids = np.concatenate([old_ids, new_ids])
+        Qall = self._t(g.configs[all_ids])
+        eu, ev, dist = self._neighbours(Qn, Qall, s.k_neighbors, k_long=s.k_long, rng=rng)
+        u_ids, v_ids = new_ids[eu.cpu().numpy()], all_ids[ev.cpu().numpy()]
+        keep = u_ids != v_ids
+        eu, ev, dist, u_ids, v_ids = eu[keep], ev[keep], dist[keep], u_ids[keep], v_ids[keep]
+        pairs = set()
+        sel = []
+        for i, (a, b) in enumerate(zip(u_ids.tolist(), v_ids.tolist())):  # unique undirected, not already joined
+            k = (min(a, b), max(a, b))
+            if k not in pairs and g.edge_id(a, b) is None:
+                pairs.add(k)
+                sel.append(i)
+        sel = np.asarray(sel, dtype=np.int64)
+        added = 0
+        if len(sel):
+            qa, qb = Qn[eu[sel]], Qall[ev[sel]]
+            valid, p_edge = self._edges_valid(qa, qb)
+            if s.lazy_edges:
+                sc = self._t(scores)
+                p_edge = edge_perception(self._normalized(sc[u_ids[sel]]), self._normalized(sc[v_ids[sel]]))
+            v = valid.cpu().numpy()
+            c_m = (dist[sel] / self.max_motion).clamp(0, 1)[valid]
+            p_edge = p_edge[valid]
+            g.add_edges(u_ids[sel][v], v_ids[sel][v], combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
+                        c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
+                        verified=np.full(int(v.sum()), 0.0 if s.lazy_edges else 1.0),
+                        checked=np.full(int(v.sum()), 0.0 if s.lazy_collision else 1.0))
+            added = int(v.sum())
+        self._index = None
+        return {"added_nodes": int(len(new_ids)), "added_edges": added, "grow_ms": (time.perf_counter() - t0) * 1e3}
+
     # ---- persistence -----------------------------------------------------------------------------------------------
     def fingerprint(self) -> str:
         """Hash of the robot, scene geometry, focus point and settings the roadmap was built for."""
@@ -661,14 +883,16 @@ class PSPRM:
     def save(self, path: str | Path) -> Path:
         self._compact()
         g = self.graph
-        n, e = self.n_roadmap_nodes, g.valid_edge_ids()
-        e = e[(g.edge_u[e] < n) & (g.edge_v[e] < n)]
+        keep, e = self.roadmap_node_ids(), self.roadmap_edge_ids()
+        remap = np.full(g.n_nodes, -1, dtype=np.int64)
+        remap[keep] = np.arange(len(keep))
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        np.savez_compressed(path, configs=g.configs[:n], node_valid=g.node_valid[:n], eu=g.edge_u[e], ev=g.edge_v[e],
+        np.savez_compressed(path, configs=g.configs[keep], node_valid=np.ones(len(keep), dtype=bool),
+                            eu=remap[g.edge_u[e]], ev=remap[g.edge_v[e]],
                             c_m=g.edge_attribute("c_m")[e], c_p=g.edge_attribute("c_p")[e],
                             verified=g.edge_attribute("verified")[e], checked=g.edge_attribute("checked")[e],
-                            node_scores=self.node_scores[:n], max_motion=self.max_motion,
+                            node_scores=self.node_scores[keep], max_motion=self.max_motion,
                             score_scale=getattr(self, "score_scale", 1.0),
                             fingerprint=self.fingerprint(), stats=json.dumps(self.stats))
         return path
@@ -687,7 +911,9 @@ class PSPRM:
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
         self._dead_edges, self._dead_nodes = [], []
-        self.n_roadmap_nodes = len(data["configs"])
+        self._roadmap_mask = np.ones(len(data["configs"]), dtype=bool)
+        self._unverified = bool((data["verified"] < 0.5).any()) and not self.settings.lazy_edges
+        self._index = None
         self.max_motion = float(data["max_motion"])
         self.score_scale = float(data["score_scale"])
         self.stats = json.loads(str(data["stats"]))
