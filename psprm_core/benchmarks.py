@@ -95,10 +95,15 @@ def kinematics_benchmark(robot_name: str, scene_name: str, n: int = 10000, seed:
 
 
 def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, template: np.ndarray,
-                    target_center: np.ndarray, min_distance: float = 1.0) -> list:
+                    target_center: np.ndarray, min_distance: float = 1.0, aimed_only: bool = False,
+                    aim_restarts: int = 0) -> list:
     """``n`` random collision-free (start, goal) pairs: base poses uniform over the workspace, the camera joints
     aimed at the target (projection onto the line-of-sight manifold with the non-base joints), others at
-    ``template``; start and goal at least ``min_distance`` apart."""
+    ``template``; start and goal at least ``min_distance`` apart.
+
+    ``aim_restarts`` > 0 retries unconverged aims from spread-out joint values
+    (:func:`psprm_core.baselines.base.aim_camera`); ``aimed_only`` keeps only configurations whose optical axis
+    passes through the target (within the projection tolerance)."""
     from .planning.constraints import ProjectionSettings, VisibilityConstraint
     from .planning.psprm import camera_joint_mask
 
@@ -107,14 +112,27 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
     cols = np.nonzero(mask)[0]
     con = VisibilityConstraint(robot, "line", target_center)
     out = []
+    lo = np.where(np.isfinite(robot.lower), robot.lower, -1e9)
+    hi = np.where(np.isfinite(robot.upper), robot.upper, 1e9)
     while len(out) < n:
         q = np.tile(template, (4 * n, 1))
         q[:, 0] = rng.uniform(*scene.workspace[0], 4 * n)
         q[:, 1] = rng.uniform(*scene.workspace[1], 4 * n)
         q[:, 2] = rng.uniform(-np.pi, np.pi, 4 * n)
-        qt = torch.as_tensor(q, dtype=torch.float32)
-        qt, _ = con.project(qt, ProjectionSettings(max_iters=10), joints=cols)
-        qt = qt[checker.valid(qt)]
+        if aim_restarts > 0:
+            from .baselines.base import aim_camera
+
+            qa, ok = aim_camera(con, q, cols, lo, hi, iters=10, restarts=aim_restarts,
+                                seed=int(rng.integers(2**31)))
+            qt = torch.as_tensor(qa, dtype=torch.float32)
+            conv = torch.as_tensor(ok)
+        else:
+            qt = torch.as_tensor(q, dtype=torch.float32)
+            qt, conv = con.project(qt, ProjectionSettings(max_iters=10), joints=cols)
+        keep = checker.valid(qt)
+        if aimed_only:
+            keep &= conv.to(keep.device)
+        qt = qt[keep]
         qs = qt.double().numpy()
         for a, b in zip(qs[0::2], qs[1::2]):
             if np.linalg.norm(a[:2] - b[:2]) >= min_distance and len(out) < n:
@@ -225,3 +243,108 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
             "frames_per_path": frames, "build_s": stats.get("build_s"), "n_nodes": stats.get("n_nodes"),
             "n_edges": stats.get("n_edges"), planner: summary(rows["psprm"]), "shortest_path_alpha0":
             summary(rows["shortest"])}
+
+
+def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-psprm-line", nodes: int = 3000,
+                     updates: int = 50, seed: int = 0, threads: int = 2, target: str | None = None,
+                     heuristic: str | None = None) -> dict:
+    """Issue 5's numbers: latency of (update + re-search until a verified path) for target, obstacle and goal moves
+    on one roadmap, and the time a full re-score of every node and edge takes (what lazy evaluation avoids).
+
+    * ``target_move``: the person (target + the obstacle it stands in, if any) turns to a random yaw within +-1.2 rad
+      of its initial facing;
+    * ``obstacle_move``: a random piece of furniture (not a wall, not the person) moves by up to 0.6 m and 0.5 rad
+      (moves that would put it onto the robot's start are redrawn);
+    * ``goal_move``: a new random collision-free goal (base pose anywhere in the workspace, camera aimed).
+    """
+    import dataclasses
+
+    from .collision import CollisionChecker
+    from .geometry import yaw_to_quat
+    from .paths import resolve_named
+    from .planning.factory import make_planner, problem_configurations
+    from .planning.replanner import Replanner
+    from .robot import RobotModel
+    from .scene import load_scene
+    from .simulation import PersonMotion, person_pose
+
+    torch.set_num_threads(threads)
+    scene = load_scene(resolve_named("scene", scene_name))
+    robot = RobotModel.load(scene.robot)
+    prob = scene.problems[0]
+    target = target or prob.target
+    kw = {"heuristic": heuristic} if heuristic else {}
+    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed, **kw)
+    stats = p.build()
+    rng = np.random.default_rng(seed + 7)
+    start, goals = problem_configurations(robot, scene, prob)
+    rp = Replanner(p, targets=[target])
+    rp.set_robot_state(start)
+    rp.set_goals(goals)
+    first = rp.replan()
+    tgt = scene.target(target)
+    body = None
+    for b in scene.obstacles:  # the obstacle the target is part of (a person's body), if any
+        if np.all(np.abs(tgt.center[:2] - b.center[:2]) <= b.size[:2] / 2 + 0.1) and b.center[2] < tgt.center[2]:
+            body = b.name
+    motion = PersonMotion(target=target, body=body)
+    yaw0 = float(np.arctan2(tgt.rotation[1, 0], tgt.rotation[0, 0]))
+    movable = [b.name for b in scene.obstacles if not b.name.startswith("wall") and b.name != body]
+    out = {"scene": scene.name, "planner": planner, "target": target, "threads": threads,
+           "heuristic": p.settings.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
+           "build_s": stats.get("build_s"), "first_plan_ms": first.query_ms, "updates": updates}
+
+    def timed(kind: str, update) -> None:
+        times, ok = [], 0
+        for i in range(updates):
+            t0 = time.perf_counter()
+            update(i)
+            r = rp.replan()
+            times.append((time.perf_counter() - t0) * 1e3)
+            ok += r.success
+        out[kind] = {"median_ms": float(np.median(times)), "p95_ms": float(np.percentile(times, 95)),
+                     "success_rate": ok / updates}
+
+    def turn(i):
+        pp = person_pose(scene, motion, yaw0 + rng.uniform(-1.2, 1.2))
+        rp.update_target(target, *pp["target"])
+        if body:
+            rp.update_obstacle(body, *pp["body"])
+
+    timed("target_move", turn)
+    start_checker = CollisionChecker(robot, [], workspace=None)
+    q_start = torch.as_tensor(start[None], dtype=torch.float32)
+
+    def shift(i):
+        for _ in range(50):
+            name = movable[int(rng.integers(len(movable)))]
+            b0 = scene.obstacle(name)
+            c = b0.center + np.r_[rng.uniform(-0.6, 0.6, 2), 0.0]
+            yaw = float(np.arctan2(b0.rotation[1, 0], b0.rotation[0, 0])) + rng.uniform(-0.5, 0.5)
+            moved = dataclasses.replace(b0, center=c, quat=yaw_to_quat(yaw))
+            start_checker.set_boxes([moved])
+            if not bool(start_checker.check(q_start)[0]):
+                break
+        rp.update_obstacle(name, c, yaw_to_quat(yaw))
+
+    timed("obstacle_move", shift)
+    goal_pool = random_problems(robot, rp.scene, p.checker, updates, rng, robot.default_configuration(),
+                                tgt.center)
+
+    def new_goal(i):
+        rp.set_goals(goal_pool[i][1])
+
+    timed("goal_move", new_goal)
+    # what lazy evaluation avoids: every node and every edge's N interior configurations scored after a move
+    pp = person_pose(scene, motion, yaw0 + 0.7)
+    p.set_scene(p.scene.with_target_pose(target, *pp["target"]))
+    t0 = time.perf_counter()
+    full = p.rescore(full=True)
+    out["full_rescore_ms"] = (time.perf_counter() - t0) * 1e3
+    out["full_rescore_edges"] = full["edges"]
+    pp = person_pose(scene, motion, yaw0 - 0.7)
+    p.set_scene(p.scene.with_target_pose(target, *pp["target"]))
+    lazy = p.rescore(full=False)
+    out["lazy_rescore_ms"] = lazy["total_ms"]
+    out["speedup_lazy_vs_full_rescore"] = out["full_rescore_ms"] / max(lazy["total_ms"], 1e-9)
+    return out

@@ -21,6 +21,8 @@ SUBCOMMAND_MODULES = [
     "psprm_core.commands.perception",
     "psprm_core.commands.planning",
     "psprm_core.commands.surrogate",
+    "psprm_core.commands.bench",
+    "psprm_core.commands.simulate",
 ]
 
 

@@ -40,6 +40,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     cp.add_argument("--threads", type=int, default=2)
     cp.add_argument("--json", action="store_true")
     cp.set_defaults(func=_compare)
+    rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
+                                      "until a verified path), and the cost of a full re-score")
+    rp.add_argument("--scene", default="dynamic_person")
+    rp.add_argument("--planner", default="neural-psprm-line")
+    rp.add_argument("--target", default=None)
+    rp.add_argument("--nodes", type=int, default=3000)
+    rp.add_argument("--updates", type=int, default=50, help="updates per kind (default 50)")
+    rp.add_argument("--heuristic", choices=["hop", "exact"], default=None, help="A* heuristic (default: settings)")
+    rp.add_argument("--seed", type=int, default=0)
+    rp.add_argument("--threads", type=int, default=2)
+    rp.add_argument("--json", action="store_true")
+    rp.set_defaults(func=_replan)
+
+
+def _replan(args) -> int:
+    from ..benchmarks import replan_benchmark
+
+    _print(replan_benchmark(args.scene, args.planner, nodes=args.nodes, updates=args.updates, seed=args.seed,
+                            threads=args.threads, target=args.target, heuristic=args.heuristic), args.json)
+    return 0
 
 
 def _kinematics(args) -> int:

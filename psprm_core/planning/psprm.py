@@ -42,6 +42,9 @@ log = logging.getLogger(__name__)
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
 
+# settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
+QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s")
+
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
     "psprm-frustum": ("frustum", "oracle"),
@@ -510,7 +513,17 @@ class PSPRM:
                 v_ids.append(gid)
             dist = self.motion.distance(qa, qb)
             near = torch.nonzero(dist <= 2 * self.settings.max_edge_length, as_tuple=True)[0]
-            if len(near):
+            if len(near) and self.settings.lazy_collision:
+                # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
+                # interior scores only for the edges the search wants to use (usually one at each end)
+                scores = self._node_score_slots()
+                scores[ids] = self.score_configs(qs).double().cpu().numpy()
+                nn = near.cpu().numpy()
+                ua, vb = np.asarray(u_ids)[nn], np.asarray(v_ids)[nn]
+                scale = getattr(self, "score_scale", 1.0)
+                pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
+                added_edges.extend(self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False))
+            elif len(near):
                 ok, pe = self._query_edges(qa[near], qb[near])
                 keep = near[ok]
                 if len(keep):
@@ -609,14 +622,16 @@ class PSPRM:
             self._rm_cache_key = key
         return self._rm_cache
 
-    def _add_query_edges(self, qa, qb, ua, vb, p) -> list:
-        """Add already-validated query edges with their Eq. 1 perception ``p`` (E,)."""
+    def _add_query_edges(self, qa, qb, ua, vb, p, verified: bool = True) -> list:
+        """Add query edges with their Eq. 1 perception ``p`` (E,): validated and fully scored (``verified``), or
+        unchecked with an endpoint estimate (verified lazily by the search)."""
         dist = self.motion.distance(qa, qb)
         c_m = (dist / self.max_motion).clamp(0, 1)
         w = combined_weight(p, c_m, self.settings.alpha)
         return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.double().cpu().numpy(),
                                          c_m=c_m.double().cpu().numpy(), c_p=p.double().cpu().numpy(),
-                                         verified=np.ones(len(ua)), checked=np.ones(len(ua))))
+                                         verified=np.full(len(ua), float(verified)),
+                                         checked=np.full(len(ua), float(verified))))
 
     def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily)."""
@@ -877,7 +892,8 @@ class PSPRM:
         for b in self.scene.collision_boxes():
             h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
         h.update(self.constraint.target.numpy().tobytes())
-        h.update(json.dumps(dataclasses.asdict(self.settings), sort_keys=True, default=str).encode())
+        build = {k: v for k, v in dataclasses.asdict(self.settings).items() if k not in QUERY_SETTINGS}
+        h.update(json.dumps(build, sort_keys=True, default=str).encode())
         return h.hexdigest()[:20]
 
     def save(self, path: str | Path) -> Path:

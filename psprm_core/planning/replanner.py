@@ -51,8 +51,9 @@ class ReplanSettings:
     obstacle_turn_rad: float = 0.1
     focus_move_m: float = 0.25  # the visibility focus follows a target that moved further than this
     replan_on_move: bool = True  # a target/obstacle move alone triggers a replan (else only score/collision do)
-    score_min: float = 0.1  # replan when the predicted mean score along the remaining path falls below this
-    score_drop: float = 0.15  # ... or falls by more than this since the plan was made
+    score_min: float = 0.1  # replan when the normalised predicted mean score along the remaining path falls below this
+    score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
+    min_interval_s: float = 0.5  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
     repair_nodes: int = 150  # nodes sampled per repair round
@@ -124,7 +125,8 @@ class Replanner:
         self.goals: Optional[np.ndarray] = None
         self.result: Optional[PlanResult] = None
         self._progress = 0  # index into result.dense of the robot's position along the current path
-        self._plan_score = float("nan")
+        self._plan_score = float("nan")  # normalised predicted score of the current plan
+        self._last_plan_time = -math.inf
         self.history: list = []  # one dict per replan: reasons, timings, success
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
@@ -210,18 +212,21 @@ class Replanner:
             return False
         return bool(self.planner.checker.check(torch.as_tensor(rem, dtype=torch.float32)).any())
 
-    def path_score(self) -> float:
-        """Predicted mean perception score along the remaining path under the latest target/obstacle poses."""
+    def path_score(self, normalized: bool = False) -> float:
+        """Predicted mean perception score along the remaining path under the latest target/obstacle poses
+        (``normalized``: divided by the roadmap's 99th-percentile node score and clipped to [0, 1], as c_p in Eq. 1)."""
         rem = self.remaining()
         if rem is None or len(rem) == 0:
             return float("nan")
         step = max(1, len(rem) // max(1, self.settings.score_samples))
         self._sync_scene()
         q = torch.as_tensor(rem[::step], dtype=torch.float32)
-        return float(self.planner.score_configs(q).mean())
+        sc = self.planner.score_configs(q)
+        return float((self.planner._normalized(sc) if normalized else sc).mean())
 
-    def needs_replan(self) -> list:
-        """Reasons to replan now ([] = keep the current plan)."""
+    def needs_replan(self, now: Optional[float] = None) -> list:
+        """Reasons to replan now ([] = keep the current plan). ``now``: the caller's clock (default: monotonic);
+        apart from a collision or a goal change, at most one replan per ``min_interval_s``."""
         if self.goals is None:
             return []
         if self.result is None:
@@ -231,10 +236,13 @@ class Replanner:
             reasons.append("collision")
         if "goal_changed" in self._pending:
             reasons.append("goal_changed")
+        now = time.monotonic() if now is None else now
+        if not reasons and now - self._last_plan_time < self.settings.min_interval_s:
+            return []
         if self.settings.replan_on_move:
             reasons += [r for r in ("target_moved", "obstacle_moved") if r in self._pending]
         if self._pending & {"target_moved", "obstacle_moved"} or self._score_stale:
-            sc = self.path_score()
+            sc = self.path_score(normalized=True)
             if sc < self.settings.score_min:
                 reasons.append("score_low")
             elif self._plan_score - sc > self.settings.score_drop:
@@ -251,10 +259,12 @@ class Replanner:
             if np.linalg.norm(focus - p.constraint.target.numpy()) > self.settings.focus_move_m:
                 p.set_focus(focus)
 
-    def replan(self) -> PlanResult:
-        """Plan from the robot's state to the best goal under the latest poses (never a colliding path)."""
+    def replan(self, now: Optional[float] = None) -> PlanResult:
+        """Plan from the robot's state to the best goal under the latest poses (never a colliding path).
+        ``now``: the caller's clock for the replanning interval (default: monotonic)."""
         t0 = time.perf_counter()
-        reasons = self.needs_replan() if self.result is not None else ["no_plan"]
+        self._last_plan_time = time.monotonic() if now is None else now
+        reasons = sorted(self._pending) if self.result is not None else ["no_plan"]
         if self.q is None:
             return PlanResult(False, "robot state unknown: call set_robot_state first")
         if self.goals is None:
@@ -291,7 +301,7 @@ class Replanner:
                              "repair_rounds": rounds, **{k: v for k, v in info.items() if k == "rescore"}})
         if res.success:
             self.result, self._progress = res, 0
-            self._plan_score = res.mean_score
+            self._plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
             self._pending.clear()
             self._moved_obstacles.clear()
         else:
