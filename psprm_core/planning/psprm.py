@@ -163,6 +163,54 @@ class PlanResult:
         return d
 
 
+class KnotStore:
+    """Knots of the roadmap's edges (:meth:`PSPRM.edge_knots`, in the stored u -> v direction), by edge id.
+
+    The same knots serve the collision check, the Eq. 1 interior scores and the executed path, so what is checked
+    is exactly what runs (a path traversing an edge v -> u uses the flipped knots)."""
+
+    def __init__(self):
+        self.clear()
+
+    def clear(self) -> None:
+        self.data: Optional[torch.Tensor] = None  # (capacity, M, dof)
+        self.interior: Optional[torch.Tensor] = None  # (capacity, N) positions of the Eq. 1 samples among the knots
+        self.have = np.zeros(0, dtype=bool)
+
+    def put(self, ids: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> None:
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0:
+            return
+        need = int(ids.max()) + 1
+        if self.data is None or self.data.shape[1:] != knots.shape[1:]:
+            self.data = knots.new_zeros((0,) + tuple(knots.shape[1:]))
+            self.interior = interior.new_zeros((0,) + tuple(interior.shape[1:]))
+            self.have = np.zeros(0, dtype=bool)
+        if need > self.data.shape[0]:
+            cap = max(need, int(self.data.shape[0] * 1.5) + 1024)
+            grown = knots.new_zeros((cap,) + tuple(knots.shape[1:]))
+            grown[: self.data.shape[0]] = self.data
+            gi = interior.new_zeros((cap,) + tuple(interior.shape[1:]))
+            gi[: self.interior.shape[0]] = self.interior
+            self.data, self.interior = grown, gi
+            self.have = np.concatenate([self.have, np.zeros(cap - len(self.have), dtype=bool)])
+        idx = torch.as_tensor(ids, device=knots.device)
+        self.data[idx] = knots
+        self.interior[idx] = interior
+        self.have[ids] = True
+
+    def known(self, ids: np.ndarray) -> np.ndarray:
+        ids = np.asarray(ids, dtype=np.int64)
+        out = np.zeros(len(ids), dtype=bool)
+        inside = ids < len(self.have)
+        out[inside] = self.have[ids[inside]]
+        return out
+
+    def get(self, ids: np.ndarray) -> tuple:
+        idx = torch.as_tensor(np.asarray(ids, dtype=np.int64), device=self.data.device)
+        return self.data[idx], self.interior[idx]
+
+
 def camera_joint_mask(robot: RobotModel) -> np.ndarray:
     """Planning joints that move the camera (base joints included)."""
     chain, b = set(), robot.camera_body
@@ -218,6 +266,7 @@ class PSPRM:
         self.stats: dict = {}
         self.max_motion = 1.0
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
+        self.knots = KnotStore()
         self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
 
     # ---- helpers -----------------------------------------------------------------------------------------------------
@@ -286,7 +335,7 @@ class PSPRM:
         t_score = time.perf_counter() - t2
         t1 = time.perf_counter()
         eu, ev, dist = self._neighbours(Q, Q, s.k_neighbors, exclude_self=True, k_long=s.k_long, rng=rng)
-        valid, p_edge = self._edges_valid(Q[eu], Q[ev])
+        valid, p_edge, knots = self._edges_valid(Q[eu], Q[ev])
         eu, ev, dist, p_edge = eu[valid], ev[valid], dist[valid], p_edge[valid]
         if s.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
             p_edge = edge_perception(self._normalized(node_scores[eu]), self._normalized(node_scores[ev]))
@@ -295,12 +344,14 @@ class PSPRM:
         c_m = (dist / self.max_motion).clamp(0, 1)
         g = Roadmap(dof=self.robot.dof, node_capacity=len(Q) + 64, edge_capacity=len(eu) + 1024)
         g.add_nodes(Q.double().cpu().numpy())
-        g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
+        self.knots.clear()
+        edge_ids = g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
                     combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
                     c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
                     verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
                     checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
         self.graph = g
+        self._put_knots(edge_ids, eu.cpu().numpy(), *knots)
         self._dead_edges, self._dead_nodes = [], []
         self._unverified, self._index = False, None
         self.node_scores = node_scores.double().cpu().numpy()
@@ -405,6 +456,28 @@ class PSPRM:
             knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
         return knots, interior_idx
 
+    def _put_knots(self, edge_ids: np.ndarray, u_given: np.ndarray, knots: torch.Tensor,
+                   interior: torch.Tensor) -> None:
+        """Keep knots computed from ``u_given`` to the other end, flipped where the graph stores the edge the other
+        way round (the roadmap keeps undirected edges as (min id, max id))."""
+        edge_ids = np.asarray(edge_ids, dtype=np.int64)
+        flip = torch.as_tensor(self.graph.edge_u[edge_ids] != np.asarray(u_given), device=knots.device)
+        M = knots.shape[1]
+        knots = torch.where(flip[:, None, None], knots.flip(1), knots)
+        interior = torch.where(flip[:, None], (M - 1 - interior).flip(1), interior)
+        self.knots.put(edge_ids, knots, interior)
+
+    def stored_knots(self, edge_ids: np.ndarray) -> torch.Tensor:
+        """Knots (E, M, dof) and Eq. 1 sample positions (E, N) of graph edges in their stored u -> v direction,
+        computed once and kept."""
+        g = self.graph
+        edge_ids = np.asarray(edge_ids, dtype=np.int64)
+        miss = edge_ids[~self.knots.known(edge_ids)]
+        if len(miss):
+            miss = np.unique(miss)
+            self.knots.put(miss, *self.edge_knots(self._t(g.configs[g.edge_u[miss]]), self._t(g.configs[g.edge_v[miss]])))
+        return self.knots.get(edge_ids)
+
     def _knots_valid(self, knots: torch.Tensor, dense: bool = True) -> torch.Tensor:
         """Collision-free flags (E,) of knot sequences: the knots, and with ``dense`` every ``edge_resolution``
         between them (only for sequences whose knots are free)."""
@@ -431,9 +504,11 @@ class PSPRM:
         return ok
 
     def _edges_valid(self, qa: torch.Tensor, qb: torch.Tensor, chunk: int = 4096) -> tuple:
-        """Valid flags (E,) and Eq. 1 perception (E,) of local motions (NaN where invalid)."""
+        """Valid flags (E,), Eq. 1 perception (E,) of local motions (NaN where invalid) and the knots of the valid
+        ones (V, M, dof)."""
         ok = torch.zeros(qa.shape[0], dtype=torch.bool, device=self.device)
         p = torch.full((qa.shape[0],), float("nan"), dtype=self.dtype, device=self.device)
+        kept, kept_i = [], []
         for s0 in range(0, qa.shape[0], chunk):
             a, b = qa[s0:s0 + chunk], qb[s0:s0 + chunk]
             knots, interior = self.edge_knots(a, b)
@@ -443,9 +518,15 @@ class PSPRM:
                 v &= self.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
                                              slack=self.settings.edge_view_slack).reshape(v.shape[0], -1).all(-1)
             ok[s0:s0 + chunk] = v
+            kept.append(knots[v])
+            kept_i.append(interior[v])
             if not self.settings.lazy_edges and v.any():
                 p[s0:s0 + chunk][v] = self._knots_perception(knots[v], interior[v])
-        return ok, p
+        dof = self.robot.dof
+        if not kept:
+            return ok, p, (torch.zeros(0, 2, dof, dtype=self.dtype, device=self.device),
+                           torch.zeros(0, self.settings.n_interp, dtype=torch.long, device=self.device))
+        return ok, p, (torch.cat(kept), torch.cat(kept_i))
 
     def _normalized(self, scores: torch.Tensor) -> torch.Tensor:
         """Normalised perception score c_p in [0, 1] (scores divided by the roadmap's 99th-percentile node score)."""
@@ -524,11 +605,14 @@ class PSPRM:
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
                 added_edges.extend(self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False))
             elif len(near):
-                ok, pe = self._query_edges(qa[near], qb[near])
+                ok, pe, kn, ki = self._query_edges(qa[near], qb[near])
                 keep = near[ok]
                 if len(keep):
-                    added_edges.extend(self._add_query_edges(qa[keep], qb[keep], np.asarray(u_ids)[keep.cpu().numpy()],
-                                                             np.asarray(v_ids)[keep.cpu().numpy()], pe[ok]))
+                    ua = np.asarray(u_ids)[keep.cpu().numpy()]
+                    eids = self._add_query_edges(qa[keep], qb[keep], ua, np.asarray(v_ids)[keep.cpu().numpy()],
+                                                 pe[ok])
+                    self._put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
+                    added_edges.extend(eids)
             if not goal_ids:
                 res = None
             elif self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
@@ -570,7 +654,7 @@ class PSPRM:
         todo = np.asarray([e for e in edge_ids if ver[e] < 0.5 or chk[e] < 0.5], dtype=np.int64)
         if len(todo) == 0:
             return EdgeCheck()
-        knots, interior = self.edge_knots(self._t(g.configs[g.edge_u[todo]]), self._t(g.configs[g.edge_v[todo]]))
+        knots, interior = self.stored_knots(todo)
         ok = torch.ones(len(todo), dtype=torch.bool, device=self.device)
         need = torch.as_tensor(chk[todo] < 0.5, device=self.device)
         if need.any():  # interior knots and the dense pieces between them (obstacles may have moved since build)
@@ -640,13 +724,16 @@ class PSPRM:
         p = torch.zeros(qa.shape[0], dtype=self.dtype, device=self.device)
         if ok.any():
             p[ok] = self._knots_perception(knots[ok], interior[ok])
-        return ok, p
+        return ok, p, knots, interior
 
     def _finish(self, path: list, cost: float, timing: bool) -> PlanResult:
         g = self.graph
         Q = self._t(g.configs[path])
-        if len(Q) > 1:
-            knots, _ = self.edge_knots(Q[:-1], Q[1:])
+        if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
+            eids = g.edge_ids_of_path(path)
+            knots, _ = self.stored_knots(eids)
+            flip = torch.as_tensor(g.edge_u[eids] != np.asarray(path[:-1]), device=knots.device)
+            knots = torch.where(flip[:, None, None], knots.flip(1), knots)
             W = torch.cat([Q[0:1], knots[:, 1:].reshape(-1, Q.shape[1])]).double()
         else:
             W = Q.double()
@@ -704,8 +791,16 @@ class PSPRM:
         self.checker.set_boxes(scene.collision_boxes())
 
     def set_focus(self, focus) -> None:
-        """Move the point the visibility constraint aims at (edges re-aim their camera joints at it)."""
+        """Move the point the visibility constraint aims at. Edges re-aim their camera joints at it, so every edge's
+        knots are recomputed, re-checked and re-scored lazily when a search next uses it."""
         self.constraint.set_target(np.asarray(focus, float))
+        self.knots.clear()
+        g = self.graph
+        if g is not None:
+            e = g.valid_edge_ids()
+            g.edge_attribute("checked")[e] = 0.0
+            g.edge_attribute("verified")[e] = 0.0
+            self._unverified = True
 
     def _node_score_slots(self) -> np.ndarray:
         g = self.graph
@@ -741,9 +836,7 @@ class PSPRM:
             if full:
                 p = np.empty(len(e))
                 for s0 in range(0, len(e), 4096):
-                    sl = e[s0:s0 + 4096]
-                    knots, interior = self.edge_knots(self._t(g.configs[g.edge_u[sl]]),
-                                                      self._t(g.configs[g.edge_v[sl]]))
+                    knots, interior = self.stored_knots(e[s0:s0 + 4096])
                     p[s0:s0 + 4096] = self._knots_perception(knots, interior).double().cpu().numpy()
                 ver[e] = 1.0
             else:
@@ -870,17 +963,19 @@ class PSPRM:
         added = 0
         if len(sel):
             qa, qb = Qn[eu[sel]], Qall[ev[sel]]
-            valid, p_edge = self._edges_valid(qa, qb)
+            valid, p_edge, knots = self._edges_valid(qa, qb)
             if s.lazy_edges:
                 sc = self._t(scores)
                 p_edge = edge_perception(self._normalized(sc[u_ids[sel]]), self._normalized(sc[v_ids[sel]]))
             v = valid.cpu().numpy()
             c_m = (dist[sel] / self.max_motion).clamp(0, 1)[valid]
             p_edge = p_edge[valid]
-            g.add_edges(u_ids[sel][v], v_ids[sel][v], combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
-                        c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
-                        verified=np.full(int(v.sum()), 0.0 if s.lazy_edges else 1.0),
-                        checked=np.full(int(v.sum()), 0.0 if s.lazy_collision else 1.0))
+            eids = g.add_edges(u_ids[sel][v], v_ids[sel][v],
+                               combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
+                               c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
+                               verified=np.full(int(v.sum()), 0.0 if s.lazy_edges else 1.0),
+                               checked=np.full(int(v.sum()), 0.0 if s.lazy_collision else 1.0))
+            self._put_knots(eids, u_ids[sel][v], *knots)
             added = int(v.sum())
         self._index = None
         return {"added_nodes": int(len(new_ids)), "added_edges": added, "grow_ms": (time.perf_counter() - t0) * 1e3}
@@ -930,6 +1025,7 @@ class PSPRM:
         self._roadmap_mask = np.ones(len(data["configs"]), dtype=bool)
         self._unverified = bool((data["verified"] < 0.5).any()) and not self.settings.lazy_edges
         self._index = None
+        self.knots.clear()
         self.max_motion = float(data["max_motion"])
         self.score_scale = float(data["score_scale"])
         self.stats = json.loads(str(data["stats"]))
