@@ -1,0 +1,25 @@
+"""``all_in_one``: ``roadmap_server``, ``perception_scorer`` and ``replan_monitor`` in one process on a
+MultiThreadedExecutor (the lowest pose-to-trajectory latency: no inter-process hop, one copy of the core).
+
+Same parameters and topics as the separate nodes; one params file (``/**`` section shared, one section per node).
+"""
+
+from __future__ import annotations
+
+
+def factories() -> list:
+    from .perception_scorer import PerceptionScorer
+    from .replan_monitor import ReplanMonitor
+    from .roadmap_server import RoadmapServer
+
+    return [RoadmapServer, PerceptionScorer, ReplanMonitor]
+
+
+def main(args=None) -> int:
+    from .runner import run_nodes
+
+    return run_nodes(factories(), args, description=__doc__, prog="all_in_one")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

@@ -1,0 +1,137 @@
+"""``latency_bench``: pose-message -> replanned-JointTrajectory latency of the all-in-one suite, in one process.
+
+    latency_bench [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--changes 60] [--gap 0.3] [--json]
+
+Starts roadmap_server, perception_scorer and replan_monitor plus a client node in one process (one
+MultiThreadedExecutor, the all-in-one configuration), loads the cached roadmap (or builds it once), plans a first
+trajectory, then publishes ``--changes`` target pose changes (the person turning through eight headings, each beyond
+the replan thresholds), one at a time, and measures for each the time from publishing the PoseStamped to receiving
+the replanned JointTrajectory. Prints one JSON object: median / p95 / mean / max latency, the core's replan time and
+the server's own receipt-to-publish time (medians), successes and stops.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import conversions as cv
+
+HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]
+
+
+def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float, domain_id: int,
+        log=print) -> dict:
+    import torch
+
+    from psprm_core.paths import resolve_named
+    from psprm_core.scene import load_scene
+
+    from .probe import InProcessSuite
+
+    torch.set_num_threads(2)
+    overrides = {"n_nodes": int(n_nodes), "stale_timeout_s": 3600.0}
+    with InProcessSuite(overrides, domain_id=domain_id, params_file=params_file) as s:
+        t0 = time.perf_counter()
+        if not s.server.ready.wait(1800):
+            raise RuntimeError("roadmap not ready")
+        log(f"roadmap {s.server.build_info.get('source')} ({s.server.build_info.get('n_nodes')} nodes) "
+            f"in {time.perf_counter() - t0:.1f} s")
+        scene = load_scene(resolve_named("scene", s.server.p["scene"]))
+        face, body = scene.target("person_face"), scene.obstacle("person_body")
+        off = float(np.linalg.norm((face.center - body.center)[:2]))
+        s.probe.wait_subscribers("/mocap/person_face/pose")
+        s.probe.wait_subscribers("/psprm/goal_regions")
+        n0 = len(s.probe.trajectories)
+        s.probe.publish_pose("person_face", face.center, face.quat)
+        s.probe.publish_regions([g.name for g in scene.goals])
+        if s.probe.wait_trajectory(n0, 120) is None:
+            raise RuntimeError("no first trajectory")
+        time.sleep(1.0)
+        lat, infos, stops, misses = [], [], 0, 0
+        for i in range(changes):
+            yaw = HEADINGS[(i + 1) % len(HEADINGS)]
+            p = np.r_[body.center[:2] + off * np.array([np.cos(yaw), np.sin(yaw)]), face.center[2]]
+            stamp = s.probe.node.get_clock().now().to_msg()
+            t_pub = s.probe.publish_pose("person_face", p, cv.yaw_quat(yaw), stamp=stamp)
+            key = cv.stamp_to_sec(stamp)
+
+            def mine():  # the plan whose first input was this pose (other plans, e.g. score triggers, are skipped)
+                return [(t, x) for t, x in s.probe.infos if x.get("input_stamp") is not None
+                        and abs(x["input_stamp"] - key) < 1e-6]
+            got = s.probe.wait_for(mine, timeout)
+            if not got:
+                recent = [f"{n}: {txt[:120]}" for t, n, txt in s.probe.statuses if t >= t_pub and "summary" not in txt]
+                log(f"change {i}: no plan for this pose within {timeout} s; statuses since: {recent[-5:]}")
+                misses += 1
+                continue
+            t_info, info = got[0]
+            infos.append(info)
+            if info.get("stop") or not info.get("success"):
+                stops += int(bool(info.get("stop")))
+            rx = [t for t, _ in s.probe.trajectories if t_pub < t <= t_info + 1e-6]
+            if not rx:
+                log(f"change {i}: plan without a new trajectory ({info.get('reason')})")
+                continue
+            lat.append((rx[-1] - t_pub) * 1e3)
+            time.sleep(gap)
+        lat_a = np.array(lat) if lat else np.full(1, np.nan)
+
+        def med(key):
+            v = [x[key] for x in infos if x.get(key) is not None]
+            return _r(np.median(v)) if v else None
+        return {
+            "n_nodes": int(s.server.planner.n_roadmap_nodes), "changes": changes, "received": len(lat), "missed": misses,
+            "stops": stops, "successes": sum(1 for x in infos if x.get("success")),
+            "median_ms": _r(np.median(lat_a)), "p95_ms": _r(np.percentile(lat_a, 95)), "mean_ms": _r(lat_a.mean()),
+            "min_ms": _r(lat_a.min()), "max_ms": _r(lat_a.max()),
+            "server_receipt_to_publish_median_ms": med("latency_ms"), "apply_median_ms": med("apply_ms"),
+            "triggers_median_ms": med("triggers_ms"), "core_replan_median_ms": med("replan_ms"),
+            "msg_median_ms": med("msg_ms"), "final_check_median_ms": med("check_ms"),
+            "gap_s": gap, "torch_threads": torch.get_num_threads(), "cpus": os.cpu_count(),
+            "load_avg_1min": _r(os.getloadavg()[0]),
+        }
+
+
+def _r(x) -> float:
+    return round(float(x), 1)
+
+
+def main(args=None) -> int:
+    argv = list(sys.argv if args is None else args)
+    from rclpy.utilities import remove_ros_args
+
+    root = Path(__file__).resolve().parent.parent
+    ap = argparse.ArgumentParser(prog="latency_bench", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--params", default=str(root / "config" / "ros" / "dynamic_person.yaml"))
+    ap.add_argument("--nodes", type=int, default=3000, help="roadmap nodes (default 3000)")
+    ap.add_argument("--changes", type=int, default=60, help="target pose changes (default 60)")
+    ap.add_argument("--gap", type=float, default=0.3, help="pause after each received trajectory (s)")
+    ap.add_argument("--timeout", type=float, default=20.0, help="max wait per trajectory (s)")
+    ap.add_argument("--domain-id", type=int, default=0, help="ROS_DOMAIN_ID (default random 100..200)")
+    ap.add_argument("--json", action="store_true", help="print only the JSON line")
+    ap.add_argument("--self-check", action="store_true")
+    a = ap.parse_args(remove_ros_args(argv)[1:])
+    if a.self_check:
+        from .runner import self_check
+
+        print(json.dumps(self_check()))
+        return 0
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+    log = (lambda *_: None) if a.json else (lambda m: print(m, file=sys.stderr))
+    out = run(a.params, a.nodes, a.changes, a.gap, a.timeout, a.domain_id or random.randint(100, 200), log)
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

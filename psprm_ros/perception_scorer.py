@@ -1,0 +1,162 @@
+"""``perception_scorer``: the perception surrogate (+ ray-cast occlusion) as a node.
+
+Subscribes to the target (and dynamic obstacle) poses ``/psprm/state/...`` and to the camera poses the roadmap server
+publishes (``/psprm/roadmap/camera_poses``: every roadmap node; ``/psprm/path/camera_poses``: along the current
+path). Re-scores them whenever the target moves (at most ``rescore_rate_hz``) and publishes
+``/psprm/roadmap/scores`` (std_msgs/Float32MultiArray, one score per roadmap node), ``/psprm/path/score``
+(std_msgs/Float32, mean predicted score of the current path), ``~/path_scores`` (Float32MultiArray along the path) and
+``~/status``.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from . import conversions as cv
+from . import core
+
+SCORER_PARAMS = {
+    "scorer": "neural",  # neural (surrogate + occlusion) | geometric (closed-form proxy)
+    "checkpoint": "",
+    "rescore_rate_hz": 5.0,  # path score updates per second (while the target moves)
+    "roadmap_rescore_period_s": 2.0,  # roadmap scores (marker colours) at most this often
+    "max_pose_age_s": 1.0,
+}
+
+
+class PerceptionScorer:
+    def __init__(self, node_name: str = "perception_scorer", **node_kwargs):
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.node import Node
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from geometry_msgs.msg import PoseArray, PoseStamped
+        from std_msgs.msg import Float32, Float32MultiArray, String
+        import torch
+
+        from psprm_core.planning.factory import make_scorer
+
+        self.node = node = Node(node_name, **node_kwargs)
+        self.log = node.get_logger()
+        self.p = core.declare_params(node, {**core.COMMON_PARAMS, **SCORER_PARAMS})
+        torch.set_num_threads(max(1, self.p["torch_threads"]))
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.frame = self.scene.frame
+        self.targets = core.scene_targets(self.scene, self.p["targets"])
+        ck = self.p["checkpoint"] or None
+        self.scorer = make_scorer(self.p["scorer"], self.scene, self.targets, self.robot.config.intrinsics, ck)
+        self._lock = threading.Lock()
+        self._scene_dirty = False
+        self._roadmap: Optional[np.ndarray] = None
+        self._path: Optional[np.ndarray] = None
+        self._rm_dirty = self._path_dirty = False
+        self._last_rm = 0.0
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_scores = node.create_publisher(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, latched)
+        self.pub_path = node.create_publisher(Float32, core.PATH_SCORE_TOPIC, 10)
+        self.pub_path_scores = node.create_publisher(Float32MultiArray, "~/path_scores", 10)
+        self.pub_status = node.create_publisher(String, "~/status", 10)
+        cb = MutuallyExclusiveCallbackGroup()
+        for t in self.targets:
+            node.create_subscription(PoseStamped, core.target_topic(t), self._pose_cb("target", t),
+                                     qos_profile_sensor_data, callback_group=cb)
+        for o in self.p["dynamic_obstacles"]:
+            self.scene.obstacle(o)
+            node.create_subscription(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
+                                     qos_profile_sensor_data, callback_group=cb)
+        node.create_subscription(PoseArray, core.ROADMAP_CAMERAS_TOPIC, self._cams_cb("roadmap"), latched,
+                                 callback_group=cb)
+        node.create_subscription(PoseArray, core.PATH_CAMERAS_TOPIC, self._cams_cb("path"), latched, callback_group=cb)
+        period = 1.0 / max(0.1, self.p["rescore_rate_hz"])
+        node.create_timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup())
+
+    def status(self, text: str, level: str = "info") -> None:
+        from std_msgs.msg import String
+
+        if level == "error":
+            self.log.error(text)
+        elif level == "warning":
+            self.log.warning(text)
+        else:
+            self.log.info(text)
+        self.pub_status.publish(String(data=f"{level}: {text}"))
+
+    def _pose_cb(self, kind: str, name: str):
+        def cb(msg):
+            try:
+                now = self.node.get_clock().now().nanoseconds * 1e-9
+                p, q = cv.validated_pose(msg, self.frame, now, self.p["max_pose_age_s"], f"{kind} {name}")
+                with self._lock:
+                    if kind == "target":
+                        self.scene = self.scene.with_target_pose(name, p, q)
+                    else:
+                        self.scene = self.scene.with_obstacle_pose(name, p, q)
+                    self._scene_dirty = True
+            except Exception as exc:
+                self.status(f"ignored {exc}", "warning")
+        return cb
+
+    def _cams_cb(self, which: str):
+        def cb(msg):
+            try:
+                cv.check_frame(msg.header.frame_id, self.frame, f"{which} camera poses")
+                T = cv.pose_array_to_matrices(msg)
+            except Exception as exc:
+                self.status(f"ignored {exc}", "warning")
+                return
+            with self._lock:
+                if which == "roadmap":
+                    self._roadmap, self._rm_dirty = T, True
+                else:
+                    self._path, self._path_dirty = T, True
+            self._tick(force=True)
+        return cb
+
+    def score(self, T: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            return self.scorer.score(torch.as_tensor(T, dtype=torch.float32)).double().numpy()
+
+    def _tick(self, force: bool = False) -> None:
+        from std_msgs.msg import Float32
+
+        try:
+            with self._lock:
+                if self._scene_dirty:
+                    self.scorer.set_scene(self.scene)
+                    self._scene_dirty = False
+                    self._rm_dirty = self._path_dirty = True
+                rm, path = self._roadmap, self._path
+                now = time.monotonic()
+                do_rm = self._rm_dirty and rm is not None and (
+                    force or now - self._last_rm >= self.p["roadmap_rescore_period_s"])
+                do_path = self._path_dirty and path is not None
+                if do_rm:
+                    self._last_rm = now
+                self._rm_dirty &= not do_rm
+                self._path_dirty &= not do_path
+                if do_rm:
+                    self.pub_scores.publish(cv.float_array(self.score(rm)))
+                if do_path and len(path):
+                    s = self.score(path)
+                    self.pub_path_scores.publish(cv.float_array(s))
+                    self.pub_path.publish(Float32(data=float(s.mean())))
+        except Exception as exc:
+            self.status(f"scoring failed: {exc}", "warning")
+
+    def destroy(self) -> None:
+        self.node.destroy_node()
+
+
+def main(args=None) -> int:
+    from .runner import run_nodes
+
+    return run_nodes([PerceptionScorer], args, description=__doc__, prog="perception_scorer")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

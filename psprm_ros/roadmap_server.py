@@ -1,0 +1,560 @@
+"""``roadmap_server``: builds or loads the PS-PRM roadmap, plans and publishes joint trajectories.
+
+Inputs (validated again here: scene frame, finite values, age):
+  ``/psprm/state/targets/<name>``, ``/psprm/state/obstacles/<name>`` (geometry_msgs/PoseStamped, sensor-data QoS),
+  ``/psprm/state/robot`` (sensor_msgs/JointState with planning joint names), ``/psprm/state/goals``
+  (trajectory_msgs/JointTrajectory whose points are candidate goal configurations; the best one wins). The
+  ``replan_monitor`` publishes all of them from the raw mocap, ``/joint_states`` and goal topics.
+Outputs:
+  ``/psprm/trajectory`` (trajectory_msgs/JointTrajectory: planning joints of the robot config, time-parameterised),
+  ``/psprm/plan_info`` (std_msgs/String, JSON per plan), ``/psprm/roadmap/camera_poses`` and
+  ``/psprm/path/camera_poses`` (geometry_msgs/PoseArray, for the perception scorer), ``~/markers``
+  (visualization_msgs/MarkerArray), ``~/status`` (std_msgs/String).
+Services (std_srvs/Trigger): ``~/plan`` (plan now), ``~/rebuild`` (rebuild the roadmap around the current scene),
+``~/stop`` (publish a stop trajectory and hold until the next goal or plan request).
+
+All planning runs on one worker thread: callbacks only store the latest message (so a 120 Hz stream never queues),
+and the worker applies the newest state to the core :class:`Replanner`, asks it whether to replan and publishes.
+Every trajectory is re-checked with a :class:`CollisionChecker` holding the latest obstacle poses before it is
+published; when no safe trajectory exists the last safe one is kept, or a stop trajectory is published.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from . import conversions as cv
+from . import core
+
+SERVER_PARAMS = {
+    "start_problem": "",  # scene problem whose start is the robot state until /psprm/state/robot arrives
+    "goal_regions": [],  # goals used before any goal message arrives ([] = wait for a goal)
+    "plan_on_start": False,  # plan to goal_regions as soon as the roadmap is ready
+    "auto_replan": True,  # ask the Replanner's triggers after every state update
+    "trajectory_dt": 0.1,  # sample spacing of the published trajectory (s)
+    "max_pose_age_s": 1.0,  # refuse pose messages older than this (0 = no check)
+    "publish_markers": True,
+    "marker_max_edges": 20000,
+    "path_camera_samples": 200,
+    "service_timeout_s": 120.0,
+    "robot_trigger_period_s": 0.5,  # re-evaluate the triggers on robot progress at most this often
+    "safety_step": 0.05,  # spacing (m / rad) of the final collision check along the published trajectory
+    # (the planner's own edge resolution)
+}
+
+
+class RoadmapServer:
+    """The node (composition over inheritance keeps construction order explicit; ``.node`` is the rclpy Node)."""
+
+    def __init__(self, node_name: str = core.SERVER_NAME, **node_kwargs):
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+        from rclpy.node import Node
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from geometry_msgs.msg import PoseArray, PoseStamped
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float32MultiArray, String
+        from std_srvs.srv import Trigger
+        from trajectory_msgs.msg import JointTrajectory
+        from visualization_msgs.msg import MarkerArray
+        import torch
+
+        self.node = node = Node(node_name, **node_kwargs)
+        self.log = node.get_logger()
+        self.p = core.declare_params(node, {**core.COMMON_PARAMS, **core.PLANNER_PARAMS, **SERVER_PARAMS})
+        torch.set_num_threads(max(1, self.p["torch_threads"]))
+        self.spec = core.PlannerSpec(**{k: self.p[k] for k in core.PLANNER_PARAMS})
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.frame = self.scene.frame
+        self.targets = core.scene_targets(self.scene, self.p["targets"])
+        for o in self.p["dynamic_obstacles"]:
+            self.scene.obstacle(o)
+        self.names = list(self.robot.joint_names)
+        self.q = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
+        self.goals: Optional[np.ndarray] = None
+        if self.p["goal_regions"]:
+            self.goals = core.goal_region_configurations(self.robot, self.scene, self.p["goal_regions"])
+
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_traj = node.create_publisher(JointTrajectory, core.TRAJECTORY_TOPIC, latched)
+        self.pub_info = node.create_publisher(String, core.PLAN_INFO_TOPIC, 10)
+        self.pub_status = node.create_publisher(String, "~/status", 10)
+        self.pub_state = node.create_publisher(String, core.SERVER_STATE_TOPIC, latched)
+        self.pub_markers = node.create_publisher(MarkerArray, "~/markers", latched)
+        self.pub_rm_cams = node.create_publisher(PoseArray, core.ROADMAP_CAMERAS_TOPIC, latched)
+        self.pub_path_cams = node.create_publisher(PoseArray, core.PATH_CAMERAS_TOPIC, latched)
+
+        cb = MutuallyExclusiveCallbackGroup()
+        for t in self.targets:
+            node.create_subscription(PoseStamped, core.target_topic(t), self._pose_cb("target", t),
+                                     qos_profile_sensor_data, callback_group=cb)
+        for o in self.p["dynamic_obstacles"]:
+            node.create_subscription(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
+                                     qos_profile_sensor_data, callback_group=cb)
+        node.create_subscription(JointState, core.ROBOT_STATE_TOPIC, self._robot_cb, qos_profile_sensor_data,
+                                 callback_group=cb)
+        node.create_subscription(JointTrajectory, core.GOALS_TOPIC, self._goals_cb, latched, callback_group=cb)
+        node.create_subscription(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, self._scores_cb, 1, callback_group=cb)
+        srv = ReentrantCallbackGroup()
+        node.create_service(Trigger, "~/plan", self._srv("plan"), callback_group=srv)
+        node.create_service(Trigger, "~/rebuild", self._srv("rebuild"), callback_group=srv)
+        node.create_service(Trigger, "~/stop", self._srv("stop"), callback_group=srv)
+
+        # state shared between callbacks and the worker
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._done = threading.Condition(self._lock)
+        self._pending = self._empty_pending()
+        self._requests: list = []  # (kind, id)
+        self._responses: dict = {}
+        self._next_id = 0
+        self._running = True
+        self.ready = threading.Event()
+        # worker-only state
+        self.rp = None
+        self.planner = None
+        self.safety = None  # CollisionChecker with the latest obstacle poses
+        self.safety_scene = self.scene
+        self.current = None  # dict: result, msg, t_pub, positions
+        self.hold = False
+        self._robot_check_t = 0.0
+        self.seq = 0
+        self.ext_scores: Optional[np.ndarray] = None
+        self._markers_dirty = False
+        self._markers_t = 0.0
+        self.build_info: dict = {}
+        from concurrent.futures import ThreadPoolExecutor
+
+        self._side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psprm-publish")
+        self._thread = threading.Thread(target=self._worker, name="psprm-planner", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------------------------------------ callbacks
+    @staticmethod
+    def _empty_pending() -> dict:
+        return {"targets": {}, "obstacles": {}, "robot": None, "goals": None, "t_first": None, "stamp": None}
+
+    def status(self, text: str, level: str = "info") -> None:
+        from std_msgs.msg import String
+
+        if level == "error":
+            self.log.error(text)
+        elif level == "warning":
+            self.log.warning(text)
+        else:
+            self.log.info(text)
+        try:
+            self.pub_status.publish(String(data=f"{level}: {text}"))
+        except Exception:  # publishing during shutdown
+            pass
+
+    def set_state(self, text: str) -> None:
+        """The latched server state (late subscribers see it too)."""
+        from std_msgs.msg import String
+
+        self.pub_state.publish(String(data=text))
+
+    def _now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def _pose_cb(self, kind: str, name: str):
+        def cb(msg):
+            t = time.perf_counter()
+            try:
+                p, q = cv.validated_pose(msg, self.frame, self._now(), self.p["max_pose_age_s"], f"{kind} {name}")
+            except cv.InputError as exc:
+                self.status(f"ignored {exc}", "warning")
+                return
+            except Exception as exc:  # never let a message kill the node
+                self.status(f"ignored malformed {kind} {name}: {exc}", "warning")
+                return
+            with self._lock:
+                pend = self._pending
+                pend["targets" if kind == "target" else "obstacles"][name] = (p, q)
+                if pend["t_first"] is None:
+                    pend["t_first"] = t
+                    pend["stamp"] = cv.stamp_to_sec(msg.header.stamp)
+            self._wake.set()
+        return cb
+
+    def _robot_cb(self, msg) -> None:
+        try:
+            q, found = cv.joint_state_to_planning(msg, self.robot)
+            if set(found) != set(self.names):
+                missing = sorted(set(self.names) - set(found))
+                raise cv.InputError(f"robot state: missing planning joints {', '.join(missing)}")
+        except Exception as exc:
+            self.status(f"ignored {exc}", "warning")
+            return
+        with self._lock:
+            self._pending["robot"] = q
+        self._wake.set()
+
+    def _goals_cb(self, msg) -> None:
+        try:
+            cv.check_frame(msg.header.frame_id, self.frame, "goals")
+            G = cv.joint_trajectory_positions(msg, self.names)
+            if len(G) == 0:
+                raise cv.InputError("goals: no candidate configuration")
+        except Exception as exc:
+            self.status(f"ignored {exc}", "warning")
+            return
+        with self._lock:
+            self._pending["goals"] = G
+            if self._pending["t_first"] is None:
+                self._pending["t_first"] = time.perf_counter()
+        self._wake.set()
+
+    def _scores_cb(self, msg) -> None:
+        try:
+            s = np.asarray(msg.data, float)
+            if not np.isfinite(s).all():
+                raise cv.InputError("roadmap scores: non-finite values")
+        except Exception as exc:
+            self.status(f"ignored {exc}", "warning")
+            return
+        with self._lock:
+            self.ext_scores = s
+            self._markers_dirty = True
+
+    def _srv(self, kind: str):
+        def handler(request, response):
+            with self._lock:
+                rid = self._next_id
+                self._next_id += 1
+                self._requests.append((kind, rid))
+            self._wake.set()
+            deadline = time.monotonic() + self.p["service_timeout_s"]
+            with self._done:
+                while rid not in self._responses and time.monotonic() < deadline and self._running:
+                    self._done.wait(0.1)
+                ok, message = self._responses.pop(rid, (False, "timed out"))
+            response.success, response.message = bool(ok), str(message)
+            return response
+        return handler
+
+    # ------------------------------------------------------------------------------------------------ worker
+    def _worker(self) -> None:
+        try:
+            self._build(initial=True)
+        except Exception as exc:  # configuration errors end up here: report, keep the node alive
+            self.status(f"roadmap build failed: {exc}", "error")
+            self.set_state(f"error: roadmap build failed: {exc}")
+        if self.rp is not None and self.p["plan_on_start"] and self.goals is not None:
+            with self._lock:
+                self._requests.append(("plan", -1))
+        while self._running:
+            self._wake.wait(0.1)
+            self._wake.clear()
+            if not self._running:
+                break
+            with self._lock:
+                pend, self._pending = self._pending, self._empty_pending()
+                reqs, self._requests = self._requests, []
+            try:
+                self._cycle(pend, reqs)
+            except Exception as exc:  # a bug or a core error must not end the worker
+                self.log.error(f"planning cycle failed: {exc!r}")
+                self.status(f"planning cycle failed: {exc}", "error")
+                self._answer(reqs, False, f"error: {exc}")
+
+    def _answer(self, reqs, ok: bool, message: str, kinds=None) -> None:
+        with self._done:
+            for kind, rid in reqs:
+                if rid >= 0 and (kinds is None or kind in kinds):
+                    self._responses[rid] = (ok, message)
+            self._done.notify_all()
+
+    def _build(self, initial: bool = False) -> None:
+        from psprm_core.collision import CollisionChecker
+
+        scene = self.safety_scene
+        self.status(f"{'building' if initial else 'rebuilding'} the {self.spec.variant} roadmap "
+                    f"({self.spec.n_nodes} nodes) for scene '{scene.name}'")
+        self.set_state("building" if initial else "rebuilding")
+        planner = core.make_planner_for(scene, self.robot, self.targets, self.spec)
+        spec = self.spec if initial else core.PlannerSpec(**{**vars(self.spec), "roadmap_file": "none"})
+        info = core.build_or_load(planner, scene, spec, template=self.q, force_build=not initial)
+        if info["source"] == "failed":
+            raise RuntimeError(info.get("reason", "roadmap build failed"))
+        self.planner, self.build_info = planner, info
+        self.rp = core.make_replanner(planner, self.spec.replan_settings)
+        # re-apply the scene state the new replanner has not seen (targets/obstacles moved since the YAML)
+        for t in scene.targets:
+            if t.name in self.targets:
+                self.rp.update_target(t.name, t.center, t.quat)
+        for o in self.p["dynamic_obstacles"]:
+            b = scene.obstacle(o)
+            self.rp.update_obstacle(o, b.center, b.quat)
+        self.rp.set_robot_state(self.q)
+        if self.goals is not None:
+            self.rp.set_goals(self.goals)
+        self.safety = CollisionChecker(self.robot, scene.collision_boxes(), workspace=scene.workspace)
+        text = f"roadmap {info['source']} in {info['seconds']:.1f} s: {info.get('n_nodes', 0)} nodes; ready"
+        self.status(text)
+        self.set_state(f"ready: {text}")
+        self._publish_roadmap()
+        self.ready.set()
+
+    def _cycle(self, pend: dict, reqs: list) -> None:
+        from psprm_core.errors import PsprmError
+
+        kinds = {k for k, _ in reqs}
+        if "rebuild" in kinds:
+            try:
+                self._build()
+                self._answer(reqs, True, json.dumps(self.build_info), kinds={"rebuild"})
+            except Exception as exc:
+                self.status(f"rebuild failed, keeping the old roadmap: {exc}", "error")
+                self._answer(reqs, False, str(exc), kinds={"rebuild"})
+        if self.rp is None:
+            self._answer(reqs, False, "roadmap not ready")
+            return
+        reasons: list = []
+        t0 = time.perf_counter()
+        boxes_changed = moved = False  # any collision box updated / moved beyond the core's thresholds
+        for name, (p, q) in pend["targets"].items():
+            try:
+                moved |= self.rp.update_target(name, p, q) is not False
+                self.safety_scene = self.safety_scene.with_target_pose(name, p, q)
+                boxes_changed |= self.safety_scene.target(name).obstacle
+            except (PsprmError, KeyError, ValueError) as exc:
+                self.status(f"target {name} refused by the planner: {exc}", "warning")
+        for name, (p, q) in pend["obstacles"].items():
+            try:
+                moved |= self.rp.update_obstacle(name, p, q) is not False
+                self.safety_scene = self.safety_scene.with_obstacle_pose(name, p, q)
+                boxes_changed = True
+            except (PsprmError, KeyError, ValueError) as exc:
+                self.status(f"obstacle {name} refused by the planner: {exc}", "warning")
+        if boxes_changed:
+            self.safety.set_boxes(self.safety_scene.collision_boxes())
+        try:
+            if pend["robot"] is not None:
+                self.rp.set_robot_state(pend["robot"])
+                self.q = pend["robot"]
+            if pend["goals"] is not None:
+                self.rp.set_goals(pend["goals"])
+                self.goals = pend["goals"]
+                self.hold = False
+                reasons.append("goal_received")
+        except (PsprmError, ValueError) as exc:
+            self.status(f"robot state or goal refused by the planner: {exc}", "warning")
+        if "stop" in kinds:
+            self.hold = True
+            self._publish_stop("stop requested")
+            self._answer(reqs, True, "stopped", kinds={"stop"})
+        if "plan" in kinds:
+            self.hold = False
+            reasons.append("plan requested")
+        if self.goals is None:
+            if reasons:
+                self.status("no goal yet: publish one on the goal topic", "warning")
+            self._answer(reqs, False, "no goal", kinds={"plan"})
+            return
+        if self.hold:
+            return
+        t1 = time.perf_counter()
+        # the core's triggers change only when something moved beyond its thresholds, the goal changed, or the robot
+        # advanced along the path (checked at most every robot_trigger_period_s); keep-alive poses cost nothing
+        now = time.monotonic()
+        robot_due = pend["robot"] is not None and now - self._robot_check_t >= self.p["robot_trigger_period_s"]
+        if self.p["auto_replan"] and (moved or reasons or robot_due or self.rp.result is None):
+            if robot_due:
+                self._robot_check_t = now
+            reasons += [r for r in self.rp.needs_replan() if r not in reasons]
+        if boxes_changed and moved and self.current is not None and not reasons:
+            if self._unsafe(self._remaining(self.current["positions"])):
+                reasons.append("current trajectory in collision with a moved obstacle")
+        t2 = time.perf_counter()
+        if reasons:
+            pend["timing"] = {"apply_ms": _f((t1 - t0) * 1e3), "triggers_ms": _f((t2 - t1) * 1e3)}
+            ok, msg = self._plan(reasons, pend)
+            self._answer(reqs, ok, msg, kinds={"plan"})
+        self._maybe_republish_markers()
+
+    # ------------------------------------------------------------------------------------------------ planning
+    def _plan(self, reasons: list, pend: dict) -> tuple:
+        t0 = time.perf_counter()
+        res = self.rp.replan()
+        t1 = time.perf_counter()
+        info = {"seq": self.seq, "reasons": reasons, "success": bool(res.success), "reason": res.reason,
+                "query_ms": _f(res.query_ms), "mean_score": _f(res.mean_score), "goal_index": int(res.goal_index),
+                "input_stamp": pend["stamp"], **pend.get("timing", {}), "replan_ms": _f((t1 - t0) * 1e3)}
+        self.seq += 1
+        traj = res.trajectory if res.success else None
+        if res.success and traj is None:  # already at the goal
+            self._publish_stop("already at the goal", info)
+            return True, json.dumps(info)
+        if traj is not None:
+            stamp = self.node.get_clock().now().to_msg()
+            msg = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"])
+            P = cv.joint_trajectory_positions(msg, self.names)
+            t2 = time.perf_counter()
+            unsafe = self._unsafe(P)
+            info.update(msg_ms=_f((t2 - t1) * 1e3), check_ms=_f((time.perf_counter() - t2) * 1e3))
+            if unsafe:
+                info.update(success=False, reason="planner output in collision with the latest obstacles: refused")
+            else:
+                self.pub_traj.publish(msg)
+                t_pub = time.perf_counter()
+                self.current = {"result": res, "msg": msg, "t_pub": t_pub, "positions": P}
+                info.update(latency_ms=_f((t_pub - pend["t_first"]) * 1e3) if pend["t_first"] else None,
+                            duration_s=_f(traj.duration), n_points=len(msg.points), stop=False)
+                self._after_publish(res, info, reasons)
+                return True, json.dumps(info)
+        # nothing new and safe: keep the last safe trajectory, else stop
+        self.status(f"planning failed ({info['reason']})", "warning")
+        if self.current is not None and not self._unsafe(self._remaining(self.current["positions"])):
+            info.update(stop=False, kept_last=True)
+            self._publish_info(info)
+            self.status("keeping the last safe trajectory", "warning")
+        else:
+            self._publish_stop(f"no safe trajectory ({info['reason']})", info)
+        return False, json.dumps(info)
+
+    def _after_publish(self, res, info: dict, reasons: list) -> None:
+        """Plan info and status now; path camera poses and markers on the side thread (off the latency path)."""
+        self._publish_info(info)
+        self.status(f"plan {info['seq']} ({', '.join(reasons)}): {info['n_points']} points, "
+                    f"{info['duration_s']:.1f} s, predicted score {res.mean_score:.3f}, query {res.query_ms:.0f} ms")
+        self._side.submit(self._publish_path_safe, res, self.safety_scene)
+
+    def _publish_path_safe(self, res, scene) -> None:
+        try:
+            self._publish_path(res, scene)
+        except Exception as exc:  # never lose the side thread
+            self.status(f"path markers failed: {exc}", "warning")
+
+    def _publish_stop(self, why: str, info: Optional[dict] = None) -> None:
+        stamp = self.node.get_clock().now().to_msg()
+        self.pub_traj.publish(cv.stop_trajectory(self.q, self.names, self.frame, stamp))
+        self.current = {"result": None, "msg": None, "t_pub": time.perf_counter(), "positions": self.q[None].copy()}
+        info = dict(info or {"seq": self.seq, "reasons": [why]})
+        info.update(stop=True, stop_reason=why)
+        self._publish_info(info)
+        self.status(f"stop trajectory published: {why}", "warning")
+
+    def _publish_info(self, info: dict) -> None:
+        from std_msgs.msg import String
+
+        self.pub_info.publish(String(data=json.dumps(info)))
+
+    def _unsafe(self, positions: np.ndarray) -> bool:
+        """True when any configuration along ``positions`` (densified to the planner's edge resolution) collides
+        with the latest obstacle poses (or leaves the joint limits / workspace)."""
+        import torch
+
+        P = np.asarray(positions, float).reshape(-1, len(self.names))
+        if len(P) == 0:
+            return False
+        if not np.isfinite(P).all():
+            return True
+        P = cv.densify_linear(P, self.p["safety_step"])
+        bad = self.safety.check(torch.as_tensor(P, dtype=torch.float32))
+        return bool(bad.any())
+
+    def _remaining(self, positions: np.ndarray) -> np.ndarray:
+        """The part of a published trajectory the robot has not traversed yet (from its sample nearest to the current
+        robot state)."""
+        P = np.asarray(positions)
+        if len(P) <= 1:
+            return P
+        d = np.linalg.norm(P[:, :2] - self.q[:2], axis=1) if self.robot.mobile else np.linalg.norm(P - self.q, axis=1)
+        return P[int(np.argmin(d)):]
+
+    # ------------------------------------------------------------------------------------------------ markers
+    def _camera_poses(self, Q: np.ndarray) -> np.ndarray:
+        import torch
+
+        with torch.no_grad():
+            return self.robot.camera_poses(torch.as_tensor(np.asarray(Q), dtype=torch.float32)).double().numpy()
+
+    def _publish_roadmap(self) -> None:
+        pl = self.planner
+        n = pl.n_roadmap_nodes
+        Q = pl.graph.configs[:n]
+        valid = pl.graph.node_valid[:n]
+        T = self._camera_poses(Q)
+        self._rm_cams = T
+        stamp = self.node.get_clock().now().to_msg()
+        self.pub_rm_cams.publish(cv.pose_array(T, self.frame, stamp))
+        self._markers_dirty = True
+        self._valid_nodes = valid
+        self._maybe_republish_markers(force=True)
+
+    def _node_scores(self) -> np.ndarray:
+        pl = self.planner
+        n = pl.n_roadmap_nodes
+        s = self.ext_scores
+        if s is None or len(s) != n:
+            s = np.asarray(pl.node_scores[:n], float)
+        return s * float(getattr(pl, "score_scale", 1.0))
+
+    def _maybe_republish_markers(self, force: bool = False) -> None:
+        from . import markers as mk
+
+        if not self.p["publish_markers"] or self.planner is None:
+            return
+        now = time.monotonic()
+        if not force and (not self._markers_dirty or now - self._markers_t < 2.0):
+            return
+        self._markers_t, self._markers_dirty = now, False
+        pl, g = self.planner, self.planner.graph
+        n = pl.n_roadmap_nodes
+        ids = g.valid_edge_ids()
+        e = np.stack([g.edge_u[ids], g.edge_v[ids]], 1)
+        e = e[(e[:, 0] < n) & (e[:, 1] < n)]
+        stamp = self.node.get_clock().now().to_msg()
+        ms = mk.scene_markers(self.safety_scene, stamp)
+        ms += mk.roadmap_markers(self.frame, self._rm_cams[:, :3, 3], self._node_scores(), g.configs[:n, :2], e, stamp,
+                                 self.p["marker_max_edges"])
+        self.pub_markers.publish(mk.marker_array(ms))
+
+    def _publish_path(self, res, scene) -> None:
+        """Camera poses along the new path (for the perception scorer) and the path markers; runs on the side
+        thread and touches only the robot model and the result."""
+        from . import markers as mk
+
+        D = res.dense if res.dense is not None else res.waypoints
+        k = max(1, int(np.ceil(len(D) / max(2, self.p["path_camera_samples"]))))
+        idx = np.unique(np.r_[np.arange(0, len(D), k), len(D) - 1])
+        T = self._camera_poses(D[idx])
+        stamp = self.node.get_clock().now().to_msg()
+        self.pub_path_cams.publish(cv.pose_array(T, self.frame, stamp))
+        if self.p["publish_markers"]:
+            scores = res.dense_scores[idx] if res.dense_scores is not None else np.zeros(len(idx))
+            scores = scores * float(getattr(self.planner, "score_scale", 1.0))
+            ms = mk.scene_markers(scene, stamp) + mk.path_markers(self.frame, D[idx, :2], T[:, :3, 3],
+                                                                             scores, stamp)
+            self.pub_markers.publish(mk.marker_array(ms))
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def destroy(self) -> None:
+        self._running = False
+        self._wake.set()
+        self._thread.join(timeout=10.0)
+        self._side.shutdown(wait=True, cancel_futures=True)
+        self.node.destroy_node()
+
+
+def _f(x) -> Optional[float]:
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return None
+    return x if np.isfinite(x) else None
+
+
+def main(args=None) -> int:
+    from .runner import run_nodes
+
+    return run_nodes([RoadmapServer], args, description=__doc__)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

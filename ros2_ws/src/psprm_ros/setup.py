@@ -1,0 +1,32 @@
+"""ament_python package of the psprm ROS 2 nodes.
+
+The sources live in the repository's top-level ``psprm_ros/`` folder; ``psprm_ros`` and ``config`` here are symlinks
+to it and to ``config/ros``, so colcon builds the same code the tests run. Executables are installed under
+``lib/psprm_ros/`` (setup.cfg), where ``ros2 run psprm_ros <executable>`` finds them.
+"""
+
+from glob import glob
+
+from setuptools import setup
+
+package_name = "psprm_ros"
+executables = ["roadmap_server", "perception_scorer", "replan_monitor", "all_in_one", "mocap_replay",
+               "latency_bench", "demo"]
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=[package_name],
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", sorted(glob("config/*.yaml"))),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="psprm developers",
+    maintainer_email="psprm@example.org",
+    description="ROS 2 node suite around psprm_core (PS-PRM perception-aware motion planning)",
+    license="BSD-3-Clause",
+    entry_points={"console_scripts": [f"{e} = {package_name}.{e}:main" for e in executables]},
+)

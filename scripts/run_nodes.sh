@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# Start the psprm node suite as three processes: roadmap_server, perception_scorer, replan_monitor.
+#   bash scripts/run_nodes.sh [PARAMS_FILE] [ROS ARGS ...]
+# Same parameters as run_all_in_one.sh (overrides: -p NODE:name:=value). Ctrl-C / SIGTERM stops all three; if one node exits, the others are stopped
+# and the script exits with that node's status.
+set -uo pipefail
+root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+params="${1:-$root/config/ros/dynamic_person.yaml}"
+[ $# -gt 0 ] && shift
+[ -f "$params" ] || { echo "run_nodes.sh: params file not found: $params" >&2; exit 2; }
+py="${PSPRM_PYTHON:-$root/.venv/bin/python}"
+[ -x "$py" ] || py=python3
+export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
+export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+pids=()
+stop() { kill -TERM "${pids[@]}" 2>/dev/null; wait "${pids[@]}" 2>/dev/null; }
+trap 'stop; exit 0' INT TERM
+for node in roadmap_server perception_scorer replan_monitor; do
+  "$py" -m "psprm_ros.$node" --ros-args --params-file "$params" "$@" &
+  pids+=($!)
+done
+wait -n "${pids[@]}"
+status=$?
+echo "run_nodes.sh: a node exited (status $status); stopping the others" >&2
+stop
+exit "$status"

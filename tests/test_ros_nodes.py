@@ -1,0 +1,212 @@
+"""ROS 2 node suite, in process: the three nodes on a MultiThreadedExecutor, poses and goals published like a mocap
+system, trajectories received and checked (collision-free under the latest obstacle poses, target in view), replans
+after the target turns and after an obstacle moves into the path, bad input answered with warnings."""
+
+from __future__ import annotations
+
+import random
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+pytest.importorskip("rclpy")
+
+from psprm_core.collision import CollisionChecker  # noqa: E402
+from psprm_core.paths import resolve_named  # noqa: E402
+from psprm_core.scene import load_scene  # noqa: E402
+from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.probe import InProcessSuite  # noqa: E402
+
+N_NODES = 500
+PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,
+          "stale_timeout_s": 60.0, "publish_markers": True, "rescore_rate_hz": 5.0}
+
+
+def yaw_q(yaw: float) -> np.ndarray:
+    return cv.yaw_quat(yaw)
+
+
+@pytest.fixture(scope="module")
+def suite(load_robot):
+    with InProcessSuite(PARAMS, domain_id=random.randint(1, 200)) as s:
+        assert s.server.ready.wait(180), "roadmap not ready"
+        assert s.probe.wait_subscribers("/mocap/person_face/pose")
+        yield s
+
+
+@pytest.fixture(scope="module")
+def world(load_robot):
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    return scene, load_robot("stretch2")
+
+
+def traj_positions(msg, names) -> np.ndarray:
+    P = cv.joint_trajectory_positions(msg, names)
+    if len(P) > 1:  # midpoints too: consecutive samples are at most a few cm apart
+        P = np.vstack([P, 0.5 * (P[1:] + P[:-1])])
+    return P
+
+
+def collides(robot, scene, P) -> np.ndarray:
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    return checker.check(torch.as_tensor(P, dtype=torch.float32)).numpy()
+
+
+def in_view_fraction(robot, scene, P, target="person_face") -> float:
+    T = robot.camera_poses(torch.as_tensor(P, dtype=torch.float32)).double().numpy()
+    c = scene.target(target).center
+    pc = np.einsum("nji,nj->ni", T[:, :3, :3], c - T[:, :3, 3])
+    intr = robot.config.intrinsics
+    z = pc[:, 2]
+    ok = (z > 0.1) & (np.abs(pc[:, 0]) <= intr.tan_half_h * z) & (np.abs(pc[:, 1]) <= intr.tan_half_v * z)
+    return float(ok.mean())
+
+
+def next_plan(s, n_before: int, timeout: float = 60.0):
+    msg = s.probe.wait_trajectory(n_before, timeout)
+    assert msg is not None, f"no trajectory; statuses: {[x[2] for x in s.probe.statuses[-8:]]}"
+    return msg
+
+
+def test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(suite, world):
+    scene, robot = world
+    face = scene.target("person_face")
+    n0 = len(suite.probe.trajectories)
+    suite.probe.publish_pose("person_face", face.center, face.quat)
+    suite.probe.publish_regions(["at_shelf", "at_cabinet"])
+    msg = next_plan(suite, n0)
+    assert list(msg.joint_names) == robot.joint_names and msg.header.frame_id == "map"
+    assert len(msg.points) > 10
+    t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
+    assert np.all(np.diff(t) > 0) and np.allclose(msg.points[-1].velocities, 0.0)
+    P = traj_positions(msg, robot.joint_names)
+    assert not collides(robot, scene, P).any()
+    assert in_view_fraction(robot, scene, cv.joint_trajectory_positions(msg, robot.joint_names)) >= 0.8
+    # the perception scorer re-scores the roadmap and the path
+    assert suite.probe.wait_for(lambda: suite.probe.path_scores, 20)
+
+
+def test_turning_target_gives_a_replanned_trajectory(suite, world):
+    scene, robot = world
+    face, body = scene.target("person_face"), scene.obstacle("person_body")
+    if not suite.probe.trajectories:
+        test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(suite, world)
+    n0 = len(suite.probe.trajectories)
+    yaw = 0.3  # the person turns from west-south-west towards the cabinet (east)
+    c = body.center[:2]
+    face_c = np.r_[c + 0.06 * np.array([np.cos(yaw), np.sin(yaw)]), face.center[2]]
+    t_pub = suite.probe.publish_pose("person_face", face_c, yaw_q(yaw))
+    suite.probe.publish_pose("person_body", body.center, yaw_q(yaw))
+    msg = next_plan(suite, n0)
+    info = suite.probe.wait_for(lambda: [i for t, i in suite.probe.infos if t >= t_pub and "success" in i], 10)
+    assert info and any("target" in r for r in info[0]["reasons"]), info
+    turned = scene.with_target_pose("person_face", face_c, yaw_q(yaw)).with_obstacle_pose("person_body", body.center,
+                                                                                         yaw_q(yaw))
+    P = traj_positions(msg, robot.joint_names)
+    assert not collides(robot, turned, P).any()
+    assert in_view_fraction(robot, turned, cv.joint_trajectory_positions(msg, robot.joint_names)) >= 0.8
+
+
+def test_obstacle_moved_into_the_path_gives_a_trajectory_around_it(suite, world):
+    scene, robot = world
+    if not suite.probe.trajectories:
+        test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(suite, world)
+    time.sleep(0.5)
+    n0 = len(suite.probe.trajectories)
+    old = suite.probe.trajectories[-1][1]
+    P_old = cv.joint_trajectory_positions(old, robot.joint_names)
+    # a point of the current base path at least 1.2 m from its start and end, away from the person
+    xy = P_old[:, :2]
+    d_ends = np.minimum(np.linalg.norm(xy - xy[0], axis=1), np.linalg.norm(xy - xy[-1], axis=1))
+    cand = np.nonzero(d_ends > 1.2)[0]
+    assert len(cand), "path too short for this test"
+    k = cand[len(cand) // 2]
+    box = scene.obstacle("person_body")
+    center = np.array([xy[k, 0], xy[k, 1], box.center[2]])
+    blocked = scene.with_obstacle_pose("person_body", center, box.quat)
+    assert collides(robot, blocked, P_old).any(), "the moved obstacle must block the old path"
+    suite.probe.publish_pose("person_body", center, box.quat)
+    msg = next_plan(suite, n0)
+    P = traj_positions(msg, robot.joint_names)
+    face = suite.server.safety_scene.target("person_face")
+    now = blocked.with_target_pose("person_face", face.center, face.quat)
+    assert not collides(robot, now, P).any()
+    if len(msg.points) == 1:  # a stop trajectory is the allowed alternative when nothing safe exists
+        assert np.allclose(msg.points[0].velocities, 0.0)
+    else:
+        assert np.linalg.norm(P[:, :2] - center[:2], axis=1).min() > 0.2
+    # put the person back where the scene has it
+    suite.probe.publish_pose("person_body", box.center, box.quat)
+
+
+def test_nan_and_unknown_frame_poses_warn_and_the_suite_keeps_serving(suite, world):
+    scene, robot = world
+    face = scene.target("person_face")
+    t0 = time.perf_counter()
+    suite.probe.publish_pose("person_face", [np.nan, 3.2, 1.6], face.quat)
+    assert suite.probe.wait_status("non-finite", t0, level="warning"), suite.probe.statuses[-5:]
+    suite.probe.publish_pose("person_face", face.center, face.quat, frame="odom")
+    assert suite.probe.wait_status("frame 'odom'", t0, level="warning")
+    suite.probe.publish_pose("person_face", face.center, [0.0, 0.0, 0.0, 0.0])
+    assert suite.probe.wait_status("zero quaternion", t0, level="warning")
+    suite.probe.publish_goal(1.05, 3.2, np.inf)
+    assert suite.probe.wait_status("goal: non-finite", t0, level="warning")
+    # a goal inside the shelf is refused before it reaches the planner
+    suite.probe.publish_goal(0.25, 3.2, np.pi)
+    assert suite.probe.wait_status("in collision", t0, level="warning")
+    # still serving: a valid goal gives a new, safe trajectory
+    n0 = len(suite.probe.trajectories)
+    suite.probe.publish_goal(6.9, 3.2, 0.0)
+    msg = next_plan(suite, n0)
+    assert len(msg.points) >= 1
+    assert not collides(robot, suite.server.safety_scene, traj_positions(msg, robot.joint_names)).any()
+
+
+def test_stale_obstacle_stops_the_robot(load_robot):
+    """A separate suite whose monitor times out fast: the obstacle goes silent -> stop trajectory + warning."""
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    params = dict(PARAMS, stale_timeout_s=0.4, publish_markers=False)
+    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("server", "monitor")) as s:
+        assert s.server.ready.wait(180)
+        assert s.probe.wait_subscribers("/mocap/person_body/pose")
+        body = scene.obstacle("person_body")
+        n0 = len(s.probe.trajectories)
+        s.probe.publish_regions(["at_cabinet"])
+        assert next_plan(s, n0) is not None
+        t0 = time.perf_counter()
+        s.probe.publish_pose("person_body", body.center, body.quat)  # once, then silence
+        assert s.probe.wait_status("stale", t0, timeout=10, level="warning")
+        stop = s.probe.wait_for(lambda: [m for t, m in s.probe.trajectories if t > t0 and len(m.points) == 1], 10)
+        assert stop, "no stop trajectory"
+        assert np.allclose(stop[0].points[0].velocities, 0.0)
+
+
+def test_server_keeps_the_last_safe_trajectory_when_a_goal_cannot_be_reached(suite, world):
+    """Goal candidates straight to the server (past the monitor's collision filter), all inside the shelf: the
+    planner fails, the server warns and keeps the last trajectory, which is still collision-free."""
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from trajectory_msgs.msg import JointTrajectory
+
+    scene, robot = world
+    if not suite.probe.trajectories:
+        test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(suite, world)
+    time.sleep(0.5)
+    n0 = len(suite.probe.trajectories)
+    q = robot.configuration({"base_x": 0.25, "base_y": 3.2, "base_theta": np.pi})
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    pub = suite.probe.node.create_publisher(JointTrajectory, "/psprm/state/goals", latched)
+    assert suite.probe.wait_subscribers("/psprm/state/goals")
+    t0 = time.perf_counter()
+    pub.publish(cv.configs_to_joint_trajectory(q[None], robot.joint_names, "map"))
+    assert suite.probe.wait_status("planning failed", t0, timeout=30, level="warning")
+    assert suite.probe.wait_status("keeping the last safe trajectory", t0, timeout=10, level="warning")
+    time.sleep(0.3)
+    assert len(suite.probe.trajectories) == n0  # nothing new published

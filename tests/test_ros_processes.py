@@ -1,0 +1,141 @@
+"""The ROS 2 suite as users run it: the colcon workspace builds and installs runnable executables under
+lib/psprm_ros/, and the nodes started by the shell scripts (separately and all-in-one) answer poses published from
+another process with trajectories, then stop cleanly on SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+pytest.importorskip("rclpy")
+
+from psprm_ros.probe import Probe  # noqa: E402
+
+PARAMS_FILE = ROOT / "config" / "ros" / "dynamic_person.yaml"
+N_NODES = 500  # same small roadmap as tests/test_ros_nodes.py (cached after the first build)
+
+
+def test_colcon_workspace_builds_and_installs_runnable_executables(tmp_path):
+    env = dict(os.environ, PATH=f"{ROOT / '.venv' / 'bin'}:{os.environ.get('PATH', '')}")
+    r = subprocess.run(["bash", str(ROOT / "scripts" / "build_ros2_ws.sh"), str(tmp_path / "ws")], env=env,
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
+    install = tmp_path / "ws" / "install"
+    lib = install / "psprm_ros" / "lib" / "psprm_ros"
+    exes = {"roadmap_server", "perception_scorer", "replan_monitor", "all_in_one", "mocap_replay", "latency_bench"}
+    assert exes <= {p.name for p in lib.iterdir()}
+    assert (install / "psprm_ros" / "share" / "ament_index" / "resource_index" / "packages" / "psprm_ros").is_file()
+    assert (install / "psprm_ros" / "share" / "psprm_ros" / "config" / "dynamic_person.yaml").is_file()
+    site = next((install / "psprm_ros" / "lib").glob("python3*/site-packages"))
+    # what `source install/setup.bash; ros2 run psprm_ros all_in_one --self-check` does: PYTHONPATH from the hook
+    run_env = dict(os.environ, PYTHONPATH=str(site))
+    r = subprocess.run([str(lib / "all_in_one"), "--self-check"], env=run_env, capture_output=True, text=True,
+                       timeout=120, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out["ok"] and out["psprm_ros"].startswith(str(site))  # the installed copy, not the source tree
+    r = subprocess.run([str(lib / "roadmap_server"), "--help"], env=run_env, capture_output=True, text=True,
+                       timeout=60, cwd=str(tmp_path))
+    assert r.returncode == 0 and "--ros-args" in r.stdout
+
+
+def _start(script: str, domain: int):
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), RMW_IMPLEMENTATION="rmw_fastrtps_cpp", PYTHONUNBUFFERED="1")
+    # node-specific overrides: a plain "-p name:=value" does not beat the params file's per-node sections
+    cmd = ["bash", str(ROOT / "scripts" / script), str(PARAMS_FILE), "-p", f"roadmap_server:n_nodes:={N_NODES}",
+           "-p", "replan_monitor:stale_timeout_s:=60.0", "-p", "roadmap_server:publish_markers:=false"]
+    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                            start_new_session=True)
+
+
+def _stop(proc) -> tuple:
+    if proc.poll() is None:
+        os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        out, _ = proc.communicate(timeout=20)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, _ = proc.communicate()
+    return proc.returncode, out
+
+
+@pytest.mark.parametrize("script", ["run_all_in_one.sh", "run_nodes.sh"])
+def test_script_started_nodes_answer_poses_from_another_process(script, load_robot):
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+
+    from psprm_core.paths import resolve_named
+    from psprm_core.scene import load_scene
+    from psprm_ros import conversions as cv
+
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    robot = load_robot("stretch2")
+    domain = random.randint(1, 200)
+    proc = _start(script, domain)
+    ctx = rclpy.Context()
+    ctx.init(domain_id=domain)
+    ex = SingleThreadedExecutor(context=ctx)
+    probe = Probe(context=ctx)
+    ex.add_node(probe.node)
+    import threading
+
+    th = threading.Thread(target=lambda: _spin(ex), daemon=True)
+    th.start()
+    try:
+        # ready = the monitor subscribes to the mocap topic and the server publishes "ready"
+        ready = probe.wait_ready(timeout=240)
+        assert ready, f"suite not ready; output:\n{_tail(proc)}"
+        assert f"{N_NODES} nodes" in ready  # the command-line override reached the server
+        assert probe.wait_subscribers("/mocap/person_face/pose", timeout=30)
+        face = scene.target("person_face")
+        probe.wait_subscribers("/psprm/goal_regions", timeout=10)
+        deadline = time.monotonic() + 90
+        n0 = len(probe.trajectories)
+        while time.monotonic() < deadline and len(probe.trajectories) <= n0:
+            probe.publish_pose("person_face", face.center, face.quat)
+            if not probe.wait_status("forwarded goal regions", timeout=0.01):
+                probe.publish_regions(["at_shelf", "at_cabinet"])
+            time.sleep(0.5)
+        msg = probe.wait_trajectory(n0, 1)
+        assert msg is not None, f"no trajectory; statuses {[s[2] for s in probe.statuses[-6:]]}"
+        assert list(msg.joint_names) == robot.joint_names and len(msg.points) > 10
+        # a second pose (the person turned) gives a replanned trajectory across processes
+        n1 = len(probe.trajectories)
+        yaw = 0.3
+        body = scene.obstacle("person_body")
+        p = np.r_[body.center[:2] + 0.06 * np.array([np.cos(yaw), np.sin(yaw)]), face.center[2]]
+        probe.publish_pose("person_face", p, cv.yaw_quat(yaw))
+        assert probe.wait_trajectory(n1, 60) is not None
+    finally:
+        ex.shutdown(timeout_sec=1.0)
+        probe.destroy()
+        ctx.try_shutdown()
+        code, out = _stop(proc)
+    assert code in (0, -signal.SIGTERM, 128 + signal.SIGTERM), out[-3000:]
+    assert "Traceback" not in out, out[-3000:]
+
+
+def _spin(ex):
+    try:
+        ex.spin()
+    except Exception:
+        pass
+
+
+def _tail(proc) -> str:
+    if proc.poll() is None:
+        return "(still running)"
+    return (proc.stdout.read() or "")[-3000:]
