@@ -161,6 +161,7 @@ def test_small_jitter_does_not_trigger(replanner):
 def test_goal_change_triggers_and_best_goal_wins(replanner, world):
     scene, robot = world
     rp = replanner
+    rp.settings = dataclasses.replace(rp.settings, goal_switch_margin=0.0)  # no hysteresis: the best goal wins
     _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     rp.set_goals(goals[::-1])
     assert "goal_changed" in rp.needs_replan()
@@ -223,3 +224,16 @@ def test_shipped_scenarios_load_and_bad_ones_name_the_field(tmp_path: Path):
     bad.write_text("name: x\nscene: dynamic_person\ntarget: person_face\nstart: {base_x: 1}\ngoals: []\n")
     with pytest.raises(ConfigError, match="goals"):
         load_scenario(bad)
+
+
+def test_goal_hysteresis_keeps_the_current_goal(replanner, world):
+    scene, robot = world
+    rp = replanner
+    _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    current = rp.goals[rp.result.goal_index].copy()
+    other = [g for g in goals if not np.allclose(g, current)][0]
+    # make the other goal the only cheap one... by costs alone: with a huge margin the current goal is kept anyway
+    rp.settings = dataclasses.replace(rp.settings, goal_switch_margin=100.0)
+    rp.set_goals(np.stack([other, current]))
+    res = rp.replan()
+    assert res.success and np.allclose(rp.goals[res.goal_index], current)

@@ -176,6 +176,8 @@ class KnotStore:
         self.data: Optional[torch.Tensor] = None  # (capacity, M, dof)
         self.interior: Optional[torch.Tensor] = None  # (capacity, N) positions of the Eq. 1 samples among the knots
         self.have = np.zeros(0, dtype=bool)
+        self.cams: Optional[torch.Tensor] = None  # (capacity, N + 2, 4, 4) camera poses of the Eq. 1 points
+        self.cams_have = np.zeros(0, dtype=bool)
 
     def put(self, ids: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> None:
         ids = np.asarray(ids, dtype=np.int64)
@@ -198,6 +200,32 @@ class KnotStore:
         self.data[idx] = knots
         self.interior[idx] = interior
         self.have[ids] = True
+        if len(self.cams_have):
+            self.cams_have[ids[ids < len(self.cams_have)]] = False
+
+    def put_cams(self, ids: np.ndarray, cams: torch.Tensor) -> None:
+        """Camera poses (E, N + 2, 4, 4) of the Eq. 1 points of edges whose knots are stored (fixed while the
+        roadmap's geometry is: a target move re-scores them without forward kinematics)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        if len(ids) == 0:
+            return
+        cap = self.data.shape[0]
+        if self.cams is None or self.cams.shape[0] < cap or self.cams.shape[1:] != cams.shape[1:]:
+            grown = cams.new_zeros((cap,) + tuple(cams.shape[1:]))
+            keep = np.zeros(cap, dtype=bool)
+            if self.cams is not None and self.cams.shape[1:] == cams.shape[1:]:
+                grown[: self.cams.shape[0]] = self.cams
+                keep[: len(self.cams_have)] = self.cams_have
+            self.cams, self.cams_have = grown, keep
+        self.cams[torch.as_tensor(ids, device=cams.device)] = cams
+        self.cams_have[ids] = True
+
+    def known_cams(self, ids: np.ndarray) -> np.ndarray:
+        ids = np.asarray(ids, dtype=np.int64)
+        out = np.zeros(len(ids), dtype=bool)
+        inside = ids < len(self.cams_have)
+        out[inside] = self.cams_have[ids[inside]]
+        return out
 
     def known(self, ids: np.ndarray) -> np.ndarray:
         ids = np.asarray(ids, dtype=np.int64)
@@ -532,14 +560,34 @@ class PSPRM:
         """Normalised perception score c_p in [0, 1] (scores divided by the roadmap's 99th-percentile node score)."""
         return (scores * getattr(self, "score_scale", 1.0)).clamp(0.0, 1.0)
 
-    def _knots_perception(self, knots: torch.Tensor, interior: torch.Tensor) -> torch.Tensor:
-        """Eq. 1 from knots: mean normalised score of both ends and the N interior samples."""
+    def _eq1_cameras(self, knots: torch.Tensor, interior: torch.Tensor) -> torch.Tensor:
+        """Camera poses (E, N + 2, 4, 4) of an edge's Eq. 1 points: both ends and the N interior samples."""
         E, M, dof = knots.shape
         n = interior.shape[1]
         pts = torch.cat([knots[:, :1], torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, dof)),
                          knots[:, -1:]], 1)
-        sc = self._normalized(self.score_configs(pts.reshape(-1, dof)).reshape(E, n + 2))
+        return self.robot.camera_poses(pts.reshape(-1, dof)).reshape(E, n + 2, 4, 4)
+
+    def _knots_perception(self, knots: torch.Tensor, interior: torch.Tensor,
+                          cams: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Eq. 1 from knots (or their cached Eq. 1 camera poses): mean normalised score of both ends and the N
+        interior samples."""
+        if cams is None:
+            cams = self._eq1_cameras(knots, interior)
+        E, P = cams.shape[:2]
+        sc = self._normalized(self.scorer.score(cams.reshape(-1, 4, 4)).to(self.dtype).reshape(E, P))
         return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1])
+
+    def _stored_perception(self, edge_ids: np.ndarray) -> torch.Tensor:
+        """Eq. 1 of graph edges from their stored knots; camera poses are computed once and kept."""
+        knots, interior = self.stored_knots(edge_ids)
+        have = self.knots.known_cams(edge_ids)
+        if not have.all():
+            miss = np.unique(np.asarray(edge_ids)[~have])
+            k, i = self.knots.get(miss)
+            self.knots.put_cams(miss, self._eq1_cameras(k, i))
+        return self._knots_perception(knots, interior, cams=self.knots.cams[
+            torch.as_tensor(np.asarray(edge_ids, dtype=np.int64), device=knots.device)])
 
     # ---- query -----------------------------------------------------------------------------------------------------
     def set_alpha(self, alpha: float) -> None:
@@ -667,7 +715,7 @@ class PSPRM:
         score = torch.as_tensor(ver[todo] < 0.5, device=self.device) & ok
         if score.any():
             sel = todo[score.cpu().numpy()]
-            p = self._knots_perception(knots[score], interior[score]).double().cpu().numpy()
+            p = self._stored_perception(sel).double().cpu().numpy()
             g.edge_attribute("c_p")[sel] = p
             ver[sel] = 1.0
             w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
@@ -822,7 +870,12 @@ class PSPRM:
         g = self.graph
         ids = self.roadmap_node_ids()
         scores = self._node_score_slots()
-        new = self.score_configs(self._roadmap_tensor(ids)).double().cpu().numpy()
+        key = hash(ids.tobytes())
+        if getattr(self, "_node_cams_key", None) != key:  # node camera poses only change with the node set
+            Q = self._roadmap_tensor(ids)
+            self._node_cams = torch.cat([self.robot.camera_poses(Q[i:i + 65536]) for i in range(0, len(Q), 65536)])
+            self._node_cams_key = key
+        new = self.scorer.score(self._node_cams).double().cpu().numpy()
         changed = np.abs(new - scores[ids]) > tol
         scores[ids] = new
         e = self.roadmap_edge_ids()
@@ -836,8 +889,7 @@ class PSPRM:
             if full:
                 p = np.empty(len(e))
                 for s0 in range(0, len(e), 4096):
-                    knots, interior = self.stored_knots(e[s0:s0 + 4096])
-                    p[s0:s0 + 4096] = self._knots_perception(knots, interior).double().cpu().numpy()
+                    p[s0:s0 + 4096] = self._stored_perception(e[s0:s0 + 4096]).double().cpu().numpy()
                 ver[e] = 1.0
             else:
                 scale = getattr(self, "score_scale", 1.0)

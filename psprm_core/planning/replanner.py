@@ -53,6 +53,7 @@ class ReplanSettings:
     replan_on_move: bool = True  # a target/obstacle move alone triggers a replan (else only score/collision do)
     score_min: float = 0.1  # replan when the normalised predicted mean score along the remaining path falls below this
     score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
+    goal_switch_margin: float = 0.2  # switch to another goal only when its cost is this much (relative) lower
     min_interval_s: float = 0.5  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
@@ -278,6 +279,7 @@ class Replanner:
                 self._target_ref[t.name] = (t.center.copy(), t.quat.copy())
             self._score_stale = False
         res = p.plan(self.q, self.goals)
+        res = self._keep_goal(res)
         rounds = 0
         while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds):
             rounds += 1
@@ -301,6 +303,7 @@ class Replanner:
                              "repair_rounds": rounds, **{k: v for k, v in info.items() if k == "rescore"}})
         if res.success:
             self.result, self._progress = res, 0
+            self._goal_cfg = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
             self._plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
             self._pending.clear()
             self._moved_obstacles.clear()
@@ -308,6 +311,24 @@ class Replanner:
             log.warning("replan failed: %s", res.reason)
             if self.result is not None and self.remaining_path_collides():
                 self.result = None  # the old plan is no longer safe: the caller must stop
+        return res
+
+    def _keep_goal(self, res: PlanResult) -> PlanResult:
+        """Goal hysteresis: with several candidate goals, stay with the current plan's goal unless the new best one
+        is cheaper by more than ``goal_switch_margin`` (a person turning back and forth must not make the robot
+        oscillate between goals)."""
+        if not res.success or self.result is None or self.goals is None or len(self.goals) < 2:
+            return res
+        cur = getattr(self, "_goal_cfg", None)
+        if cur is None:
+            return res
+        same = np.nonzero(np.abs(self.goals - cur).max(1) < 1e-6)[0]
+        if len(same) == 0 or int(same[0]) == res.goal_index:
+            return res
+        alt = self.planner.plan(self.q, self.goals[same[0]])
+        if alt.success and alt.cost <= res.cost * (1.0 + self.settings.goal_switch_margin):
+            alt.goal_index = int(same[0])
+            return alt
         return res
 
     def step(self) -> Optional[PlanResult]:
