@@ -1,0 +1,58 @@
+"""Thin :class:`~psprm_core.baselines.base.BenchPlanner` adapter around the four PS-PRM variants (paper Alg. 1).
+
+``prepare()`` builds the roadmap (its time is the preprocessing time of Table II: oracle scoring for ``psprm-*``,
+the surrogate for ``neural-psprm-*``); ``plan()`` answers one query with :meth:`PSPRM.plan`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..planning.psprm import PlanResult
+from .base import failure, path_length
+
+log = logging.getLogger(__name__)
+
+
+class PSPRMBenchPlanner:
+    """PS-PRM variant ``name`` (``psprm-line``, ``psprm-frustum``, ``neural-psprm-line``, ``neural-psprm-frustum``).
+
+    Parameters
+    ----------
+    name, scene, targets, robot, seed : as for every benchmark planner.
+    n_nodes : roadmap size (default: ``config/planners/psprm.yaml``).
+    **overrides : other :class:`~psprm_core.planning.psprm.PSPRMSettings` fields.
+    """
+
+    def __init__(self, name: str, scene, targets: Sequence[str], robot=None, seed: int = 0,
+                 n_nodes: Optional[int] = None, **overrides):
+        from ..planning.factory import make_planner
+
+        self.name = name
+        self.targets = list(targets)
+        self.planner = make_planner(name, scene, self.targets, robot=robot, n_nodes=n_nodes, seed=seed, **overrides)
+        self.robot = self.planner.robot
+        self._built = False
+
+    def prepare(self) -> dict:
+        t0 = time.perf_counter()
+        stats = self.planner.build()
+        self._built = bool(stats.get("success", True))
+        return {"preprocess_s": time.perf_counter() - t0, **{k: v for k, v in stats.items()
+                                                              if isinstance(v, (int, float, bool, str))}}
+
+    def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
+        t0 = time.perf_counter()
+        if not self._built:
+            return failure("roadmap not built", t0)
+        res = self.planner.plan(start, goals, timing=False)
+        if res.success and res.dense is not None:
+            res.path_length = path_length(self.planner.motion, res.dense)
+        if res.success and (time.perf_counter() - t0) > timeout_s:
+            log.info("%s query exceeded the %.1f s cap", self.name, timeout_s)
+            return failure(f"timeout ({timeout_s:.1f} s)", t0)
+        return res
