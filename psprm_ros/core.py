@@ -140,7 +140,7 @@ class PlannerSpec:
     n_nodes: int = 3000
     seed: int = 0
     planner_settings: str = ""  # PSPRMSettings YAML ("" = config/planners/psprm.yaml)
-    replan_settings: str = ""  # ReplanSettings YAML ("" = the library defaults)
+    replan_settings: str = "replan_reactive"  # ReplanSettings: a name in config/planners/ or a YAML path
     roadmap_file: str = ""  # "" = cache under ~/.cache/psprm/roadmaps; "none" = always build, never save
     checkpoint: str = ""  # surrogate checkpoint ("" = the shipped one)
 
@@ -197,5 +197,7 @@ def make_replanner(planner, settings_path: str = ""):
     """The core :class:`~psprm_core.planning.replanner.Replanner` around a built or loaded ``planner``."""
     from psprm_core.planning.replanner import Replanner, ReplanSettings
 
-    settings = ReplanSettings.from_yaml(settings_path) if settings_path else ReplanSettings()
+    from psprm_core.paths import resolve_named
+
+    settings = ReplanSettings.from_yaml(resolve_named("planner", settings_path)) if settings_path else ReplanSettings()
     return Replanner(planner, settings)

@@ -101,6 +101,7 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
 def test_lazy_rescore_verifies_the_path_edges(replanner, world):
     scene, robot = world
     rp = replanner
+    rp.settings = dataclasses.replace(rp.settings, replan_on_move=True)
     p = rp.planner
     motion = PersonMotion(target="person_face", body="person_body")
     pp = person_pose(scene, motion, 2.8 + 1.0)
@@ -210,6 +211,13 @@ def test_grow_adds_valid_connected_manifold_nodes(world):
     assert info["added_edges"] > 0
     deg = p.graph.degree()[new]
     assert (deg > 0).mean() > 0.5
+
+
+def test_shipped_replan_settings_load():
+    base = ReplanSettings.from_yaml(config_dir() / "planners" / "replan.yaml")
+    assert base == ReplanSettings()  # the file documents the library defaults
+    reactive = ReplanSettings.from_yaml(config_dir() / "planners" / "replan_reactive.yaml")
+    assert reactive.replan_on_move and reactive.min_interval_s == 0.0
 
 
 def test_shipped_scenarios_load_and_bad_ones_name_the_field(tmp_path: Path):

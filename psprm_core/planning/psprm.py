@@ -295,7 +295,11 @@ class PSPRM:
         self.max_motion = 1.0
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
+        self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
         self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
+        self._blocked_nodes: set = set()  # roadmap nodes / edges removed because a moved obstacle blocked them
+        self._blocked_edges: set = set()
+        self._recheck = np.zeros(0, dtype=bool)  # edges unchecked because an obstacle moved near them
 
     # ---- helpers -----------------------------------------------------------------------------------------------------
     def _t(self, a) -> torch.Tensor:
@@ -381,6 +385,7 @@ class PSPRM:
         self.graph = g
         self._put_knots(edge_ids, eu.cpu().numpy(), *knots)
         self._dead_edges, self._dead_nodes = [], []
+        self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
         self._unverified, self._index = False, None
         self.node_scores = node_scores.double().cpu().numpy()
         self._roadmap_mask = np.ones(len(Q), dtype=bool)
@@ -711,6 +716,8 @@ class PSPRM:
         invalid = todo[~ok.cpu().numpy()]
         if len(invalid):
             g.remove_edges(invalid)
+            rc = invalid[invalid < len(self._recheck)]
+            self._blocked_edges.update(rc[self._recheck[rc]].tolist())
         weights = {}
         score = torch.as_tensor(ver[todo] < 0.5, device=self.device) & ok
         if score.any():
@@ -930,10 +937,14 @@ class PSPRM:
         """Obstacle update (after :meth:`set_scene`): re-check only what the moved ``boxes`` (new poses) can touch.
 
         Roadmap nodes whose base lies within reach of a box are collision-checked against the current boxes and
-        removed when in collision; edges whose base segment passes within reach are marked unchecked, so a search
-        re-checks them densely before using them (Lazy PRM). A fixed-base robot re-checks everything.
+        blocked (removed from the graph) when in collision; edges whose base segment passes within reach have their
+        stored knots checked in one batch (blocked when in collision) and are marked unchecked, so a search re-checks
+        their dense interior before using them (Lazy PRM). A fixed-base robot re-checks everything. Nodes and edges
+        blocked by obstacles are restored (unchecked) as soon as their knots are free again, so an obstacle moving
+        through the roadmap does not erase it.
         """
         g = self.graph
+        restored = self._restore_unblocked()
         if not self.robot.mobile:
             nodes, edges = self.roadmap_node_ids(), self.roadmap_edge_ids()
         else:
@@ -961,10 +972,59 @@ class PSPRM:
             bad = self.checker.check(self._t(g.configs[nodes])).cpu().numpy()
             removed = nodes[bad]
             if len(removed):
-                g.remove_nodes(removed)
+                gone = g.remove_nodes(removed)
+                self._blocked_nodes.update(removed.tolist())
+                self._blocked_edges.update(gone.tolist())
         edges = edges[g.edge_valid[edges]] if len(edges) else edges
+        # one batched check of the near edges' stored knots prunes most newly blocked edges at once (a lazy search
+        # would otherwise discover them one path at a time); the dense pieces between knots are checked lazily
+        pruned = 0
+        have = edges[self.knots.known(edges)]
+        if len(have):
+            knots, _ = self.knots.get(have)
+            ok = self._knots_valid(knots, dense=False).cpu().numpy()
+            if (~ok).any():
+                g.remove_edges(have[~ok])
+                self._blocked_edges.update(have[~ok].tolist())
+                pruned = int((~ok).sum())
+            edges = edges[g.edge_valid[edges]]
+        self._mark_recheck(edges)
+        return {"checked_nodes": int(len(nodes)), "removed_nodes": int(len(removed)), "pruned_edges": pruned,
+                "unchecked_edges": int(len(edges)), **restored}
+
+    def _mark_recheck(self, edges: np.ndarray) -> None:
+        """Edges to re-check densely before use because an obstacle moved near them."""
+        g = self.graph
         g.edge_attribute("checked")[edges] = 0.0
-        return {"checked_nodes": int(len(nodes)), "removed_nodes": int(len(removed)), "unchecked_edges": int(len(edges))}
+        if len(self._recheck) < g.n_edges:
+            self._recheck = np.concatenate([self._recheck, np.zeros(g.n_edges - len(self._recheck), dtype=bool)])
+        self._recheck[edges] = True
+
+    def _restore_unblocked(self) -> dict:
+        """Give back the nodes and edges that obstacles blocked earlier and that are free at the current poses
+        (edges come back unchecked: their dense interior is re-checked lazily)."""
+        g = self.graph
+        back_n = back_e = 0
+        if self._blocked_nodes:
+            nodes = np.fromiter(self._blocked_nodes, dtype=np.int64)
+            free = nodes[~self.checker.check(self._t(g.configs[nodes])).cpu().numpy()]
+            if len(free):
+                g.restore_nodes(free)
+                self._blocked_nodes.difference_update(free.tolist())
+                back_n = len(free)
+        if self._blocked_edges:
+            e = np.fromiter(self._blocked_edges, dtype=np.int64)
+            e = e[g.node_valid[g.edge_u[e]] & g.node_valid[g.edge_v[e]] & ~g.edge_valid[e]]
+            e = e[self.knots.known(e)]
+            if len(e):
+                knots, _ = self.knots.get(e)
+                free = e[self._knots_valid(knots, dense=False).cpu().numpy()]
+                if len(free):
+                    got = g.restore_edges(free)
+                    self._blocked_edges.difference_update(got.tolist())
+                    self._mark_recheck(got)
+                    back_e = len(got)
+        return {"restored_nodes": int(back_n), "restored_edges": int(back_e)}
 
     def grow(self, n: int, center: Optional[np.ndarray] = None, radius: float = 1.5,
              rng: Optional[np.random.Generator] = None, timeout_s: float = 2.0) -> dict:
@@ -1074,6 +1134,7 @@ class PSPRM:
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
         self._dead_edges, self._dead_nodes = [], []
+        self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
         self._roadmap_mask = np.ones(len(data["configs"]), dtype=bool)
         self._unverified = bool((data["verified"] < 0.5).any()) and not self.settings.lazy_edges
         self._index = None

@@ -50,15 +50,17 @@ class ReplanSettings:
     obstacle_move_m: float = 0.03  # obstacle translation that counts as a move (re-check, replan)
     obstacle_turn_rad: float = 0.1
     focus_move_m: float = 0.25  # the visibility focus follows a target that moved further than this
-    replan_on_move: bool = True  # a target/obstacle move alone triggers a replan (else only score/collision do)
+    replan_on_move: bool = False  # a target/obstacle move alone triggers a replan (default: it triggers the score and
+    # collision checks, and those decide)
     score_min: float = 0.1  # replan when the normalised predicted mean score along the remaining path falls below this
     score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
     goal_switch_margin: float = 0.2  # switch to another goal only when its cost is this much (relative) lower
-    min_interval_s: float = 0.5  # at most one replan per interval, except when the path collides or the goal changed
+    min_interval_s: float = 1.0  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
     repair_nodes: int = 150  # nodes sampled per repair round
     repair_radius_m: float = 1.5  # around the moved obstacles and the start
+    repair_budget_nodes: int = 1500  # at most this many nodes added by repair over the replanner's life
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "ReplanSettings":
@@ -128,6 +130,8 @@ class Replanner:
         self._progress = 0  # index into result.dense of the robot's position along the current path
         self._plan_score = float("nan")  # normalised predicted score of the current plan
         self._last_plan_time = -math.inf
+        self._last_failed = False
+        self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
         self.history: list = []  # one dict per replan: reasons, timings, success
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
@@ -230,6 +234,10 @@ class Replanner:
         apart from a collision or a goal change, at most one replan per ``min_interval_s``."""
         if self.goals is None:
             return []
+        now = time.monotonic() if now is None else now
+        since = now - self._last_plan_time
+        if self._last_failed and since < self.settings.min_interval_s:
+            return []  # a failed replan is retried at most once per interval
         if self.result is None:
             return ["no_plan"]
         reasons = []
@@ -237,14 +245,13 @@ class Replanner:
             reasons.append("collision")
         if "goal_changed" in self._pending:
             reasons.append("goal_changed")
-        now = time.monotonic() if now is None else now
-        if not reasons and now - self._last_plan_time < self.settings.min_interval_s:
+        if not reasons and since < self.settings.min_interval_s:
             return []
         if self.settings.replan_on_move:
             reasons += [r for r in ("target_moved", "obstacle_moved") if r in self._pending]
         if self._pending & {"target_moved", "obstacle_moved"} or self._score_stale:
             sc = self.path_score(normalized=True)
-            if sc < self.settings.score_min:
+            if sc < self.settings.score_min <= self._plan_score:  # fell below (a plan that was already low is kept)
                 reasons.append("score_low")
             elif self._plan_score - sc > self.settings.score_drop:
                 reasons.append("score_drop")
@@ -281,17 +288,17 @@ class Replanner:
         res = p.plan(self.q, self.goals)
         res = self._keep_goal(res)
         rounds = 0
-        while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds):
+        while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds
+               and self._repaired_nodes < self.settings.repair_budget_nodes):
             rounds += 1
-            centers = [b.center for b in self._moved_obstacles.values()] + [self.q[:3]]
+            centers = [b.center[:2] for b in self._moved_obstacles.values()] + [self.q[:2]] + [g[:2] for g in self.goals]
+            rng = np.random.default_rng(len(self.history) * 7 + rounds)
             for c in centers:
-                info.setdefault("repair", []).append(
-                    p.grow(self.settings.repair_nodes, center=np.asarray(c)[:2], radius=self.settings.repair_radius_m,
-                           rng=np.random.default_rng(len(self.history) * 7 + rounds)))
-            for g in self.goals:
-                p.grow(self.settings.repair_nodes // 2, center=g[:2], radius=self.settings.repair_radius_m,
-                       rng=np.random.default_rng(len(self.history) * 11 + rounds))
-            res = p.plan(self.q, self.goals)
+                got = p.grow(self.settings.repair_nodes, center=np.asarray(c), radius=self.settings.repair_radius_m,
+                             rng=rng)
+                self._repaired_nodes += got["added_nodes"]
+                info.setdefault("repair", []).append(got)
+            res = self._keep_goal(p.plan(self.q, self.goals))
         if res.success and res.dense is not None:
             bad = p.checker.check(torch.as_tensor(res.dense, dtype=torch.float32)).cpu().numpy()
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
@@ -301,6 +308,7 @@ class Replanner:
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
                              "repair_rounds": rounds, **{k: v for k, v in info.items() if k == "rescore"}})
+        self._last_failed = not res.success
         if res.success:
             self.result, self._progress = res, 0
             self._goal_cfg = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
