@@ -1,0 +1,264 @@
+"""Gymnasium environment of the RL baseline (Baseline 6, goal-conditioned active perception trained with PPO).
+
+One episode drives the robot from a start to a goal configuration in a fixed scene while a target (or the centroid of
+several targets) should stay well perceived.
+
+Action (``Box(-1, 1, 2 + n_camera_joints)``)
+    ``a[0]``: forward base motion (x ``step_forward`` metres, negative = reverse), ``a[1]``: base turn
+    (x ``step_turn`` rad), ``a[2:]``: changes of the non-base joints that move the camera (x ``step_joint``; Stretch's
+    head pan and tilt), clipped to their limits. One step is a differential-drive motion: turn by half the turn,
+    drive, turn by the other half. Joints that neither move the camera nor are actions (arm, lift, ...) move towards
+    their goal values at their velocity limit.
+Observation (float32, clipped to +-10)
+    the configuration (base x, y normalised to the workspace, sin/cos of the heading, joints normalised to their
+    limits), the goal in the same form plus its position and heading relative to the base frame, the target position
+    (world, normalised) and its direction and distance in the camera frame, and the episode progress ``t / max_steps``.
+    Optional (``scan_beams > 0``; not part of the issue's observation, off by default): a horizontal range scan of
+    the scene boxes from the base (``scan_beams`` rays, ranges / ``scan_range``) and whether the last action was
+    rejected.
+Reward (per step)
+    ``w_perception * (p(q') - perception_offset)`` (geometric perception proxy of the new camera pose in [0, 1],
+    :class:`~psprm_core.perception.scoring.GeometricScorer` with ray-cast occlusion; offset 0 by default, 1 turns it
+    into the paper's perception cost ``-(1 - p)``, which also stops rewarding long episodes)
+    ``- w_motion * c_m(q, q')`` (differential-drive motion cost of the step, :mod:`psprm_core.motion`)
+    ``+ w_progress * (d(q) - d(q'))`` (goal progress; d = base distance to the goal)
+    ``- collision_penalty`` when the step is rejected, ``+ goal_bonus`` when the goal is reached.
+Invalid actions
+    a step whose motion collides (environment, self, limits or workspace; checked every ``resolution`` along the
+    motion with :class:`~psprm_core.collision.CollisionChecker`) is rejected: the state does not change and the step
+    earns the collision penalty.
+Termination
+    the goal counts as reached when the base is within ``goal_tolerance`` of the goal position and the final
+    differential-drive motion to the exact goal configuration is collision-free (it is then executed); episodes are
+    truncated after ``max_steps`` steps.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import Optional, Sequence
+
+import gymnasium as gym
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+class ActivePerceptionEnv(gym.Env):
+    """Goal-conditioned active-perception environment for one scene, robot and target set (see the module docstring).
+
+    Parameters
+    ----------
+    scene : Scene
+    targets : sequence of str
+    robot : RobotModel, optional
+    settings : PPOSettings, optional (:mod:`psprm_core.baselines.rl_ppo`; step sizes, reward weights, episode length)
+    problems : list of (start, goal), optional
+        Episodes draw their start and goal from this pool (default: ``settings.problems`` random collision-free
+        pairs from :func:`psprm_core.benchmarks.random_problems`, camera joints aimed at the target).
+    seed : int
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, scene, targets: Sequence[str], robot=None, settings=None, problems: Optional[list] = None,
+                 seed: int = 0, context=None):
+        from ..planning.factory import make_scorer
+        from .base import PlanningContext
+        from .rl_ppo import PPOSettings
+
+        super().__init__()
+        self.settings = settings if settings is not None else PPOSettings()
+        s = self.settings
+        self.ctx = context or PlanningContext(scene, targets, robot=robot, resolution=s.resolution)
+        self.scene, self.robot = scene, self.ctx.robot
+        r = self.robot
+        if not r.mobile:
+            raise ValueError(f"the RL baseline needs a differential-drive robot ('{r.name}' has a fixed base)")
+        self.targets = list(targets)
+        self.scorer = make_scorer("geometric", scene, self.targets, r.config.intrinsics)
+        self.focus = self.ctx.focus
+        self.w_rot = r.config.base.rotation_weight
+        self.act_cols = self.ctx.aim_cols  # non-base camera joints, driven by actions
+        others = np.ones(r.dof, dtype=bool)
+        others[:3] = False
+        others[self.act_cols] = False
+        self.auto_cols = np.nonzero(others)[0]  # joints that move towards their goal values by themselves
+        self.dt = s.step_forward / r.config.base.linear_velocity  # duration of one step at full speed (s)
+        lo, hi = self.ctx.lower.copy(), self.ctx.upper.copy()
+        self.lo, self.hi = lo, hi
+        self._jlo, self._jhi = lo[3:], hi[3:]
+        ws = np.asarray(scene.workspace, float)
+        self._ws_c, self._ws_h = ws.mean(1), np.maximum(0.5 * (ws[:, 1] - ws[:, 0]), 1e-6)
+        self._scale = float(np.linalg.norm(ws[:, 1] - ws[:, 0]))
+        n_act = 2 + len(self.act_cols)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(n_act,), dtype=np.float32)
+        n_q = 4 + (r.dof - 3)
+        n_obs = 2 * n_q + 4 + 3 + 4 + 1
+        if s.scan_beams > 0:  # optional obstacle awareness: range scan + "last action rejected"
+            n_obs += s.scan_beams + 1
+            boxes = scene.collision_boxes()
+            self._box_c = np.array([b.center for b in boxes], float).reshape(-1, 3)
+            self._box_R = np.array([b.rotation for b in boxes], float).reshape(-1, 3, 3)
+            self._box_h = np.array([b.half_extents for b in boxes], float).reshape(-1, 3)
+            self._beams = 2 * np.pi * np.arange(s.scan_beams) / s.scan_beams
+        self.observation_space = gym.spaces.Box(-10.0, 10.0, shape=(n_obs,), dtype=np.float32)
+        self._rng = np.random.default_rng(seed)
+        self._problems = problems
+        self._seed = seed
+        self.q = r.default_configuration()
+        self.goal = self.q.copy()
+        self.t = 0
+        self.path: list = []
+        self.last_rejected = False
+
+    # ---- problems ----------------------------------------------------------------------------------------------------
+    @property
+    def problems(self) -> list:
+        """The pool of (start, goal) pairs episodes are drawn from (generated on first use)."""
+        if self._problems is None:
+            from ..benchmarks import random_problems
+
+            s = self.settings
+            rng = np.random.default_rng(self._seed + 7919)
+            self._problems = random_problems(self.robot, self.scene, self.ctx.checker, s.problems, rng,
+                                             self.robot.default_configuration(), self.focus,
+                                             min_distance=s.min_problem_distance)
+        return self._problems
+
+    # ---- observation ------------------------------------------------------------------------------------------------
+    def _qfeat(self, q: np.ndarray) -> np.ndarray:
+        xy = (q[:2] - self._ws_c) / self._ws_h
+        j = 2.0 * (q[3:] - self._jlo) / np.maximum(self._jhi - self._jlo, 1e-6) - 1.0
+        return np.concatenate([xy, [math.sin(q[2]), math.cos(q[2])], j])
+
+    def _obs(self) -> np.ndarray:
+        q, g = self.q, self.goal
+        c, s_ = math.cos(q[2]), math.sin(q[2])
+        d = g[:2] - q[:2]
+        rel = np.array([c * d[0] + s_ * d[1], -s_ * d[0] + c * d[1]]) / self._scale * 4.0
+        dth = g[2] - q[2]
+        cam = self.robot.camera_poses(torch.as_tensor(q[None], dtype=torch.float64))[0].numpy()
+        pc = cam[:3, :3].T @ (self.focus - cam[:3, 3])
+        dist = float(np.linalg.norm(pc))
+        tgt = np.concatenate([(self.focus[:2] - self._ws_c) / self._ws_h, [self.focus[2]]])
+        o = np.concatenate([self._qfeat(q), self._qfeat(g), rel, [math.sin(dth), math.cos(dth)], tgt,
+                            pc / max(dist, 1e-6), [dist / self._scale * 4.0], [self.t / self.settings.max_steps]])
+        if self.settings.scan_beams > 0:
+            o = np.concatenate([o, self.scan(q) / self.settings.scan_range, [float(self.last_rejected)]])
+        return np.clip(o, -10.0, 10.0).astype(np.float32)
+
+    def scan(self, q: np.ndarray) -> np.ndarray:
+        """Ranges (m, at most ``scan_range``) from the base centre to the scene boxes along ``scan_beams`` horizontal
+        rays at ``scan_height``, evenly spaced from the base heading (a laser scanner; slab ray/box intersection)."""
+        s = self.settings
+        ang = q[2] + self._beams
+        d = np.stack([np.cos(ang), np.sin(ang), np.zeros_like(ang)], 1)  # (n, 3)
+        o = np.array([q[0], q[1], s.scan_height])
+        o_l = np.einsum("kji,kj->ki", self._box_R, o - self._box_c)  # (K, 3) origin in the box frames
+        d_l = np.einsum("kji,nj->kni", self._box_R, d)  # (K, n, 3)
+        d_l = np.where(np.abs(d_l) < 1e-12, 1e-12, d_l)
+        t1 = (-self._box_h[:, None] - o_l[:, None]) / d_l
+        t2 = (self._box_h[:, None] - o_l[:, None]) / d_l
+        t_in, t_out = np.minimum(t1, t2).max(-1), np.maximum(t1, t2).min(-1)
+        hit = t_out >= np.maximum(t_in, 0.0)
+        r = np.where(hit, np.maximum(t_in, 0.0), np.inf).min(0) if len(self._box_c) else np.full(len(ang), np.inf)
+        return np.minimum(r, s.scan_range)
+
+    # ---- motion -----------------------------------------------------------------------------------------------------
+    def propose(self, q: np.ndarray, action: np.ndarray) -> np.ndarray:
+        """The configuration one step of ``action`` leads to (before validity checks)."""
+        s = self.settings
+        a = np.clip(np.asarray(action, float).reshape(-1), -1.0, 1.0)
+        f, tau = a[0] * s.step_forward, a[1] * s.step_turn
+        qn = q.copy()
+        h = q[2] + 0.5 * tau
+        qn[0] += f * math.cos(h)
+        qn[1] += f * math.sin(h)
+        qn[2] = _wrap(q[2] + tau)
+        if len(self.act_cols):
+            qn[self.act_cols] = np.clip(q[self.act_cols] + a[2:] * s.step_joint, self.lo[self.act_cols],
+                                        self.hi[self.act_cols])
+        if len(self.auto_cols):
+            vmax = self.robot.velocity[self.auto_cols] * self.dt
+            qn[self.auto_cols] = q[self.auto_cols] + np.clip(self.goal[self.auto_cols] - q[self.auto_cols], -vmax, vmax)
+        return qn
+
+    def step_cost(self, qa: np.ndarray, qb: np.ndarray) -> float:
+        """Differential-drive motion cost of one step (:class:`~psprm_core.motion.DiffDriveMotion`)."""
+        t = torch.as_tensor(np.vstack([qa, qb]), dtype=torch.float64)
+        return float(self.ctx.motion.distance(t[:1], t[1:])[0])
+
+    def motion_valid(self, qa: np.ndarray, qb: np.ndarray) -> bool:
+        """Is the differential-drive motion qa -> qb (end included) collision-free and within the limits?"""
+        pts = self.ctx.densify(np.vstack([qa, qb]))[1:]
+        return bool(self.ctx.valid(pts).all())
+
+    def goal_distance(self, q: np.ndarray) -> float:
+        return float(np.linalg.norm(q[:2] - self.goal[:2]))
+
+    def score(self, q: np.ndarray) -> float:
+        """Geometric perception proxy of configuration ``q`` in [0, 1]."""
+        cam = self.robot.camera_poses(torch.as_tensor(q[None], dtype=torch.float32))
+        with torch.no_grad():
+            return float(self.scorer.score(cam)[0])
+
+    # ---- gymnasium API ----------------------------------------------------------------------------------------------
+    def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
+        """Start an episode: ``options={"start": q, "goal": q}`` for a given problem, else a random pool problem."""
+        super().reset(seed=seed)
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        if options and "start" in options:
+            self.q = np.asarray(options["start"], float).reshape(-1).copy()
+            self.goal = np.asarray(options["goal"], float).reshape(-1).copy()
+        else:
+            a, b = self.problems[int(self._rng.integers(len(self.problems)))]
+            if self._rng.random() < 0.5:
+                a, b = b, a
+            self.q, self.goal = np.asarray(a, float).copy(), np.asarray(b, float).copy()
+        self.q[2] = _wrap(self.q[2])
+        self.t = 0
+        self.path = [self.q.copy()]
+        self.reached = False
+        self.last_rejected = False
+        return self._obs(), {"goal_distance": self.goal_distance(self.q)}
+
+    def step(self, action):
+        s = self.settings
+        self.t += 1
+        q = self.q
+        qn = self.propose(q, action)
+        info = {"rejected": False, "success": False}
+        self.last_rejected = not self.motion_valid(q, qn)
+        if self.last_rejected:
+            info["rejected"] = True
+            terms = {"perception": s.w_perception * (self.score(q) - s.perception_offset),
+                     "collision": -s.collision_penalty}
+            reward = float(sum(terms.values()))
+        else:
+            d0, d1 = self.goal_distance(q), self.goal_distance(qn)
+            p = self.score(qn)
+            terms = {"perception": s.w_perception * (p - s.perception_offset),
+                     "motion": -s.w_motion * self.step_cost(q, qn),
+                     "progress": s.w_progress * (d0 - d1)}
+            self.q = qn
+            self.path.append(qn.copy())
+            if d1 <= s.goal_tolerance and self.motion_valid(qn, self.goal):
+                self.q = self.goal.copy()
+                self.path.append(self.q.copy())
+                self.reached = True
+                terms["goal"] = s.goal_bonus
+                info["success"] = True
+            reward = float(sum(terms.values()))
+        info["terms"] = terms
+        info["goal_distance"] = self.goal_distance(self.q)
+        terminated = bool(self.reached)
+        truncated = bool(self.t >= s.max_steps and not terminated)
+        return self._obs(), float(reward), terminated, truncated, info

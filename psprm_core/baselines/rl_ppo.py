@@ -1,0 +1,286 @@
+"""Baseline 6, RL-based goal-conditioned active perception (``rl-ppo``; paper Sec. "Evaluated Methods").
+
+A policy is trained with PPO (Schulman et al. 2017; the ``stable-baselines3`` implementation) on the
+:class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` of the planner's scene, robot and targets: actor and critic
+MLPs with hidden layers 256-256-128, learning rate 3e-4, rollouts of 512 steps, minibatches of 64, 1e5 environment
+steps (:class:`PPOSettings`). The observation holds the configuration, the goal, the target position and the episode
+progress; the reward is the geometric perception proxy, the motion cost, the goal progress, a collision penalty
+for rejected (invalid) actions and a goal bonus (see :mod:`.rl_env`).
+
+``prepare()`` trains the policy (its wall time is the planner's preprocessing time) or loads it from
+``~/.cache/psprm/rl/`` (keyed by a hash of the scene geometry, targets, robot, settings and seed; the recorded
+training time is reported again). ``plan()`` rolls the policy out deterministically for at most ``max_steps`` (200)
+steps from the start towards the nearest valid goal and returns the executed motion; when the goal is not reached,
+``success`` is False and the reason says how far the robot ended up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class PPOSettings:
+    """Settings of the RL baseline (section ``rl_ppo:`` of ``config/planners/baselines.yaml``)."""
+
+    # PPO (stable-baselines3)
+    total_timesteps: int = 100_000
+    learning_rate: float = 3e-4
+    n_steps: int = 512  # rollout length per update
+    batch_size: int = 64
+    n_epochs: int = 10
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    ent_coef: float = 0.0
+    net_arch: str = "256-256-128"  # hidden layers of both the actor and the critic
+    threads: int = 1  # torch threads while training
+    cache: bool = True  # save / load the trained policy under ~/.cache/psprm/rl
+    checkpoint_every: int = 0  # > 0: also save the policy so far every this many steps (``<cache>.partial.zip``)
+    # environment
+    max_steps: int = 200  # episode length in training and the rollout limit of plan()
+    step_forward: float = 0.1  # metres of base travel per step at |action| = 1
+    step_turn: float = 0.3  # radians of base rotation per step at |action| = 1
+    step_joint: float = 0.15  # camera joint change per step at |action| = 1
+    goal_tolerance: float = 0.2  # base distance (m) from which the final motion to the goal is attempted
+    scan_beams: int = 0  # > 0: extend the observation by a range scan with this many beams + "last action rejected"
+    scan_range: float = 3.0  # m
+    scan_height: float = 0.2  # m above the floor
+    w_perception: float = 0.05  # x geometric perception score in [0, 1], per step
+    perception_offset: float = 0.0  # subtracted from the score (1.0: the paper's perception cost -(1 - p) per step)
+    w_motion: float = 0.05  # x motion cost of the step
+    w_progress: float = 1.0  # x decrease of the base's distance to the goal (m)
+    collision_penalty: float = 0.5  # rejected (invalid) action
+    goal_bonus: float = 10.0
+    problems: int = 256  # random (start, goal) pairs episodes are drawn from
+    min_problem_distance: float = 1.0
+    resolution: float = 0.05  # collision-check spacing along a step (motion-cost units)
+    timeout_s: float = 60.0
+    seed: int = 0
+
+    def layers(self) -> list:
+        try:
+            out = [int(x) for x in self.net_arch.replace(",", "-").split("-") if x.strip()]
+        except ValueError:
+            out = []
+        if not out or min(out) < 1:
+            from ..errors import ConfigError
+
+            raise ConfigError("rl_ppo settings", "net_arch",
+                              f"expected sizes like '256-256-128', got '{self.net_arch}'")
+        return out
+
+    def validate(self, source: str = "rl_ppo settings") -> None:
+        from ..errors import ConfigError
+
+        self.layers()
+        if self.n_steps < 2 or self.batch_size < 2 or self.total_timesteps < 1 or self.max_steps < 1:
+            raise ConfigError(source, "n_steps", "n_steps, batch_size >= 2, total_timesteps, max_steps >= 1")
+
+
+_NOT_TRAINING = ("timeout_s", "cache", "threads", "checkpoint_every")  # settings that do not change the trained policy
+
+
+def _ProgressLog(total: int, checkpoint_every: int = 0, checkpoint_path: Optional[Path] = None):
+    """An SB3 callback that logs the training progress after every rollout (timesteps, wall time, episodes) and,
+    with ``checkpoint_every``, saves the policy so far (plus a JSON with its step count and wall time)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class ProgressLog(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.t0 = time.perf_counter()
+            self.episodes = self.successes = 0
+            self.next_checkpoint = checkpoint_every
+
+        def _on_step(self) -> bool:
+            for done, info in zip(self.locals.get("dones", []), self.locals.get("infos", [])):
+                if done:
+                    self.episodes += 1
+                    self.successes += bool(info.get("success"))
+            return True
+
+        def _on_rollout_end(self) -> None:
+            el = time.perf_counter() - self.t0
+            n = self.model.num_timesteps
+            log.info("PPO %d/%d steps, %.0f s (%.1f ms/step), %d episodes, %d reached the goal", n, total, el,
+                     1e3 * el / max(n, 1), self.episodes, self.successes)
+            if checkpoint_every > 0 and checkpoint_path is not None and n >= self.next_checkpoint:
+                self.model.save(str(checkpoint_path))
+                checkpoint_path.with_suffix(".json").write_text(json.dumps({"train_s": el, "timesteps": n}))
+                self.next_checkpoint = n + checkpoint_every
+
+    return ProgressLog()
+
+
+def rl_cache_dir() -> Path:
+    from ..paths import cache_dir
+
+    d = cache_dir() / "rl"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+class PPOPlanner:
+    """Goal-conditioned active-perception policy trained with PPO (see the module docstring).
+
+    Parameters
+    ----------
+    name, scene, targets, robot, seed : as for every benchmark planner.
+    settings : PPOSettings, optional
+        Default: sections ``common`` and ``rl_ppo`` of ``config/planners/baselines.yaml``.
+    **overrides : :class:`PPOSettings` fields (``total_timesteps=...``) applied on top.
+    """
+
+    section = "rl_ppo"
+
+    def __init__(self, name: str = "rl-ppo", scene=None, targets: Sequence[str] = (), robot=None, seed: int = 0,
+                 settings: Optional[PPOSettings] = None, **overrides):
+        from .base import PlanningContext, settings_from_yaml
+
+        if scene is None or not targets:
+            raise ValueError("PPOPlanner needs a scene and at least one target")
+        self.name = name
+        if settings is None:
+            settings = settings_from_yaml(PPOSettings, self.section, seed=seed, **overrides)
+        elif overrides:
+            settings = dataclasses.replace(settings, **overrides)
+        settings.validate()
+        self.settings = settings
+        self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)
+        self.scene, self.targets, self.robot = scene, list(targets), self.ctx.robot
+        self.model = None
+        self.info: dict = {}
+        self._env = None
+
+    # ---- environment and cache ----------------------------------------------------------------------------------
+    def make_env(self, problems: Optional[list] = None):
+        """A fresh :class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` for this planner."""
+        from .rl_env import ActivePerceptionEnv
+
+        return ActivePerceptionEnv(self.scene, self.targets, settings=self.settings, problems=problems,
+                                   seed=self.settings.seed, context=self.ctx)
+
+    def fingerprint(self) -> str:
+        """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions."""
+        import stable_baselines3
+
+        h = hashlib.sha256(self.robot.hash().encode())
+        for b in self.scene.collision_boxes():
+            h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
+        h.update(np.asarray(self.scene.workspace, float).tobytes())
+        for t in self.targets:
+            tg = self.scene.target(t)
+            h.update(t.encode())
+            h.update(np.concatenate([tg.center, tg.quat, tg.size]).astype(np.float64).tobytes())
+        trained = {k: v for k, v in dataclasses.asdict(self.settings).items() if k not in _NOT_TRAINING}
+        h.update(json.dumps(trained, sort_keys=True).encode())
+        h.update(stable_baselines3.__version__.encode())
+        return h.hexdigest()[:20]
+
+    def cache_path(self) -> Path:
+        return rl_cache_dir() / f"ppo_{self.scene.name}_{self.fingerprint()}.zip"
+
+    # ---- interface ------------------------------------------------------------------------------------------------
+    def prepare(self) -> dict:
+        """Train the policy (or load the cached one). Returns ``preprocess_s`` (the training wall time, also when
+        the policy comes from the cache), ``cached``, ``load_s``, ``timesteps`` and ``path``."""
+        from stable_baselines3 import PPO
+
+        s = self.settings
+        path = self.cache_path()
+        meta_path = path.with_suffix(".json")
+        if s.cache and path.is_file() and meta_path.is_file():
+            t0 = time.perf_counter()
+            try:
+                self.model = PPO.load(str(path), device="cpu")
+                meta = json.loads(meta_path.read_text())
+                self.info = {"preprocess_s": float(meta["train_s"]), "cached": True,
+                             "load_s": time.perf_counter() - t0, "timesteps": int(meta["timesteps"]),
+                             "path": str(path)}
+                log.info("loaded PPO policy %s (trained %.1f s)", path, meta["train_s"])
+                return dict(self.info)
+            except (OSError, ValueError, KeyError, RuntimeError) as exc:  # unreadable cache: train again
+                log.warning("cannot load cached PPO policy %s (%s); training a new one", path, exc)
+                self.model = None
+        threads = torch.get_num_threads()
+        torch.set_num_threads(max(1, s.threads))
+        try:
+            t0 = time.perf_counter()
+            env = self.make_env()
+            env.problems  # generate the training problems (part of the preprocessing)
+            layers = s.layers()
+            self.model = PPO("MlpPolicy", env, learning_rate=s.learning_rate, n_steps=s.n_steps,
+                             batch_size=s.batch_size, n_epochs=s.n_epochs, gamma=s.gamma, gae_lambda=s.gae_lambda,
+                             ent_coef=s.ent_coef, policy_kwargs={"net_arch": {"pi": layers, "vf": layers}},
+                             seed=s.seed, device="cpu", verbose=0)
+            partial = path.with_name(path.stem + ".partial.zip")
+            self.model.learn(total_timesteps=s.total_timesteps,
+                             callback=_ProgressLog(s.total_timesteps, s.checkpoint_every, partial))
+            train_s = time.perf_counter() - t0
+        finally:
+            torch.set_num_threads(threads)
+        self.info = {"preprocess_s": train_s, "cached": False, "load_s": 0.0,
+                     "timesteps": int(self.model.num_timesteps), "path": str(path) if s.cache else None}
+        if s.cache:
+            self.model.save(str(path))
+            meta_path.write_text(json.dumps({"train_s": train_s, "timesteps": int(self.model.num_timesteps),
+                                             "settings": dataclasses.asdict(s), "scene": self.scene.name,
+                                             "targets": self.targets, "robot": self.robot.name}, indent=1))
+        log.info("trained PPO for %d steps in %.1f s", self.model.num_timesteps, train_s)
+        return dict(self.info)
+
+    def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: Optional[float] = None):
+        """Roll the policy out deterministically (at most ``max_steps`` steps) towards the nearest valid goal.
+
+        ``dense`` is the executed motion (every step's differential-drive motion, densified and collision-checked
+        again by :meth:`PlanningContext.execute`).
+        """
+        from .base import failure
+        from .trajopt import index_of_goal
+
+        t0 = time.perf_counter()
+        if self.model is None:
+            return failure("policy not trained (call prepare() first)", t0)
+        timeout_s = self.settings.timeout_s if timeout_s is None else float(timeout_s)
+        given = goals
+        start, goals, fail = self.ctx.check_problem(start, goals)
+        if fail is not None:
+            return fail
+        gi = int(np.argmin(np.linalg.norm(goals[:, :2] - start[:2], axis=1)))
+        goal = goals[gi]
+        if self._env is None:
+            self._env = self.make_env(problems=[])
+        env = self._env
+        obs, _ = env.reset(options={"start": start, "goal": goal})
+        rejected, steps = 0, 0
+        for _ in range(self.settings.max_steps):
+            if time.perf_counter() - t0 > timeout_s:
+                return failure(f"timeout after {steps} policy steps", t0)
+            action, _ = self.model.predict(obs, deterministic=True)
+            obs, _, terminated, truncated, info = env.step(action)
+            steps += 1
+            rejected += info["rejected"]
+            if terminated or truncated:
+                break
+        path = np.asarray(env.path)
+        if not env.reached:
+            return failure(f"policy did not reach the goal within {steps} steps (base {env.goal_distance(env.q):.2f} m "
+                           f"from the goal, {rejected} actions rejected)", t0)
+        res = self.ctx.execute(path, t0=t0)
+        if not res.success:
+            res.reason = f"executed policy motion rejected: {res.reason}"
+            return res
+        res.goal_index = index_of_goal(given, goal)
+        self.last_rollout = {"steps": steps, "rejected": rejected}
+        return res

@@ -1,0 +1,137 @@
+"""RL baseline: the gymnasium environment passes both env checkers, rejects invalid actions without changing the
+state, its reward terms have the right signs; a tiny stable-baselines3 PPO training runs, is cached, reloads and
+rolls out deterministically within 200 steps."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from psprm_core.baselines import rl_ppo
+from psprm_core.baselines.rl_ppo import PPOPlanner
+from psprm_core.paths import resolve_named
+from psprm_core.scene import load_scene
+
+TINY = {"total_timesteps": 512, "n_epochs": 1, "problems": 32}  # one rollout of 512 steps
+
+
+@pytest.fixture(scope="module")
+def planner(load_robot):
+    scene = load_scene(resolve_named("scene", "home"))
+    return PPOPlanner("rl-ppo", scene, ["cup"], robot=load_robot("stretch2"), **TINY)
+
+
+@pytest.fixture()
+def env(planner):
+    return planner.make_env()
+
+
+def _config(p, x, y, th):
+    q = p.robot.configuration({"base_x": x, "base_y": y, "base_theta": th})
+    return p.ctx.aim(q[None])[0][0]
+
+
+def test_env_passes_the_checkers(env):
+    from gymnasium.utils.env_checker import check_env as gym_check
+    from stable_baselines3.common.env_checker import check_env as sb3_check
+
+    sb3_check(env, warn=True)
+    gym_check(env, skip_render_check=True)
+    obs, _ = env.reset(seed=3)
+    assert env.observation_space.contains(obs)
+    assert env.action_space.shape == (4,)  # forward, turn, head pan, head tilt
+
+
+def test_optional_range_scan(planner):
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+    from stable_baselines3.common.env_checker import check_env
+
+    settings = dataclasses.replace(planner.settings, scan_beams=8)
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    q = planner.robot.configuration({"base_x": 1.0, "base_y": 1.0, "base_theta": 0.0})
+    r = env.scan(q)  # beams every 45 deg from the heading (east)
+    assert r[4] == pytest.approx(1.0) and r[6] == pytest.approx(1.0)  # west and south walls
+    assert r[2] == pytest.approx(3.625 - 1.0)  # the shelf to the north
+    assert r[0] == settings.scan_range  # nothing within range to the east
+    check_env(env)
+    assert env.observation_space.shape[0] == planner.make_env().observation_space.shape[0] + 9
+
+
+def test_invalid_action_is_rejected_and_leaves_the_state_unchanged(planner, env):
+    start = _config(planner, 0.6, 3.0, np.pi)  # facing the west wall, 0.6 m from it
+    goal = _config(planner, 2.0, 1.0, 0.0)
+    env.reset(options={"start": start, "goal": goal})
+    forward = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+    for _ in range(10):
+        before, n = env.q.copy(), len(env.path)
+        obs, reward, terminated, truncated, info = env.step(forward)
+        if info["rejected"]:
+            break
+    assert info["rejected"], "driving into the wall was never rejected"
+    assert np.array_equal(env.q, before) and len(env.path) == n
+    assert info["terms"]["collision"] < 0 and reward < 0 and not terminated
+    assert env.observation_space.contains(obs)
+
+
+def test_reward_terms_have_the_right_signs(planner, env):
+    start, goal = _config(planner, 1.0, 1.0, 0.0), _config(planner, 2.5, 1.0, 0.0)
+    env.reset(options={"start": start, "goal": goal})
+    _, r_fwd, _, _, info = env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))  # towards the goal
+    t = info["terms"]
+    assert not info["rejected"]
+    assert t["progress"] > 0.09 and t["motion"] < 0 and t["perception"] >= 0
+    assert r_fwd == pytest.approx(sum(t.values()))
+    env.reset(options={"start": start, "goal": goal})
+    _, r_back, _, _, info = env.step(np.array([-1.0, 0.0, 0.0, 0.0], dtype=np.float32))  # away from it
+    assert info["terms"]["progress"] < 0 and r_back < r_fwd
+    # as a perception cost (offset 1) the term is <= 0 and still grows with the score
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    cost_env = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                   settings=dataclasses.replace(planner.settings, perception_offset=1.0))
+    cost_env.reset(options={"start": start, "goal": goal})
+    _, _, _, _, info = cost_env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))
+    assert info["terms"]["perception"] == pytest.approx(t["perception"] - planner.settings.w_perception)
+    # looking at the cup is worth more than looking away from it
+    look_away = start.copy()
+    look_away[planner.robot.index("joint_head_pan")] += 1.5
+    assert env.score(start) > env.score(look_away)
+    # reaching the goal ends the episode with the bonus, exactly at the goal configuration
+    near = _config(planner, 2.35, 1.0, 0.0)
+    env.reset(options={"start": near, "goal": goal})
+    _, r, terminated, _, info = env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))
+    assert terminated and info["success"] and info["terms"]["goal"] > 0 and r > 1.0
+    assert np.array_equal(env.q, goal)
+
+
+def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatch):
+    monkeypatch.setattr(rl_ppo, "rl_cache_dir", lambda: tmp_path)
+    info = planner.prepare()
+    assert not info["cached"] and info["timesteps"] >= TINY["total_timesteps"] and info["preprocess_s"] > 0
+    assert planner.cache_path().is_file()
+    m = planner.model
+    assert (m.n_steps, m.batch_size, m.learning_rate) == (512, 64, 3e-4)
+    assert [l.out_features for l in m.policy.mlp_extractor.policy_net if hasattr(l, "out_features")] == [256, 256, 128]
+    again = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **TINY)
+    info2 = again.prepare()
+    assert info2["cached"] and info2["preprocess_s"] == pytest.approx(info["preprocess_s"])
+    obs = planner.make_env().reset(seed=1)[0]
+    a1, a2 = planner.model.predict(obs, deterministic=True)[0], again.model.predict(obs, deterministic=True)[0]
+    assert np.allclose(a1, a2)
+    start, goal = _config(planner, 1.0, 1.0, 0.0), _config(planner, 2.5, 1.4, 0.5)
+    res = again.plan(start, goal, timeout_s=300)
+    env = again._env
+    assert env.t <= 200 and len(env.path) <= 202
+    if res.success:
+        assert np.allclose(res.dense[0], start) and np.allclose(res.dense[-1], goal)
+        assert again.ctx.valid(res.dense).all()
+    else:
+        assert "did not reach the goal within" in res.reason
+    assert np.isfinite(res.query_ms)
+    # bad problems are failures, not exceptions
+    bad = goal.copy()
+    bad[:2] = [3.0, 3.0]
+    assert not again.plan(start, bad).success
+    assert "not trained" in PPOPlanner("rl-ppo", planner.scene, ["cup"], robot=planner.robot).plan(start, goal).reason
