@@ -39,10 +39,19 @@ def world(load_robot):
     return scene, robot
 
 
-@pytest.fixture()
-def replanner(world):
+@pytest.fixture(scope="module")
+def saved_roadmap(world, tmp_path_factory):
     scene, robot = world
-    p = _planner(robot, scene)
+    return _planner(robot, scene).save(tmp_path_factory.mktemp("roadmap") / "dp.npz")
+
+
+@pytest.fixture()
+def replanner(world, saved_roadmap):
+    """A fresh replanner per test on a copy of one built roadmap (tests change the roadmap)."""
+    scene, robot = world
+    scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings(n_nodes=N_NODES, seed=3))
+    p.load(saved_roadmap)
     rp = Replanner(p, targets=["person_face"])
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     rp.set_robot_state(start)
@@ -71,31 +80,36 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
         rp.set_robot_state(start)
         rp.set_goals(goals)
         res = rp.replan()
-        for step in range(8):
-            if res.success and len(res.dense) > 4 and rng.random() < 0.6:
-                # push a piece of furniture right onto the current path (the worst case), or anywhere nearby
-                q_mid = res.dense[rng.integers(len(res.dense) // 4, 3 * len(res.dense) // 4)]
-                name = movable[rng.integers(len(movable))]
-                c = np.r_[q_mid[:2] + rng.uniform(-0.3, 0.3, 2), scene.obstacle(name).center[2]]
-            else:
-                name = movable[rng.integers(len(movable))]
-                c = scene.obstacle(name).center + np.r_[rng.uniform(-0.8, 0.8, 2), 0.0]
-            rp.update_obstacle(name, c, yaw_to_quat(rng.uniform(-np.pi, np.pi)))
+        for step in range(6):
+            for _ in range(20):  # obstacles move anywhere, but not into the robot itself
+                if res.success and len(res.dense) > 4 and rng.random() < 0.6:
+                    # push a piece of furniture right onto the current path (the worst case), or anywhere nearby
+                    q_mid = res.dense[rng.integers(len(res.dense) // 2, len(res.dense))]
+                    name = movable[rng.integers(len(movable))]
+                    c = np.r_[q_mid[:2] + rng.uniform(-0.3, 0.3, 2), scene.obstacle(name).center[2]]
+                else:
+                    name = movable[rng.integers(len(movable))]
+                    c = scene.obstacle(name).center + np.r_[rng.uniform(-0.8, 0.8, 2), 0.0]
+                yaw = rng.uniform(-np.pi, np.pi)
+                box = dataclasses.replace(scene.obstacle(name), center=c, quat=yaw_to_quat(yaw))
+                if not CollisionChecker(robot, [box]).check(torch.as_tensor(rp.q[None], dtype=torch.float32))[0]:
+                    break
+            rp.update_obstacle(name, c, yaw_to_quat(yaw))
             pp = person_pose(scene, motion, 2.8 + rng.uniform(-1.5, 1.5))
             rp.update_target("person_face", *pp["target"])
             rp.update_obstacle("person_body", *pp["body"])
             if rng.random() < 0.3:
                 rp.set_goals(goals[rng.integers(len(goals))])
-            if res.success and rng.random() < 0.5:  # the robot advanced along its path
+            if res.success and rng.random() < 0.5:  # the robot advanced along its (collision-free) path
                 rp.set_robot_state(res.dense[len(res.dense) // 3])
             if rp.needs_replan() or not res.success:
                 res = rp.replan()
             if res.success:
                 assert _free(robot, rp.scene, res.dense), f"episode {episode} step {step}: path collides"
                 checked += 1
-            else:  # a failure must say why, and the robot's own configuration must be the reason or no route
+            else:  # a failure must say why
                 assert res.reason
-    assert checked >= 8
+    assert checked >= 6
 
 
 def test_lazy_rescore_verifies_the_path_edges(replanner, world):
