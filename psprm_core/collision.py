@@ -192,6 +192,22 @@ class CollisionChecker:
         poses = self.robot.body_poses(q)
         return {"limits": self.limits_violated(q), "environment": self._env(poses), "self": self._self(poses)}
 
+    def env_hits(self, q: torch.Tensor, boxes) -> torch.Tensor:
+        """Environment-collision flags (B,) against ``boxes`` only (a list of boxes or :class:`BoxTensors`): no
+        limits, no self-collision, no other obstacles. What an obstacle move can change for configurations that were
+        valid before."""
+        q = q.to(self.device, self.dtype)
+        bt = boxes if isinstance(boxes, BoxTensors) else BoxTensors.from_boxes(boxes, self.device, self.dtype)
+        saved = self.boxes
+        try:
+            self.boxes = bt
+            if q.shape[0] == 0:
+                return torch.zeros(0, dtype=torch.bool, device=self.device)
+            return torch.cat([self._env(self.robot.body_poses(q[s:s + self.chunk]))
+                              for s in range(0, q.shape[0], self.chunk)])
+        finally:
+            self.boxes = saved
+
     def limits_violated(self, q: torch.Tensor) -> torch.Tensor:
         return ((q < self.lower) | (q > self.upper)).any(-1) | ~torch.isfinite(q).all(-1)
 

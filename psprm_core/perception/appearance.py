@@ -12,6 +12,8 @@ procedurally with numpy; nothing is downloaded. Use :func:`list_appearances` for
 
 from __future__ import annotations
 
+import functools
+
 import logging
 from dataclasses import dataclass, field
 from typing import Callable, Dict, Optional, Tuple
@@ -267,6 +269,7 @@ def draw_dark_screen(rng: np.random.Generator, size: int = 384) -> np.ndarray:
     return (np.clip(img, 0, 1) * 255).astype(np.uint8)
 
 
+@functools.lru_cache(maxsize=1)  # built on first use (photos decoded once); appearances are read-only
 def _catalogue() -> Dict[str, Appearance]:
     hair = (0.23, 0.17, 0.12, 1.0)
     white = (0.93, 0.93, 0.92, 1.0)

@@ -933,44 +933,57 @@ class PSPRM:
                            "max_half": float(half.max()) if len(e) else 0.0, "reach": reach}
         return self._index
 
-    def invalidate_near(self, boxes: Sequence, margin: float = 0.05) -> dict:
+    def _near(self, boxes: Sequence, margin: float = 0.05) -> tuple:
+        """Roadmap node ids and edge ids within the robot's reach of ``boxes`` (spatial index; everything for a
+        fixed-base robot)."""
+        g = self.graph
+        if not self.robot.mobile:
+            return self.roadmap_node_ids(), self.roadmap_edge_ids()
+        idx = self._spatial_index()
+        nsel, esel = set(), set()
+        for b in boxes:
+            c = np.asarray(b.center, float)[:2]
+            rad = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + idx["reach"] + margin
+            nsel.update(idx["node_tree"].query_ball_point(c, rad))
+            if idx["edge_tree"] is not None:
+                cand = np.asarray(idx["edge_tree"].query_ball_point(c, rad + idx["max_half"]), dtype=np.int64)
+                if len(cand):
+                    ee = idx["edge_ids"][cand]
+                    pa, pb = g.configs[g.edge_u[ee], :2], g.configs[g.edge_v[ee], :2]
+                    d = pb - pa
+                    t = np.clip(((c - pa) * d).sum(1) / np.maximum((d * d).sum(1), 1e-12), 0, 1)
+                    dist = np.linalg.norm(pa + t[:, None] * d - c, axis=1)
+                    esel.update(ee[dist <= rad].tolist())
+        nodes = idx["node_ids"][np.asarray(sorted(nsel), dtype=np.int64)] if nsel else np.zeros(0, np.int64)
+        return nodes, np.asarray(sorted(esel), dtype=np.int64)
+
+    def _knots_hit(self, edges: np.ndarray, boxes) -> np.ndarray:
+        """(E,) bool: some stored interior knot of the edges collides with ``boxes`` (environment check only)."""
+        knots, _ = self.knots.get(edges)
+        E, M, dof = knots.shape
+        if M <= 2:
+            return np.zeros(E, dtype=bool)
+        return self.checker.env_hits(knots[:, 1:-1].reshape(-1, dof), boxes).reshape(E, M - 2).any(-1).cpu().numpy()
+
+    def invalidate_near(self, boxes: Sequence, old_boxes: Sequence = (), margin: float = 0.05) -> dict:
         """Obstacle update (after :meth:`set_scene`): re-check only what the moved ``boxes`` (new poses) can touch.
 
-        Roadmap nodes whose base lies within reach of a box are collision-checked against the current boxes and
-        blocked (removed from the graph) when in collision; edges whose base segment passes within reach have their
-        stored knots checked in one batch (blocked when in collision) and are marked unchecked, so a search re-checks
-        their dense interior before using them (Lazy PRM). A fixed-base robot re-checks everything. Nodes and edges
-        blocked by obstacles are restored (unchecked) as soon as their knots are free again, so an obstacle moving
-        through the roadmap does not erase it.
+        Roadmap nodes whose base lies within reach of a box are checked against the moved boxes and blocked (removed
+        from the graph) when in collision; edges whose base segment passes within reach have their stored knots
+        checked in one batch (blocked when in collision) and are marked unchecked, so a search re-checks their dense
+        interior before using them (Lazy PRM). Only the moved boxes are tested: everything else about a node or edge
+        that was valid before is unchanged. Nodes and edges blocked earlier that lie near ``old_boxes`` (where an
+        obstacle left) are restored, unchecked, when free at the current poses, so an obstacle moving through the
+        roadmap does not erase it. A fixed-base robot re-checks everything.
         """
         g = self.graph
-        restored = self._restore_unblocked()
-        if not self.robot.mobile:
-            nodes, edges = self.roadmap_node_ids(), self.roadmap_edge_ids()
-        else:
-            idx = self._spatial_index()
-            nsel, esel = set(), set()
-            for b in boxes:
-                c = np.asarray(b.center, float)[:2]
-                rad = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + idx["reach"] + margin
-                nsel.update(idx["node_tree"].query_ball_point(c, rad))
-                if idx["edge_tree"] is not None:
-                    cand = np.asarray(idx["edge_tree"].query_ball_point(c, rad + idx["max_half"]), dtype=np.int64)
-                    if len(cand):
-                        ee = idx["edge_ids"][cand]
-                        pa, pb = g.configs[g.edge_u[ee], :2], g.configs[g.edge_v[ee], :2]
-                        d = pb - pa
-                        t = np.clip(((c - pa) * d).sum(1) / np.maximum((d * d).sum(1), 1e-12), 0, 1)
-                        dist = np.linalg.norm(pa + t[:, None] * d - c, axis=1)
-                        esel.update(ee[dist <= rad].tolist())
-            nodes = idx["node_ids"][np.asarray(sorted(nsel), dtype=np.int64)] if nsel else np.zeros(0, np.int64)
-            edges = np.asarray(sorted(esel), dtype=np.int64)
+        restored = self._restore_unblocked(old_boxes, margin) if old_boxes else {"restored_nodes": 0,
+                                                                                  "restored_edges": 0}
+        nodes, edges = self._near(boxes, margin)
         nodes = nodes[g.node_valid[nodes]]
-        edges = edges[g.edge_valid[edges]] if len(edges) else edges
         removed = np.zeros(0, dtype=np.int64)
         if len(nodes):
-            bad = self.checker.check(self._t(g.configs[nodes])).cpu().numpy()
-            removed = nodes[bad]
+            removed = nodes[self.checker.env_hits(self._t(g.configs[nodes]), list(boxes)).cpu().numpy()]
             if len(removed):
                 gone = g.remove_nodes(removed)
                 self._blocked_nodes.update(removed.tolist())
@@ -981,12 +994,11 @@ class PSPRM:
         pruned = 0
         have = edges[self.knots.known(edges)]
         if len(have):
-            knots, _ = self.knots.get(have)
-            ok = self._knots_valid(knots, dense=False).cpu().numpy()
-            if (~ok).any():
-                g.remove_edges(have[~ok])
-                self._blocked_edges.update(have[~ok].tolist())
-                pruned = int((~ok).sum())
+            bad = self._knots_hit(have, list(boxes))
+            if bad.any():
+                g.remove_edges(have[bad])
+                self._blocked_edges.update(have[bad].tolist())
+                pruned = int(bad.sum())
             edges = edges[g.edge_valid[edges]]
         self._mark_recheck(edges)
         return {"checked_nodes": int(len(nodes)), "removed_nodes": int(len(removed)), "pruned_edges": pruned,
@@ -1000,25 +1012,28 @@ class PSPRM:
             self._recheck = np.concatenate([self._recheck, np.zeros(g.n_edges - len(self._recheck), dtype=bool)])
         self._recheck[edges] = True
 
-    def _restore_unblocked(self) -> dict:
-        """Give back the nodes and edges that obstacles blocked earlier and that are free at the current poses
-        (edges come back unchecked: their dense interior is re-checked lazily)."""
+    def _restore_unblocked(self, old_boxes: Sequence, margin: float = 0.05) -> dict:
+        """Give back the blocked nodes and edges near where obstacles were (``old_boxes``) that are free of every
+        current obstacle (edges come back unchecked: their dense interior is re-checked lazily)."""
         g = self.graph
         back_n = back_e = 0
-        if self._blocked_nodes:
-            nodes = np.fromiter(self._blocked_nodes, dtype=np.int64)
-            free = nodes[~self.checker.check(self._t(g.configs[nodes])).cpu().numpy()]
+        if not (self._blocked_nodes or self._blocked_edges):
+            return {"restored_nodes": 0, "restored_edges": 0}
+        near_n, near_e = self._near(old_boxes, margin)
+        boxes = self.checker.boxes
+        nodes = np.asarray(sorted(self._blocked_nodes.intersection(near_n.tolist())), dtype=np.int64)
+        if len(nodes):
+            free = nodes[~self.checker.env_hits(self._t(g.configs[nodes]), boxes).cpu().numpy()]
             if len(free):
                 g.restore_nodes(free)
                 self._blocked_nodes.difference_update(free.tolist())
                 back_n = len(free)
-        if self._blocked_edges:
-            e = np.fromiter(self._blocked_edges, dtype=np.int64)
+        e = np.asarray(sorted(self._blocked_edges.intersection(near_e.tolist())), dtype=np.int64)
+        if len(e):
             e = e[g.node_valid[g.edge_u[e]] & g.node_valid[g.edge_v[e]] & ~g.edge_valid[e]]
             e = e[self.knots.known(e)]
             if len(e):
-                knots, _ = self.knots.get(e)
-                free = e[self._knots_valid(knots, dense=False).cpu().numpy()]
+                free = e[~self._knots_hit(e, boxes)]
                 if len(free):
                     got = g.restore_edges(free)
                     self._blocked_edges.difference_update(got.tolist())

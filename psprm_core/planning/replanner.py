@@ -174,8 +174,9 @@ class Replanner:
             self._score_stale = True
             self._pending.add("target_moved")
             if self.scene.target(name).obstacle:  # the target is also a collision box: re-check near it
+                old_box = self.planner.scene.target(name).as_box()
                 self.planner.set_scene(self.scene)
-                self.planner.invalidate_near([self.scene.target(name).as_box()])
+                self.planner.invalidate_near([self.scene.target(name).as_box()], old_boxes=[old_box])
                 if self.remaining_path_collides():
                     self._pending.add("collision")
         return moved
@@ -193,9 +194,10 @@ class Replanner:
         if not (np.linalg.norm(p - ref_p) > self.settings.obstacle_move_m
                 or _rotation_angle(q, ref_q) > self.settings.obstacle_turn_rad):
             return False
+        old_box = self.planner.scene.obstacle(name)  # where the roadmap last saw it
         self.planner.set_scene(self.scene)
         box = self.scene.obstacle(name)
-        self.planner.invalidate_near([box])
+        self.planner.invalidate_near([box], old_boxes=[old_box])
         self._obstacle_ref[name] = (p.copy(), q.copy())
         self._moved_obstacles[name] = box
         self._score_stale = True  # occlusion changed
