@@ -141,7 +141,7 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
 
 
 def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, seed: int, threads: int,
-                   target: str | None) -> tuple:
+                   target: str | None, heuristic: str | None = None) -> tuple:
     """Scene, robot, target name, built planner, its build stats and ``problems`` random (start, goal) pairs."""
     from .collision import CollisionChecker
     from .paths import resolve_named
@@ -153,7 +153,7 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
     target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
-    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
+    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed, heuristic=heuristic)
     stats = p.build()
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     probs = random_problems(robot, scene, checker, problems, np.random.default_rng(seed + 1),
@@ -162,9 +162,10 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
 
 
 def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000, queries: int = 50,
-                      seed: int = 0, threads: int = 2, target: str | None = None) -> dict:
+                      seed: int = 0, threads: int = 2, target: str | None = None, heuristic: str | None = None) -> dict:
     """Build time (sampling, projection, collision, neural scoring with occlusion) and query times of PS-PRM."""
-    scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, queries, seed, threads, target)
+    scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, queries, seed, threads, target,
+                                                           heuristic)
     times, ok, scores = [], 0, []
     for a, b in probs:
         res = p.plan(a, b, timing=False)
@@ -174,7 +175,7 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
             scores.append(res.mean_score)
     return {
         "scene": scene.name, "planner": planner, "target": target, "threads": threads,
-        "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
+        "heuristic": p.settings.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
         "build_s": stats.get("build_s"), "sample_s": stats.get("sample_s"), "edges_s": stats.get("edges_s"),
         "score_s": stats.get("score_s"),
         "queries": len(probs), "success_rate": ok / len(probs),

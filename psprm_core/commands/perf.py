@@ -24,6 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--nodes", type=int, default=3000)
     pl.add_argument("--queries", type=int, default=50)
     pl.add_argument("--seed", type=int, default=0)
+    pl.add_argument("--heuristic", choices=["hop", "exact"], default=None, help="A* heuristic (default: settings)")
     pl.add_argument("--threads", type=int, default=2)
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=_planner)
@@ -82,7 +83,7 @@ def _planner(args) -> int:
     from ..benchmarks import planner_benchmark
 
     _print(planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
-                             threads=args.threads, target=args.target), args.json)
+                             threads=args.threads, target=args.target, heuristic=args.heuristic), args.json)
     return 0
 
 
