@@ -39,7 +39,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .errors import ConfigError, PsprmError
+from .errors import ConfigError
 from .geometry import yaw_to_quat
 from .yamlio import Fields, load_yaml
 

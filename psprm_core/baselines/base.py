@@ -477,3 +477,23 @@ class PlanningContext:
         if view == "line":
             return bool((self.view_error(pts, "line") <= view_tolerance).all())
         return True
+
+
+class ContextPlanner:
+    """Shared set-up of the sampling baselines (post, rejection, manifold-*): :class:`BaselineSettings` from the
+    ``section`` of ``config/planners/baselines.yaml`` (plus overrides) and a :class:`PlanningContext`. They need no
+    preprocessing."""
+
+    section = "common"
+
+    def __init__(self, name: str, scene, targets: Sequence[str], robot=None, seed: int = 0, **overrides):
+        self.name = name
+        self.settings: BaselineSettings = settings_from_yaml(BaselineSettings, self.section, seed=seed, **overrides)
+        s = self.settings
+        self.ctx = PlanningContext(scene, targets, robot=robot, resolution=s.resolution,
+                                   frustum_margin=s.frustum_margin, min_view_distance=s.min_view_distance)
+        self.robot = self.ctx.robot
+        self._queries = 0
+
+    def prepare(self) -> dict:
+        return {"preprocess_s": 0.0}

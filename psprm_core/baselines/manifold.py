@@ -26,7 +26,7 @@ import torch
 
 from ..planning.psprm import PlanResult
 from ._ompl import ActiveSpace, _ompl
-from .base import BaselineSettings, PlanningContext, failure, settings_from_yaml
+from .base import ContextPlanner, PlanningContext, failure
 
 log = logging.getLogger(__name__)
 
@@ -79,24 +79,15 @@ def make_ompl_constraint(ctx: PlanningContext, kind: str, space: ActiveSpace, to
     return VisibilityOMPLConstraint()
 
 
-class _ManifoldPlanner:
+class _ManifoldPlanner(ContextPlanner):
     """RRT-Connect on the ``kind`` visibility manifold (``ProjectedStateSpace``)."""
 
     kind = "line"
     section = "manifold"
 
     def __init__(self, name: str, scene, targets: Sequence[str], robot=None, seed: int = 0, **overrides):
-        self.name = name
-        self.settings: BaselineSettings = settings_from_yaml(BaselineSettings, self.section, seed=seed, **overrides)
-        s = self.settings
-        self.ctx = PlanningContext(scene, targets, robot=robot, resolution=s.resolution,
-                                   frustum_margin=s.frustum_margin, min_view_distance=s.min_view_distance)
-        self.robot = self.ctx.robot
-        self._queries = 0
+        super().__init__(name, scene, targets, robot=robot, seed=seed, **overrides)
         self._constraints: list = []  # keep Python constraint objects alive while OMPL holds them
-
-    def prepare(self) -> dict:
-        return {"preprocess_s": 0.0}
 
     def _cols(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
         moving = (np.abs(goal - start) > 1e-9) | self.ctx.camera_mask

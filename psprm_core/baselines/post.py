@@ -12,18 +12,17 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Sequence
 
 import numpy as np
 
 from ..planning.psprm import PlanResult
 from ._ompl import ActiveSpace, plan_to_goals
-from .base import BaselineSettings, PlanningContext, failure, settings_from_yaml
+from .base import ContextPlanner, failure
 
 log = logging.getLogger(__name__)
 
 
-class PostPlanner:
+class PostPlanner(ContextPlanner):
     """Perception-unaware RRT-Connect + post-hoc camera aiming.
 
     Parameters
@@ -34,18 +33,6 @@ class PostPlanner:
     """
 
     section = "post"
-
-    def __init__(self, name: str, scene, targets: Sequence[str], robot=None, seed: int = 0, **overrides):
-        self.name = name
-        self.settings: BaselineSettings = settings_from_yaml(BaselineSettings, self.section, seed=seed, **overrides)
-        s = self.settings
-        self.ctx = PlanningContext(scene, targets, robot=robot, resolution=s.resolution,
-                                   frustum_margin=s.frustum_margin, min_view_distance=s.min_view_distance)
-        self.robot = self.ctx.robot
-        self._queries = 0
-
-    def prepare(self) -> dict:
-        return {"preprocess_s": 0.0}
 
     def _cols(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
         """Planned joints: base + joints that differ between start and goal, minus the aimed camera joints."""

@@ -135,6 +135,14 @@ class Replanner:
         self.history: list = []  # one dict per replan: reasons, timings, success
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
+    @staticmethod
+    def _known(lookup, name: str) -> None:
+        """Unknown target/obstacle names become a :class:`PsprmError` naming what the scene has."""
+        try:
+            lookup(name)
+        except KeyError as e:
+            raise PsprmError(str(e.args[0])) from None
+
     def set_robot_state(self, q) -> None:
         """Current configuration (dof,) of the planning joints; advances the progress along the current path."""
         q = np.asarray(q, dtype=float).reshape(-1)
@@ -161,10 +169,7 @@ class Replanner:
 
     def update_target(self, name: str, position, quat=None) -> bool:
         """New pose of a target; returns True when it moved beyond the thresholds (scores are then stale)."""
-        try:
-            self.scene.target(name)
-        except KeyError as e:
-            raise PsprmError(str(e.args[0])) from None
+        self._known(self.scene.target, name)
         p, q = _pose(position, quat, f"target '{name}'")
         self.scene = self.scene.with_target_pose(name, p, q)
         ref_p, ref_q = self._target_ref[name]
@@ -184,10 +189,7 @@ class Replanner:
     def update_obstacle(self, name: str, position, quat=None) -> bool:
         """New pose of an obstacle; when it moved beyond the thresholds the roadmap near it is re-checked now.
         Returns True in that case."""
-        try:
-            self.scene.obstacle(name)
-        except KeyError as e:
-            raise PsprmError(str(e.args[0])) from None
+        self._known(self.scene.obstacle, name)
         p, q = _pose(position, quat, f"obstacle '{name}'")
         self.scene = self.scene.with_obstacle_pose(name, p, q)
         ref_p, ref_q = self._obstacle_ref[name]
