@@ -461,6 +461,7 @@ def time_parameterize(
         raise ValueError(f"unknown method {method!r}")
 
     qk, owner = _dedupe(q, duplicate_tol)
+    q = qk[owner]  # waypoints merged as duplicates (closer than duplicate_tol) take their kept value exactly
     runs = _split_runs(qk, collinear_tol) if qk.shape[0] > 1 else []
     t0 = 0.0
     for run in runs:
