@@ -958,12 +958,29 @@ class PSPRM:
         return nodes, np.asarray(sorted(esel), dtype=np.int64)
 
     def _knots_hit(self, edges: np.ndarray, boxes) -> np.ndarray:
-        """(E,) bool: some stored interior knot of the edges collides with ``boxes`` (environment check only)."""
+        """(E,) bool: some stored interior knot of the edges collides with ``boxes`` (environment check only).
+
+        Knots whose base lies beyond the robot's reach of every box are skipped before any kinematics."""
         knots, _ = self.knots.get(edges)
         E, M, dof = knots.shape
         if M <= 2:
             return np.zeros(E, dtype=bool)
-        return self.checker.env_hits(knots[:, 1:-1].reshape(-1, dof), boxes).reshape(E, M - 2).any(-1).cpu().numpy()
+        inner = knots[:, 1:-1].reshape(-1, dof)
+        near = torch.ones(len(inner), dtype=torch.bool, device=inner.device)
+        if self.robot.mobile:
+            box_list = list(boxes) if not hasattr(boxes, "center") else None
+            if box_list is not None:
+                reach = self._spatial_index()["reach"]
+                near = torch.zeros(len(inner), dtype=torch.bool, device=inner.device)
+                for b in box_list:
+                    r = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + reach + 0.05
+                    c = torch.as_tensor(np.asarray(b.center, float)[:2], dtype=inner.dtype, device=inner.device)
+                    near |= (inner[:, :2] - c).norm(dim=-1) <= r
+        hit = torch.zeros(len(inner), dtype=torch.bool, device=inner.device)
+        idx = torch.nonzero(near, as_tuple=True)[0]
+        if len(idx):
+            hit[idx] = self.checker.env_hits(inner[idx], boxes)
+        return hit.reshape(E, M - 2).any(-1).cpu().numpy()
 
     def invalidate_near(self, boxes: Sequence, old_boxes: Sequence = (), margin: float = 0.05) -> dict:
         """Obstacle update (after :meth:`set_scene`): re-check only what the moved ``boxes`` (new poses) can touch.
@@ -1020,7 +1037,7 @@ class PSPRM:
         if not (self._blocked_nodes or self._blocked_edges):
             return {"restored_nodes": 0, "restored_edges": 0}
         near_n, near_e = self._near(old_boxes, margin)
-        boxes = self.checker.boxes
+        boxes = self.scene.collision_boxes()  # the poses the checker holds (set_scene)
         nodes = np.asarray(sorted(self._blocked_nodes.intersection(near_n.tolist())), dtype=np.int64)
         if len(nodes):
             free = nodes[~self.checker.env_hits(self._t(g.configs[nodes]), boxes).cpu().numpy()]
