@@ -151,6 +151,18 @@ def settings_from_yaml(cls: Type[S], section: str, path: str | Path | None = Non
     return cls(**kw)
 
 
+def resolve_settings(cls: Type[S], section: str, settings: Optional[S] = None, seed: int = 0, **overrides) -> S:
+    """A baseline's settings: ``settings`` as given (with ``overrides`` applied), or read from ``section`` of
+    ``config/planners/baselines.yaml``; validated when the class has ``validate()``."""
+    if settings is None:
+        settings = settings_from_yaml(cls, section, seed=seed, **overrides)
+    elif overrides:
+        settings = dataclasses.replace(settings, **overrides)
+    if hasattr(settings, "validate"):
+        settings.validate()
+    return settings
+
+
 def failure(reason: str, t0: Optional[float] = None) -> PlanResult:
     """A failed :class:`PlanResult` (query time from ``t0`` = ``time.perf_counter()`` at the start, if given)."""
     ms = (time.perf_counter() - t0) * 1e3 if t0 is not None else float("nan")

@@ -146,17 +146,12 @@ class PPOPlanner:
 
     def __init__(self, name: str = "rl-ppo", scene=None, targets: Sequence[str] = (), robot=None, seed: int = 0,
                  settings: Optional[PPOSettings] = None, **overrides):
-        from .base import PlanningContext, settings_from_yaml
+        from .base import PlanningContext, resolve_settings
 
         if scene is None or not targets:
             raise ValueError("PPOPlanner needs a scene and at least one target")
         self.name = name
-        if settings is None:
-            settings = settings_from_yaml(PPOSettings, self.section, seed=seed, **overrides)
-        elif overrides:
-            settings = dataclasses.replace(settings, **overrides)
-        settings.validate()
-        self.settings = settings
+        self.settings = settings = resolve_settings(PPOSettings, self.section, settings, seed=seed, **overrides)
         self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)
         self.scene, self.targets, self.robot = scene, list(targets), self.ctx.robot
         self.model = None

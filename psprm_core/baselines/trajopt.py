@@ -49,7 +49,6 @@ turns, which for a drivable segment is half the heading change, the chord, the o
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -180,17 +179,12 @@ class TrajOptPlanner:
 
     def __init__(self, name: str = "trajopt", scene=None, targets: Sequence[str] = (), robot=None, seed: int = 0,
                  settings: Optional[TrajOptSettings] = None, **overrides):
-        from .base import PlanningContext, settings_from_yaml
+        from .base import PlanningContext, resolve_settings
 
         if scene is None or not targets:
             raise ValueError("TrajOptPlanner needs a scene and at least one target")
         self.name = name
-        if settings is None:
-            settings = settings_from_yaml(TrajOptSettings, self.section, seed=seed, **overrides)
-        elif overrides:
-            settings = dataclasses.replace(settings, **overrides)
-        settings.validate()
-        self.settings = settings
+        self.settings = settings = resolve_settings(TrajOptSettings, self.section, settings, seed=seed, **overrides)
         self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)
         self.scene, self.targets, self.robot = scene, list(targets), self.ctx.robot
         self.focus = self.ctx.focus
