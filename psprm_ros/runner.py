@@ -68,6 +68,8 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
     except Exception as exc:  # configuration errors (unknown scene, bad params file): one line, status 2
         from psprm_core.errors import PsprmError
 
+        if not rclpy.ok():  # SIGTERM/SIGINT shut the context down while the executor was building its wait set
+            return 0
         if not isinstance(exc, (PsprmError, KeyError)):
             raise
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
