@@ -37,6 +37,24 @@ COMMON_PARAMS = {
 }
 
 
+def report(log, publisher, text: str, level: str = "info") -> None:
+    """Log ``text`` at ``level`` (info, warning, error) and publish it as ``"<level>: <text>"`` on a node's
+    ``~/status`` (std_msgs/String); a publish during shutdown is ignored."""
+    from std_msgs.msg import String
+
+    # one call site per severity: rclpy refuses a call site whose severity changes between calls
+    if level == "error":
+        log.error(text)
+    elif level == "warning":
+        log.warning(text)
+    else:
+        log.info(text)
+    try:
+        publisher.publish(String(data=f"{level}: {text}"))
+    except Exception:  # the context may already be shut down
+        pass
+
+
 def target_topic(name: str) -> str:
     return f"{STATE_PREFIX}/targets/{name}"
 

@@ -74,15 +74,7 @@ class PerceptionScorer:
         node.create_timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup())
 
     def status(self, text: str, level: str = "info") -> None:
-        from std_msgs.msg import String
-
-        if level == "error":
-            self.log.error(text)
-        elif level == "warning":
-            self.log.warning(text)
-        else:
-            self.log.info(text)
-        self.pub_status.publish(String(data=f"{level}: {text}"))
+        core.report(self.log, self.pub_status, text, level)
 
     def _pose_cb(self, kind: str, name: str):
         def cb(msg):

@@ -127,17 +127,9 @@ class ReplanMonitor:
 
     # ------------------------------------------------------------------------------------------------ reporting
     def status(self, text: str, level: str = "info") -> None:
-        from std_msgs.msg import String
-
-        if level == "error":
-            self.log.error(text)
-        elif level == "warning":
-            self.log.warning(text)
-        else:
-            self.log.info(text)
         if level == "warning":
             self.last_warning = text
-        self.pub_status.publish(String(data=f"{level}: {text}"))
+        core.report(self.log, self.pub_status, text, level)
 
     def summary(self) -> dict:
         with self._lock:

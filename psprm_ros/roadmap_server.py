@@ -139,18 +139,7 @@ class RoadmapServer:
         return {"targets": {}, "obstacles": {}, "robot": None, "goals": None, "t_first": None, "stamp": None}
 
     def status(self, text: str, level: str = "info") -> None:
-        from std_msgs.msg import String
-
-        if level == "error":
-            self.log.error(text)
-        elif level == "warning":
-            self.log.warning(text)
-        else:
-            self.log.info(text)
-        try:
-            self.pub_status.publish(String(data=f"{level}: {text}"))
-        except Exception:  # publishing during shutdown
-            pass
+        core.report(self.log, self.pub_status, text, level)
 
     def set_state(self, text: str) -> None:
         """The latched server state (late subscribers see it too)."""
