@@ -264,7 +264,7 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     from .geometry import yaw_to_quat
     from .paths import resolve_named
     from .planning.factory import make_planner, problem_configurations
-    from .planning.replanner import Replanner
+    from .planning.replanner import Replanner, ReplanSettings
     from .robot import RobotModel
     from .scene import load_scene
     from .simulation import PersonMotion, person_pose
@@ -274,12 +274,12 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     robot = RobotModel.load(scene.robot)
     prob = scene.problems[0]
     target = target or prob.target
-    kw = {"heuristic": heuristic} if heuristic else {}
-    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed, **kw)
+    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
     stats = p.build()
     rng = np.random.default_rng(seed + 7)
     start, goals = problem_configurations(robot, scene, prob)
-    rp = Replanner(p, targets=[target])
+    rs = ReplanSettings() if heuristic is None else ReplanSettings(heuristic=heuristic)
+    rp = Replanner(p, rs, targets=[target])
     rp.set_robot_state(start)
     rp.set_goals(goals)
     first = rp.replan()

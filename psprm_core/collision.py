@@ -59,6 +59,11 @@ class BoxTensors:
     def radius(self) -> torch.Tensor:
         return self.half.norm(dim=-1)
 
+    def aabb(self) -> torch.Tensor:
+        """World axis-aligned bounds (K, 6) = [min xyz, max xyz] of the boxes (|R| times the half extents)."""
+        ext = (self.rotation.abs() * self.half.unsqueeze(-2)).sum(-1)
+        return torch.cat([self.center - ext, self.center + ext], -1)
+
 
 def point_box_sqdist(points: torch.Tensor, box_center: torch.Tensor, box_rot: torch.Tensor,
                      box_half: torch.Tensor) -> torch.Tensor:
@@ -192,21 +197,45 @@ class CollisionChecker:
         poses = self.robot.body_poses(q)
         return {"limits": self.limits_violated(q), "environment": self._env(poses), "self": self._self(poses)}
 
-    def env_hits(self, q: torch.Tensor, boxes) -> torch.Tensor:
+    def env_hits(self, q: torch.Tensor, boxes, return_aabb: bool = False):
         """Environment-collision flags (B,) against ``boxes`` only (a list of boxes or :class:`BoxTensors`): no
         limits, no self-collision, no other obstacles. What an obstacle move can change for configurations that were
-        valid before."""
+        valid before. ``return_aabb``: also return the robot's world bounds (B, 6) at each configuration
+        (:meth:`robot_aabb`), from the same forward kinematics."""
         q = q.to(self.device, self.dtype)
         bt = boxes if isinstance(boxes, BoxTensors) else BoxTensors.from_boxes(boxes, self.device, self.dtype)
         saved = self.boxes
+        hits, boxes_out = [], []
         try:
             self.boxes = bt
-            if q.shape[0] == 0:
-                return torch.zeros(0, dtype=torch.bool, device=self.device)
-            return torch.cat([self._env(self.robot.body_poses(q[s:s + self.chunk]))
-                              for s in range(0, q.shape[0], self.chunk)])
+            for s in range(0, q.shape[0], self.chunk):
+                poses = self.robot.body_poses(q[s:s + self.chunk])
+                hits.append(self._env(poses))
+                if return_aabb:
+                    boxes_out.append(self._aabb(poses))
         finally:
             self.boxes = saved
+        hit = torch.cat(hits) if hits else torch.zeros(0, dtype=torch.bool, device=self.device)
+        if not return_aabb:
+            return hit
+        return hit, (torch.cat(boxes_out) if boxes_out else torch.zeros(0, 6, dtype=self.dtype, device=self.device))
+
+    def robot_aabb(self, q: torch.Tensor) -> torch.Tensor:
+        """World axis-aligned bounds (B, 6) = [min xyz, max xyz] enclosing every collision element of the robot at
+        configurations (B, dof) (the union of the element boxes' world bounds). A configuration whose bounds
+        miss a box's bounds (:meth:`BoxTensors.aabb`) cannot touch it."""
+        q = q.to(self.device, self.dtype)
+        return torch.cat([self._aabb(self.robot.body_poses(q[s:s + self.chunk]))
+                          for s in range(0, q.shape[0], self.chunk)]) if q.shape[0] else \
+            torch.zeros(0, 6, dtype=self.dtype, device=self.device)
+
+    def _aabb(self, poses) -> torch.Tensor:
+        R, t = poses
+        body = self.el_body
+        Rb = R[:, body]  # (B, E, 3, 3)
+        c = (Rb * self.el_c.unsqueeze(-2)).sum(-1) + t[:, body]  # element centres (B, E, 3)
+        ext = ((Rb @ self.el_R).abs() * self.el_h.unsqueeze(-2)).sum(-1)  # world half extents of the element boxes
+        return torch.cat([(c - ext).amin(1), (c + ext).amax(1)], -1)
 
     def limits_violated(self, q: torch.Tensor) -> torch.Tensor:
         return ((q < self.lower) | (q > self.upper)).any(-1) | ~torch.isfinite(q).all(-1)

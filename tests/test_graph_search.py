@@ -181,6 +181,42 @@ def test_graph_additions_after_cached_search(case: dict[str, Any], data: Any) ->
 
 @SETTINGS
 @given(random_graphs(), st.data())
+def test_removals_and_restorations_after_cached_search(case: dict[str, Any], data: Any) -> None:
+    """Pruning and restoring edges/nodes after a search (a moving obstacle) patches the cached adjacency in place and
+    keeps the cached hop heuristic admissible and consistent on the remaining edges, so A* stays exact."""
+    g, start, goals = case["g"], case["start"], case["goals"]
+    astar(g, start, goals)  # caches adjacency and hop distances
+    for _ in range(data.draw(st.integers(1, 4))):
+        op = data.draw(st.sampled_from(["remove_edges", "remove_nodes", "restore_edges", "restore_nodes"]))
+        if op.endswith("edges") and g.n_edges:
+            getattr(g, op)(data.draw(st.lists(st.integers(0, g.n_edges - 1), max_size=6)))
+        elif op.endswith("nodes"):
+            getattr(g, op)(data.draw(st.lists(st.integers(0, g.n_nodes - 1), max_size=2)))
+        valid_goals = [q for q in goals if g.node_valid[q]]
+        # the patched lists hold exactly the valid edges (order aside)
+        nbrs, eids = g.python_adjacency()
+        for u in range(g.n_nodes):
+            assert sorted(eids[u]) == sorted(g.incident_edges([u]).tolist())
+            assert sorted(nbrs[u]) == sorted(int(g.edge_v[e] if g.edge_u[e] == u else g.edge_u[e]) for e in eids[u])
+        if not valid_goals or not g.node_valid[start]:
+            continue
+        h = hop_heuristic(g, valid_goals)
+        assert heuristic_consistency_gap(g, h) <= 0.0
+        true = reference_dijkstra(g.n_nodes, valid_edge_list(g), valid_goals)
+        fresh = hop_distances(g, valid_goals, use_cache=False)
+        assert np.all(hop_distances(g, valid_goals) <= fresh)  # lower bounds of the true hop distances
+        for q in range(g.n_nodes):
+            assert h[q] <= true[q] + 1e-12 or not g.node_valid[q]
+        res = astar(g, start, valid_goals)
+        if math.isinf(true[start]):
+            assert not res.success
+        else:
+            assert_valid_path(g, res, start, set(valid_goals))
+            assert abs(res.cost - true[start]) <= 1e-9 * max(1.0, true[start])
+
+
+@SETTINGS
+@given(random_graphs(), st.data())
 def test_lazy_astar_avoids_invalid_edges_and_is_optimal(case: dict[str, Any], data: Any) -> None:
     g, start, goals = case["g"], case["start"], case["goals"]
     valid_goals = [q for q in goals if g.node_valid[q]]

@@ -227,6 +227,37 @@ def test_grow_adds_valid_connected_manifold_nodes(world):
     assert (deg > 0).mean() > 0.5
 
 
+def test_knot_bounds_cache_gives_the_same_hits_as_full_kinematics(replanner):
+    """The robot bounds cached at each knot (first check) prune later obstacle checks without changing a result."""
+    p = replanner.planner
+    rng = np.random.default_rng(5)
+    e = p.roadmap_edge_ids()
+    e = e[p.knots.known(e)]
+    k, _ = p.knots.get(e)
+    inner = k[:, 1:-1].reshape(-1, k.shape[-1])
+    table = replanner.scene.obstacle("table")
+    hits = 0
+    for i in range(8):  # the same region revisited: from the second move on most knots are answered by the cache
+        moved = dataclasses.replace(table, center=table.center + np.r_[rng.uniform(-1.0, 1.0, 2), 0.0])
+        got = p._knots_hit(e, [moved])
+        truth = p.checker.env_hits(inner, [moved]).reshape(len(e), -1).any(-1).numpy()
+        np.testing.assert_array_equal(got, truth)
+        hits += int(truth.sum())
+    assert hits > 0  # the moves do hit edges, so agreement is not trivial
+    b = p.knots.knot_aabb(e)[:, 1:-1]
+    assert (~torch.isnan(b[..., 0])).any()  # bounds were cached ...
+    assert ((b[..., :3] <= b[..., 3:]).all(-1) | torch.isnan(b).any(-1)).all()  # ... as [min, max]
+
+
+def test_replan_heuristic_setting(replanner, tmp_path: Path):
+    assert replanner.planner.settings.heuristic == "exact"  # the replanner's default
+    with pytest.raises(PsprmError, match="heuristic"):
+        ReplanSettings(heuristic="fast")
+    f = tmp_path / "r.yaml"
+    f.write_text("heuristic: hop\n")
+    assert ReplanSettings.from_yaml(f).heuristic == "hop"
+
+
 def test_shipped_replan_settings_load():
     base = ReplanSettings.from_yaml(config_dir() / "planners" / "replan.yaml")
     assert base == ReplanSettings()  # the file documents the library defaults

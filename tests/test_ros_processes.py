@@ -92,7 +92,8 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
     ex.add_node(probe.node)
     import threading
 
-    th = threading.Thread(target=lambda: _spin(ex), daemon=True)
+    stop = threading.Event()
+    th = threading.Thread(target=_spin, args=(ex, stop), daemon=True)
     th.start()
     try:
         # ready = the monitor subscribes to the mocap topic and the server publishes "ready"
@@ -120,6 +121,8 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
         probe.publish_pose("person_face", p, cv.yaw_quat(yaw))
         assert probe.wait_trajectory(n1, 60) is not None
     finally:
+        stop.set()  # the spin thread leaves before the executor, node and context go (no shutdown race)
+        th.join(timeout=5.0)
         ex.shutdown(timeout_sec=1.0)
         probe.destroy()
         ctx.try_shutdown()
@@ -128,11 +131,14 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
     assert "Traceback" not in out, out[-3000:]
 
 
-def _spin(ex):
-    try:
-        ex.spin()
-    except Exception:
-        pass
+def _spin(ex, stop) -> None:
+    while not stop.is_set():
+        try:
+            ex.spin_once(timeout_sec=0.1)
+        except Exception:  # a callback error must not end the probe's spinning; shutdown ends the loop
+            if stop.is_set():
+                break
+            time.sleep(0.01)
 
 
 def _tail(proc) -> str:

@@ -48,7 +48,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--target", default=None)
     rp.add_argument("--nodes", type=int, default=3000)
     rp.add_argument("--updates", type=int, default=50, help="updates per kind (default 50)")
-    rp.add_argument("--heuristic", choices=["hop", "exact"], default=None, help="A* heuristic (default: settings)")
+    rp.add_argument("--heuristic", choices=["hop", "exact"], default=None,
+                    help="A* heuristic of the replans (default: ReplanSettings.heuristic, exact)")
     rp.add_argument("--seed", type=int, default=0)
     rp.add_argument("--threads", type=int, default=2)
     rp.add_argument("--json", action="store_true")

@@ -112,9 +112,11 @@ class Roadmap:
         self.structure_version = 0
         self.weights_version = 0
         self._csr: CSRAdjacency | None = None
-        # Per-node Python adjacency lists for the heapq searches: rebuilt after removals, extended in place after
-        # additions (connecting a start/goal node does not trigger a rebuild).
+        # Per-node Python adjacency lists for the heapq searches: patched in place after additions, removals and
+        # restorations of up to _PATCH_LIMIT edges (connecting a start/goal node or pruning the edges near a moved
+        # obstacle does not trigger a rebuild).
         self._removal_version = 0
+        self._restore_version = 0  # bumped when removed edges/nodes come back (graph distances may then decrease)
         self._py_adj: tuple[int, int, int, list[list[int]], list[list[int]]] | None = None
         self._py_weights: tuple[int, list[float]] | None = None
         #: Free-form cache used by :mod:`psprm_core.planning.graph_search` (hop distances per goal set).
@@ -218,6 +220,12 @@ class Roadmap:
         return v
 
     @property
+    def restore_version(self) -> int:
+        """Bumped by :meth:`restore_edges` and :meth:`restore_nodes`: the only changes after which a graph distance
+        can become shorter than before other than additions (removals only lengthen distances)."""
+        return self._restore_version
+
+    @property
     def removal_version(self) -> int:
         """Counter bumped by edge removals/restorations only (additions keep it): caches built at the same
         ``removal_version`` can be updated incrementally with the nodes/edges added since."""
@@ -289,6 +297,7 @@ class Roadmap:
         """Mark removed nodes valid again (their edges stay removed; see :meth:`restore_edges`)."""
         nodes = self._as_ids(nodes, self._n_nodes, "node")
         self._node_valid[nodes] = True
+        self._restore_version += 1
         self._structure_changed()
 
     # ------------------------------------------------------------------ edges
@@ -396,12 +405,14 @@ class Roadmap:
         eids = self._as_ids(edge_ids, self._n_edges, "edge")
         if eids.size == 0:
             return
-        eids = eids[self._edge_valid[eids]]
+        eids = np.unique(eids[self._edge_valid[eids]])
         if eids.size == 0:
             return
         self._edge_valid[eids] = False
-        for a, b in zip(self._eu[eids].tolist(), self._ev[eids].tolist()):
+        ends = list(zip(eids.tolist(), self._eu[eids].tolist(), self._ev[eids].tolist()))
+        for _, a, b in ends:
             self._pair_to_edge.pop((a, b), None)
+        self._patch_adjacency(ends, add=False)
         self._removal_version += 1
         self._structure_changed()
 
@@ -424,7 +435,10 @@ class Roadmap:
             self._edge_valid[e] = True
             restored.append(e)
         if restored:
+            r = np.asarray(restored, dtype=np.int64)
+            self._patch_adjacency(list(zip(restored, self._eu[r].tolist(), self._ev[r].tolist())), add=True)
             self._removal_version += 1
+            self._restore_version += 1
             self._structure_changed()
         return np.asarray(restored, dtype=np.int64)
 
@@ -504,8 +518,9 @@ class Roadmap:
     def python_adjacency(self) -> tuple[list[list[int]], list[list[int]]]:
         """Per-node Python lists ``(neighbours[u], edge_ids[u])`` of the valid edges, for the heapq searches.
 
-        Cached: rebuilt from :meth:`csr` only after a removal/restoration; nodes and edges added since the last call
-        are appended in place (cheap start/goal connection).  Callers must not modify the lists.
+        Cached: nodes and edges added since the last call are appended in place (cheap start/goal connection), small
+        removals and restorations are patched in place (:meth:`_patch_adjacency`); rebuilt from :meth:`csr` only after
+        a large one.  Callers must not modify the lists.
         """
         cache = self._py_adj
         if cache is None or cache[0] != self._removal_version:
@@ -532,6 +547,29 @@ class Roadmap:
                 eids[b].append(e)
         self._py_adj = (self._removal_version, self._n_nodes, self._n_edges, nbrs, eids)
         return nbrs, eids
+
+    def _patch_adjacency(self, ends: list[tuple[int, int, int]], add: bool) -> None:
+        """Keep the cached Python adjacency in step with removed / restored edges ``(edge id, u, v)``: patched in place
+        for small changes (O(degree) per edge), dropped for large ones (rebuilt on the next use)."""
+        cache = self._py_adj
+        if cache is None or cache[0] != self._removal_version:
+            return
+        if len(ends) > _PATCH_LIMIT:
+            self._py_adj = None
+            return
+        _, n_cov, e_cov, nbrs, eids = cache
+        for e, a, b in ends:
+            if e >= e_cov:  # not in the lists yet: appended (when valid) by the next python_adjacency call
+                continue
+            for x, y in ((a, b), (b, a)):
+                if add:
+                    nbrs[x].append(y)
+                    eids[x].append(e)
+                else:
+                    i = eids[x].index(e)
+                    del nbrs[x][i]
+                    del eids[x][i]
+        self._py_adj = (self._removal_version + 1, n_cov, e_cov, nbrs, eids)
 
     def python_weights(self) -> list[float]:
         """The roadmap weights as a Python list indexed by edge id (cached per ``weights_version``).

@@ -282,19 +282,23 @@ def hop_distances(graph: Roadmap, goals: int | Iterable[int] | np.ndarray, use_c
     use_cache : bool
         Reuse the result for the same goal set (cached in ``graph.search_cache``, LRU of 16 goal sets).  Weight
         updates keep it; node/edge additions (start/goal connection, repair) update it incrementally (hop distances
-        can only decrease, propagated from the new edges); removals trigger a full recomputation.
+        can only decrease, propagated from the new edges); removals keep it: the cached distances were exact on a
+        superset of the remaining edges, so they stay lower bounds of the true hop distances and differ by at most 1
+        across every remaining edge, i.e. Eq. 3 stays admissible and consistent (Eqs. 5-6), only less tight;
+        restorations trigger a full recomputation.
 
     Returns
     -------
     np.ndarray
-        ``(n_nodes,)`` float64 minimum number of edges to reach any goal; ``inf`` when no goal is reachable.
-        The returned array is shared with the cache and read-only.
+        ``(n_nodes,)`` float64 minimum number of edges to reach any goal; ``inf`` when no goal is reachable (after
+        removals, a cached entry may be a finite lower bound for a node that has become unreachable).  The returned
+        array is shared with the cache and read-only.
     """
     g = _node_ids(graph, goals, "goal")
     cache: dict[Any, Any] = graph.search_cache
     key = ("hop", g.tobytes())
     entry = cache.pop(key, None) if use_cache else None
-    if entry is not None and entry[0] == graph.removal_version:
+    if entry is not None and entry[0] == graph.restore_version:
         _, n_cov, e_cov, hops = entry
         if n_cov != graph.n_nodes or e_cov != graph.n_edges:
             hops = _hops_after_additions(graph, hops, e_cov)
@@ -303,12 +307,12 @@ def hop_distances(graph: Roadmap, goals: int | Iterable[int] | np.ndarray, use_c
     hops.flags.writeable = False
     if use_cache:
         hop_keys = [k for k in cache if isinstance(k, tuple) and k and k[0] == "hop"]
-        for k in [k for k in hop_keys if cache[k][0] != graph.removal_version]:
+        for k in [k for k in hop_keys if cache[k][0] != graph.restore_version]:
             del cache[k]
         hop_keys = [k for k in hop_keys if k in cache]
         while len(hop_keys) >= _HOP_CACHE_SIZE:  # dicts keep insertion order: evict the least recently used
             del cache[hop_keys.pop(0)]
-        cache[key] = (graph.removal_version, graph.n_nodes, graph.n_edges, hops)
+        cache[key] = (graph.restore_version, graph.n_nodes, graph.n_edges, hops)
     return hops
 
 

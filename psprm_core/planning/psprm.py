@@ -28,7 +28,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..collision import CollisionChecker
+from ..collision import BoxTensors, CollisionChecker
 from ..errors import ConfigError
 from ..motion import DiffDriveMotion
 from ..robot import RobotModel
@@ -41,6 +41,7 @@ from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, la
 log = logging.getLogger(__name__)
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
+SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s")
@@ -178,6 +179,9 @@ class KnotStore:
         self.have = np.zeros(0, dtype=bool)
         self.cams: Optional[torch.Tensor] = None  # (capacity, N + 2, 4, 4) camera poses of the Eq. 1 points
         self.cams_have = np.zeros(0, dtype=bool)
+        # (capacity, M, 6) world bounds of the robot at each knot (NaN = not computed yet): once a knot has been
+        # checked, an obstacle move is tested against its bounds first and needs no kinematics when they miss
+        self.aabb: Optional[torch.Tensor] = None
 
     def put(self, ids: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> None:
         ids = np.asarray(ids, dtype=np.int64)
@@ -202,6 +206,26 @@ class KnotStore:
         self.have[ids] = True
         if len(self.cams_have):
             self.cams_have[ids[ids < len(self.cams_have)]] = False
+        if self.aabb is not None:
+            inside = ids[ids < self.aabb.shape[0]]
+            self.aabb[torch.as_tensor(inside, device=self.aabb.device)] = float("nan")
+
+    def knot_aabb(self, ids: np.ndarray) -> torch.Tensor:
+        """(E, M, 6) cached robot bounds at the knots of edges ``ids`` (NaN where not computed yet)."""
+        ids = np.asarray(ids, dtype=np.int64)
+        cap, M = self.data.shape[0], self.data.shape[1]
+        if self.aabb is None or self.aabb.shape[0] < cap or self.aabb.shape[1] != M:
+            grown = self.data.new_full((cap, M, 6), float("nan"))
+            if self.aabb is not None and self.aabb.shape[1] == M:
+                grown[: self.aabb.shape[0]] = self.aabb
+            self.aabb = grown
+        return self.aabb[torch.as_tensor(ids, device=self.data.device)]
+
+    def put_aabb(self, ids: np.ndarray, knot: np.ndarray, bounds: torch.Tensor) -> None:
+        """Store robot bounds (K, 6) at knot positions ``knot`` (K,) of edges ``ids`` (K,)."""
+        self.knot_aabb(ids[:0])  # allocate
+        dev = self.aabb.device
+        self.aabb[torch.as_tensor(ids, device=dev), torch.as_tensor(knot, device=dev)] = bounds.to(self.aabb.dtype)
 
     def put_cams(self, ids: np.ndarray, cams: torch.Tensor) -> None:
         """Camera poses (E, N + 2, 4, 4) of the Eq. 1 points of edges whose knots are stored (fixed while the
@@ -515,6 +539,17 @@ class PSPRM:
         """Collision-free flags (E,) of knot sequences: the knots, and with ``dense`` every ``edge_resolution``
         between them (only for sequences whose knots are free)."""
         E, M, dof = knots.shape
+        if dense and E <= SMALL_BATCH and M > 2:
+            # a few edges (a lazy search verifying its path): one checker call for the knots and the dense pieces,
+            # since a call's fixed cost dominates at this size (large batches check the knots first, as a filter)
+            inner = knots[:, 1:-1].reshape(-1, dof)
+            a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
+            seg, pts = self._pieces(a, b, max_steps=200, include_start=False)
+            bad = self.checker.check(torch.cat([inner, pts]))
+            ok = ~bad[:len(inner)].reshape(E, M - 2).any(-1)
+            seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
+            seg_ok[seg[bad[len(inner):]]] = False
+            return ok & seg_ok.reshape(E, M - 1).all(-1)
         ok = self.checker.valid(knots[:, 1:-1].reshape(-1, dof)).reshape(E, M - 2).all(-1) if M > 2 else \
             torch.ones(E, dtype=torch.bool, device=knots.device)
         if not dense or not ok.any():
@@ -656,7 +691,11 @@ class PSPRM:
                 ua, vb = np.asarray(u_ids)[nn], np.asarray(v_ids)[nn]
                 scale = getattr(self, "score_scale", 1.0)
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
-                added_edges.extend(self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False))
+                eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False)
+                added_edges.extend(eids)
+                # the knots of every candidate query edge in one batch: the manifold re-projection of the interior
+                # knots costs about the same for 3 edges as for 30, and a lazy search verifies a few per iteration
+                self._put_knots(np.asarray(eids), ua, *self.edge_knots(qa[near], qb[near]))
             elif len(near):
                 ok, pe, kn, ki = self._query_edges(qa[near], qb[near])
                 keep = near[ok]
@@ -977,9 +1016,24 @@ class PSPRM:
                     c = torch.as_tensor(np.asarray(b.center, float)[:2], dtype=inner.dtype, device=inner.device)
                     near |= (inner[:, :2] - c).norm(dim=-1) <= r
         hit = torch.zeros(len(inner), dtype=torch.bool, device=inner.device)
-        idx = torch.nonzero(near, as_tuple=True)[0]
+        # knots checked before: their cached robot bounds must overlap a box's bounds, else no kinematics is needed
+        bounds = self.knots.knot_aabb(edges)[:, 1:-1].reshape(-1, 6)
+        known = ~torch.isnan(bounds[:, 0])
+        bt = boxes if isinstance(boxes, BoxTensors) else BoxTensors.from_boxes(list(boxes), self.device, self.dtype)
+        if len(bt):
+            bb = bt.aabb().to(bounds.dtype)
+            overlap = ((bounds[:, None, :3] <= bb[None, :, 3:]) & (bounds[:, None, 3:] >= bb[None, :, :3])).all(-1)
+            near &= ~known | overlap.any(-1)
+        else:
+            near &= False
+        idx = torch.nonzero(near & known, as_tuple=True)[0]
         if len(idx):
-            hit[idx] = self.checker.env_hits(inner[idx], boxes)
+            hit[idx] = self.checker.env_hits(inner[idx], bt)
+        idx = torch.nonzero(near & ~known, as_tuple=True)[0]
+        if len(idx):
+            hit[idx], aabb = self.checker.env_hits(inner[idx], bt, return_aabb=True)
+            e_pos = (idx // (M - 2)).cpu().numpy()
+            self.knots.put_aabb(np.asarray(edges, dtype=np.int64)[e_pos], (idx % (M - 2)).cpu().numpy() + 1, aabb)
         return hit.reshape(E, M - 2).any(-1).cpu().numpy()
 
     def invalidate_near(self, boxes: Sequence, old_boxes: Sequence = (), margin: float = 0.05) -> dict:

@@ -41,6 +41,9 @@ from .psprm import PSPRM, PlanResult
 log = logging.getLogger(__name__)
 
 
+HEURISTICS = ("exact", "hop", "planner")
+
+
 @dataclass(frozen=True)
 class ReplanSettings:
     """Replanning triggers and repair (``config/planners/replan.yaml``)."""
@@ -61,6 +64,13 @@ class ReplanSettings:
     repair_nodes: int = 150  # nodes sampled per repair round
     repair_radius_m: float = 1.5  # around the moved obstacles and the start
     repair_budget_nodes: int = 1500  # at most this many nodes added by repair over the replanner's life
+    heuristic: str = "exact"  # A* heuristic of the replans: "exact" (cost-to-go from one compiled Dijkstra over the
+    # current weights; every update changes weights, and A* then expands little more than the path), "hop" (Eq. 3,
+    # the paper's), or "planner" (keep the planner's setting)
+
+    def __post_init__(self):
+        if self.heuristic not in HEURISTICS:
+            raise PsprmError(f"replan heuristic must be one of {', '.join(HEURISTICS)}, got {self.heuristic!r}")
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "ReplanSettings":
@@ -72,6 +82,8 @@ class ReplanSettings:
                 continue
             if isinstance(fl.default, bool):
                 kw[fl.name] = f.bool(fl.name)
+            elif isinstance(fl.default, str):
+                kw[fl.name] = f.str(fl.name)
             elif isinstance(fl.default, int):
                 kw[fl.name] = f.int(fl.name, lo=0)
             else:
@@ -115,6 +127,8 @@ class Replanner:
         if planner.graph is None:
             raise PsprmError("the replanner needs a built or loaded roadmap (call planner.build() or load())")
         self.planner, self.settings = planner, settings
+        if settings.heuristic != "planner" and planner.settings.heuristic != settings.heuristic:
+            planner.settings = dataclasses.replace(planner.settings, heuristic=settings.heuristic)
         self.robot = planner.robot
         self.scene = planner.scene
         self.targets = list(targets or getattr(planner, "targets", None) or self.scene.target_names)

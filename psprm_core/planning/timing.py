@@ -332,41 +332,43 @@ def _dirs_on_run(run: _Run, s: np.ndarray) -> np.ndarray:
     return run.dirs[k]
 
 
-def _eval_run(run: _Run, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Path position, speed and acceleration (s, sd, sdd) of a run at local times ``tau``."""
-    tk, sk, sdk = run.t_knots, run.s_knots, run.sd_knots
-    i = np.clip(np.searchsorted(tk, tau, side="right") - 1, 0, tk.shape[0] - 2)
-    ds = sk[i + 1] - sk[i]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = np.where(ds > 0, (sdk[i + 1] ** 2 - sdk[i] ** 2) / (2.0 * ds), 0.0)
-    dt = np.clip(tau - tk[i], 0.0, tk[i + 1] - tk[i])
-    s = np.minimum(sk[i] + sdk[i] * dt + 0.5 * u * dt * dt, sk[i + 1])
-    sd = np.maximum(sdk[i] + u * dt, 0.0)
-    return s, sd, u
-
-
 def _evaluate_runs(
     runs: list[_Run], t: np.ndarray, last: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Positions, velocities and accelerations at times ``t`` (after the end: ``last`` at rest).
+
+    Vectorised over all runs: the runs' profile knots are laid end to end in time and in a global arc length
+    (run offset + s), so one ``searchsorted`` finds every sample's profile interval and one more its path piece.
+    At a run boundary both runs contribute a knot at the same instant and position; a sample at that instant falls
+    in the later run (as its first interval), like a sample at a run's local time 0.
+    """
     dof = last.shape[0]
     pos = np.tile(last, (t.shape[0], 1))
     vel = np.zeros((t.shape[0], dof))
     acc = np.zeros((t.shape[0], dof))
     if not runs:
         return pos, vel, acc
-    starts = np.array([r.t0 for r in runs])
+    off = np.concatenate([[0.0], np.cumsum([r.length for r in runs])[:-1]])
+    T = np.concatenate([r.t0 + r.t_knots for r in runs])
+    S = np.concatenate([o + r.s_knots for o, r in zip(off, runs)])
+    SD = np.concatenate([r.sd_knots for r in runs])
+    B = np.concatenate([o + r.s_breaks[:-1] for o, r in zip(off, runs)])
+    P = np.concatenate([r.points[:-1] for r in runs])
+    D = np.concatenate([r.dirs for r in runs])
     end = runs[-1].t0 + runs[-1].duration
-    which = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(runs) - 1)
-    for r_idx in np.unique(which):
-        run = runs[r_idx]
-        m = (which == r_idx) & (t < end)
-        if not m.any():
-            continue
-        s, sd, sdd = _eval_run(run, t[m] - run.t0)
-        d = _dirs_on_run(run, s)
-        pos[m] = _positions_on_run(run, s)
-        vel[m] = d * sd[:, None]
-        acc[m] = d * sdd[:, None]
+    m = t < end
+    tau = t[m]
+    i = np.clip(np.searchsorted(T, tau, side="right") - 1, 0, T.shape[0] - 2)
+    ds = S[i + 1] - S[i]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(ds > 0, (SD[i + 1] ** 2 - SD[i] ** 2) / (2.0 * ds), 0.0)
+    dt = np.clip(tau - T[i], 0.0, T[i + 1] - T[i])
+    s = np.minimum(S[i] + SD[i] * dt + 0.5 * u * dt * dt, S[i + 1])
+    sd = np.maximum(SD[i] + u * dt, 0.0)
+    k = np.clip(np.searchsorted(B, s, side="right") - 1, 0, B.shape[0] - 1)
+    pos[m] = P[k] + (s - B[k])[:, None] * D[k]
+    vel[m] = D[k] * sd[:, None]
+    acc[m] = D[k] * u[:, None]
     return pos, vel, acc
 
 
