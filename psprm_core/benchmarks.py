@@ -253,7 +253,8 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     on one roadmap, and the time a full re-score of every node and edge takes (what lazy evaluation avoids).
 
     * ``target_move``: the person (target + the obstacle it stands in, if any) turns to a random yaw within +-1.2 rad
-      of its initial facing;
+      of its initial facing (the robot holds still at the start); ``target_move_moving_robot``: the same while the
+      robot drives along its current plan (1/30 of it per update; back to the start every 10 updates);
     * ``obstacle_move``: a random piece of furniture (not a wall, not the person) moves by up to 0.6 m and 0.5 rad
       (moves that would put it onto the robot's start are redrawn);
     * ``goal_move``: a new random collision-free goal (base pose anywhere in the workspace, camera aimed).
@@ -313,6 +314,18 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
             rp.update_obstacle(body, *pp["body"])
 
     timed("target_move", turn)
+    # the same with the robot driving along its current plan between updates (the start's query edges, and with them
+    # their knots, are new on every replan; the robot returns to the start every 10 updates)
+    def turn_while_driving(i):
+        if i % 10 == 0:
+            rp.set_robot_state(start)
+        elif rp.result is not None and rp.result.dense is not None and len(rp.remaining()) > 1:
+            rem = rp.remaining()
+            rp.set_robot_state(rem[min(len(rem) - 1, max(1, len(rp.result.dense) // 30))])
+        turn(i)
+
+    timed("target_move_moving_robot", turn_while_driving)
+    rp.set_robot_state(start)
     start_checker = CollisionChecker(robot, [], workspace=None)
     q_start = torch.as_tensor(start[None], dtype=torch.float32)
 

@@ -90,7 +90,9 @@ def roadmap_markers(frame: str, camera_xyz: np.ndarray, node_scores: np.ndarray,
     e.scale.x = 0.005
     e.color = _color((0.55, 0.55, 0.55, 0.35))
     if edges is not None and len(edges):
-        ed = np.asarray(edges, int)[:max_edges]
+        ed = np.asarray(edges, int)
+        if len(ed) > max_edges:  # an evenly spread subset (edge ids follow the sampling, not space: no hole)
+            ed = ed[np.linspace(0, len(ed) - 1, max_edges).round().astype(int)]
         xy = np.asarray(base_xy, float)
         seg = np.stack([xy[ed[:, 0]], xy[ed[:, 1]]], 1).reshape(-1, 2)
         e.points = _points(np.c_[seg, np.full(len(seg), 0.01)])

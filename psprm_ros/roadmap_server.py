@@ -39,7 +39,8 @@ SERVER_PARAMS = {
     "trajectory_dt": 0.1,  # sample spacing of the published trajectory (s)
     "max_pose_age_s": 1.0,  # refuse pose messages older than this (0 = no check)
     "publish_markers": True,
-    "marker_max_edges": 20000,
+    "marker_max_edges": 5000,  # roadmap edges drawn (an evenly spread subset; building markers costs ~9 ms/1000)
+    "markers_period_s": 5.0,  # roadmap markers (scores changed) at most this often, built when the planner is idle
     "path_camera_samples": 200,
     "service_timeout_s": 120.0,
     "robot_trigger_period_s": 0.5,  # re-evaluate the triggers on robot progress at most this often
@@ -130,6 +131,8 @@ class RoadmapServer:
         from concurrent.futures import ThreadPoolExecutor
 
         self._side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psprm-publish")
+        self._idle = threading.Event()  # set while the worker waits for input: side jobs (markers) run then
+        self._idle.set()
         self._thread = threading.Thread(target=self._worker, name="psprm-planner", daemon=True)
         self._thread.start()
 
@@ -244,12 +247,15 @@ class RoadmapServer:
             with self._lock:
                 pend, self._pending = self._pending, self._empty_pending()
                 reqs, self._requests = self._requests, []
+            self._idle.clear()
             try:
                 self._cycle(pend, reqs)
             except Exception as exc:  # a bug or a core error must not end the worker
                 self.log.error(f"planning cycle failed: {exc!r}")
                 self.status(f"planning cycle failed: {exc}", "error")
                 self._answer(reqs, False, f"error: {exc}")
+            finally:
+                self._idle.set()
 
     def _answer(self, reqs, ok: bool, message: str, kinds=None) -> None:
         with self._done:
@@ -411,13 +417,16 @@ class RoadmapServer:
         self._publish_info(info)
         self.status(f"plan {info['seq']} ({', '.join(reasons)}): {info['n_points']} points, "
                     f"{info['duration_s']:.1f} s, predicted score {res.mean_score:.3f}, query {res.query_ms:.0f} ms")
-        self._side.submit(self._publish_path_safe, res, self.safety_scene)
+        self._side.submit(self._side_job, "path markers", self._publish_path, res, self.safety_scene)
 
-    def _publish_path_safe(self, res, scene) -> None:
+    def _side_job(self, what: str, fn, *args) -> None:
+        """Run ``fn`` on the side thread once the planner is idle (waits at most 1 s): publishing markers is pure
+        Python and would otherwise compete with a replan for the interpreter."""
+        self._idle.wait(1.0)
         try:
-            self._publish_path(res, scene)
+            fn(*args)
         except Exception as exc:  # never lose the side thread
-            self.status(f"path markers failed: {exc}", "warning")
+            self.status(f"{what} failed: {exc}", "warning")
 
     def _publish_stop(self, why: str, info: Optional[dict] = None) -> None:
         stamp = self.node.get_clock().now().to_msg()
@@ -485,12 +494,12 @@ class RoadmapServer:
         return s * float(getattr(pl, "score_scale", 1.0))
 
     def _maybe_republish_markers(self, force: bool = False) -> None:
-        from . import markers as mk
-
+        """Roadmap markers: a snapshot of the roadmap taken here (worker thread, cheap array copies), the markers built
+        and published on the side thread while the planner is idle."""
         if not self.p["publish_markers"] or self.planner is None:
             return
         now = time.monotonic()
-        if not force and (not self._markers_dirty or now - self._markers_t < 2.0):
+        if not force and (not self._markers_dirty or now - self._markers_t < self.p["markers_period_s"]):
             return
         self._markers_t, self._markers_dirty = now, False
         pl, g = self.planner, self.planner.graph
@@ -498,10 +507,16 @@ class RoadmapServer:
         ids = g.valid_edge_ids()
         e = np.stack([g.edge_u[ids], g.edge_v[ids]], 1)
         e = e[(e[:, 0] < n) & (e[:, 1] < n)]
+        snap = (self.safety_scene, self._rm_cams[:, :3, 3].copy(), self._node_scores().copy(), g.configs[:n, :2].copy(),
+                e)
+        self._side.submit(self._side_job, "roadmap markers", self._publish_roadmap_markers, *snap)
+
+    def _publish_roadmap_markers(self, scene, cam_xyz, scores, base_xy, edges) -> None:
+        from . import markers as mk
+
         stamp = self.node.get_clock().now().to_msg()
-        ms = mk.scene_markers(self.safety_scene, stamp)
-        ms += mk.roadmap_markers(self.frame, self._rm_cams[:, :3, 3], self._node_scores(), g.configs[:n, :2], e, stamp,
-                                 self.p["marker_max_edges"])
+        ms = mk.scene_markers(scene, stamp)
+        ms += mk.roadmap_markers(self.frame, cam_xyz, scores, base_xy, edges, stamp, self.p["marker_max_edges"])
         self.pub_markers.publish(mk.marker_array(ms))
 
     def _publish_path(self, res, scene) -> None:

@@ -279,6 +279,52 @@ def test_shipped_scenarios_load_and_bad_ones_name_the_field(tmp_path: Path):
         load_scenario(bad)
 
 
+def test_goal_terminal_costs_pick_the_goal_in_one_search(replanner, world):
+    """plan(goal_costs=...) returns the goal minimising path cost + terminal cost, with the single-goal path cost."""
+    scene, robot = world
+    p = replanner.planner
+    q = replanner.q
+    _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    single = [p.plan(q, g, timing=False).cost for g in goals]
+    assert all(np.isfinite(single))
+    for k in range(2):  # make goal k the winner: the other one pays more than the difference
+        tc = np.zeros(2)
+        tc[1 - k] = abs(single[0] - single[1]) + 0.5
+        res = p.plan(q, goals, timing=False, goal_costs=tc)
+        assert res.success and res.goal_index == k
+        assert res.cost == pytest.approx(single[k], rel=1e-6)
+        d = res.waypoints[-1] - goals[k]
+        d[2] = (d[2] + np.pi) % (2 * np.pi) - np.pi  # base yaw
+        assert np.abs(d).max() < 1e-4  # the path ends at the goal: the virtual sink is not part of it
+    with pytest.raises(ValueError, match="goal_costs"):
+        p.plan(q, goals, goal_costs=[0.0, -1.0])
+
+
+def test_query_edge_knots_cache_matches_fresh_knots(replanner):
+    """Start/goal edge knots come from a cache keyed by the end configurations: identical to computing them again,
+    the same plan on a repeated query, and dropped with the knot store (new focus)."""
+    p = replanner.planner
+    q, goals = replanner.q, replanner.goals
+    p.knots.query.clear()
+    first = p.plan(q, goals, timing=False)
+    n = len(p.knots.query)
+    assert n > 0
+    again = p.plan(q, goals, timing=False)
+    assert len(p.knots.query) == n  # every query edge was a hit
+    assert again.cost == pytest.approx(first.cost) and again.path_length == pytest.approx(first.path_length)
+    keys = list(p.knots.query)[:6]
+    dof = p.robot.dof
+    qa = torch.stack([torch.as_tensor(np.frombuffer(k[: len(k) // 2], dtype=np.float32).copy()) for k in keys])
+    qb = torch.stack([torch.as_tensor(np.frombuffer(k[len(k) // 2:], dtype=np.float32).copy()) for k in keys])
+    assert qa.shape == (len(keys), dof)
+    fresh, fresh_i = p.edge_knots(qa.to(p.dtype), qb.to(p.dtype))
+    cached = torch.stack([p.knots.query[k][0] for k in keys])
+    assert torch.allclose(cached, fresh, atol=1e-6)
+    assert torch.equal(torch.stack([p.knots.query[k][1] for k in keys]), fresh_i)
+    p.set_focus(p.constraint.target.numpy() + 0.01)
+    assert len(p.knots.query) == 0
+
+
 def test_goal_hysteresis_keeps_the_current_goal(replanner, world):
     scene, robot = world
     rp = replanner

@@ -36,11 +36,12 @@ from ..scene import Scene
 from ..yamlio import Fields, load_yaml
 from .constraints import ProjectionSettings, VisibilityConstraint
 from .graph import Roadmap
-from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, lazy_astar
+from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, lazy_astar, min_edge_cost
 
 log = logging.getLogger(__name__)
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
+QUERY_KNOT_CACHE = 512  # start/goal query edges whose knots are kept (by end configurations)
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
@@ -182,6 +183,9 @@ class KnotStore:
         # (capacity, M, 6) world bounds of the robot at each knot (NaN = not computed yet): once a knot has been
         # checked, an obstacle move is tested against its bounds first and needs no kinematics when they miss
         self.aabb: Optional[torch.Tensor] = None
+        # start/goal query edges' knots by their end configurations: a goal's (and a still robot's) edges recur on
+        # every replan, and re-projecting the knots onto the manifold is a query's largest fixed cost
+        self.query: dict = {}
 
     def put(self, ids: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> None:
         ids = np.asarray(ids, dtype=np.int64)
@@ -513,6 +517,22 @@ class PSPRM:
             knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
         return knots, interior_idx
 
+    def _query_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
+        """:meth:`edge_knots` of start/goal query edges, cached by their end configurations (the cache is cleared
+        with the knot store: new roadmap, new visibility focus). Misses are computed in one batch."""
+        cache = self.knots.query
+        A, B = qa.detach().cpu().numpy(), qb.detach().cpu().numpy()
+        keys = [a.tobytes() + b.tobytes() for a, b in zip(A, B)]
+        miss = [i for i, k in enumerate(keys) if k not in cache]
+        if miss:
+            kn, ki = self.edge_knots(qa[miss], qb[miss])
+            for j, i in enumerate(miss):
+                cache[keys[i]] = (kn[j], ki[j])
+        out = (torch.stack([cache[k][0] for k in keys]), torch.stack([cache[k][1] for k in keys]))
+        while len(cache) > QUERY_KNOT_CACHE:  # oldest first (dicts keep insertion order)
+            cache.pop(next(iter(cache)))
+        return out
+
     def _put_knots(self, edge_ids: np.ndarray, u_given: np.ndarray, knots: torch.Tensor,
                    interior: torch.Tensor) -> None:
         """Keep knots computed from ``u_given`` to the other end, flipped where the graph stores the edge the other
@@ -639,8 +659,16 @@ class PSPRM:
         g.set_weights(ids, w)
         self.settings = dataclasses.replace(self.settings, alpha=alpha)
 
-    def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True) -> PlanResult:
-        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof))."""
+    def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+             goal_costs: Optional[np.ndarray] = None) -> PlanResult:
+        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)).
+
+        ``goal_costs`` (G,), optional: a non-negative terminal cost added to the path cost (Eq. 2 units) of reaching
+        each goal, so one search picks the goal minimising path cost + terminal cost (the replanner's goal hysteresis).
+        The goals are joined to one virtual sink node by zero-length edges weighted c_min (Eq. 4) + terminal cost;
+        the common c_min offset leaves the choice unchanged and keeps the hop heuristic informative. The returned
+        ``cost`` is the path cost alone.
+        """
         t0 = time.perf_counter()
         if self.graph is None:
             return PlanResult(False, "roadmap not built")
@@ -695,7 +723,7 @@ class PSPRM:
                 added_edges.extend(eids)
                 # the knots of every candidate query edge in one batch: the manifold re-projection of the interior
                 # knots costs about the same for 3 edges as for 30, and a lazy search verifies a few per iteration
-                self._put_knots(np.asarray(eids), ua, *self.edge_knots(qa[near], qb[near]))
+                self._put_knots(np.asarray(eids), ua, *self._query_knots(qa[near], qb[near]))
             elif len(near):
                 ok, pe, kn, ki = self._query_edges(qa[near], qb[near])
                 keep = near[ok]
@@ -705,19 +733,36 @@ class PSPRM:
                                                  pe[ok])
                     self._put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
+            search_goals, sink_w = goal_ids, None
+            if goal_costs is not None and len(goal_ids) > 1:
+                tc = np.asarray(goal_costs, float).reshape(-1)
+                if tc.shape != (len(goals),) or not (np.isfinite(tc).all() and (tc >= 0).all()):
+                    raise ValueError(f"goal_costs must be {len(goals)} finite non-negative values")
+                sink = int(g.add_nodes(g.configs[goal_ids[0]][None])[0])
+                added_nodes.append(sink)
+                k_of = {int(n): k for k, n in enumerate(ids[1:])}
+                c_min = min_edge_cost(g)
+                sink_w = {gid: c_min + tc[k_of[gid]] for gid in goal_ids}
+                se = g.add_edges(np.asarray(goal_ids), np.full(len(goal_ids), sink), np.asarray(list(sink_w.values())),
+                                 c_m=0.0, c_p=np.nan, verified=1.0, checked=1.0)  # nothing to verify: no motion
+                added_edges.extend(int(e) for e in se)
+                search_goals = [sink]
             if not goal_ids:
                 res = None
             elif self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
-                res = lazy_astar(g, s_id, goal_ids, self._verify_edges, heuristic=self.settings.heuristic,
+                res = lazy_astar(g, s_id, search_goals, self._verify_edges, heuristic=self.settings.heuristic,
                                  apply_to_graph=True)
             else:
-                res = astar(g, s_id, goal_ids, heuristic=self.settings.heuristic)
+                res = astar(g, s_id, search_goals, heuristic=self.settings.heuristic)
             if res is None or not res.success:
                 return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
                                   query_ms=(time.perf_counter() - t0) * 1e3)
-            path = res.path
-            result = self._finish(path, res.cost, timing)
-            result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == res.goal)[0][0])
+            path, cost, goal = res.path, res.cost, res.goal
+            if sink_w is not None:  # drop the virtual sink and its terminal edge
+                path, goal = path[:-1], path[-2]
+                cost -= sink_w[goal]
+            result = self._finish(path, cost, timing)
+            result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == goal)[0][0])
             result.query_ms = (time.perf_counter() - t0) * 1e3
             return result
         finally:
@@ -813,7 +858,7 @@ class PSPRM:
 
     def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily)."""
-        knots, interior = self.edge_knots(qa, qb)
+        knots, interior = self._query_knots(qa, qb)
         ok = self._knots_valid(knots)
         p = torch.zeros(qa.shape[0], dtype=self.dtype, device=self.device)
         if ok.any():

@@ -57,7 +57,8 @@ class ReplanSettings:
     # collision checks, and those decide)
     score_min: float = 0.1  # replan when the normalised predicted mean score along the remaining path falls below this
     score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
-    goal_switch_margin: float = 0.2  # switch to another goal only when its cost is this much (relative) lower
+    goal_switch_margin: float = 0.2  # switch to another goal only when it is cheaper by this fraction of the current
+    # plan's cost (a terminal cost on the other goals, one search)
     min_interval_s: float = 1.0  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
@@ -147,6 +148,7 @@ class Replanner:
         self._last_failed = False
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
         self.history: list = []  # one dict per replan: reasons, timings, success
+        self._collides_cache: Optional[tuple] = None  # (result, progress, planner scene, remaining path collides)
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
     @staticmethod
@@ -230,10 +232,17 @@ class Replanner:
         return self.result.dense[self._progress:]
 
     def remaining_path_collides(self) -> bool:
+        """The remaining path collides with the obstacle poses the planner holds. Cached per (plan, progress,
+        planner scene): an update and the trigger check that follows it in the same cycle pay for one check."""
         rem = self.remaining()
         if rem is None or len(rem) == 0:
             return False
-        return bool(self.planner.checker.check(torch.as_tensor(rem, dtype=torch.float32)).any())
+        c = self._collides_cache
+        if c is not None and c[0] is self.result and c[1] == self._progress and c[2] is self.planner.scene:
+            return c[3]
+        hit = bool(self.planner.checker.check(torch.as_tensor(rem, dtype=torch.float32)).any())
+        self._collides_cache = (self.result, self._progress, self.planner.scene, hit)
+        return hit
 
     def path_score(self, normalized: bool = False) -> float:
         """Predicted mean perception score along the remaining path under the latest target/obstacle poses
@@ -267,7 +276,8 @@ class Replanner:
             return []
         if self.settings.replan_on_move:
             reasons += [r for r in ("target_moved", "obstacle_moved") if r in self._pending]
-        if self._pending & {"target_moved", "obstacle_moved"} or self._score_stale:
+        if not reasons and (self._pending & {"target_moved", "obstacle_moved"} or self._score_stale):
+            # (scored only when it decides: with a reason already, the replan happens anyway)
             sc = self.path_score(normalized=True)
             if sc < self.settings.score_min <= self._plan_score:  # fell below (a plan that was already low is kept)
                 reasons.append("score_low")
@@ -303,8 +313,7 @@ class Replanner:
             for t in self.scene.targets:
                 self._target_ref[t.name] = (t.center.copy(), t.quat.copy())
             self._score_stale = False
-        res = p.plan(self.q, self.goals)
-        res = self._keep_goal(res)
+        res = p.plan(self.q, self.goals, goal_costs=self._goal_costs())
         rounds = 0
         while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds
                and self._repaired_nodes < self.settings.repair_budget_nodes):
@@ -316,7 +325,7 @@ class Replanner:
                              rng=rng)
                 self._repaired_nodes += got["added_nodes"]
                 info.setdefault("repair", []).append(got)
-            res = self._keep_goal(p.plan(self.q, self.goals))
+            res = p.plan(self.q, self.goals, goal_costs=self._goal_costs())
         if res.success and res.dense is not None:
             bad = p.checker.check(torch.as_tensor(res.dense, dtype=torch.float32)).cpu().numpy()
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
@@ -339,23 +348,20 @@ class Replanner:
                 self.result = None  # the old plan is no longer safe: the caller must stop
         return res
 
-    def _keep_goal(self, res: PlanResult) -> PlanResult:
-        """Goal hysteresis: with several candidate goals, stay with the current plan's goal unless the new best one
-        is cheaper by more than ``goal_switch_margin`` (a person turning back and forth must not make the robot
-        oscillate between goals)."""
-        if not res.success or self.result is None or self.goals is None or len(self.goals) < 2:
-            return res
+    def _goal_costs(self) -> Optional[np.ndarray]:
+        """Goal hysteresis as terminal costs (one search): with several candidate goals, every goal but the current
+        plan's costs ``goal_switch_margin`` x the current plan's cost (Eq. 2 units) extra, so the robot switches goals
+        only when another one is cheaper by more than that margin (a person turning back and forth must not make it
+        oscillate between goals). None when there is nothing to keep."""
+        if self.result is None or self.goals is None or len(self.goals) < 2 or self.settings.goal_switch_margin <= 0:
+            return None
         cur = getattr(self, "_goal_cfg", None)
         if cur is None:
-            return res
-        same = np.nonzero(np.abs(self.goals - cur).max(1) < 1e-6)[0]
-        if len(same) == 0 or int(same[0]) == res.goal_index:
-            return res
-        alt = self.planner.plan(self.q, self.goals[same[0]])
-        if alt.success and alt.cost <= res.cost * (1.0 + self.settings.goal_switch_margin):
-            alt.goal_index = int(same[0])
-            return alt
-        return res
+            return None
+        same = np.abs(self.goals - cur).max(1) < 1e-6
+        if not same.any() or not np.isfinite(self.result.cost):
+            return None
+        return np.where(same, 0.0, self.settings.goal_switch_margin * max(self.result.cost, 0.0))
 
     def step(self) -> Optional[PlanResult]:
         """Replan when a trigger fires; returns the new result or None when the current plan is kept."""
