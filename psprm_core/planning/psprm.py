@@ -42,6 +42,7 @@ log = logging.getLogger(__name__)
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
 QUERY_KNOT_CACHE = 512  # start/goal query edges whose knots are kept (by end configurations)
+QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 max_edge_length is still tried with
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
@@ -71,6 +72,9 @@ class PSPRMSettings:
     constraint: str = "line"  # visibility model: line | frustum
     sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
     sample_spread: float = -1.0  # >= 0: non-base joints sampled within +-spread (rad/m) of the template, else uniform
+    expand_rounds: int = 0  # > 0: after the build, rounds of sampling between the largest component and the others
+    expand_nodes: int = 30  # nodes sampled per disconnected component and round
+    expand_components: int = 12  # components (of >= 3 nodes, largest first) bridged per round
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -417,14 +421,56 @@ class PSPRM:
         self._unverified, self._index = False, None
         self.node_scores = node_scores.double().cpu().numpy()
         self._roadmap_mask = np.ones(len(Q), dtype=bool)
+        t3 = time.perf_counter()
+        expand = self._expand(rng) if s.expand_rounds > 0 else {}
         build_s = time.perf_counter() - t0
         self.stats = {
-            "success": True, "n_nodes": int(len(Q)), "n_edges": int(len(eu)), "samples_tried": int(tried),
-            "sample_s": t_sample, "edges_s": t_edges, "score_s": t_score, "build_s": build_s,
-            "mean_node_score": float(node_scores.mean()),
+            "success": True, "n_nodes": int(self.n_roadmap_nodes), "n_edges": int(len(self.roadmap_edge_ids())),
+            "samples_tried": int(tried), "sample_s": t_sample, "edges_s": t_edges, "score_s": t_score,
+            "build_s": build_s, "mean_node_score": float(node_scores.mean()),
+            **({"expand_s": time.perf_counter() - t3, **expand} if expand else {}),
         }
         log.info("PS-PRM built: %s", self.stats)
         return self.stats
+
+    def components(self) -> tuple:
+        """Connected components of the roadmap: (valid roadmap node ids, component label of each)."""
+        from scipy.sparse.csgraph import connected_components
+
+        from .graph_search import _scipy_matrix
+
+        ids = self.roadmap_node_ids()
+        _, lab = connected_components(_scipy_matrix(self.graph, None), directed=False)
+        return ids, lab[ids]
+
+    def _expand(self, rng: np.random.Generator) -> dict:
+        """PRM expansion step: bridge disconnected components to the largest one. Each round, for the largest other
+        components (``expand_components``, at least 3 nodes), ``expand_nodes`` manifold nodes are sampled (:meth:`grow`)
+        with their base within reach of the gap: around the midpoint between the component's node nearest (base
+        position) to the largest component and that nearest node. Narrow passages of the visibility manifold (a
+        wrist camera that must look over shelves) leave a uniform roadmap in pieces; this is where samples help."""
+        s = self.settings
+        added, rounds = 0, 0
+        for _ in range(s.expand_rounds):
+            ids, lab = self.components()
+            cnt = np.bincount(lab)
+            main = int(np.argmax(cnt))
+            others = [int(c) for c in np.argsort(-cnt, kind="stable") if c != main and cnt[c] >= 3][:s.expand_components]
+            if not others:
+                break
+            rounds += 1
+            main_xy = self._t(self.graph.configs[ids[lab == main], :2])
+            for c in others:
+                xy = self._t(self.graph.configs[ids[lab == c], :2])
+                d = torch.cdist(xy, main_xy)
+                i = int(d.min(1).values.argmin())
+                a, b = xy[i].cpu().numpy(), main_xy[int(d[i].argmin())].cpu().numpy()
+                got = self.grow(s.expand_nodes, center=(a + b) / 2, radius=float(np.linalg.norm(a - b)) / 2 + 0.3,
+                                rng=rng)
+                added += got["added_nodes"]
+        ids, lab = self.components()
+        return {"expand_rounds": rounds, "expand_added_nodes": int(added),
+                "largest_component": float(np.bincount(lab).max() / max(len(ids), 1))}
 
     def _embed(self, q: torch.Tensor) -> torch.Tensor:
         if not self.robot.mobile:
@@ -695,7 +741,9 @@ class PSPRM:
             # candidate edges of the start and every goal, plus start-goal, checked in one batch
             queries = [(0, s_id)] + [(1 + k, int(gid)) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]
             qq = qs[[i for i, _ in queries]]
-            d = torch.cdist(self._embed(qq), self._embed(rm))
+            # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
+            # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
+            d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0), rm.repeat(len(qq), 1)).reshape(len(qq), -1)
             kk = min(self.settings.connect_k, rm.shape[0])
             cand = d.topk(kk, largest=False).indices  # (Q, kk)
             src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
@@ -709,7 +757,16 @@ class PSPRM:
                 u_ids.append(s_id)
                 v_ids.append(gid)
             dist = self.motion.distance(qa, qb)
-            near = torch.nonzero(dist <= 2 * self.settings.max_edge_length, as_tuple=True)[0]
+            within = dist <= 2 * self.settings.max_edge_length
+            # a start or goal far from the manifold (e.g. the arm folded away) has no roadmap node within 2 delta:
+            # it still gets its QUERY_FALLBACK_K nearest candidates (longer edges, checked like any other)
+            cand_d = dist[: len(src)].reshape(len(queries), kk)
+            lonely = ~within[: len(src)].reshape(len(queries), kk).any(1)
+            if lonely.any():
+                nk = min(QUERY_FALLBACK_K, kk)
+                pick = cand_d[lonely].topk(nk, largest=False).indices + torch.nonzero(lonely)[:, :1] * kk
+                within[pick.reshape(-1)] = True
+            near = torch.nonzero(within, as_tuple=True)[0]
             if len(near) and self.settings.lazy_collision:
                 # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
                 # interior scores only for the edges the search wants to use (usually one at each end)
