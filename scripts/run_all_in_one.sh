@@ -8,11 +8,5 @@
 # the params file sets in a node's own section). Stops cleanly on Ctrl-C / SIGTERM.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-params="${1:-$root/config/ros/dynamic_person.yaml}"
-[ $# -gt 0 ] && shift
-[ -f "$params" ] || { echo "run_all_in_one.sh: params file not found: $params" >&2; exit 2; }
-py="${PSPRM_PYTHON:-$root/.venv/bin/python}"
-[ -x "$py" ] || py=python3
-export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+. "$root/scripts/ros_env.sh"  # $params (first argument), $py, PYTHONPATH, RMW_IMPLEMENTATION
 exec "$py" -m psprm_ros.all_in_one --ros-args --params-file "$params" "$@"

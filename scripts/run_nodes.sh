@@ -5,13 +5,7 @@
 # and the script exits with that node's status.
 set -uo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
-params="${1:-$root/config/ros/dynamic_person.yaml}"
-[ $# -gt 0 ] && shift
-[ -f "$params" ] || { echo "run_nodes.sh: params file not found: $params" >&2; exit 2; }
-py="${PSPRM_PYTHON:-$root/.venv/bin/python}"
-[ -x "$py" ] || py=python3
-export PYTHONPATH="$root${PYTHONPATH:+:$PYTHONPATH}"
-export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+. "$root/scripts/ros_env.sh"  # $params (first argument), $py, PYTHONPATH, RMW_IMPLEMENTATION
 pids=()
 stop() { kill -TERM "${pids[@]}" 2>/dev/null; wait "${pids[@]}" 2>/dev/null; }
 trap 'stop; exit 0' INT TERM

@@ -509,3 +509,25 @@ class ContextPlanner:
 
     def prepare(self) -> dict:
         return {"preprocess_s": 0.0}
+
+    def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
+        """Check the problem (valid start and goals), keep the goals :meth:`_admissible` allows (a failure with its
+        reason when it refuses), count the query and run the baseline's :meth:`_plan`."""
+        t0 = time.perf_counter()
+        start, goals, bad = self.ctx.check_problem(start, goals)
+        if bad is not None:
+            return bad
+        ok, why = self._admissible(start, goals)
+        if why:
+            return failure(why, t0)
+        self._queries += 1
+        return self._plan(start, goals, goals[ok], timeout_s, t0)
+
+    def _admissible(self, start: np.ndarray, goals: np.ndarray) -> tuple:
+        """(mask of the goals a query may use, failure reason or ""). Baselines with a view requirement refuse a start
+        or goals that do not meet it; by default everything is admissible."""
+        return np.ones(len(goals), dtype=bool), ""
+
+    def _plan(self, start: np.ndarray, goals: np.ndarray, ok_goals: np.ndarray, timeout_s: float,
+              t0: float) -> PlanResult:
+        raise NotImplementedError

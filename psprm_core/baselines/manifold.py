@@ -118,18 +118,15 @@ class _ManifoldPlanner(ContextPlanner):
         pts, _ = ctx.aim(pts, self.kind, iters=8, tolerance=s.constraint_tolerance, restarts=0)
         return bool(self.on_manifold(pts).all()) and bool(ctx.valid(pts).all())
 
-    def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
-        t0 = time.perf_counter()
-        ctx, s = self.ctx, self.settings
-        start, goals, bad = ctx.check_problem(start, goals)
-        if bad is not None:
-            return bad
+    def _admissible(self, start: np.ndarray, goals: np.ndarray) -> tuple:
+        ok = self.on_manifold(goals)
         if not self.on_manifold(start)[0]:
-            return failure(f"start configuration is not on the {self.kind} visibility manifold", t0)
-        ok_goals = goals[self.on_manifold(goals)]
-        if len(ok_goals) == 0:
-            return failure(f"no goal configuration is on the {self.kind} visibility manifold", t0)
-        self._queries += 1
+            return ok, f"start configuration is not on the {self.kind} visibility manifold"
+        return ok, "" if ok.any() else f"no goal configuration is on the {self.kind} visibility manifold"
+
+    def _plan(self, start: np.ndarray, goals: np.ndarray, ok_goals: np.ndarray, timeout_s: float,
+              t0: float) -> PlanResult:
+        ctx, s = self.ctx, self.settings
 
         def space_for(g):
             sp = ActiveSpace(start, self._cols(start, g), ctx.lower, ctx.upper)

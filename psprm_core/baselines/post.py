@@ -11,7 +11,6 @@ the camera points as close to it as the limits allow.
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -42,13 +41,9 @@ class PostPlanner(ContextPlanner):
         moving[self.ctx.aim_cols] = False
         return np.nonzero(moving)[0]
 
-    def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
-        t0 = time.perf_counter()
+    def _plan(self, start: np.ndarray, goals: np.ndarray, ok_goals: np.ndarray, timeout_s: float,
+              t0: float) -> PlanResult:
         ctx, s = self.ctx, self.settings
-        start, goals, bad = ctx.check_problem(start, goals)
-        if bad is not None:
-            return bad
-        self._queries += 1
         W, reason, gi, _ = plan_to_goals(
             lambda g: ActiveSpace(start, self._cols(start, g), ctx.lower, ctx.upper), start, goals,
             timeout_s, ctx.motion,

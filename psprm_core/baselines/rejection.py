@@ -13,7 +13,6 @@ configuration space the sampler is rejected, which is what makes this baseline s
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -44,18 +43,15 @@ class RejectionPlanner(ContextPlanner):
         ctx = self.ctx
         return bool(ctx.in_view(q, slack=self.settings.view_slack)[0]) and bool(ctx.valid(q)[0])
 
-    def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
-        t0 = time.perf_counter()
+    def _admissible(self, start: np.ndarray, goals: np.ndarray) -> tuple:
+        ok = self.ctx.in_view(goals, slack=self.settings.view_slack)
+        if not self.ctx.in_view(start, slack=self.settings.view_slack)[0]:
+            return ok, "target not in the camera frustum at the start"
+        return ok, "" if ok.any() else "target not in the camera frustum at any goal"
+
+    def _plan(self, start: np.ndarray, goals: np.ndarray, ok_goals: np.ndarray, timeout_s: float,
+              t0: float) -> PlanResult:
         ctx, s = self.ctx, self.settings
-        start, goals, bad = ctx.check_problem(start, goals)
-        if bad is not None:
-            return bad
-        if not ctx.in_view(start, slack=s.view_slack)[0]:
-            return failure("target not in the camera frustum at the start", t0)
-        ok_goals = goals[ctx.in_view(goals, slack=s.view_slack)]
-        if len(ok_goals) == 0:
-            return failure("target not in the camera frustum at any goal", t0)
-        self._queries += 1
         W, reason, gi, _ = plan_to_goals(
             lambda g: ActiveSpace(start, self._cols(start, g), ctx.lower, ctx.upper), start, ok_goals,
             timeout_s, ctx.motion, state_valid=self._state_ok,
