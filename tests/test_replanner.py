@@ -17,7 +17,7 @@ from psprm_core.geometry import yaw_to_quat
 from psprm_core.paths import config_dir, resolve_named
 from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.factory import problem_configurations
-from psprm_core.planning.psprm import PSPRM, PSPRMSettings
+from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
 from psprm_core.scene import load_scene
 from psprm_core.simulation import PersonMotion, load_scenario, person_pose
@@ -323,6 +323,38 @@ def test_query_edge_knots_cache_matches_fresh_knots(replanner):
     assert torch.equal(torch.stack([p.knots.query[k][1] for k in keys]), fresh_i)
     p.set_focus(p.constraint.target.numpy() + 0.01)
     assert len(p.knots.query) == 0
+
+
+def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
+    """A query that finds no goal grows manifold nodes around its start and goals (half along the base heading, base
+    pose kept) and is repeated once; nothing is grown when the first search succeeds."""
+    p = replanner.planner
+    q, goals = replanner.q, replanner.goals
+    n0 = p.n_roadmap_nodes
+    assert p.plan(q, goals, timing=False).success and p.n_roadmap_nodes == n0
+    real = p._plan_once
+    calls = []
+
+    def first_fails(*a, **k):
+        calls.append(1)
+        if len(calls) == 1:
+            return PlanResult(False, "no goal is reachable from start 0: different connected component", query_ms=1.0)
+        return real(*a, **k)
+
+    monkeypatch.setattr(p, "_plan_once", first_fails)
+    res = p.plan(q, goals, timing=False)
+    assert len(calls) == 2 and res.success and "local roadmap repair" in res.reason
+    new = np.arange(n0, p.n_roadmap_nodes)
+    assert len(new) > 0
+    cfg = p.graph.configs[new]
+    # some grown nodes sit on the start's heading line, facing along it, within the repair radius
+    d = cfg[:, :2] - q[:2]
+    lateral = np.abs(-np.sin(q[2]) * d[:, 0] + np.cos(q[2]) * d[:, 1])
+    on_line = (lateral < 1e-4) & (np.abs(np.angle(np.exp(1j * (cfg[:, 2] - q[2])))) < 1e-4)
+    assert on_line.any() and (np.linalg.norm(d[on_line], axis=1) <= p.settings.query_repair_radius + 1e-6).all()
+    assert p.checker.valid(torch.as_tensor(cfg, dtype=torch.float32)).all()
+    monkeypatch.setattr(p, "_plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
+    assert not p.plan(q, goals).success and p.n_roadmap_nodes == n0 + len(new)  # other failures: no repair
 
 
 def test_goal_hysteresis_keeps_the_current_goal(replanner, world):

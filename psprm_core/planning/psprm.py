@@ -46,7 +46,7 @@ QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 ma
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
-QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s")
+QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -75,6 +75,8 @@ class PSPRMSettings:
     expand_rounds: int = 0  # > 0: after the build, rounds of sampling between the largest component and the others
     expand_nodes: int = 30  # nodes sampled per disconnected component and round
     expand_components: int = 12  # components (of >= 3 nodes, largest first) bridged per round
+    query_repair_nodes: int = 60  # a query that finds no path grows this many nodes around its start and goals, once
+    query_repair_radius: float = 0.8  # m around the start/goal base (half of them along its heading)
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -707,7 +709,34 @@ class PSPRM:
 
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
              goal_costs: Optional[np.ndarray] = None) -> PlanResult:
-        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)).
+        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see
+        :meth:`_plan_once`. When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next
+        to a wall where the base cannot turn), the roadmap is repaired locally once: ``query_repair_nodes`` manifold
+        nodes are grown around the start and each goal (up to 4), half of them along its heading (reachable by
+        driving straight), and the query is repeated. The new nodes stay in the roadmap."""
+        res = self._plan_once(start, goals, timing, goal_costs)
+        s = self.settings
+        if res.success or "reachable" not in res.reason or s.query_repair_nodes <= 0 or self.graph is None:
+            return res
+        t0 = time.perf_counter()
+        self.query_repairs = getattr(self, "query_repairs", 0) + 1
+        rng = np.random.default_rng([s.seed, self.query_repairs])
+        ends = [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, self.robot.dof))[:4]
+        added = 0
+        for q in ends:
+            mobile = self.robot.mobile
+            added += self.grow(s.query_repair_nodes, center=q[:2] if mobile else None, radius=s.query_repair_radius,
+                               rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)["added_nodes"]
+        again = self._plan_once(start, goals, timing, goal_costs)
+        again.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
+        if again.success:
+            again.reason = f"ok after a local roadmap repair ({added} nodes)"
+        log.debug("query repair: %d nodes grown, %s", added, again.reason)
+        return again
+
+    def _plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+                   goal_costs: Optional[np.ndarray] = None) -> PlanResult:
+        """One query: connect start and goals to the roadmap and search (no repair).
 
         ``goal_costs`` (G,), optional: a non-negative terminal cost added to the path cost (Eq. 2 units) of reaching
         each goal, so one search picks the goal minimising path cost + terminal cost (the replanner's goal hysteresis).
@@ -1215,10 +1244,12 @@ class PSPRM:
         return {"restored_nodes": int(back_n), "restored_edges": int(back_e)}
 
     def grow(self, n: int, center: Optional[np.ndarray] = None, radius: float = 1.5,
-             rng: Optional[np.random.Generator] = None, timeout_s: float = 2.0) -> dict:
+             rng: Optional[np.random.Generator] = None, timeout_s: float = 2.0,
+             heading: Optional[float] = None) -> dict:
         """Roadmap repair: add up to ``n`` collision-free manifold nodes (base within ``radius`` of ``center`` when
-        given) and connect them to their neighbours among all roadmap nodes, as in :meth:`build`. Existing nodes
-        are kept. Returns the number of nodes and edges added."""
+        given; with ``heading``, half of them on the line through ``center`` along that base heading and facing it,
+        i.e. reachable by driving straight) and connect them to their neighbours among all roadmap nodes, as in
+        :meth:`build`. Existing nodes are kept. Returns the number of nodes and edges added."""
         s, g = self.settings, self.graph
         rng = rng or np.random.default_rng()
         t0 = time.perf_counter()
@@ -1230,8 +1261,21 @@ class PSPRM:
                 ang = rng.uniform(-np.pi, np.pi, len(q))
                 rr = radius * np.sqrt(rng.random(len(q)))
                 xy = np.asarray(center, float)[:2] + np.stack([rr * np.cos(ang), rr * np.sin(ang)], 1)
+                h = 0
+                if heading is not None:  # half on the heading line, facing along it
+                    h = len(q) // 2
+                    t = rng.uniform(-radius, radius, h)
+                    xy[:h] = np.asarray(center, float)[:2] + t[:, None] * np.array([np.cos(heading), np.sin(heading)])
+                    q[:h, 2] = heading
                 q[:, :2] = self._t(xy)
-            q, ok = self.constraint.project(q, s.projection, self._lo, self._hi)
+                if h and len(self.track_cols):  # those keep their base pose: only the camera joints re-aim
+                    qa, oka = self.constraint.project(q[:h], s.projection, self._lo, self._hi, joints=self.track_cols)
+                    qb, okb = self.constraint.project(q[h:], s.projection, self._lo, self._hi)
+                    q, ok = torch.cat([qa, qb]), torch.cat([oka, okb])
+                else:
+                    q, ok = self.constraint.project(q, s.projection, self._lo, self._hi)
+            else:
+                q, ok = self.constraint.project(q, s.projection, self._lo, self._hi)
             q = q[ok]
             q = q[self.checker.valid(q)]
             got.append(q)
