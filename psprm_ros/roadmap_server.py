@@ -8,8 +8,9 @@ Inputs (validated again here: scene frame, finite values, age):
 Outputs:
   ``/psprm/trajectory`` (trajectory_msgs/JointTrajectory: planning joints of the robot config, time-parameterised),
   ``/psprm/plan_info`` (std_msgs/String, JSON per plan), ``/psprm/roadmap/camera_poses`` and
-  ``/psprm/path/camera_poses`` (geometry_msgs/PoseArray, for the perception scorer), ``~/markers``
-  (visualization_msgs/MarkerArray), ``~/status`` (std_msgs/String).
+  ``/psprm/path/camera_poses`` (geometry_msgs/PoseArray, for the perception scorer), ``~/markers`` (scene and
+  roadmap) and ``~/path_markers`` (scene and the current path; visualization_msgs/MarkerArray, latched separately so
+  a late RViz sees both), ``~/status`` (std_msgs/String).
 Services (std_srvs/Trigger): ``~/plan`` (plan now), ``~/rebuild`` (rebuild the roadmap around the current scene),
 ``~/stop`` (publish a stop trajectory and hold until the next goal or plan request).
 
@@ -86,6 +87,7 @@ class RoadmapServer:
         self.pub_status = node.create_publisher(String, "~/status", 10)
         self.pub_state = node.create_publisher(String, core.SERVER_STATE_TOPIC, latched)
         self.pub_markers = node.create_publisher(MarkerArray, "~/markers", latched)
+        self.pub_path_markers = node.create_publisher(MarkerArray, "~/path_markers", latched)
         self.pub_rm_cams = node.create_publisher(PoseArray, core.ROADMAP_CAMERAS_TOPIC, latched)
         self.pub_path_cams = node.create_publisher(PoseArray, core.PATH_CAMERAS_TOPIC, latched)
 
@@ -127,6 +129,7 @@ class RoadmapServer:
         self.ext_scores: Optional[np.ndarray] = None
         self._markers_dirty = False
         self._markers_t = 0.0
+        self._rm_ids = np.zeros(0, dtype=np.int64)  # roadmap node slots whose camera poses were last published
         self.build_info: dict = {}
         from concurrent.futures import ThreadPoolExecutor
 
@@ -473,24 +476,26 @@ class RoadmapServer:
             return self.robot.camera_poses(torch.as_tensor(np.asarray(Q), dtype=torch.float32)).double().numpy()
 
     def _publish_roadmap(self) -> None:
+        """Camera poses of every roadmap node slot (pruned ones too: the perception scorer's scores follow this order),
+        then the markers. Called after a build and whenever the roadmap has grown (repair)."""
         pl = self.planner
-        n = pl.n_roadmap_nodes
-        Q = pl.graph.configs[:n]
-        valid = pl.graph.node_valid[:n]
-        T = self._camera_poses(Q)
-        self._rm_cams = T
+        ids = np.nonzero(pl.roadmap_mask())[0]
+        T = self._camera_poses(pl.graph.configs[ids])
+        self._rm_ids, self._rm_cams = ids, T
         stamp = self.node.get_clock().now().to_msg()
         self.pub_rm_cams.publish(cv.pose_array(T, self.frame, stamp))
         self._markers_dirty = True
-        self._valid_nodes = valid
         self._maybe_republish_markers(force=True)
 
     def _node_scores(self) -> np.ndarray:
-        pl = self.planner
-        n = pl.n_roadmap_nodes
+        """Normalised scores of the published roadmap nodes: the perception scorer's when they match, else the
+        planner's."""
+        pl, ids = self.planner, self._rm_ids
         s = self.ext_scores
-        if s is None or len(s) != n:
-            s = np.asarray(pl.node_scores[:n], float)
+        if s is None or len(s) != len(ids):
+            s = np.full(len(ids), np.nan)
+            have = ids < len(pl.node_scores)
+            s[have] = np.asarray(pl.node_scores, float)[ids[have]]
         return s * float(getattr(pl, "score_scale", 1.0))
 
     def _maybe_republish_markers(self, force: bool = False) -> None:
@@ -501,14 +506,20 @@ class RoadmapServer:
         now = time.monotonic()
         if not force and (not self._markers_dirty or now - self._markers_t < self.p["markers_period_s"]):
             return
-        self._markers_t, self._markers_dirty = now, False
         pl, g = self.planner, self.planner.graph
-        n = pl.n_roadmap_nodes
-        ids = g.valid_edge_ids()
-        e = np.stack([g.edge_u[ids], g.edge_v[ids]], 1)
-        e = e[(e[:, 0] < n) & (e[:, 1] < n)]
-        snap = (self.safety_scene, self._rm_cams[:, :3, 3].copy(), self._node_scores().copy(), g.configs[:n, :2].copy(),
-                e)
+        if len(self._rm_ids) != pl.n_roadmap_nodes:  # the roadmap grew (repair): new camera poses first
+            self._publish_roadmap()  # (calls back with force=True)
+            return
+        self._markers_t, self._markers_dirty = now, False
+        ids = self._rm_ids
+        keep = g.node_valid[ids]
+        pos = np.full(g.n_nodes, -1, dtype=np.int64)
+        pos[ids[keep]] = np.arange(int(keep.sum()))
+        eids = pl.roadmap_edge_ids()
+        e = np.stack([pos[g.edge_u[eids]], pos[g.edge_v[eids]]], 1)
+        e = e[(e >= 0).all(1)]
+        snap = (self.safety_scene, self._rm_cams[keep, :3, 3].copy(), self._node_scores()[keep].copy(),
+                g.configs[ids[keep], :2].copy(), e)
         self._side.submit(self._side_job, "roadmap markers", self._publish_roadmap_markers, *snap)
 
     def _publish_roadmap_markers(self, scene, cam_xyz, scores, base_xy, edges) -> None:
@@ -535,7 +546,7 @@ class RoadmapServer:
             scores = scores * float(getattr(self.planner, "score_scale", 1.0))
             ms = mk.scene_markers(scene, stamp) + mk.path_markers(self.frame, D[idx, :2], T[:, :3, 3],
                                                                              scores, stamp)
-            self.pub_markers.publish(mk.marker_array(ms))
+            self.pub_path_markers.publish(mk.marker_array(ms))
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def destroy(self) -> None:

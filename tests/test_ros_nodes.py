@@ -27,7 +27,7 @@ from psprm_ros.probe import InProcessSuite  # noqa: E402
 
 N_NODES = 500
 PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,
-          "stale_timeout_s": 60.0, "publish_markers": True, "rescore_rate_hz": 5.0}
+          "stale_timeout_s": 60.0, "publish_markers": True, "rescore_rate_hz": 5.0, "markers_period_s": 0.5}
 
 
 def yaw_q(yaw: float) -> np.ndarray:
@@ -210,3 +210,47 @@ def test_server_keeps_the_last_safe_trajectory_when_a_goal_cannot_be_reached(sui
     assert suite.probe.wait_status("keeping the last safe trajectory", t0, timeout=10, level="warning")
     time.sleep(0.3)
     assert len(suite.probe.trajectories) == n0  # nothing new published
+
+
+def test_roadmap_markers_match_the_roadmap_also_after_it_grew(suite, world):
+    """The roadmap markers (built off the planning thread) show every valid roadmap node, one colour each, and are
+    rebuilt with new camera poses when the roadmap grows (a repair adds nodes after query nodes)."""
+    from visualization_msgs.msg import MarkerArray
+
+    scene, _ = world
+    got = []
+    sub = suite.probe.node.create_subscription(MarkerArray, "/roadmap_server/markers", got.append, 10)
+    try:
+        pl = suite.server.planner
+
+        def roadmap_marker(n_valid):
+            for m in reversed(got):
+                nodes = [x for x in m.markers if x.ns == "roadmap_nodes"]
+                if nodes and len(nodes[0].points) == n_valid:
+                    return nodes[0], [x for x in m.markers if x.ns == "roadmap_edges"][0]
+            return None
+
+        face = scene.target("person_face")
+
+        def republished(n_valid):  # mark the markers stale and give the worker a cycle (a keep-alive pose)
+            suite.server._markers_dirty = True
+            suite.probe.publish_pose("person_face", face.center, face.quat)
+            return roadmap_marker(n_valid)
+
+        n_valid = len(pl.roadmap_node_ids())
+        found = suite.probe.wait_for(lambda: republished(n_valid), 30)
+        assert found, f"no roadmap markers with {n_valid} nodes"
+        nodes, edges = found
+        assert len(nodes.colors) == len(nodes.points)
+        assert 0 < len(edges.points) <= 2 * suite.server.p["marker_max_edges"]
+        # grow the roadmap (as a repair does) while the planner is idle; the next cycles republish
+        assert suite.server._idle.wait(30)
+        added = pl.grow(15, center=scene.target("person_face").center[:2], radius=2.0,
+                        rng=np.random.default_rng(3))["added_nodes"]
+        assert added > 0
+        n_valid = len(pl.roadmap_node_ids())
+        found = suite.probe.wait_for(lambda: republished(n_valid), 30)
+        assert found, f"markers were not rebuilt for the grown roadmap ({n_valid} nodes)"
+        assert len(found[0].colors) == len(found[0].points) == n_valid
+    finally:
+        suite.probe.node.destroy_subscription(sub)
