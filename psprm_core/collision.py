@@ -96,13 +96,15 @@ def obb_overlap(ca: torch.Tensor, Ra: torch.Tensor, ha: torch.Tensor, cb: torch.
     sep = (t.abs() > ha + (AR * hb.unsqueeze(-2)).sum(-1)).any(-1)  # A's axes
     tb = (t.unsqueeze(-2) @ R).squeeze(-2)
     sep |= (tb.abs() > (AR * ha.unsqueeze(-1)).sum(-2) + hb).any(-1)  # B's axes
-    for i in range(3):
-        i1, i2 = (i + 1) % 3, (i + 2) % 3
-        for j in range(3):
-            j1, j2 = (j + 1) % 3, (j + 2) % 3
-            ra = ha[:, i1] * AR[:, i2, j] + ha[:, i2] * AR[:, i1, j]
-            rb = hb[:, j1] * AR[:, i, j2] + hb[:, j2] * AR[:, i, j1]
-            sep |= (t[:, i2] * R[:, i1, j] - t[:, i1] * R[:, i2, j]).abs() > ra + rb
+    # the 9 edge-edge axes A_i x B_j at once, as (n, 3, 3) grids over (i, j); rolling an axis by -1 / -2 gives the
+    # entries at i+1 / i+2 (mod 3), e.g. R.roll(-1, 1)[:, i, j] = R[:, i+1, j]
+    def nxt(x, k, dim):
+        return x.roll(-k, dims=dim)
+
+    lhs = nxt(t, 2, 1).unsqueeze(-1) * nxt(R, 1, 1) - nxt(t, 1, 1).unsqueeze(-1) * nxt(R, 2, 1)
+    ra = nxt(ha, 1, 1).unsqueeze(-1) * nxt(AR, 2, 1) + nxt(ha, 2, 1).unsqueeze(-1) * nxt(AR, 1, 1)
+    rb = nxt(hb, 1, 1).unsqueeze(-2) * nxt(AR, 2, 2) + nxt(hb, 2, 1).unsqueeze(-2) * nxt(AR, 1, 2)
+    sep |= (lhs.abs() > ra + rb).flatten(1).any(-1)
     return ~sep
 
 
