@@ -171,6 +171,15 @@ class PlanResult:
         return d
 
 
+def _flags(have: np.ndarray, ids) -> np.ndarray:
+    """``have[ids]`` with False for ids beyond the array."""
+    ids = np.asarray(ids, dtype=np.int64)
+    out = np.zeros(len(ids), dtype=bool)
+    inside = ids < len(have)
+    out[inside] = have[ids[inside]]
+    return out
+
+
 class KnotStore:
     """Knots of the roadmap's edges (:meth:`PSPRM.edge_knots`, in the stored u -> v direction), by edge id.
 
@@ -255,18 +264,12 @@ class KnotStore:
         self.cams_have[ids] = True
 
     def known_cams(self, ids: np.ndarray) -> np.ndarray:
-        ids = np.asarray(ids, dtype=np.int64)
-        out = np.zeros(len(ids), dtype=bool)
-        inside = ids < len(self.cams_have)
-        out[inside] = self.cams_have[ids[inside]]
-        return out
+        """(E,) bool: the Eq. 1 camera poses of these edges are stored."""
+        return _flags(self.cams_have, ids)
 
     def known(self, ids: np.ndarray) -> np.ndarray:
-        ids = np.asarray(ids, dtype=np.int64)
-        out = np.zeros(len(ids), dtype=bool)
-        inside = ids < len(self.have)
-        out[inside] = self.have[ids[inside]]
-        return out
+        """(E,) bool: the knots of these edges are stored."""
+        return _flags(self.have, ids)
 
     def get(self, ids: np.ndarray) -> tuple:
         idx = torch.as_tensor(np.asarray(ids, dtype=np.int64), device=self.data.device)
