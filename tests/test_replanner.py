@@ -355,6 +355,16 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     assert p.checker.valid(torch.as_tensor(cfg, dtype=torch.float32)).all()
     monkeypatch.setattr(p, "_plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
     assert not p.plan(q, goals).success and p.n_roadmap_nodes == n0 + len(new)  # other failures: no repair
+    # the budget bounds what repeated failures can grow: once used up, an unreachable goal grows nothing
+    unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap")  # noqa: E731
+    monkeypatch.setattr(p, "_plan_once", unreachable)
+    p.settings = dataclasses.replace(p.settings, query_repair_budget=p._repair_added + 10)
+    p.plan(q, goals)
+    assert p.n_roadmap_nodes <= n0 + len(new) + 10 and p._repair_added <= p.settings.query_repair_budget
+    before = p.n_roadmap_nodes
+    for _ in range(3):
+        assert not p.plan(q, goals).success
+    assert p.n_roadmap_nodes == before
 
 
 def test_goal_hysteresis_keeps_the_current_goal(replanner, world):

@@ -46,7 +46,8 @@ QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 ma
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
-QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius")
+QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
+                  "query_repair_budget")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -77,6 +78,7 @@ class PSPRMSettings:
     expand_components: int = 12  # components (of >= 3 nodes, largest first) bridged per round
     query_repair_nodes: int = 60  # a query that finds no path grows this many nodes around its start and goals, once
     query_repair_radius: float = 0.8  # m around the start/goal base (half of them along its heading)
+    query_repair_budget: int = 1500  # at most this many nodes grown by query repairs per built/loaded roadmap
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -326,6 +328,7 @@ class PSPRM:
         self.graph: Optional[Roadmap] = None
         self._dead_edges: list = []
         self._dead_nodes: list = []
+        self._repairs, self._repair_added = 0, 0  # query repairs and the nodes they grew (reset with the roadmap)
         self.node_scores: Optional[np.ndarray] = None  # per node slot (NaN for query nodes)
         self._roadmap_mask = np.zeros(0, dtype=bool)  # node slots that are roadmap nodes (not start/goal queries)
         self.stats: dict = {}
@@ -422,6 +425,7 @@ class PSPRM:
         self.graph = g
         self._put_knots(edge_ids, eu.cpu().numpy(), *knots)
         self._dead_edges, self._dead_nodes = [], []
+        self._repairs, self._repair_added = 0, 0
         self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
         self._unverified, self._index = False, None
         self.node_scores = node_scores.double().cpu().numpy()
@@ -716,20 +720,26 @@ class PSPRM:
         :meth:`_plan_once`. When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next
         to a wall where the base cannot turn), the roadmap is repaired locally once: ``query_repair_nodes`` manifold
         nodes are grown around the start and each goal (up to 4), half of them along its heading (reachable by
-        driving straight), and the query is repeated. The new nodes stay in the roadmap."""
+        driving straight), and the query is repeated. The new nodes stay in the roadmap; ``query_repair_budget``
+        bounds their number, so a goal that stays unreachable cannot make a long-running planner grow without end."""
         res = self._plan_once(start, goals, timing, goal_costs)
         s = self.settings
-        if res.success or "reachable" not in res.reason or s.query_repair_nodes <= 0 or self.graph is None:
+        n = min(s.query_repair_nodes, s.query_repair_budget - self._repair_added)
+        if res.success or "reachable" not in res.reason or n <= 0 or self.graph is None:
             return res
         t0 = time.perf_counter()
-        self.query_repairs = getattr(self, "query_repairs", 0) + 1
-        rng = np.random.default_rng([s.seed, self.query_repairs])
+        self._repairs += 1
+        rng = np.random.default_rng([s.seed, self._repairs])
         ends = [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, self.robot.dof))[:4]
         added = 0
         for q in ends:
-            mobile = self.robot.mobile
-            added += self.grow(s.query_repair_nodes, center=q[:2] if mobile else None, radius=s.query_repair_radius,
-                               rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)["added_nodes"]
+            mobile, n = self.robot.mobile, min(n, s.query_repair_budget - self._repair_added)
+            if n <= 0:
+                break
+            got = self.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius, rng=rng, timeout_s=1.0,
+                            heading=float(q[2]) if mobile else None)["added_nodes"]
+            added += got
+            self._repair_added += got
         again = self._plan_once(start, goals, timing, goal_costs)
         again.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         if again.success:
@@ -1369,6 +1379,7 @@ class PSPRM:
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
         self._dead_edges, self._dead_nodes = [], []
+        self._repairs, self._repair_added = 0, 0
         self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
         self._roadmap_mask = np.ones(len(data["configs"]), dtype=bool)
         self._unverified = bool((data["verified"] < 0.5).any()) and not self.settings.lazy_edges
