@@ -152,6 +152,16 @@ class CollisionChecker:
                 bc[b] = 0.5 * (lo + hi)
                 br[b] = (np.linalg.norm(em.center[idx] - bc[b], axis=1) + np.linalg.norm(em.half[idx], axis=1)).max()
         self.bodies_with_elements = ti([b for b in range(NB) if len(self.body_elements[b])])
+        # body boxes (body frame, axis-aligned) enclosing each body's element boxes: a tighter test than the body
+        # sphere for long bodies (Stretch's base with its mast) before their elements are tested one by one
+        box_c, box_h = np.zeros((NB, 3)), np.zeros((NB, 3))
+        for b in range(NB):
+            idx = self.body_elements[b]
+            if len(idx):
+                ext = np.einsum("kij,kj->ki", np.abs(em.rotation[idx]), em.half[idx])
+                lo, hi = (em.center[idx] - ext).min(0), (em.center[idx] + ext).max(0)
+                box_c[b], box_h[b] = 0.5 * (lo + hi), 0.5 * (hi - lo)
+        self.body_box_c, self.body_box_h = t(box_c), t(box_h)
         self.body_c, self.body_r = t(bc), t(br)
         counts = np.array([len(self.body_elements[b]) for b in range(NB)])
         order = np.concatenate([self.body_elements[b] for b in range(NB)]) if E else np.zeros(0, int)
@@ -170,6 +180,14 @@ class CollisionChecker:
                     continue
                 pairs.append((a, b))
         self.self_pairs = ti(np.array(pairs, dtype=np.int64).reshape(-1, 2))
+        # planning joints each self pair's relative pose depends on: the joints of the bodies on the tree path
+        # between the two bodies (below their common ancestor), mapped through the drive matrix (mimic joints)
+        dep = np.zeros((len(pairs), robot.dof), dtype=bool)
+        drives = np.abs(np.asarray(robot.drive_matrix)) > 0  # (dof, NB)
+        for i, (a, b) in enumerate(pairs):
+            for body in _tree_path(robot.parent_body, int(em.element_body[a]), int(em.element_body[b])):
+                dep[i] |= drives[:, body]
+        self.pair_joints = torch.as_tensor(dep, device=self.device)
         self.lower = t(np.where(np.isfinite(robot.lower), robot.lower, -1e9))
         self.upper = t(np.where(np.isfinite(robot.upper), robot.upper, 1e9))
         if workspace is not None and robot.mobile:
@@ -245,7 +263,7 @@ class CollisionChecker:
     def _check_chunk(self, q: torch.Tensor) -> torch.Tensor:
         bad = self.limits_violated(q)
         poses = self.robot.body_poses(q)
-        return bad | self._env(poses) | self._self(poses)
+        return bad | self._env(poses) | self._self(poses, q)
 
     def _element_world(self, poses, b_idx: torch.Tensor, e_idx: torch.Tensor) -> tuple:
         R, t = poses
@@ -261,14 +279,33 @@ class CollisionChecker:
         if len(self.boxes) == 0:
             return hit
         bx = self.boxes
-        # level 1: body bounding spheres vs boxes, (B, NBe, K)
+        # level 0: the bounds of the robot's body spheres vs the boxes' world bounds, (B, K)
         bodies = self.bodies_with_elements
         bc = (R[:, bodies] * self.body_c[bodies].unsqueeze(-2)).sum(-1) + t[:, bodies]  # (B, NBe, 3)
-        d2 = point_boxes_sqdist(bc.reshape(-1, 3), bx).reshape(B, len(bodies), -1)
-        b_i, nb_i, k_i = torch.nonzero(d2 < self.body_r[bodies].unsqueeze(-1) ** 2, as_tuple=True)
+        rad = self.body_r[bodies].unsqueeze(-1)
+        lo, hi = (bc - rad).amin(1), (bc + rad).amax(1)  # (B, 3)
+        bb = bx.aabb()  # (K, 6)
+        near = ((lo.unsqueeze(1) <= bb[:, 3:]) & (hi.unsqueeze(1) >= bb[:, :3])).all(-1)  # (B, K)
+        c_b, c_k = torch.nonzero(near, as_tuple=True)
+        if len(c_b) == 0:
+            return hit
+        # level 1: body bounding spheres vs the candidate boxes, (C, NBe)
+        nbe = len(bodies)
+        pts = bc[c_b].reshape(-1, 3)
+        kk = c_k.repeat_interleave(nbe)
+        d2 = point_box_sqdist(pts, bx.center[kk], bx.rotation[kk], bx.half[kk]).reshape(-1, nbe)
+        c_i, nb_i = torch.nonzero(d2 < self.body_r[bodies] ** 2, as_tuple=True)
+        if len(c_i) == 0:
+            return hit
+        b_i, k_i = c_b[c_i], c_k[c_i]
+        body = bodies[nb_i]
+        # level 1b: the body's box vs the candidate box (exact OBB test, conservative for the elements inside)
+        Rbd = R[b_i, body]
+        cbd = (Rbd * self.body_box_c[body].unsqueeze(-2)).sum(-1) + t[b_i, body]
+        m = obb_overlap(cbd, Rbd, self.body_box_h[body], bx.center[k_i], bx.rotation[k_i], bx.half[k_i])
+        b_i, k_i, body = b_i[m], k_i[m], body[m]
         if len(b_i) == 0:
             return hit
-        body = bodies[nb_i]
         # level 2: the candidate bodies' elements (bounding spheres) vs the candidate box
         counts = self.body_el_count[body]
         rows = torch.repeat_interleave(torch.arange(len(body), device=self.device), counts)
@@ -276,17 +313,23 @@ class CollisionChecker:
                                                                                     counts)
         e = self.body_el_order[self.body_el_start[body][rows] + off]
         b2, k2 = b_i[rows], k_i[rows]
-        c, Re = self._element_world(poses, b2, e)
+        body_e = self.el_body[e]
+        Rb = R[b2, body_e]
+        c = (Rb * self.el_c[e].unsqueeze(-2)).sum(-1) + t[b2, body_e]
         m = point_box_sqdist(c, bx.center[k2], bx.rotation[k2], bx.half[k2]) < self.el_r[e] ** 2
-        b2, k2, e, c, Re = b2[m], k2[m], e[m], c[m], Re[m]
+        b2, k2, e, c = b2[m], k2[m], e[m], c[m]
         if len(b2) == 0:
             return hit
+        Re = Rb[m] @ self.el_R[e]  # element orientations only for the survivors
         # level 3: exact OBB overlap
         ov = obb_overlap(c, Re, self.el_h[e], bx.center[k2], bx.rotation[k2], bx.half[k2])
         hit[b2[ov]] = True
         return hit
 
-    def _self(self, poses) -> torch.Tensor:
+    def _self(self, poses, q: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Self-collision flags (B,). With ``q``, pairs whose relative pose depends only on joints that hold one
+        value over the whole batch (e.g. an arm kept at its template while the base and head move) are tested on
+        the first configuration only: their answer is the same for every row."""
         R, t = poses
         B = R.shape[0]
         hit = torch.zeros(B, dtype=torch.bool, device=self.device)
@@ -294,16 +337,57 @@ class CollisionChecker:
         if P == 0:
             return hit
         ea, eb = self.self_pairs[:, 0], self.self_pairs[:, 1]
-        # element centres for all configurations (B, E, 3) once, then pair distances (B, P)
-        body = self.el_body
-        c_all = (R[:, body] * self.el_c.unsqueeze(-2)).sum(-1) + t[:, body]
-        d2 = ((c_all[:, ea] - c_all[:, eb]) ** 2).sum(-1)
+        if q is not None and B > 1:
+            varying = (q != q[:1]).any(0)  # (dof,)
+            moving = (self.pair_joints & varying).any(-1)  # (P,) pairs whose relative pose changes in the batch
+            if not bool(moving.all()):
+                const = ~moving
+                first = (R[:1], t[:1])
+                if bool(self._pairs_overlap(first, ea[const], eb[const]).any()):
+                    hit[:] = True
+                    return hit
+                ea, eb = ea[moving], eb[moving]
+                if len(ea) == 0:
+                    return hit
+        b_i, ov = self._pairs_hits(poses, ea, eb)
+        hit[b_i[ov]] = True
+        return hit
+
+    def _pairs_overlap(self, poses, ea: torch.Tensor, eb: torch.Tensor) -> torch.Tensor:
+        """Overlap flags (B,) over the element pairs (ea, eb) for every configuration of ``poses``."""
+        B = poses[0].shape[0]
+        hit = torch.zeros(B, dtype=torch.bool, device=self.device)
+        if len(ea):
+            b_i, ov = self._pairs_hits(poses, ea, eb)
+            hit[b_i[ov]] = True
+        return hit
+
+    def _pairs_hits(self, poses, ea: torch.Tensor, eb: torch.Tensor) -> tuple:
+        """Bounding-sphere candidates (rows b_i, element pairs a, b) of the element pairs and their exact OBB
+        overlap flags."""
+        R, t = poses
+        # centres of the elements involved for all configurations (B, E', 3) once, then pair distances (B, P)
+        els, inv = torch.unique(torch.cat([ea, eb]), return_inverse=True)
+        body = self.el_body[els]
+        c = (R[:, body] * self.el_c[els].unsqueeze(-2)).sum(-1) + t[:, body]
+        d2 = ((c[:, inv[:len(ea)]] - c[:, inv[len(ea):]]) ** 2).sum(-1)
         b_i, p_i = torch.nonzero(d2 < (self.el_r[ea] + self.el_r[eb]) ** 2, as_tuple=True)
         if len(b_i) == 0:
-            return hit
+            return b_i, torch.zeros(0, dtype=torch.bool, device=self.device)
         a, b = ea[p_i], eb[p_i]
         ca, Ra = self._element_world(poses, b_i, a)
         cb, Rb = self._element_world(poses, b_i, b)
-        ov = obb_overlap(ca, Ra, self.el_h[a], cb, Rb, self.el_h[b])
-        hit[b_i[ov]] = True
-        return hit
+        return b_i, obb_overlap(ca, Ra, self.el_h[a], cb, Rb, self.el_h[b])
+
+
+def _tree_path(parent: list, a: int, b: int) -> list:
+    """Bodies on the kinematic-tree path between bodies ``a`` and ``b``, their common ancestor excluded: the
+    bodies whose joints change the relative pose of ``a`` and ``b``."""
+    up_a = [a]
+    while parent[up_a[-1]] >= 0:
+        up_a.append(parent[up_a[-1]])
+    up_b = [b]
+    while parent[up_b[-1]] >= 0:
+        up_b.append(parent[up_b[-1]])
+    common = set(up_a) & set(up_b)
+    return [x for x in up_a if x not in common] + [x for x in up_b if x not in common]

@@ -545,6 +545,16 @@ class RobotModel:
         for prismatic ones). With ``only`` (a root-first chain of bodies, e.g. :attr:`camera_chain`), only those
         bodies are computed; the others are left as zeros.
         """
+        Rs, ts = self._poses(q, only)
+        if only is not None:
+            zR = torch.zeros(q.shape[0], 3, 3, dtype=q.dtype, device=q.device)
+            zt = torch.zeros(q.shape[0], 3, dtype=q.dtype, device=q.device)
+            Rs = [r if r is not None else zR for r in Rs]
+            ts = [x if x is not None else zt for x in ts]
+        return torch.stack(Rs, 1), torch.stack(ts, 1)
+
+    def _poses(self, q: torch.Tensor, only: Optional[list] = None) -> tuple:
+        """Lists of world rotations (B, 3, 3) and translations (B, 3) per body (None outside ``only``)."""
         if q.dim() != 2 or q.shape[1] != self.dof:
             raise ValueError(f"expected q of shape (B, {self.dof}), got {tuple(q.shape)}")
         T = self.tensors(q.device, q.dtype)
@@ -569,22 +579,61 @@ class RobotModel:
                 Rs[b], ts[b] = Rj, tj + (Rj @ T["axis"][b]) * v.unsqueeze(-1)
             else:
                 Rs[b], ts[b] = Rj @ axis_angle_matrix_torch(T["axis"][b], v), tj
-        if only is not None:
-            zR, zt = torch.zeros_like(R0), torch.zeros_like(t0)
-            Rs = [r if r is not None else zR for r in Rs]
-            ts = [x if x is not None else zt for x in ts]
-        return torch.stack(Rs, 1), torch.stack(ts, 1)
+        return Rs, ts
 
     def camera_poses(self, q: torch.Tensor, body_poses: Optional[tuple] = None) -> torch.Tensor:
         """Camera optical-frame poses (B, 4, 4) in the scene frame."""
-        R, t = body_poses if body_poses is not None else self.body_poses(q, only=self.camera_chain)
+        if body_poses is not None:
+            Rb, tb = body_poses[0][:, self.camera_body], body_poses[1][:, self.camera_body]
+        else:  # the camera chain only
+            Rs, ts = self._poses(q, only=self.camera_chain)
+            Rb, tb = Rs[self.camera_body], ts[self.camera_body]
         T = self.tensors(q.device, q.dtype)
-        Rb, tb = R[:, self.camera_body], t[:, self.camera_body]
         out = torch.zeros(q.shape[0], 4, 4, dtype=q.dtype, device=q.device)
         out[:, :3, :3] = Rb @ T["cam_R"]
         out[:, :3, 3] = tb + (Rb @ T["cam_t"].unsqueeze(-1)).squeeze(-1)
         out[:, 3, 3] = 1
         return out
+
+    def camera_jacobian(self, q: torch.Tensor) -> tuple:
+        """Camera pose and its spatial Jacobian from one camera-chain forward kinematics pass.
+
+        Column i of the Jacobian is the world twist ``(omega_i, v0_i)`` that a unit rate of planning joint i gives
+        the camera's body: a world point x rigidly attached to the camera moves with ``omega_i x x + v0_i``. A
+        revolute joint with world axis a through o contributes ``(a, o x a)``, a prismatic one ``(0, a)``; the
+        mobile base's x / y are prismatic along the world axes and theta revolute about z through (x, y, 0). Mimic
+        couplings enter through the drive matrix D (body value = q D + offset).
+
+        Returns
+        -------
+        T : (B, 4, 4) camera optical-frame poses (as :meth:`camera_poses`).
+        W : (B, dof, 6) twists ``[omega, v0]`` per planning joint (zero for joints that do not move the camera).
+        """
+        Rs, ts = self._poses(q, only=self.camera_chain)
+        tens = self.tensors(q.device, q.dtype)
+        B, dev, dt = q.shape[0], q.device, q.dtype
+        Rb, tb = Rs[self.camera_body], ts[self.camera_body]
+        T = torch.zeros(B, 4, 4, dtype=dt, device=dev)
+        T[:, :3, :3] = Rb @ tens["cam_R"]
+        T[:, :3, 3] = tb + (Rb @ tens["cam_t"].unsqueeze(-1)).squeeze(-1)
+        T[:, 3, 3] = 1
+        chain = [b for b in self.camera_chain[1:] if self.body_joint[b] is not None]
+        W = torch.zeros(B, self.dof, 6, dtype=dt, device=dev)
+        if chain:
+            idx = torch.as_tensor(chain, device=dev)
+            a = (torch.stack([Rs[b] for b in chain], 1) @ tens["axis"][idx].unsqueeze(-1)).squeeze(-1)  # world axes
+            prism = torch.as_tensor([self.body_joint[b].type == "prismatic" for b in chain], device=dev)
+            omega = torch.where(prism[:, None], torch.zeros_like(a), a)
+            v0 = torch.where(prism[:, None], a, torch.linalg.cross(torch.stack([ts[b] for b in chain], 1), a))
+            # planning joint i drives body b with rate D[i, b]
+            W = W + torch.einsum("ib,Bbk->Bik", tens["D"][:, idx], torch.cat([omega, v0], -1))
+        if self.mobile:
+            W[:, 0, 3] += 1.0
+            W[:, 1, 4] += 1.0
+            W[:, 2, 2] += 1.0
+            W[:, 2, 3] += q[:, 1]  # (x, y, 0) x e_z = (y, -x, 0)
+            W[:, 2, 4] -= q[:, 0]
+        return T, W
 
     def link_poses(self, q: torch.Tensor, links: list) -> torch.Tensor:
         """Poses (B, len(links), 4, 4) of named links (any link of the URDF)."""

@@ -87,3 +87,42 @@ def test_checker_flags_limits_nan_and_moved_box(load_robot):
     assert checker.check(torch.as_tensor(qs)).tolist() == [False, True, True, True]
     checker.set_boxes([box])  # a box moves onto the robot
     assert bool(checker.check(torch.as_tensor(q[None]))[0])
+
+
+@pytest.mark.parametrize("robot_name", ["stretch2", "fetchlike", "ur5_mobile"])
+def test_batch_constant_self_pairs_match_row_by_row(robot_name, load_robot):
+    """Self pairs whose joints hold one value over a batch are tested once (on the first row). Batches that keep
+    all joints but a few fixed (as edge knots do: base and camera joints move, the arm stays) must give exactly the
+    row-by-row answer, in self-collision and out of it."""
+    robot = load_robot(robot_name)
+    scene = load_scene(resolve_named("scene", "home"))
+    checker = CollisionChecker(robot, scene.collision_boxes())
+    rng = np.random.default_rng(3)
+    qs = sample_uniform(robot, 440, rng, base_box=scene.workspace)
+    moving = [0, 1, 2, robot.dof - 1, robot.dof - 2]  # base and the last two joints vary within a batch
+    n_self = 0
+    for g in range(40):
+        batch = np.repeat(qs[g:g + 1], 10, axis=0)
+        batch[:, moving] = qs[40 + 10 * g:50 + 10 * g][:, moving]
+        qt = torch.as_tensor(batch, dtype=torch.float32)
+        together = checker.check(qt).numpy()
+        alone = np.array([bool(checker.check(qt[i:i + 1])[0]) for i in range(len(qt))])
+        assert np.array_equal(together, alone), f"batch {g}"
+        poses = robot.body_poses(qt)
+        n_self += int(checker._self(poses).sum())
+    assert n_self > 0  # some batches really are in self-collision through their constant pairs or moving ones
+
+
+def test_self_pair_dependencies_follow_the_tree(load_robot):
+    """A pair's relative pose depends on the joints between its bodies only: never on the mobile base."""
+    robot = load_robot("stretch2")
+    checker = CollisionChecker(robot, [])
+    dep = checker.pair_joints.numpy()
+    assert not dep[:, :3].any()  # x, y, theta move both bodies alike
+    assert dep.any(1).all()  # every checked pair has some joint between its bodies
+    pan = robot.joint_names.index("joint_head_pan")
+    em = robot.elements
+    for (a, b), d in zip(checker.self_pairs.numpy(), dep):
+        links = {em.link_names[em.element_link[a]], em.link_names[em.element_link[b]]}
+        if any("head_tilt" in x or "head_pan" in x for x in links) and not all("head" in x for x in links):
+            assert d[pan], links

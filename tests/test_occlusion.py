@@ -204,3 +204,22 @@ def test_front_facing_targets_cast_rays_to_their_front():
     plant = Target(name="plant", detector_class="potted plant", center=np.array([2.0, 0.0, 0.5]),
                    size=np.array([0.5, 0.5, 1.0]), appearance="potted_plant")
     assert OcclusionChecker.from_scene(_scene([], [plant]), "plant").target_points.shape == (15, 3)
+
+
+@pytest.mark.parametrize("count_inside", [True, False])
+def test_broad_phase_scores_equal_ray_by_ray(count_inside):
+    """occlusion_scores skips boxes that the camera -> target-centre segment misses once inflated by the target
+    points' radius. The scores must equal the fraction of blocked rays computed ray by ray (ray_hits), for cameras
+    all around a target among random boxes: near the target, behind boxes, inside boxes."""
+    rng = np.random.default_rng(7)
+    boxes = _random_boxes(rng, 20)
+    bt = boxes_to_tensors(boxes, dtype=torch.float64)
+    target = Target(name="t", detector_class="cup", center=np.array([0.3, -0.2, 0.4]), size=np.array([0.6, 0.3, 0.5]))
+    pts = torch.as_tensor(target_sample_points(target))
+    cams = torch.as_tensor(rng.uniform(-3, 3, (1500, 3)))
+    got = occlusion_scores(cams, pts, bt, count_inside=count_inside)
+    o = cams.repeat_interleave(len(pts), 0)
+    e = pts.repeat(len(cams), 1)
+    ref = ray_hits(o, e, bt, count_inside=count_inside).reshape(len(cams), len(pts)).double().mean(1)
+    assert torch.equal(got, ref)
+    assert 0.1 < (ref == 0).double().mean() < 0.9 and 0.05 < ((ref > 0) & (ref < 1)).double().mean()  # informative

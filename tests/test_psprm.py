@@ -52,6 +52,29 @@ def test_projection_reaches_the_manifold(kind, load_robot):
         assert (pc[:, 2] > 0.45).all() and (pc[:, :2].norm(dim=-1) < 0.011).all()
 
 
+@pytest.mark.parametrize("robot_name", ["stretch2", "fetchlike", "ur5_mobile"])
+@pytest.mark.parametrize("kind", ["line", "frustum"])
+def test_analytic_jacobian_matches_finite_differences(kind, robot_name, load_robot):
+    """The projection's analytic Jacobian of h_M (camera twists, Eq. of ``residual_jacobian``) equals central
+    differences of h_M for every planning joint: base, revolute, prismatic (Stretch's lift, Fetch's torso), in
+    float64, including frustum configurations with the target outside (active faces) and inside (flat)."""
+    robot = load_robot(robot_name)
+    c = VisibilityConstraint(robot, kind, [2.0, 1.0, 0.9], margin=0.05)
+    q = torch.as_tensor(sample_uniform(robot, 200, np.random.default_rng(1), base_box=np.array([[0, 4.0], [0, 3.0]])),
+                        dtype=torch.float64)
+    cols = torch.arange(robot.dof)
+    h, J = c.residual_jacobian(q, cols)
+    assert torch.allclose(h, c.residual(q))
+    eps, Jn = 1e-6, torch.zeros_like(J)
+    for i in range(robot.dof):
+        qp, qm = q.clone(), q.clone()
+        qp[:, i] += eps
+        qm[:, i] -= eps
+        Jn[:, :, i] = (c.residual(qp) - c.residual(qm)) / (2 * eps)
+    assert J.abs().max() > 0.5  # the camera really moves
+    assert (J - Jn).abs().max() < 1e-5
+
+
 def test_path_is_collision_free_drivable_and_timed(home):
     scene, robot, planner = home
     start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))

@@ -327,12 +327,28 @@ def occlusion_scores(cameras: torch.Tensor, target_points: torch.Tensor, boxes: 
         return torch.zeros(b, dtype=pos.dtype, device=pos.device)
     boxes = boxes.to(pos.device, pos.dtype)
     pts_local = _to_local(pts, boxes).unsqueeze(0)  # (1, M, K, 3)
-    out = torch.empty(b, dtype=pos.dtype, device=pos.device)
+    # broad phase: every ray camera -> p_i stays within r = max |p_i - centre| of the segment camera -> centre
+    # (the point at parameter s is s |p_i - centre| away), so a box the centre segment misses once inflated by r
+    # (half extents + r contain the box's Minkowski sum with that ball) blocks none of the camera's rays
+    centre = pts.mean(0)
+    r = (pts - centre).norm(dim=-1).max()
+    centre_local = _to_local(centre, boxes)  # (K, 3)
+    fat_half = boxes.half_extents + r
+    out = torch.zeros(b, dtype=pos.dtype, device=pos.device)
     step = _chunk_rows(b, m * boxes.count, chunk_elements)
     for s in range(0, b, step):
-        o = _to_local(pos[s:s + step], boxes).unsqueeze(1)  # (b, 1, K, 3)
-        hits = _slab_hits(o, pts_local - o, boxes.half_extents, count_inside).any(dim=-1)  # (b, M)
-        out[s:s + step] = hits.to(pos.dtype).mean(dim=1)
+        o = _to_local(pos[s:s + step], boxes)  # (b, K, 3)
+        near = _slab_hits(o, centre_local - o, fat_half, True)  # (b, K)
+        ci, ki = torch.nonzero(near, as_tuple=True)
+        if len(ci) == 0:
+            continue
+        # narrow phase: the M rays of each candidate (camera, box) pair against that box only
+        oc = o[ci, ki].unsqueeze(1)  # (P, 1, 3)
+        hit = _slab_hits(oc, pts_local[0, :, ki].transpose(0, 1) - oc, boxes.half_extents[ki].unsqueeze(1),
+                         count_inside)  # (P, M)
+        blocked = torch.zeros(o.shape[0], m, dtype=torch.int32, device=pos.device)
+        blocked.index_add_(0, ci, hit.to(torch.int32))
+        out[s:s + o.shape[0]] = (blocked > 0).to(pos.dtype).mean(dim=1)
     return out
 
 

@@ -96,6 +96,38 @@ class VisibilityConstraint:
         ], -1)
         return d.max(-1).values + self.margin
 
+    def residual_jacobian(self, q: torch.Tensor, cols: torch.Tensor) -> tuple:
+        """h_M(q) (B, m) and its analytic Jacobian (B, m, k) with respect to the planning joints ``cols``.
+
+        With the camera pose (R_c, t_c) and its twists (omega_i, v0_i) (:meth:`RobotModel.camera_jacobian`), the
+        target's optical-frame position p_c = R_c^T (p - t_c) moves as d p_c / d q_i = -R_c^T (omega_i x p + v0_i).
+        The line residual's third row (how far the target is short of the minimum distance) and the frustum
+        residual (the largest face distance, Eq. of :meth:`frustum_distance`) differentiate where they are active
+        and are flat elsewhere (the subgradient of the clamp / max)."""
+        T, W = self.robot.camera_jacobian(q)
+        Rc, tc = T[:, :3, :3], T[:, :3, 3]
+        p = self.target.to(q.device, q.dtype)
+        pc = ((p - tc).unsqueeze(1) @ Rc).squeeze(1)
+        Wk = W[:, cols]  # (B, k, 6)
+        vel = torch.linalg.cross(Wk[..., :3], p.expand_as(Wk[..., :3])) + Wk[..., 3:]  # (B, k, 3) world
+        dpc = -(vel @ Rc).transpose(1, 2)  # (B, 3, k): R_c^T vel, per column
+        h = self.residual_from_camera_points(pc)
+        if self.kind == "line":
+            active = (self.min_distance - pc[:, 2] > 0).to(q.dtype)
+            J = torch.stack([dpc[:, 0], dpc[:, 1], -dpc[:, 2] * active.unsqueeze(-1)], 1)
+            return h, J
+        th, tv = self.intr.tan_half_h, self.intr.tan_half_v
+        nh, nv = math.sqrt(1 + th * th), math.sqrt(1 + tv * tv)
+        G = torch.tensor([[1 / nh, 0, -th / nh], [-1 / nh, 0, -th / nh], [0, 1 / nv, -tv / nv],
+                          [0, -1 / nv, -tv / nv], [0, 0, -1.0], [0, 0, 1.0]], dtype=q.dtype, device=q.device)
+        x, y, z = pc[:, 0], pc[:, 1], pc[:, 2]
+        d = torch.stack([(x - th * z) / nh, (-x - th * z) / nh, (y - tv * z) / nv, (-y - tv * z) / nv,
+                         self.min_distance - z, z - self.intr.far], -1)
+        face = d.argmax(-1)
+        active = (h[:, 0] > 0).to(q.dtype)
+        J = (G[face].unsqueeze(1) @ dpc) * active[:, None, None]  # (B, 1, k)
+        return h, J
+
     def error(self, q: torch.Tensor) -> torch.Tensor:
         """|h_M(q)| (B,)."""
         return self.residual(q).norm(dim=-1)
@@ -134,19 +166,12 @@ class VisibilityConstraint:
                                dtype=torch.long, device=q.device)
         if len(cols) == 0:
             return q.detach().clone(), self.error(q).detach() < settings.tolerance
-        eps = 1e-3 if q.dtype == torch.float32 else 1e-6
         for _ in range(settings.max_iters):
             idx = torch.nonzero(active, as_tuple=True)[0]
             if len(idx) == 0:
                 break
             qa = q[idx]
-            n, m, k = len(idx), self.dim, len(cols)
-            # one batched FK for the point and its forward perturbations along the camera joints
-            pert = qa.unsqueeze(1).repeat(1, k + 1, 1)
-            pert[:, 1:, cols] += eps * torch.eye(k, dtype=q.dtype, device=q.device)
-            hh = self.residual(pert.reshape(-1, q.shape[1])).reshape(n, k + 1, m)
-            h = hh[:, 0]
-            J = ((hh[:, 1:] - h.unsqueeze(1)) / eps).transpose(1, 2)  # (n, m, k)
+            h, J = self.residual_jacobian(qa, cols)  # (n, m), (n, m, k): one camera-chain FK per step
             err = h.norm(dim=-1)
             done = err < settings.tolerance
             JJt = J @ J.transpose(1, 2) + settings.damping * eye

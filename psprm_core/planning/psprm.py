@@ -407,7 +407,7 @@ class PSPRM:
         t_score = time.perf_counter() - t2
         t1 = time.perf_counter()
         eu, ev, dist = self._neighbours(Q, Q, s.k_neighbors, exclude_self=True, k_long=s.k_long, rng=rng)
-        valid, p_edge, knots = self._edges_valid(Q[eu], Q[ev])
+        valid, p_edge, knots = self._edges_valid(Q[eu], Q[ev], end_scores=(node_scores[eu], node_scores[ev]))
         eu, ev, dist, p_edge = eu[valid], ev[valid], dist[valid], p_edge[valid]
         if s.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
             p_edge = edge_perception(self._normalized(node_scores[eu]), self._normalized(node_scores[ev]))
@@ -646,9 +646,11 @@ class PSPRM:
             ok &= seg_ok.reshape(E, M - 1).all(-1)
         return ok
 
-    def _edges_valid(self, qa: torch.Tensor, qb: torch.Tensor, chunk: int = 4096) -> tuple:
+    def _edges_valid(self, qa: torch.Tensor, qb: torch.Tensor, chunk: int = 4096,
+                     end_scores: Optional[tuple] = None) -> tuple:
         """Valid flags (E,), Eq. 1 perception (E,) of local motions (NaN where invalid) and the knots of the valid
-        ones (V, M, dof)."""
+        ones (V, M, dof). ``end_scores``: raw scores (E,) of ``qa`` and ``qb`` when known (the roadmap's node
+        scores), so that only the N interior samples of each edge are scored."""
         ok = torch.zeros(qa.shape[0], dtype=torch.bool, device=self.device)
         p = torch.full((qa.shape[0],), float("nan"), dtype=self.dtype, device=self.device)
         kept, kept_i = [], []
@@ -664,7 +666,9 @@ class PSPRM:
             kept.append(knots[v])
             kept_i.append(interior[v])
             if not self.settings.lazy_edges and v.any():
-                p[s0:s0 + chunk][v] = self._knots_perception(knots[v], interior[v])
+                ends = None if end_scores is None else \
+                    tuple(e[s0:s0 + chunk][v].to(self.device, self.dtype) for e in end_scores)
+                p[s0:s0 + chunk][v] = self._knots_perception(knots[v], interior[v], ends=ends)
         dof = self.robot.dof
         if not kept:
             return ok, p, (torch.zeros(0, 2, dof, dtype=self.dtype, device=self.device),
@@ -684,9 +688,15 @@ class PSPRM:
         return self.robot.camera_poses(pts.reshape(-1, dof)).reshape(E, n + 2, 4, 4)
 
     def _knots_perception(self, knots: torch.Tensor, interior: torch.Tensor,
-                          cams: Optional[torch.Tensor] = None) -> torch.Tensor:
+                          cams: Optional[torch.Tensor] = None, ends: Optional[tuple] = None) -> torch.Tensor:
         """Eq. 1 from knots (or their cached Eq. 1 camera poses): mean normalised score of both ends and the N
-        interior samples."""
+        interior samples. ``ends``: the raw scores (E,) of both ends when already known (only the interior samples
+        are then scored)."""
+        if ends is not None and cams is None:
+            E, M, dof = knots.shape
+            inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, dof)).reshape(-1, dof)
+            sc = self.scorer.score(self.robot.camera_poses(inner)).to(self.dtype).reshape(E, -1)
+            return edge_perception(self._normalized(ends[0]), self._normalized(ends[1]), self._normalized(sc))
         if cams is None:
             cams = self._eq1_cameras(knots, interior)
         E, P = cams.shape[:2]
@@ -1320,7 +1330,7 @@ class PSPRM:
         added = 0
         if len(sel):
             qa, qb = Qn[eu[sel]], Qall[ev[sel]]
-            valid, p_edge, knots = self._edges_valid(qa, qb)
+            valid, p_edge, knots = self._edges_valid(qa, qb)  # old nodes' scores may predate a scene change
             if s.lazy_edges:
                 sc = self._t(scores)
                 p_edge = edge_perception(self._normalized(sc[u_ids[sel]]), self._normalized(sc[v_ids[sel]]))
