@@ -184,6 +184,80 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
     }
 
 
+class _TimedScorer:
+    """Wraps a scorer: counts the views it scores and the seconds spent in it (the planner sees the same scorer)."""
+
+    def __init__(self, inner):
+        self.inner, self.views, self.seconds = inner, 0, 0.0
+
+    def score(self, cameras):
+        t0 = time.perf_counter()
+        out = self.inner.score(cameras)
+        self.seconds += time.perf_counter() - t0
+        self.views += int(cameras.shape[0])
+        return out
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
+def preprocess_benchmark(scene_name: str = "home", target: str | None = None, nodes: int = 3000,
+                         oracle_nodes: int = 30, seed: int = 0, threads: int = 2) -> dict:
+    """Preprocessing of oracle-free (neural) PS-PRM against oracle PS-PRM (the paper's ~10x, Sec. V).
+
+    Both variants build the same kind of roadmap with every edge scored at build time (Eq. 1 over both ends and the
+    N interior samples; ``lazy_edges`` off): the neural scorer (surrogate + ray-cast occlusion) and the oracle
+    (render + real detector). The oracle roadmap is built for real at ``oracle_nodes`` nodes and compared with a
+    neural build of the same size (same seed, same node count: a measured ratio). At ``nodes`` the oracle build
+    is extrapolated from the measured geometry time of the neural build plus the views it scored times the
+    oracle's measured seconds per view.
+    """
+    import dataclasses
+
+    from .paths import config_dir, resolve_named
+    from .planning.factory import make_scorer
+    from .planning.psprm import PSPRM, PSPRMSettings
+    from .robot import RobotModel
+    from .scene import load_scene
+
+    torch.set_num_threads(threads)
+    scene = load_scene(resolve_named("scene", scene_name))
+    robot = RobotModel.load(scene.robot)
+    target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
+    base = PSPRMSettings.from_yaml(config_dir() / "planners" / "psprm.yaml", robot=robot.name)
+    focus = scene.target(target).center
+
+    def build(kind: str, n: int) -> dict:
+        settings = dataclasses.replace(base, constraint="line", alpha=0.75 if kind == "oracle" else 0.8,
+                                       lazy_edges=False, n_nodes=n, seed=seed, expand_rounds=0)
+        scorer = _TimedScorer(make_scorer(kind, scene, [target], robot.config.intrinsics))
+        p = PSPRM(robot, scene, scorer, focus, settings)
+        st = p.build()
+        if not st.get("success"):
+            raise RuntimeError(f"{kind} roadmap of {n} nodes failed: {st.get('reason')}")
+        return {"build_s": st["build_s"], "views": scorer.views, "scoring_s": scorer.seconds,
+                "n_nodes": st["n_nodes"], "n_edges": st["n_edges"]}
+
+    neural = build("neural", nodes)
+    neural_small = build("neural", oracle_nodes)
+    oracle_small = build("oracle", oracle_nodes)
+    per_view = oracle_small["scoring_s"] / max(1, oracle_small["views"])
+    oracle_full_est = neural["build_s"] - neural["scoring_s"] + neural["views"] * per_view
+    return {
+        "scene": scene.name, "target": target, "threads": threads, "nodes": nodes, "oracle_nodes": oracle_nodes,
+        "neural_build_s": neural["build_s"], "neural_views": neural["views"], "neural_scoring_s": neural["scoring_s"],
+        "neural_nodes": neural["n_nodes"], "neural_edges": neural["n_edges"],
+        "small_oracle_nodes": oracle_small["n_nodes"],
+        "small_neural_build_s": neural_small["build_s"], "small_oracle_build_s": oracle_small["build_s"],
+        "small_oracle_views": oracle_small["views"], "small_edges": oracle_small["n_edges"],
+        "oracle_s_per_view": per_view,
+        "neural_s_per_view": neural["scoring_s"] / max(1, neural["views"]),
+        "ratio_measured_small": oracle_small["build_s"] / max(neural_small["build_s"], 1e-9),
+        "oracle_build_s_extrapolated": oracle_full_est,
+        "ratio_extrapolated": oracle_full_est / max(neural["build_s"], 1e-9),
+    }
+
+
 def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames: int = 12) -> dict:
     """Judge an executed path with the real detector: ``frames`` camera frames evenly spaced along ``dense``.
 

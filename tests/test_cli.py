@@ -65,3 +65,16 @@ def test_perf_planner_json(capsys):
     for key in ("build_s", "query_ms", "query_p95_ms", "success_rate", "n_nodes", "n_edges"):
         assert key in res
     assert res["n_nodes"] == 300 and res["queries"] == 3
+
+
+def test_perf_preprocess_oracle_vs_neural(capsys):
+    """Both scorers build a roadmap with every edge scored; each build scores its nodes once and the N = 5 interior
+    samples of every kept edge (edge ends reuse the node scores), and the oracle (render + real detector) costs
+    far more per view than the surrogate with ray casting."""
+    assert main(["perf", "preprocess", "--scene", "home", "--target", "tv", "--nodes", "120", "--oracle-nodes", "6",
+                 "--threads", "1", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["neural_views"] == res["neural_nodes"] + 5 * res["neural_edges"]
+    assert res["small_oracle_views"] == res["small_oracle_nodes"] + 5 * res["small_edges"]
+    assert res["oracle_s_per_view"] > 100 * res["neural_s_per_view"]
+    assert res["ratio_measured_small"] > 1 and res["oracle_build_s_extrapolated"] > res["neural_build_s"]

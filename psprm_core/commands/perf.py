@@ -41,6 +41,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     cp.add_argument("--threads", type=int, default=2)
     cp.add_argument("--json", action="store_true")
     cp.set_defaults(func=_compare)
+    pp = ps.add_parser("preprocess", help="preprocessing of neural vs oracle PS-PRM (every edge scored at build): "
+                                          "a measured ratio at --oracle-nodes, extrapolated to --nodes")
+    pp.add_argument("--scene", default="home")
+    pp.add_argument("--target", default=None)
+    pp.add_argument("--nodes", type=int, default=3000)
+    pp.add_argument("--oracle-nodes", type=int, default=30, help="size of the roadmaps built with both scorers")
+    pp.add_argument("--seed", type=int, default=0)
+    pp.add_argument("--threads", type=int, default=2)
+    pp.add_argument("--json", action="store_true")
+    pp.set_defaults(func=_preprocess)
     rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
                                       "until a verified path), and the cost of a full re-score")
     rp.add_argument("--scene", default="dynamic_person")
@@ -95,4 +105,12 @@ def _compare(args) -> int:
                                      frames=args.frames, seed=args.seed, threads=args.threads, target=args.target,
                                      oracle_problems=args.oracle_problems)
     print(json.dumps(res) if args.json else json.dumps(res, indent=2))
+    return 0
+
+
+def _preprocess(args) -> int:
+    from ..benchmarks import preprocess_benchmark
+
+    _print(preprocess_benchmark(args.scene, args.target, nodes=args.nodes, oracle_nodes=args.oracle_nodes,
+                                seed=args.seed, threads=args.threads), args.json)
     return 0
