@@ -367,6 +367,43 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     assert p.n_roadmap_nodes == before
 
 
+def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, monkeypatch):
+    """The repeated query after a repair connects each end to every node grown for it (heading-line nodes rank far
+    under the motion metric when the camera joints must re-aim) and to ``query_repair_connect_k`` nearest nodes;
+    a grown node already among the nearest is not connected twice."""
+    p = replanner.planner
+    q, goals = replanner.q, replanner.goals
+    real_once, real_add = p._plan_once, p._add_query_edges
+    seen, calls = [], []
+
+    def record(qa, qb, ua, vb, *a, **k):
+        seen.append((np.asarray(ua).copy(), np.asarray(vb).copy()))
+        return real_add(qa, qb, ua, vb, *a, **k)
+
+    def first_fails(*a, **k):
+        calls.append((k.get("extra_candidates"), p.settings.connect_k))
+        if len(calls) == 1:
+            return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
+        seen.clear()
+        return real_once(*a, **k)
+
+    monkeypatch.setattr(p, "_add_query_edges", record)
+    monkeypatch.setattr(p, "_plan_once", first_fails)
+    k0 = p.settings.connect_k
+    res = p.plan(q, goals, timing=False)
+    assert res.success and len(calls) == 2
+    extra, k_used = calls[1]
+    assert k_used == max(k0, p.settings.query_repair_connect_k) and p.settings.connect_k == k0  # restored
+    assert set(extra) == {0} | {1 + k for k in range(min(4, len(goals)))}
+    start_id = min(int(u.min()) for u, _ in seen)  # the query's own nodes come first: the start has the lowest id
+    ua = np.concatenate([u for u, _ in seen])
+    vb = np.concatenate([v for _, v in seen])
+    from_start = set(vb[ua == start_id].tolist())
+    assert set(extra[0].tolist()) <= from_start  # every node grown around the start is one of its candidates
+    pairs = list(zip(ua.tolist(), vb.tolist()))
+    assert len(pairs) == len(set(pairs))  # no query edge twice
+
+
 def test_goal_hysteresis_keeps_the_current_goal(replanner, world):
     scene, robot = world
     rp = replanner

@@ -47,7 +47,7 @@ SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces to
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
-                  "query_repair_budget")
+                  "query_repair_budget", "query_repair_connect_k")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -79,6 +79,7 @@ class PSPRMSettings:
     query_repair_nodes: int = 60  # a query that finds no path grows this many nodes around its start and goals, once
     query_repair_radius: float = 0.8  # m around the start/goal base (half of them along its heading)
     query_repair_budget: int = 1500  # at most this many nodes grown by query repairs per built/loaded roadmap
+    query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -730,7 +731,7 @@ class PSPRM:
         :meth:`_plan_once`. When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next
         to a wall where the base cannot turn), the roadmap is repaired locally once: ``query_repair_nodes`` manifold
         nodes are grown around the start and each goal (up to 4), half of them along its heading (reachable by
-        driving straight), and the query is repeated. The new nodes stay in the roadmap; ``query_repair_budget``
+        driving straight), and the query is repeated with ``query_repair_connect_k`` neighbours. The new nodes stay in the roadmap; ``query_repair_budget``
         bounds their number, so a goal that stays unreachable cannot make a long-running planner grow without end."""
         res = self._plan_once(start, goals, timing, goal_costs)
         s = self.settings
@@ -741,16 +742,25 @@ class PSPRM:
         self._repairs += 1
         rng = np.random.default_rng([s.seed, self._repairs])
         ends = [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, self.robot.dof))[:4]
-        added = 0
-        for q in ends:
+        added, grown = 0, {}
+        for k, q in enumerate(ends):
             mobile, n = self.robot.mobile, min(n, s.query_repair_budget - self._repair_added)
             if n <= 0:
                 break
-            got = self.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius, rng=rng, timeout_s=1.0,
-                            heading=float(q[2]) if mobile else None)["added_nodes"]
-            added += got
-            self._repair_added += got
-        again = self._plan_once(start, goals, timing, goal_costs)
+            out = self.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius, rng=rng,
+                            timeout_s=1.0, heading=float(q[2]) if mobile else None)
+            added += out["added_nodes"]
+            self._repair_added += out["added_nodes"]
+            grown[k] = out["node_ids"]
+        # the repaired query also tries more neighbours: an end in a tight spot (a goal grazing a table, reachable
+        # only by turning one way) may have its few valid edges just beyond the connect_k nearest nodes
+        # and every node grown for an end is a candidate of that end: the nodes on its heading line are reachable by
+        # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
+        self.settings = dataclasses.replace(s, connect_k=max(s.connect_k, s.query_repair_connect_k))
+        try:
+            again = self._plan_once(start, goals, timing, goal_costs, extra_candidates=grown)
+        finally:
+            self.settings = s
         again.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         if again.success:
             again.reason = f"ok after a local roadmap repair ({added} nodes)"
@@ -758,8 +768,12 @@ class PSPRM:
         return again
 
     def _plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
-                   goal_costs: Optional[np.ndarray] = None) -> PlanResult:
+                   goal_costs: Optional[np.ndarray] = None,
+                   extra_candidates: Optional[dict] = None) -> PlanResult:
         """One query: connect start and goals to the roadmap and search (no repair).
+
+        ``extra_candidates``: roadmap node ids tried as connections in addition to the ``connect_k`` nearest, per end
+        (key 0: the start, 1 + k: goal k).
 
         ``goal_costs`` (G,), optional: a non-negative terminal cost added to the path cost (Eq. 2 units) of reaching
         each goal, so one search picks the goal minimising path cost + terminal cost (the replanner's goal hysteresis).
@@ -818,6 +832,23 @@ class PSPRM:
                 nk = min(QUERY_FALLBACK_K, kk)
                 pick = cand_d[lonely].topk(nk, largest=False).indices + torch.nonzero(lonely)[:, :1] * kk
                 within[pick.reshape(-1)] = True
+            if extra_candidates:
+                pos = {int(nid): i for i, nid in enumerate(rm_ids)}
+                taken = {(queries[i][1], v_ids[j]) for j, i in enumerate(src.tolist())}
+                ex_q, ex_r = [], []
+                for qi, (k, qid) in enumerate(queries):
+                    for nid in np.asarray(extra_candidates.get(k, ()), dtype=np.int64).tolist():
+                        if nid in pos and (qid, nid) not in taken:
+                            ex_q.append(qi)
+                            ex_r.append(pos[nid])
+                            taken.add((qid, nid))
+                if ex_q:
+                    ea, eb = qq[ex_q], rm[ex_r]
+                    qa, qb = torch.cat([qa, ea]), torch.cat([qb, eb])
+                    u_ids += [queries[i][1] for i in ex_q]
+                    v_ids += rm_ids[np.asarray(ex_r)].tolist()
+                    dist = torch.cat([dist, self.motion.distance(ea, eb)])
+                    within = torch.cat([within, torch.ones(len(ex_q), dtype=torch.bool, device=within.device)])
             near = torch.nonzero(within, as_tuple=True)[0]
             if len(near) and self.settings.lazy_collision:
                 # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
@@ -1304,7 +1335,7 @@ class PSPRM:
             got.append(q)
             have += len(q)
         if have == 0:
-            return {"added_nodes": 0, "added_edges": 0}
+            return {"added_nodes": 0, "added_edges": 0, "node_ids": np.zeros(0, dtype=np.int64)}
         Qn = torch.cat(got)[:n]
         old_ids = self.roadmap_node_ids()
         new_ids = g.add_nodes(Qn.double().cpu().numpy())
@@ -1345,7 +1376,8 @@ class PSPRM:
             self._put_knots(eids, u_ids[sel][v], *knots)
             added = int(v.sum())
         self._index = None
-        return {"added_nodes": int(len(new_ids)), "added_edges": added, "grow_ms": (time.perf_counter() - t0) * 1e3}
+        return {"added_nodes": int(len(new_ids)), "added_edges": added, "grow_ms": (time.perf_counter() - t0) * 1e3,
+                "node_ids": np.asarray(new_ids, dtype=np.int64)}
 
     # ---- persistence -----------------------------------------------------------------------------------------------
     def fingerprint(self) -> str:
