@@ -404,6 +404,39 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     assert len(pairs) == len(set(pairs))  # no query edge twice
 
 
+def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
+    """With query_repair_rounds = 3, a query that stays unreachable after a repair is repaired again with 1.5x the
+    radius, and stops as soon as it succeeds; the grown nodes of earlier rounds stay candidates."""
+    p = replanner.planner
+    q, goals = replanner.q, replanner.goals
+    real_once, real_grow = p._plan_once, p.grow
+    radii, extras = [], []
+
+    def grow(n, **kw):
+        radii.append(kw["radius"])
+        return real_grow(n, **kw)
+
+    def fails_twice(*a, **k):
+        extras.append({e: ids.copy() for e, ids in (k.get("extra_candidates") or {}).items()})
+        if len(extras) <= 2:
+            return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
+        return real_once(*a, **k)
+
+    monkeypatch.setattr(p, "grow", grow)
+    monkeypatch.setattr(p, "_plan_once", fails_twice)
+    s0 = p.settings
+    p.settings = dataclasses.replace(s0, query_repair_rounds=3, query_repair_budget=p._repair_added + 10_000)
+    try:
+        res = p.plan(q, goals, timing=False)
+    finally:
+        p.settings = s0
+    assert res.success and len(extras) == 3  # first query + two repaired ones
+    ends = 1 + min(4, len(goals))
+    r0 = s0.query_repair_radius
+    assert radii == pytest.approx([r0] * ends + [1.5 * r0] * ends)
+    assert all(set(extras[1][k].tolist()) < set(extras[2][k].tolist()) for k in extras[1])  # accumulated
+
+
 def test_goal_hysteresis_keeps_the_current_goal(replanner, world):
     scene, robot = world
     rp = replanner

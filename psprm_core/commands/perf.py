@@ -26,6 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--seed", type=int, default=0)
     pl.add_argument("--heuristic", choices=["hop", "exact"], default=None, help="A* heuristic (default: settings)")
     pl.add_argument("--threads", type=int, default=2)
+    pl.add_argument("--unaimed", action="store_true", help="ends not required to face the target (see benchmarks)")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=_planner)
     cp = ps.add_parser("compare", help="success over random problems and oracle-judged perception: PS-PRM vs the "
@@ -39,6 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cp.add_argument("--frames", type=int, default=12, help="oracle frames per path")
     cp.add_argument("--seed", type=int, default=0)
     cp.add_argument("--threads", type=int, default=2)
+    cp.add_argument("--unaimed", action="store_true", help="ends not required to face the target (see benchmarks)")
     cp.add_argument("--json", action="store_true")
     cp.set_defaults(func=_compare)
     pp = ps.add_parser("preprocess", help="preprocessing of neural vs oracle PS-PRM (every edge scored at build): "
@@ -94,7 +96,8 @@ def _planner(args) -> int:
     from ..benchmarks import planner_benchmark
 
     _print(planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
-                             threads=args.threads, target=args.target, heuristic=args.heuristic), args.json)
+                             threads=args.threads, target=args.target, heuristic=args.heuristic,
+                             aimed=not args.unaimed), args.json)
     return 0
 
 
@@ -103,7 +106,7 @@ def _compare(args) -> int:
 
     res = compare_with_shortest_path(args.scene, args.planner, nodes=args.nodes, problems=args.problems,
                                      frames=args.frames, seed=args.seed, threads=args.threads, target=args.target,
-                                     oracle_problems=args.oracle_problems)
+                                     oracle_problems=args.oracle_problems, aimed=not args.unaimed)
     print(json.dumps(res) if args.json else json.dumps(res, indent=2))
     return 0
 

@@ -47,7 +47,7 @@ SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces to
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
-                  "query_repair_budget", "query_repair_connect_k")
+                  "query_repair_budget", "query_repair_connect_k", "query_repair_rounds")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -80,6 +80,7 @@ class PSPRMSettings:
     query_repair_radius: float = 0.8  # m around the start/goal base (half of them along its heading)
     query_repair_budget: int = 1500  # at most this many nodes grown by query repairs per built/loaded roadmap
     query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
+    query_repair_rounds: int = 1  # repair rounds of a failing query (radius x 1.5 each round), within the budget
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -728,39 +729,49 @@ class PSPRM:
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
              goal_costs: Optional[np.ndarray] = None) -> PlanResult:
         """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see
-        :meth:`_plan_once`. When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next
-        to a wall where the base cannot turn), the roadmap is repaired locally once: ``query_repair_nodes`` manifold
-        nodes are grown around the start and each goal (up to 4), half of them along its heading (reachable by
-        driving straight), and the query is repeated with ``query_repair_connect_k`` neighbours. The new nodes stay in the roadmap; ``query_repair_budget``
-        bounds their number, so a goal that stays unreachable cannot make a long-running planner grow without end."""
+        :meth:`_plan_once`.
+
+        When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next to a wall where the
+        base cannot turn), the roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
+        start and each goal (up to 4), half of them along its heading (reachable by driving straight), and the query
+        is repeated, connecting each end to every node grown for it and to its ``query_repair_connect_k`` nearest
+        nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The new nodes stay in
+        the roadmap; ``query_repair_budget`` bounds their number, so a goal that stays unreachable cannot make a
+        long-running planner grow without end."""
         res = self._plan_once(start, goals, timing, goal_costs)
         s = self.settings
-        n = min(s.query_repair_nodes, s.query_repair_budget - self._repair_added)
-        if res.success or "reachable" not in res.reason or n <= 0 or self.graph is None:
+        if res.success or "reachable" not in res.reason or self.graph is None:
             return res
         t0 = time.perf_counter()
-        self._repairs += 1
-        rng = np.random.default_rng([s.seed, self._repairs])
         ends = [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, self.robot.dof))[:4]
-        added, grown = 0, {}
-        for k, q in enumerate(ends):
-            mobile, n = self.robot.mobile, min(n, s.query_repair_budget - self._repair_added)
-            if n <= 0:
+        added, grown, again = 0, {}, None
+        mobile = self.robot.mobile
+        for r in range(max(1, s.query_repair_rounds)):
+            if s.query_repair_budget - self._repair_added <= 0 or s.query_repair_nodes <= 0:
                 break
-            out = self.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius, rng=rng,
-                            timeout_s=1.0, heading=float(q[2]) if mobile else None)
-            added += out["added_nodes"]
-            self._repair_added += out["added_nodes"]
-            grown[k] = out["node_ids"]
-        # the repaired query also tries more neighbours: an end in a tight spot (a goal grazing a table, reachable
-        # only by turning one way) may have its few valid edges just beyond the connect_k nearest nodes
-        # and every node grown for an end is a candidate of that end: the nodes on its heading line are reachable by
-        # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
-        self.settings = dataclasses.replace(s, connect_k=max(s.connect_k, s.query_repair_connect_k))
-        try:
-            again = self._plan_once(start, goals, timing, goal_costs, extra_candidates=grown)
-        finally:
-            self.settings = s
+            self._repairs += 1
+            rng = np.random.default_rng([s.seed, self._repairs])
+            for k, q in enumerate(ends):
+                n = min(s.query_repair_nodes, s.query_repair_budget - self._repair_added)
+                if n <= 0:
+                    break
+                out = self.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius * 1.5 ** r,
+                                rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)
+                added += out["added_nodes"]
+                self._repair_added += out["added_nodes"]
+                grown[k] = np.concatenate([grown.get(k, np.zeros(0, dtype=np.int64)), out["node_ids"]])
+            # an end in a tight spot (a goal grazing a table, reachable only by turning one way) may have its few
+            # valid edges beyond the connect_k nearest nodes; the nodes grown on its heading line are reachable by
+            # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
+            self.settings = dataclasses.replace(s, connect_k=max(s.connect_k, s.query_repair_connect_k))
+            try:
+                again = self._plan_once(start, goals, timing, goal_costs, extra_candidates=grown)
+            finally:
+                self.settings = s
+            if again.success or "reachable" not in again.reason:
+                break
+        if again is None:
+            return res
         again.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         if again.success:
             again.reason = f"ok after a local roadmap repair ({added} nodes)"
