@@ -76,11 +76,11 @@ class PSPRMSettings:
     expand_rounds: int = 0  # > 0: after the build, rounds of sampling between the largest component and the others
     expand_nodes: int = 30  # nodes sampled per disconnected component and round
     expand_components: int = 12  # components (of >= 3 nodes, largest first) bridged per round
-    query_repair_nodes: int = 60  # a query that finds no path grows this many nodes around its start and goals, once
+    query_repair_nodes: int = 120  # a query that finds no path grows this many nodes around its start and goals
     query_repair_radius: float = 0.8  # m around the start/goal base (half of them along its heading)
     query_repair_budget: int = 1500  # at most this many nodes grown by query repairs per built/loaded roadmap
     query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
-    query_repair_rounds: int = 1  # repair rounds of a failing query (radius x 1.5 each round), within the budget
+    query_repair_rounds: int = 3  # repair rounds of a failing query (radius x 1.5 each round), within the budget
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
