@@ -73,16 +73,6 @@ def point_box_sqdist(points: torch.Tensor, box_center: torch.Tensor, box_rot: to
     return (d * d).sum(-1)
 
 
-def point_boxes_sqdist(points: torch.Tensor, boxes: "BoxTensors") -> torch.Tensor:
-    """Squared distance from every point (n, 3) to every box -> (n, K), with one matrix product."""
-    K = len(boxes)
-    Rcat = boxes.rotation.transpose(0, 1).reshape(3, 3 * K)  # column block k = R_k
-    off = (boxes.center.unsqueeze(1) @ boxes.rotation).reshape(3 * K)  # R_k^T c_k, flattened
-    local = (points @ Rcat - off).reshape(-1, K, 3)
-    d = local - torch.maximum(torch.minimum(local, boxes.half), -boxes.half)
-    return (d * d).sum(-1)
-
-
 def obb_overlap(ca: torch.Tensor, Ra: torch.Tensor, ha: torch.Tensor, cb: torch.Tensor, Rb: torch.Tensor,
                 hb: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
     """Separating-axis test for pairs of oriented boxes: (n,3), (n,3,3), (n,3) each -> overlap flags (n,).
@@ -347,11 +337,7 @@ class CollisionChecker:
                     hit[:] = True
                     return hit
                 ea, eb = ea[moving], eb[moving]
-                if len(ea) == 0:
-                    return hit
-        b_i, ov = self._pairs_hits(poses, ea, eb)
-        hit[b_i[ov]] = True
-        return hit
+        return self._pairs_overlap(poses, ea, eb)
 
     def _pairs_overlap(self, poses, ea: torch.Tensor, eb: torch.Tensor) -> torch.Tensor:
         """Overlap flags (B,) over the element pairs (ea, eb) for every configuration of ``poses``."""
@@ -363,8 +349,8 @@ class CollisionChecker:
         return hit
 
     def _pairs_hits(self, poses, ea: torch.Tensor, eb: torch.Tensor) -> tuple:
-        """Bounding-sphere candidates (rows b_i, element pairs a, b) of the element pairs and their exact OBB
-        overlap flags."""
+        """Rows ``b_i`` of the (configuration, pair) candidates whose element bounding spheres meet, and their exact
+        OBB overlap flags."""
         R, t = poses
         # centres of the elements involved for all configurations (B, E', 3) once, then pair distances (B, P)
         els, inv = torch.unique(torch.cat([ea, eb]), return_inverse=True)

@@ -381,7 +381,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
         return real_add(qa, qb, ua, vb, *a, **k)
 
     def first_fails(*a, **k):
-        calls.append((k.get("extra_candidates"), p.settings.connect_k))
+        calls.append((k.get("extra_candidates"), k.get("connect_k") or p.settings.connect_k))
         if len(calls) == 1:
             return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
         seen.clear()
@@ -393,7 +393,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     res = p.plan(q, goals, timing=False)
     assert res.success and len(calls) == 2
     extra, k_used = calls[1]
-    assert k_used == max(k0, p.settings.query_repair_connect_k) and p.settings.connect_k == k0  # restored
+    assert k_used == max(k0, p.settings.query_repair_connect_k) and p.settings.connect_k == k0  # settings untouched
     assert set(extra) == {0} | {1 + k for k in range(min(4, len(goals)))}
     start_id = min(int(u.min()) for u, _ in seen)  # the query's own nodes come first: the start has the lowest id
     ua = np.concatenate([u for u, _ in seen])

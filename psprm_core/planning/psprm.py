@@ -763,11 +763,8 @@ class PSPRM:
             # an end in a tight spot (a goal grazing a table, reachable only by turning one way) may have its few
             # valid edges beyond the connect_k nearest nodes; the nodes grown on its heading line are reachable by
             # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
-            self.settings = dataclasses.replace(s, connect_k=max(s.connect_k, s.query_repair_connect_k))
-            try:
-                again = self._plan_once(start, goals, timing, goal_costs, extra_candidates=grown)
-            finally:
-                self.settings = s
+            again = self._plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
+                                    connect_k=max(s.connect_k, s.query_repair_connect_k))
             if again.success or "reachable" not in again.reason:
                 break
         if again is None:
@@ -779,12 +776,12 @@ class PSPRM:
         return again
 
     def _plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
-                   goal_costs: Optional[np.ndarray] = None,
-                   extra_candidates: Optional[dict] = None) -> PlanResult:
+                   goal_costs: Optional[np.ndarray] = None, extra_candidates: Optional[dict] = None,
+                   connect_k: Optional[int] = None) -> PlanResult:
         """One query: connect start and goals to the roadmap and search (no repair).
 
-        ``extra_candidates``: roadmap node ids tried as connections in addition to the ``connect_k`` nearest, per end
-        (key 0: the start, 1 + k: goal k).
+        ``connect_k`` (default: the setting): nearest roadmap nodes each end tries. ``extra_candidates``: roadmap
+        node ids tried in addition, per end (key 0: the start, 1 + k: goal k).
 
         ``goal_costs`` (G,), optional: a non-negative terminal cost added to the path cost (Eq. 2 units) of reaching
         each goal, so one search picks the goal minimising path cost + terminal cost (the replanner's goal hysteresis).
@@ -821,7 +818,7 @@ class PSPRM:
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
             d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0), rm.repeat(len(qq), 1)).reshape(len(qq), -1)
-            kk = min(self.settings.connect_k, rm.shape[0])
+            kk = min(connect_k or self.settings.connect_k, rm.shape[0])
             cand = d.topk(kk, largest=False).indices  # (Q, kk)
             src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
