@@ -588,8 +588,12 @@ class RobotModel:
         else:  # the camera chain only
             Rs, ts = self._poses(q, only=self.camera_chain)
             Rb, tb = Rs[self.camera_body], ts[self.camera_body]
-        T = self.tensors(q.device, q.dtype)
-        out = torch.zeros(q.shape[0], 4, 4, dtype=q.dtype, device=q.device)
+        return self._camera_from_body(Rb, tb)
+
+    def _camera_from_body(self, Rb: torch.Tensor, tb: torch.Tensor) -> torch.Tensor:
+        """Optical-frame poses (B, 4, 4) from the camera body's world rotation (B, 3, 3) and translation (B, 3)."""
+        T = self.tensors(Rb.device, Rb.dtype)
+        out = torch.zeros(Rb.shape[0], 4, 4, dtype=Rb.dtype, device=Rb.device)
         out[:, :3, :3] = Rb @ T["cam_R"]
         out[:, :3, 3] = tb + (Rb @ T["cam_t"].unsqueeze(-1)).squeeze(-1)
         out[:, 3, 3] = 1
@@ -612,11 +616,7 @@ class RobotModel:
         Rs, ts = self._poses(q, only=self.camera_chain)
         tens = self.tensors(q.device, q.dtype)
         B, dev, dt = q.shape[0], q.device, q.dtype
-        Rb, tb = Rs[self.camera_body], ts[self.camera_body]
-        T = torch.zeros(B, 4, 4, dtype=dt, device=dev)
-        T[:, :3, :3] = Rb @ tens["cam_R"]
-        T[:, :3, 3] = tb + (Rb @ tens["cam_t"].unsqueeze(-1)).squeeze(-1)
-        T[:, 3, 3] = 1
+        T = self._camera_from_body(Rs[self.camera_body], ts[self.camera_body])
         chain = [b for b in self.camera_chain[1:] if self.body_joint[b] is not None]
         W = torch.zeros(B, self.dof, 6, dtype=dt, device=dev)
         if chain:
