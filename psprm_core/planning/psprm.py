@@ -855,7 +855,6 @@ class PSPRM:
                     qa, qb = torch.cat([qa, ea]), torch.cat([qb, eb])
                     u_ids += [queries[i][1] for i in ex_q]
                     v_ids += rm_ids[np.asarray(ex_r)].tolist()
-                    dist = torch.cat([dist, self.motion.distance(ea, eb)])
                     within = torch.cat([within, torch.ones(len(ex_q), dtype=torch.bool, device=within.device)])
             near = torch.nonzero(within, as_tuple=True)[0]
             if len(near) and self.settings.lazy_collision:
