@@ -9,13 +9,16 @@ import heapq
 import math
 import statistics
 import time
+from contextlib import nullcontext
 from typing import Any
+from unittest import mock
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from psprm_core.planning import search_kernels
 from psprm_core.planning.graph import Roadmap
 from psprm_core.planning.graph_search import (
     EdgeCheck,
@@ -32,6 +35,26 @@ from psprm_core.planning.graph_search import (
 )
 
 SETTINGS = settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+BACKENDS = pytest.mark.parametrize("compiled", [True, False], ids=["numba", "python"])
+
+
+def backend(compiled: bool) -> Any:
+    """Run the block with the numba kernels (default) or with the pure-Python fallback (numba 'missing')."""
+    return nullcontext() if compiled else mock.patch.object(search_kernels, "available", lambda: False)
+
+
+def assert_adjacency_matches(g: Roadmap) -> None:
+    """The cached Python lists and the padded arrays hold exactly the valid edges of every node (order aside)."""
+    nbrs, eids = g.python_adjacency()
+    nbr, eid, deg = g.array_adjacency()
+    assert deg.shape[0] >= g.n_nodes and not deg[g.n_nodes:].any()
+    for u in range(g.n_nodes):
+        inc = sorted(g.incident_edges([u]).tolist())
+        assert sorted(eids[u]) == inc and sorted(eid[u, : deg[u]].tolist()) == inc
+        assert (eid[u, deg[u]:] == -1).all()
+        other = {e: int(g.edge_v[e] if g.edge_u[e] == u else g.edge_u[e]) for e in inc}
+        assert sorted(nbrs[u]) == sorted(other[e] for e in eids[u])
+        assert nbr[u, : deg[u]].tolist() == [other[e] for e in eid[u, : deg[u]].tolist()]
 
 
 # ---------------------------------------------------------------------------- reference implementation
@@ -126,6 +149,10 @@ def test_astar_hop_matches_dijkstra(case: dict[str, Any]) -> None:
     res0 = astar(g, start, goals, heuristic="zero")
     assert abs(res0.cost - ref) <= 1e-9 * max(1.0, ref)
     assert res.expanded <= res0.expanded + 1 or res.expanded <= g.n_nodes
+    # the numba kernel and the reference heapq loop expand in the same order (ties broken by node id)
+    for h in ("hop", "zero"):
+        a, b = astar(g, start, goals, heuristic=h), astar(g, start, goals, heuristic=h, backend="python")
+        assert (a.path, a.edges, a.expanded) == (b.path, b.edges, b.expanded) and a.cost == b.cost
 
 
 @SETTINGS
@@ -146,10 +173,17 @@ def test_hop_heuristic_is_consistent(case: dict[str, Any]) -> None:
             assert math.isinf(h[q]) or not g.node_valid[q]
 
 
+@BACKENDS
 @SETTINGS
 @given(random_graphs(), st.data())
-def test_graph_additions_after_cached_search(case: dict[str, Any], data: Any) -> None:
+def test_graph_additions_after_cached_search(compiled: bool, case: dict[str, Any], data: Any) -> None:
     """Adding nodes/edges after a search (start/goal connection) keeps searches exact (incremental adjacency)."""
+    with backend(compiled):
+        _additions_after_cached_search(case, data)
+    assert_adjacency_matches(case["g"])
+
+
+def _additions_after_cached_search(case: dict[str, Any], data: Any) -> None:
     g, start, goals = case["g"], case["start"], case["goals"]
     astar(g, start, goals)
     hop_distances(g, [q for q in goals if g.node_valid[q]])  # cached, then updated incrementally below
@@ -179,13 +213,20 @@ def test_graph_additions_after_cached_search(case: dict[str, Any], data: Any) ->
     assert heuristic_consistency_gap(g, hop_heuristic(g, valid_goals)) <= 0.0
 
 
+@BACKENDS
 @SETTINGS
 @given(random_graphs(), st.data())
-def test_removals_and_restorations_after_cached_search(case: dict[str, Any], data: Any) -> None:
+def test_removals_and_restorations_after_cached_search(compiled: bool, case: dict[str, Any], data: Any) -> None:
     """Pruning and restoring edges/nodes after a search (a moving obstacle) patches the cached adjacency in place and
     keeps the cached hop heuristic admissible and consistent on the remaining edges, so A* stays exact."""
+    with backend(compiled):
+        _removals_after_cached_search(case, data)
+
+
+def _removals_after_cached_search(case: dict[str, Any], data: Any) -> None:
     g, start, goals = case["g"], case["start"], case["goals"]
     astar(g, start, goals)  # caches adjacency and hop distances
+    g.array_adjacency()
     for _ in range(data.draw(st.integers(1, 4))):
         op = data.draw(st.sampled_from(["remove_edges", "remove_nodes", "restore_edges", "restore_nodes"]))
         if op.endswith("edges") and g.n_edges:
@@ -193,11 +234,7 @@ def test_removals_and_restorations_after_cached_search(case: dict[str, Any], dat
         elif op.endswith("nodes"):
             getattr(g, op)(data.draw(st.lists(st.integers(0, g.n_nodes - 1), max_size=2)))
         valid_goals = [q for q in goals if g.node_valid[q]]
-        # the patched lists hold exactly the valid edges (order aside)
-        nbrs, eids = g.python_adjacency()
-        for u in range(g.n_nodes):
-            assert sorted(eids[u]) == sorted(g.incident_edges([u]).tolist())
-            assert sorted(nbrs[u]) == sorted(int(g.edge_v[e] if g.edge_u[e] == u else g.edge_u[e]) for e in eids[u])
+        assert_adjacency_matches(g)  # the patched lists and arrays hold exactly the valid edges
         if not valid_goals or not g.node_valid[start]:
             continue
         h = hop_heuristic(g, valid_goals)
@@ -215,9 +252,10 @@ def test_removals_and_restorations_after_cached_search(case: dict[str, Any], dat
             assert abs(res.cost - true[start]) <= 1e-9 * max(1.0, true[start])
 
 
+@pytest.mark.parametrize("search_backend", ["auto", "python"])
 @SETTINGS
 @given(random_graphs(), st.data())
-def test_lazy_astar_avoids_invalid_edges_and_is_optimal(case: dict[str, Any], data: Any) -> None:
+def test_lazy_astar_avoids_invalid_edges_and_is_optimal(search_backend: str, case: dict[str, Any], data: Any) -> None:
     g, start, goals = case["g"], case["start"], case["goals"]
     valid_goals = [q for q in goals if g.node_valid[q]]
     if not g.node_valid[start] or not valid_goals:
@@ -235,7 +273,7 @@ def test_lazy_astar_avoids_invalid_edges_and_is_optimal(case: dict[str, Any], da
         calls.append(ids)
         return EdgeCheck(invalid=[e for e in ids if e in bad], weights={e: true_w[e] for e in ids if e not in bad})
 
-    res = lazy_astar(g, start, goals, verify)
+    res = lazy_astar(g, start, goals, verify, backend=search_backend)
     final_w = true_w.copy()
     final_w[list(bad)] = np.inf
     ref = reference_dijkstra(g.n_nodes, valid_edge_list(g, final_w), valid_goals)[start]

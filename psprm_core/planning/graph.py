@@ -30,6 +30,8 @@ __all__ = ["CSRAdjacency", "Roadmap"]
 _MIN_CAPACITY = 16
 #: Weight updates of at most this many edges patch the cached Python weight list instead of rebuilding it.
 _PATCH_LIMIT = 2048
+#: Removals / restorations of at most this many edges patch the array adjacency in place (else: rebuilt from the CSR).
+_ARRAY_PATCH_LIMIT = 256
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,8 @@ class Roadmap:
         self._restore_version = 0  # bumped when removed edges/nodes come back (graph distances may then decrease)
         self._py_adj: tuple[int, int, int, list[list[int]], list[list[int]]] | None = None
         self._py_weights: tuple[int, list[float]] | None = None
+        # Padded array adjacency for the compiled searches (same patching policy, see array_adjacency)
+        self._arr_adj: list[Any] | None = None
         #: Free-form cache used by :mod:`psprm_core.planning.graph_search` (hop distances per goal set).
         self.search_cache: dict[Any, Any] = {}
 
@@ -551,6 +555,7 @@ class Roadmap:
     def _patch_adjacency(self, ends: list[tuple[int, int, int]], add: bool) -> None:
         """Keep the cached Python adjacency in step with removed / restored edges ``(edge id, u, v)``: patched in place
         for small changes (O(degree) per edge), dropped for large ones (rebuilt on the next use)."""
+        self._patch_array_adjacency(ends, add)
         cache = self._py_adj
         if cache is None or cache[0] != self._removal_version:
             return
@@ -570,6 +575,92 @@ class Roadmap:
                     del nbrs[x][i]
                     del eids[x][i]
         self._py_adj = (self._removal_version + 1, n_cov, e_cov, nbrs, eids)
+
+    def array_adjacency(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Padded array adjacency ``(nbr, eid, deg)`` of the valid edges, for the compiled searches.
+
+        ``nbr[u, :deg[u]]`` are the neighbours of node ``u`` and ``eid[u, :deg[u]]`` the connecting edge ids (int64;
+        at least ``n_nodes`` rows, spare rows and columns for cheap growth). Cached like :meth:`python_adjacency`:
+        added nodes and edges are appended in place, removals and restorations of up to ``_ARRAY_PATCH_LIMIT`` edges
+        are patched in place (a removed entry is replaced by the row's last one), larger ones rebuild from
+        :meth:`csr`. Callers must not modify the arrays.
+        """
+        c = self._arr_adj
+        n = self._n_nodes
+        if c is None or c[0] != self._removal_version:
+            csr = self.csr()
+            deg = np.diff(csr.indptr)
+            width = max(16, 2 * int(deg.max(initial=0)))
+            rows = max(_MIN_CAPACITY, n + n // 4)
+            nbr = np.full((rows, width), -1, dtype=np.int64)
+            eid = np.full((rows, width), -1, dtype=np.int64)
+            row = np.repeat(np.arange(n), deg)
+            col = np.arange(csr.nnz) - csr.indptr[row]
+            nbr[row, col] = csr.indices
+            eid[row, col] = csr.edge_ids
+            degs = np.zeros(rows, dtype=np.int64)
+            degs[:n] = deg
+            self._arr_adj = [self._removal_version, n, self._n_edges, nbr, eid, degs]
+            return nbr, eid, degs
+        _, n_cov, e_cov, nbr, eid, deg = c
+        if n > nbr.shape[0]:
+            extra = max(n - nbr.shape[0], nbr.shape[0] // 2)
+            nbr = np.vstack([nbr, np.full((extra, nbr.shape[1]), -1, dtype=np.int64)])
+            eid = np.vstack([eid, np.full((extra, eid.shape[1]), -1, dtype=np.int64)])
+            deg = np.concatenate([deg, np.zeros(extra, dtype=np.int64)])
+        if e_cov < self._n_edges:
+            new = np.arange(e_cov, self._n_edges)
+            new = new[self._edge_valid[new]]
+            if new.size:
+                src = np.concatenate([self._eu[new], self._ev[new]])
+                order = np.argsort(src, kind="stable")
+                src = src[order]
+                dst = np.concatenate([self._ev[new], self._eu[new]])[order]
+                ee = np.concatenate([new, new])[order]
+                col = deg[src] + np.arange(src.size) - np.searchsorted(src, src, side="left")
+                nbr, eid = self._widen(nbr, eid, int(col.max()) + 1)
+                nbr[src, col] = dst
+                eid[src, col] = ee
+                deg += np.bincount(src, minlength=deg.shape[0])
+        self._arr_adj = [self._removal_version, n, self._n_edges, nbr, eid, deg]
+        return nbr, eid, deg
+
+    @staticmethod
+    def _widen(nbr: np.ndarray, eid: np.ndarray, needed: int) -> tuple[np.ndarray, np.ndarray]:
+        if needed <= nbr.shape[1]:
+            return nbr, eid
+        extra = max(needed, 2 * nbr.shape[1]) - nbr.shape[1]
+        pad = np.full((nbr.shape[0], extra), -1, dtype=np.int64)
+        return np.hstack([nbr, pad]), np.hstack([eid, pad])
+
+    def _patch_array_adjacency(self, ends: list[tuple[int, int, int]], add: bool) -> None:
+        """:meth:`_patch_adjacency` for the array adjacency (removal: swap with the row's last entry)."""
+        c = self._arr_adj
+        if c is None or c[0] != self._removal_version:
+            return
+        if len(ends) > _ARRAY_PATCH_LIMIT:
+            self._arr_adj = None
+            return
+        _, n_cov, e_cov, nbr, eid, deg = c
+        for e, a, b in ends:
+            if e >= e_cov:  # appended (when valid) by the next array_adjacency call
+                continue
+            for x, y in ((a, b), (b, a)):
+                d = int(deg[x])
+                if add:
+                    if d >= nbr.shape[1]:
+                        nbr, eid = self._widen(nbr, eid, d + 1)
+                    nbr[x, d] = y
+                    eid[x, d] = e
+                    deg[x] = d + 1
+                else:
+                    i = int(np.flatnonzero(eid[x, :d] == e)[0])
+                    nbr[x, i] = nbr[x, d - 1]
+                    eid[x, i] = eid[x, d - 1]
+                    nbr[x, d - 1] = -1
+                    eid[x, d - 1] = -1
+                    deg[x] = d - 1
+        self._arr_adj = [self._removal_version + 1, n_cov, e_cov, nbr, eid, deg]
 
     def python_weights(self) -> list[float]:
         """The roadmap weights as a Python list indexed by edge id (cached per ``weights_version``).

@@ -14,10 +14,11 @@ Paper, section "PRM construction and scoring":
 checks) only for edges on candidate paths: it searches, asks a callback to verify the unverified edges of the path,
 applies the returned invalidations / weight updates and searches again until the returned path is fully verified.
 
-All searches are pure Python ``heapq`` loops over the cached per-node adjacency lists of
-:class:`~psprm_core.planning.graph.Roadmap` (early termination at the first goal popped); the all-nodes
-:func:`dijkstra` and :func:`hop_distances` use ``scipy.sparse.csgraph`` (compiled).  Unreachable goals give
-``SearchResult(success=False, reason=...)``, never an exception.
+A* and the hop BFS run as compiled numba kernels (:mod:`~psprm_core.planning.search_kernels`) over the cached padded
+array adjacency of :class:`~psprm_core.planning.graph.Roadmap` (``backend="auto"``); ``backend="python"`` selects
+the reference pure-Python ``heapq`` loop over the per-node adjacency lists (same expansion order, ties broken by node
+id). Both terminate at the first goal popped. The all-nodes :func:`dijkstra` uses ``scipy.sparse.csgraph``.
+Unreachable goals give ``SearchResult(success=False, reason=...)``, never an exception.
 """
 
 from __future__ import annotations
@@ -31,6 +32,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence, Union
 
 import numpy as np
 
+from psprm_core.planning import search_kernels
 from psprm_core.planning.graph import Roadmap
 
 logger = logging.getLogger(__name__)
@@ -52,6 +54,7 @@ __all__ = [
 
 ArrayLike = Any  # numpy array, torch tensor or Python float
 HeuristicSpec = Union[str, np.ndarray]
+Backend = str  # "auto" (compiled when numba is available) or "python"
 _HOP_CACHE_SIZE = 16
 #: Relative shrink of :math:`c^{\min}` in Eq. 3 so that floating-point rounding cannot break Eqs. 5-6.
 _CMIN_SAFETY = 1.0 - 1e-12
@@ -196,6 +199,13 @@ def _node_ids(graph: Roadmap, nodes: int | Iterable[int] | np.ndarray, what: str
     return arr
 
 
+def _compiled(backend: Backend = "auto") -> bool:
+    """Whether to run the numba kernels (``backend`` "auto" with numba importable) or the Python loops."""
+    if backend not in ("auto", "python"):
+        raise ValueError(f"unknown search backend {backend!r}; use 'auto' or 'python'")
+    return backend == "auto" and search_kernels.available()
+
+
 def _scipy_matrix(graph: Roadmap, data: np.ndarray | None) -> Any:
     """``scipy.sparse.csr_array`` of the valid edges (both directions); ``data`` per CSR entry (ones if None)."""
     from scipy.sparse import csr_array
@@ -317,12 +327,15 @@ def hop_distances(graph: Roadmap, goals: int | Iterable[int] | np.ndarray, use_c
 
 
 def _hops_full(graph: Roadmap, goal_ids: np.ndarray) -> np.ndarray:
-    """Multi-source unweighted shortest paths from the goals (compiled BFS in ``scipy.sparse.csgraph``)."""
+    """Multi-source unweighted shortest paths from the goals (numba BFS, else ``scipy.sparse.csgraph``)."""
     from scipy.sparse.csgraph import dijkstra as _sp_dijkstra
 
     n = graph.n_nodes
     if goal_ids.size == 0 or n == 0:
         return np.full(n, np.inf)
+    if _compiled():
+        nbr, _, deg = graph.array_adjacency()
+        return search_kernels.kernels().bfs_hops(nbr, deg, goal_ids.astype(np.int64), n)
     hops = _sp_dijkstra(_scipy_matrix(graph, None), directed=True, indices=goal_ids, unweighted=True, min_only=True)
     return np.array(hops, dtype=np.float64)
 
@@ -330,11 +343,18 @@ def _hops_full(graph: Roadmap, goal_ids: np.ndarray) -> np.ndarray:
 def _hops_after_additions(graph: Roadmap, old: np.ndarray, e_cov: int) -> np.ndarray:
     """Update hop distances after nodes/edges were only added: decrease propagation from the new edges."""
     n = graph.n_nodes
-    hops = old.tolist() + [math.inf] * (n - old.shape[0])
-    nbrs, _ = graph.python_adjacency()
     valid = np.asarray(graph.edge_valid)
     new = np.arange(e_cov, graph.n_edges)
     new = new[valid[new]]
+    if _compiled():
+        nbr, _, deg = graph.array_adjacency()
+        hops_arr = np.full(max(n, deg.shape[0]), np.inf)
+        hops_arr[: old.shape[0]] = old
+        eu = np.ascontiguousarray(graph.edge_u[new])
+        ev = np.ascontiguousarray(graph.edge_v[new])
+        return search_kernels.kernels().hops_decrease(nbr, deg, hops_arr, eu, ev)[:n].copy()
+    hops = old.tolist() + [math.inf] * (n - old.shape[0])
+    nbrs, _ = graph.python_adjacency()
     eu = np.asarray(graph.edge_u)[new].tolist()
     ev = np.asarray(graph.edge_v)[new].tolist()
     queue: deque[int] = deque()
@@ -477,11 +497,13 @@ def _run_astar(
     graph: Roadmap,
     start: int,
     goal_ids: np.ndarray,
-    w_list: list[float],
+    w_arr: np.ndarray,
+    w_list: list[float] | None,
     h_arr: np.ndarray | None,
     max_expansions: int | None,
 ) -> SearchResult:
-    """Validate endpoints, run :func:`_astar_core`, assemble the :class:`SearchResult`."""
+    """Validate endpoints, run the compiled kernel (``w_list`` None) or :func:`_astar_core`, assemble the
+    :class:`SearchResult`."""
     node_valid = np.asarray(graph.node_valid)
     if not node_valid[start]:
         return _fail(f"start node {start} has been removed from the roadmap")
@@ -494,24 +516,38 @@ def _run_astar(
                             goal=start)
     if h_arr is not None and not np.isfinite(h_arr[start]):
         return _fail(f"no goal is reachable from start {start}: different connected component")
-    nbrs, eids = graph.python_adjacency()
-    h_list = h_arr.tolist() if h_arr is not None else None
-    goal, parent, pedge, cost, expanded, hit_limit = _astar_core(
-        nbrs, eids, w_list, h_list, start, goal_set, max_expansions
-    )
+    if w_list is None:
+        nbr, eid, deg = graph.array_adjacency()
+        rows = deg.shape[0]
+        goal_mask = np.zeros(rows, dtype=bool)
+        goal_mask[goal_ids] = True
+        h_k = np.zeros(1) if h_arr is None else h_arr
+        if h_arr is not None and h_k.shape[0] < rows:  # spare adjacency rows have no edges: never reached
+            h_k = np.concatenate([h_k, np.full(rows - h_k.shape[0], np.inf)])
+        goal, cost, expanded, hit_limit, par, pe = search_kernels.kernels().astar(
+            nbr, eid, deg, np.ascontiguousarray(w_arr, dtype=np.float64), np.ascontiguousarray(h_k, dtype=np.float64),
+            h_arr is not None, start, goal_mask, -1 if max_expansions is None else int(max_expansions))
+        goal = None if goal < 0 else int(goal)
+        parent, pedge = par, pe
+    else:
+        nbrs, eids = graph.python_adjacency()
+        h_list = h_arr.tolist() if h_arr is not None else None
+        goal, parent, pedge, cost, expanded, hit_limit = _astar_core(
+            nbrs, eids, w_list, h_list, start, goal_set, max_expansions
+        )
     if goal is None:
         if hit_limit:
-            return _fail(f"expansion limit {max_expansions} reached", expanded)
+            return _fail(f"expansion limit {max_expansions} reached", int(expanded))
         return _fail(f"no goal is reachable from start {start} (disconnected or all connecting edges invalid)",
-                     expanded)
+                     int(expanded))
     path = [goal]
     edges: list[int] = []
     while path[-1] != start:
-        edges.append(pedge[path[-1]])
-        path.append(parent[path[-1]])
+        edges.append(int(pedge[path[-1]]))
+        path.append(int(parent[path[-1]]))
     path.reverse()
     edges.reverse()
-    return SearchResult(path=path, cost=float(cost), expanded=expanded, success=True, reason="ok", edges=edges,
+    return SearchResult(path=path, cost=float(cost), expanded=int(expanded), success=True, reason="ok", edges=edges,
                         goal=goal)
 
 
@@ -522,6 +558,7 @@ def astar(
     weights: ArrayLike | None = None,
     heuristic: HeuristicSpec = "hop",
     max_expansions: int | None = None,
+    backend: Backend = "auto",
 ) -> SearchResult:
     """A* from ``start`` to the nearest (cheapest) node of a goal set, with the PS-PRM hop heuristic (Eqs. 3-6).
 
@@ -544,6 +581,9 @@ def astar(
         be consistent for the result to be optimal).
     max_expansions : int, optional
         Give up (``success=False``) after this many expansions.
+    backend : {"auto", "python"}
+        ``"auto"``: the compiled kernel (numba; the Python loop when numba is missing); ``"python"``: the reference
+        ``heapq`` loop. Same result and expansion order.
 
     Returns
     -------
@@ -555,9 +595,9 @@ def astar(
         raise ValueError(f"start node {start} out of range [0, {graph.n_nodes})")
     goal_ids = _node_ids(graph, goals, "goal")
     w_arr = _weights_array(graph, weights)
-    w_list = _weights_list(graph, weights)
+    w_list = None if _compiled(backend) else _weights_list(graph, weights)
     h_arr = _resolve_heuristic(graph, goal_ids, w_arr, heuristic) if goal_ids.size else None
-    return _run_astar(graph, start, goal_ids, w_list, h_arr, max_expansions)
+    return _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
 
 
 def _normalise_check(answer: EdgeCheck | Iterable[int] | None) -> EdgeCheck:
@@ -578,6 +618,7 @@ def lazy_astar(
     max_iterations: int = 1000,
     max_expansions: int | None = None,
     apply_to_graph: bool = False,
+    backend: Backend = "auto",
 ) -> SearchResult:
     """Lazy A*: search, verify the unverified edges of the path, update, re-search until the path is verified.
 
@@ -608,6 +649,8 @@ def lazy_astar(
         Per-search expansion limit.
     apply_to_graph : bool
         If True, remove the invalid edges from the roadmap and write the updated weights into it.
+    backend : {"auto", "python"}
+        As in :func:`astar`.
 
     Returns
     -------
@@ -622,7 +665,7 @@ def lazy_astar(
         raise ValueError(f"start node {start} out of range [0, {graph.n_nodes})")
     goal_ids = _node_ids(graph, goals, "goal")
     w_arr = _weights_array(graph, weights).copy()
-    w_list = w_arr.tolist()
+    w_list = None if _compiled(backend) else w_arr.tolist()
     verified = np.zeros(graph.n_edges, dtype=bool)
     invalidated: list[int] = []
     updated: dict[int, float] = {}
@@ -642,7 +685,7 @@ def lazy_astar(
         elif use_exact and goal_ids.size and stale:
             h_arr = dijkstra(graph, goal_ids, w_arr)[0]
             stale = False
-        result = _run_astar(graph, start, goal_ids, w_list, h_arr, max_expansions)
+        result = _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
         total_expanded += result.expanded
         result.expanded = total_expanded
         result.iterations = it
@@ -663,14 +706,16 @@ def lazy_astar(
             if val < w_arr[e]:
                 stale = True
             w_arr[e] = val
-            w_list[e] = val
+            if w_list is not None:
+                w_list[e] = val
             updated[e] = val
             if use_hop and val < c_min:
                 c_min = val  # Eq. 4 over the updated weights: keeps Eqs. 5-6 valid
         for e in check.invalid:
             e = int(e)
             w_arr[e] = math.inf
-            w_list[e] = math.inf
+            if w_list is not None:
+                w_list[e] = math.inf
             invalidated.append(e)
             updated.pop(e, None)
         logger.debug("lazy A* iteration %d: %d edges verified, %d invalid", it, todo.size, len(check.invalid))

@@ -1,0 +1,177 @@
+"""Numba kernels behind :mod:`psprm_core.planning.search_kernels` (imported only through its :func:`kernels`).
+
+Compiled on the first call of each kernel and cached on disk (``cache=True``).
+"""
+
+import numpy as np
+from numba import njit
+
+jit = njit(cache=True, nogil=True)
+
+
+@jit
+def _less(ka, na, kb, nb):  # pragma: no cover - compiled
+    return ka < kb or (ka == kb and na < nb)
+
+
+@jit
+def _push(keys, nodes, size, key, node):  # pragma: no cover - compiled
+    if size == keys.shape[0]:
+        nk = np.empty(2 * size, np.float64)
+        nn = np.empty(2 * size, np.int64)
+        nk[:size] = keys
+        nn[:size] = nodes
+        keys, nodes = nk, nn
+    i = size
+    while i > 0:
+        p = (i - 1) >> 1
+        if _less(key, node, keys[p], nodes[p]):
+            keys[i] = keys[p]
+            nodes[i] = nodes[p]
+            i = p
+        else:
+            break
+    keys[i] = key
+    nodes[i] = node
+    return keys, nodes, size + 1
+
+
+@jit
+def _pop(keys, nodes, size):  # pragma: no cover - compiled
+    node = nodes[0]
+    size -= 1
+    lk, ln = keys[size], nodes[size]
+    i = 0
+    while True:
+        c = 2 * i + 1
+        if c >= size:
+            break
+        if c + 1 < size and _less(keys[c + 1], nodes[c + 1], keys[c], nodes[c]):
+            c += 1
+        if _less(keys[c], nodes[c], lk, ln):
+            keys[i] = keys[c]
+            nodes[i] = nodes[c]
+            i = c
+        else:
+            break
+    if size > 0:
+        keys[i] = lk
+        nodes[i] = ln
+    return node, size
+
+
+@jit
+def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # pragma: no cover - compiled
+    """A* (``use_h``) or Dijkstra from ``start`` to the first node of ``goal_mask`` closed.
+
+    Returns ``(goal or -1, cost, expanded, hit_limit, parent, parent_edge)``; with a consistent ``h`` a closed
+    node is final (Eqs. 5-6), so closed neighbours are skipped; ``h = inf`` prunes a node (no goal reachable).
+    """
+    n = deg.shape[0]
+    inf = np.inf
+    g = np.full(n, inf)
+    parent = np.full(n, -1, np.int64)
+    pedge = np.full(n, -1, np.int64)
+    closed = np.zeros(n, np.bool_)
+    keys = np.empty(256, np.float64)
+    nodes = np.empty(256, np.int64)
+    size = 0
+    g[start] = 0.0
+    keys, nodes, size = _push(keys, nodes, size, h[start] if use_h else 0.0, start)
+    expanded = 0
+    while size > 0:
+        u, size = _pop(keys, nodes, size)
+        if closed[u]:
+            continue
+        closed[u] = True
+        expanded += 1
+        if goal_mask[u]:
+            return u, g[u], expanded, False, parent, pedge
+        if expanded == max_expansions:
+            return -1, inf, expanded, True, parent, pedge
+        gu = g[u]
+        for j in range(deg[u]):
+            v = nbr[u, j]
+            if closed[v]:
+                continue
+            e = eid[u, j]
+            nd = gu + w[e]
+            if nd < g[v]:
+                key = nd
+                if use_h:
+                    if h[v] == inf:
+                        continue
+                    key = nd + h[v]
+                g[v] = nd
+                parent[v] = u
+                pedge[v] = e
+                keys, nodes, size = _push(keys, nodes, size, key, v)
+    return -1, inf, expanded, False, parent, pedge
+
+
+@jit
+def bfs_hops(nbr, deg, goals, n):  # pragma: no cover - compiled
+    """Multi-source BFS: hop distance of the first ``n`` nodes to the nearest goal (``inf`` if unreachable)."""
+    hops = np.full(n, np.inf)
+    queue = np.empty(n, np.int64)
+    head = 0
+    tail = 0
+    for q in goals:
+        if hops[q] == np.inf:
+            hops[q] = 0.0
+            queue[tail] = q
+            tail += 1
+    while head < tail:
+        u = queue[head]
+        head += 1
+        hu = hops[u] + 1.0
+        for j in range(deg[u]):
+            v = nbr[u, j]
+            if hops[v] == np.inf:
+                hops[v] = hu
+                queue[tail] = v
+                tail += 1
+    return hops
+
+
+@jit
+def hops_decrease(nbr, deg, hops, eu, ev):  # pragma: no cover - compiled
+    """Exact hop distances after edges ``(eu, ev)`` were added (FIFO label correcting from the new edges)."""
+    cap = max(16, 2 * eu.shape[0])
+    queue = np.empty(cap, np.int64)
+    head = 0
+    tail = 0
+    for i in range(eu.shape[0]):
+        a, b = eu[i], ev[i]
+        x = -1
+        if hops[a] + 1.0 < hops[b]:
+            hops[b] = hops[a] + 1.0
+            x = b
+        elif hops[b] + 1.0 < hops[a]:
+            hops[a] = hops[b] + 1.0
+            x = a
+        if x >= 0:
+            if tail == queue.shape[0]:
+                nq = np.empty(2 * tail, np.int64)
+                nq[:tail] = queue
+                queue = nq
+            queue[tail] = x
+            tail += 1
+    while head < tail:
+        u = queue[head]
+        head += 1
+        hu = hops[u] + 1.0
+        for j in range(deg[u]):
+            v = nbr[u, j]
+            if hu < hops[v]:
+                hops[v] = hu
+                if tail == queue.shape[0]:
+                    live = tail - head  # compact the consumed prefix, then grow if still full
+                    nq = np.empty(max(2 * live, 16) + 1, np.int64)
+                    nq[:live] = queue[head:tail]
+                    queue = nq
+                    head = 0
+                    tail = live
+                queue[tail] = v
+                tail += 1
+    return hops
