@@ -92,6 +92,10 @@ def test_path_is_collision_free_drivable_and_timed(home):
     assert max_limit_violation(traj, robot.velocity, robot.acceleration) < 1e-6
     assert np.all(np.diff(traj.times) > 0)
     assert 0.0 <= res.mean_score <= 1.0 and res.path_length > 0
+    # the score report is computed on first access, with the planner's scorer, along the dense path
+    expected = planner.score_configs(torch.as_tensor(res.dense, dtype=planner.dtype)).double().numpy()
+    np.testing.assert_allclose(res.dense_scores, expected, atol=1e-6)
+    assert res.mean_score == pytest.approx(float(expected.mean()), abs=1e-6) and expected.std() > 0
 
 
 def test_perception_weighting_beats_shortest_path(home):

@@ -23,7 +23,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
@@ -146,20 +146,39 @@ class PSPRMSettings:
 
 @dataclass
 class PlanResult:
-    """Outcome of a query (``success`` False comes with a ``reason``; never an exception for bad problems)."""
+    """Outcome of a query (``success`` False comes with a ``reason``; never an exception for bad problems).
+
+    ``dense_scores`` (the planner's perception score along ``dense``) and their mean ``mean_score`` are a report, not
+    part of the search: they are computed on first access with ``score_fn`` (the planner's scorer, i.e. the scene at
+    that moment: read them before moving targets or obstacles) and are not included in ``query_ms``.
+    """
 
     success: bool
     reason: str = "ok"
     path_nodes: list = field(default_factory=list)
     waypoints: Optional[np.ndarray] = None  # (M, dof) roadmap path incl. diff-drive corners
     dense: Optional[np.ndarray] = None  # (K, dof) configurations every ``edge_resolution`` along the path
-    dense_scores: Optional[np.ndarray] = None  # planner's perception score along ``dense``
     trajectory: object = None  # timing.Trajectory
     cost: float = float("inf")
     path_length: float = float("nan")
-    mean_score: float = float("nan")
     query_ms: float = float("nan")
     goal_index: int = -1
+    score_fn: Optional[Callable[[np.ndarray], np.ndarray]] = field(default=None, repr=False, compare=False)
+    _dense_scores: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def dense_scores(self) -> Optional[np.ndarray]:
+        """(K,) planner's perception score along ``dense`` (scored on first access)."""
+        if self._dense_scores is None and self.dense is not None and self.score_fn is not None:
+            self._dense_scores = np.asarray(self.score_fn(self.dense), dtype=float)
+            self.score_fn = None
+        return self._dense_scores
+
+    @property
+    def mean_score(self) -> float:
+        """Mean of :attr:`dense_scores` (NaN without a path)."""
+        ds = self.dense_scores
+        return float(ds.mean()) if ds is not None and len(ds) else float("nan")
 
     def to_dict(self, joint_names: Sequence[str] | None = None) -> dict:
         d = {"success": self.success, "reason": self.reason, "cost": self.cost,
@@ -1027,7 +1046,6 @@ class PSPRM:
         keep[1:] = (W[1:] - W[:-1]).abs().max(-1).values > 1e-7
         W = W[keep]
         dense = self.densify(W)
-        dense_scores = self.score_configs(dense.to(self.dtype)).double().cpu().numpy()
         length = float(self.motion.distance(W[:-1], W[1:]).sum()) if len(W) > 1 else 0.0
         traj = None
         if timing and len(W) > 1:
@@ -1041,8 +1059,11 @@ class PSPRM:
                 base_linear_limits=(r.config.base.linear_velocity, r.config.base.linear_acceleration)
                 if r.mobile else None, method="analytic")
         return PlanResult(True, "ok", path_nodes=list(path), waypoints=W.numpy(), dense=dense.numpy(),
-                          dense_scores=dense_scores, trajectory=traj, cost=float(cost), path_length=length,
-                          mean_score=float(dense_scores.mean()))
+                          trajectory=traj, cost=float(cost), path_length=length, score_fn=self._score_numpy)
+
+    def _score_numpy(self, q: np.ndarray) -> np.ndarray:
+        """Perception scores of configurations given as numpy (the lazy report of :class:`PlanResult`)."""
+        return self.score_configs(self._t(q)).double().cpu().numpy()
 
     def densify(self, W: torch.Tensor) -> torch.Tensor:
         """Configurations every ``edge_resolution`` along the piecewise-linear knot path ``W`` (K, dof)."""

@@ -331,6 +331,9 @@ class Replanner:
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
                 log.error("replanned path collides at %d of %d dense configurations; rejected", bad.sum(), len(bad))
                 res = PlanResult(False, "internal: path failed the final collision check")
+        plan_score = None
+        if res.success:  # the plan's score feeds the hysteresis: scored inside the measured replan
+            plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
         ms = (time.perf_counter() - t0) * 1e3
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
@@ -339,7 +342,7 @@ class Replanner:
         if res.success:
             self.result, self._progress = res, 0
             self._goal_cfg = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
-            self._plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
+            self._plan_score = plan_score
             self._pending.clear()
             self._moved_obstacles.clear()
         else:
