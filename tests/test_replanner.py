@@ -355,16 +355,26 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     assert p.checker.valid(torch.as_tensor(cfg, dtype=torch.float32)).all()
     monkeypatch.setattr(p, "_plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
     assert not p.plan(q, goals).success and p.n_roadmap_nodes == n0 + len(new)  # other failures: no repair
-    # the budget bounds what repeated failures can grow: once used up, an unreachable goal grows nothing
+    # a repair that fails is rolled back: its nodes are removed and the budget is not used up ...
     unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap")  # noqa: E731
     monkeypatch.setattr(p, "_plan_once", unreachable)
-    p.settings = dataclasses.replace(p.settings, query_repair_budget=p._repair_added + 10)
-    p.plan(q, goals)
-    assert p.n_roadmap_nodes <= n0 + len(new) + 10 and p._repair_added <= p.settings.query_repair_budget
+    kept, valid0 = p._repair_added, p.roadmap_node_ids()
+    p.settings = dataclasses.replace(p.settings, query_repair_failures=p._repair_failed + 2)
+    slots = p.n_roadmap_nodes
+    assert not p.plan(q, goals).success
+    assert p.n_roadmap_nodes > slots and np.array_equal(p.roadmap_node_ids(), valid0) and p._repair_added == kept
+    # ... and after query_repair_failures of them, an unreachable goal grows nothing at all
+    assert not p.plan(q, goals).success
     before = p.n_roadmap_nodes
     for _ in range(3):
         assert not p.plan(q, goals).success
-    assert p.n_roadmap_nodes == before
+    assert p.n_roadmap_nodes == before and np.array_equal(p.roadmap_node_ids(), valid0)
+    # the budget bounds what successful repairs keep
+    monkeypatch.setattr(p, "_plan_once", first_fails)
+    calls.clear()
+    p.settings = dataclasses.replace(p.settings, query_repair_failures=10**6, query_repair_budget=p._repair_added + 10)
+    assert p.plan(q, goals, timing=False).success
+    assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p._repair_added <= p.settings.query_repair_budget
 
 
 def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, monkeypatch):

@@ -47,7 +47,7 @@ SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces to
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
-                  "query_repair_budget", "query_repair_connect_k", "query_repair_rounds")
+                  "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -81,6 +81,7 @@ class PSPRMSettings:
     query_repair_budget: int = 1500  # at most this many nodes grown by query repairs per built/loaded roadmap
     query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
     query_repair_rounds: int = 3  # repair rounds of a failing query (radius x 1.5 each round), within the budget
+    query_repair_failures: int = 25  # failed (rolled back) repairs per built/loaded roadmap; then no more repairs
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -349,7 +350,8 @@ class PSPRM:
         self.graph: Optional[Roadmap] = None
         self._dead_edges: list = []
         self._dead_nodes: list = []
-        self._repairs, self._repair_added = 0, 0  # query repairs and the nodes they grew (reset with the roadmap)
+        # query repairs, the nodes they grew and kept, the failed (rolled back) repairs; reset with the roadmap
+        self._repairs, self._repair_added, self._repair_failed = 0, 0, 0
         self.node_scores: Optional[np.ndarray] = None  # per node slot (NaN for query nodes)
         self._roadmap_mask = np.zeros(0, dtype=bool)  # node slots that are roadmap nodes (not start/goal queries)
         self.stats: dict = {}
@@ -446,7 +448,7 @@ class PSPRM:
         self.graph = g
         self._put_knots(edge_ids, eu.cpu().numpy(), *knots)
         self._dead_edges, self._dead_nodes = [], []
-        self._repairs, self._repair_added = 0, 0
+        self._repairs, self._repair_added, self._repair_failed = 0, 0, 0
         self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
         self._unverified, self._index = False, None
         self.node_scores = node_scores.double().cpu().numpy()
@@ -754,9 +756,11 @@ class PSPRM:
         base cannot turn), the roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
         start and each goal (up to 4), half of them along its heading (reachable by driving straight), and the query
         is repeated, connecting each end to every node grown for it and to its ``query_repair_connect_k`` nearest
-        nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The new nodes stay in
-        the roadmap; ``query_repair_budget`` bounds their number, so a goal that stays unreachable cannot make a
-        long-running planner grow without end."""
+        nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The nodes of a repair
+        that succeeds stay in the roadmap, within ``query_repair_budget``; those of a repair that fails are removed
+        again, so that they do not use up the budget of later queries; after ``query_repair_failures`` such failed
+        repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
+        unreachable cannot make a long-running planner grow without end."""
         res = self._plan_once(start, goals, timing, goal_costs)
         s = self.settings
         if res.success or "reachable" not in res.reason or self.graph is None:
@@ -766,7 +770,8 @@ class PSPRM:
         added, grown, again = 0, {}, None
         mobile = self.robot.mobile
         for r in range(max(1, s.query_repair_rounds)):
-            if s.query_repair_budget - self._repair_added <= 0 or s.query_repair_nodes <= 0:
+            if (s.query_repair_budget - self._repair_added <= 0 or s.query_repair_nodes <= 0
+                    or self._repair_failed >= s.query_repair_failures):
                 break
             self._repairs += 1
             rng = np.random.default_rng([s.seed, self._repairs])
@@ -788,6 +793,14 @@ class PSPRM:
                 break
         if again is None:
             return res
+        if not again.success and grown:  # a failed repair leaves no trace (nor a used-up budget)
+            ids = np.unique(np.concatenate(list(grown.values())))
+            self._compact()
+            self.graph.remove_nodes(ids)
+            self._repair_added -= added
+            self._repair_failed += 1
+            self._index = None
+            added = 0
         again.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         if again.success:
             again.reason = f"ok after a local roadmap repair ({added} nodes)"
@@ -1449,7 +1462,7 @@ class PSPRM:
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
         self._dead_edges, self._dead_nodes = [], []
-        self._repairs, self._repair_added = 0, 0
+        self._repairs, self._repair_added, self._repair_failed = 0, 0, 0
         self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
         self._roadmap_mask = np.ones(len(data["configs"]), dtype=bool)
         self._unverified = bool((data["verified"] < 0.5).any()) and not self.settings.lazy_edges
