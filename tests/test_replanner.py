@@ -412,6 +412,24 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     assert set(extra[0].tolist()) <= from_start  # every node grown around the start is one of its candidates
     pairs = list(zip(ua.tolist(), vb.tolist()))
     assert len(pairs) == len(set(pairs))  # no query edge twice
+    # with no roadmap node within 2 max_edge_length (an end in a sparse aisle), a first query tries only its
+    # QUERY_FALLBACK_K nearest nodes, the repaired one all its query_repair_connect_k nearest, however long
+    s0 = p.settings
+    calls.clear()
+    p.settings = dataclasses.replace(s0, max_edge_length=1e-4)
+    try:
+        p.plan(q, goals, timing=False)
+    finally:
+        p.settings = s0
+    ua = np.concatenate([u for u, _ in seen])
+    vb = np.concatenate([v for _, v in seen])
+    tried = set(vb[ua == int(ua.min())].tolist())
+    grown = np.concatenate(list(calls[1][0].values()))
+    present = np.union1d(p.roadmap_node_ids(), grown)  # the roadmap during the repaired query
+    d = p.motion.distance(torch.as_tensor(q, dtype=p.dtype)[None].expand(len(present), -1),
+                          torch.as_tensor(p.graph.configs[present], dtype=p.dtype))
+    nearest = present[d.topk(k_used, largest=False).indices.numpy()]
+    assert set(nearest.tolist()) <= tried
 
 
 def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):

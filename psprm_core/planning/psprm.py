@@ -868,7 +868,11 @@ class PSPRM:
             # it still gets its QUERY_FALLBACK_K nearest candidates (longer edges, checked like any other)
             cand_d = dist[: len(src)].reshape(len(queries), kk)
             lonely = ~within[: len(src)].reshape(len(queries), kk).any(1)
-            if lonely.any():
+            if extra_candidates is not None:
+                # a repaired query: the end sits where the roadmap is sparse (an aisle); a longer connection to one of
+                # its connect_k nearest nodes is a candidate like any other (checked and scored the same way)
+                within[:] = True
+            elif lonely.any():
                 nk = min(QUERY_FALLBACK_K, kk)
                 pick = cand_d[lonely].topk(nk, largest=False).indices + torch.nonzero(lonely)[:, :1] * kk
                 within[pick.reshape(-1)] = True
