@@ -82,15 +82,20 @@ def test_path_is_collision_free_drivable_and_timed(home):
     assert res.success, res.reason
     assert np.allclose(res.waypoints[0], start, atol=1e-5) and np.allclose(res.waypoints[-1], goals[0], atol=1e-5)
     # every configuration along the executed path is free under pybullet's exact mesh check
+    traj = res.trajectory
     world = PybulletWorld(robot, scene.collision_boxes())
     try:
         assert not world.in_collision(res.dense).any()
+        assert not world.in_collision(traj.positions).any()  # smooth phases leave the straight pieces: free too
     finally:
         world.close()
     assert check_base_segments(res.waypoints, (0, 1, 2), 1e-5) == []  # rotate or drive straight, never sideways
-    traj = res.trajectory
+    assert check_base_segments(traj.positions, (0, 1, 2), 1e-5) == []  # also between the knots
     assert max_limit_violation(traj, robot.velocity, robot.acceleration) < 1e-6
     assert np.all(np.diff(traj.times) > 0)
+    # smooth timing: the robot stops where the base changes its motion, not at every re-aiming knot
+    stops = int((np.abs(traj.velocities[1:-1]).max(1) <= 1e-9).sum())
+    assert any(r.curve is not None for r in traj._runs) and stops < len(res.waypoints) - 2
     assert 0.0 <= res.mean_score <= 1.0 and res.path_length > 0
     # the score report is computed on first access, with the planner's scorer, along the dense path
     expected = planner.score_configs(torch.as_tensor(res.dense, dtype=planner.dtype)).double().numpy()

@@ -219,3 +219,61 @@ def test_waypoints_closer_than_the_duplicate_tolerance_are_one_point(method: str
     traj = time_parameterize(q, [1.0] * 3, [1.0] * 3, method=method)
     check_common(traj, q, np.ones(3), np.ones(3), 0.05)
     assert traj.duration == 0.0
+
+
+# ---------------------------------------------------------------------------- smooth phases
+def _reaiming_path(rng: np.random.Generator, heading: float) -> np.ndarray:
+    """A mobile path like the planner's knots: drive along a heading while a pan/tilt re-aims at 4 knots, turn in
+    place while they keep moving, then drive backwards: 3 base phases, 11 waypoints."""
+    c, s = math.cos(heading), math.sin(heading)
+    rows, x, y, th = [], 0.0, 0.0, heading
+    pan, tilt = 0.0, 0.0
+    rows.append([x, y, th, pan, tilt])
+    sp, st_ = rng.choice([-1.0, 1.0], 2)  # the head tracks a target: it keeps turning one way within a phase
+    for d in rng.uniform(0.15, 0.5, 4):  # drive forward
+        x, y = x + d * c, y + d * s
+        pan, tilt = pan + sp * rng.uniform(0.0, 0.3), tilt + st_ * rng.uniform(0.0, 0.1)
+        rows.append([x, y, th, pan, tilt])
+    for r in rng.uniform(0.2, 0.6, 3):  # turn left in place, the head counter-rotating
+        th += r
+        pan, tilt = pan - r * rng.uniform(0.5, 1.0), tilt + st_ * rng.uniform(0.0, 0.1)
+        rows.append([x, y, th, pan, tilt])
+    c, s = math.cos(th), math.sin(th)
+    for d in rng.uniform(0.15, 0.5, 3):  # back up
+        x, y = x - d * c, y - d * s
+        pan, tilt = pan - sp * rng.uniform(0.0, 0.3), tilt - st_ * rng.uniform(0.0, 0.1)
+        rows.append([x, y, th, pan, tilt])
+    return np.asarray(rows)
+
+
+@pytest.mark.skipif(not _have_toppra(), reason="toppra missing")
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.integers(0, 10_000), st.floats(-math.pi, math.pi))
+def test_smooth_phases_pass_knots_without_stopping_within_limits(seed: int, heading: float) -> None:
+    """smooth=True: stops only where the base changes its motion (2 inside this path, not 9), the knots are passed
+    exactly, every sample keeps the base on its line / turning in place, the joint limits (and the base's linear
+    limits) hold also between TOPP-RA's grid points, no joint overshoots its two neighbouring knots, and the
+    trajectory is faster than stopping at every knot."""
+    q = _reaiming_path(np.random.default_rng(seed), heading)
+    v, a = np.array([0.3, 0.3, 0.6, 1.0, 0.8]), np.array([0.4, 0.4, 1.0, 2.0, 1.5])
+    kw = dict(dt=0.02, base_indices=(0, 1, 2), base_linear_limits=(0.25, 0.35), method="analytic")
+    stop = time_parameterize(q, v, a, **kw)
+    smooth = time_parameterize(q, v, a, smooth=True, **kw)
+    np.testing.assert_array_equal(smooth.positions[smooth.waypoint_indices], smooth.waypoints)
+    np.testing.assert_allclose(smooth.times[smooth.waypoint_indices], smooth.waypoint_times)
+    assert max_limit_violation(smooth, v, a, (0, 1, 2), (0.25, 0.35)) <= 1e-9
+    assert finite_difference_violation(smooth, v, a) <= 1e-5
+    assert check_base_segments(smooth.positions, (0, 1, 2), tol=1e-9) == []
+    moving = np.abs(smooth.velocities).max(1) > 1e-9
+    inner_stops = int((~moving[1:-1]).sum())
+    assert inner_stops == 2 and int((np.abs(stop.velocities).max(1)[1:-1] <= 1e-9).sum()) == len(q) - 2
+    assert smooth.duration < stop.duration
+    wt = smooth.waypoint_times
+    for i in range(len(q) - 1):
+        m = (smooth.times >= wt[i]) & (smooth.times <= wt[i + 1])
+        lo, hi = np.minimum(q[i], q[i + 1]), np.maximum(q[i], q[i + 1])
+        assert np.all(smooth.positions[m] >= lo - 1e-9) and np.all(smooth.positions[m] <= hi + 1e-9)
+    # evaluate() reproduces the samples
+    p, vv, aa = smooth.evaluate(smooth.times[1:-1])
+    np.testing.assert_allclose(p, smooth.positions[1:-1], atol=1e-12)
+    np.testing.assert_allclose(vv, smooth.velocities[1:-1], atol=1e-12)

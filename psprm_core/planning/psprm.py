@@ -47,7 +47,8 @@ SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces to
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
-                  "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures")
+                  "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
+                  "smooth_timing")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -88,6 +89,7 @@ class PSPRMSettings:
     connect_k: int = 12  # neighbours tried when connecting a start or goal
     heuristic: str = "hop"  # A* heuristic: hop (Eq. 3, the paper's) | exact (cost-to-go from a compiled Dijkstra)
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
+    smooth_timing: bool = True  # trajectories pass the knots of a base phase without stopping (timing.smooth)
     sample_batch: int = 2048
     build_timeout_s: float = 120.0
     min_view_distance: float = 0.5
@@ -1066,17 +1068,34 @@ class PSPRM:
         length = float(self.motion.distance(W[:-1], W[1:]).sum()) if len(W) > 1 else 0.0
         traj = None
         if timing and len(W) > 1:
-            from .timing import time_parameterize
-
-            r = self.robot
-            traj = time_parameterize(
-                W.numpy(), r.velocity, r.acceleration, dt=0.05, joint_names=r.joint_names,
-                continuous_joints=[i for i in range(r.dof) if r.continuous[i]],
-                base_indices=(0, 1, 2) if r.mobile else None,
-                base_linear_limits=(r.config.base.linear_velocity, r.config.base.linear_acceleration)
-                if r.mobile else None, method="analytic")
+            traj = self._timed(W.numpy())
         return PlanResult(True, "ok", path_nodes=list(path), waypoints=W.numpy(), dense=dense.numpy(),
                           trajectory=traj, cost=float(cost), path_length=length, score_fn=self._score_numpy)
+
+    def _timed(self, W: np.ndarray):
+        """Time-parameterised trajectory through the knots ``W`` (K, dof) within the joint limits
+        (:func:`~psprm_core.planning.timing.time_parameterize`). With ``smooth_timing`` on a mobile robot the knots of
+        each base phase are passed without stopping; those samples leave the checked straight pieces, so they are
+        collision-checked, and a smooth trajectory with any colliding sample is replaced by the stop-at-every-knot one
+        (which follows the checked pieces exactly)."""
+        from .timing import time_parameterize
+
+        r = self.robot
+        kw = dict(dt=0.05, joint_names=r.joint_names, continuous_joints=[i for i in range(r.dof) if r.continuous[i]],
+                  base_indices=(0, 1, 2) if r.mobile else None,
+                  base_linear_limits=(r.config.base.linear_velocity, r.config.base.linear_acceleration)
+                  if r.mobile else None, method="analytic")
+        if not (self.settings.smooth_timing and r.mobile and len(W) > 2):
+            return time_parameterize(W, r.velocity, r.acceleration, **kw)
+        traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, **kw)
+        curved = np.zeros(len(traj.times), dtype=bool)  # samples off the checked straight pieces
+        for run in traj._runs:
+            if run.curve is not None:
+                curved |= (traj.times > run.t0) & (traj.times < run.t0 + run.duration)
+        if curved.any() and bool(self.checker.check(self._t(traj.positions[curved])).any()):
+            log.debug("smooth trajectory grazes an obstacle between knots: stopping at every knot instead")
+            return time_parameterize(W, r.velocity, r.acceleration, **kw)
+        return traj
 
     def _score_numpy(self, q: np.ndarray) -> np.ndarray:
         """Perception scores of configurations given as numpy (the lazy report of :class:`PlanResult`)."""

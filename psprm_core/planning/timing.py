@@ -20,6 +20,15 @@ into a :class:`Trajectory` that respects per-joint velocity and acceleration lim
   sample lies on the joint-space segment the base never leaves it.  :func:`check_base_segments` verifies the
   guarantee (``validate_base=True``).  An optional linear speed / acceleration limit of the base (norm of the (x, y)
   velocity) is enforced exactly by folding it, per straight run, into the x/y joint limits.
+* ``smooth=True`` (what the planner uses on mobile robots): consecutive segments in which the base keeps one motion
+  (drives along one line in one direction, turns one way, or stands still) form one *phase*, timed rest-to-rest as a
+  whole: the joints follow a shape-preserving cubic (PCHIP) through the phase's waypoints, parameterised by the base's
+  progress (so the base still moves exactly along its line or turns in place), and TOPP-RA times it. The robot then
+  stops only where the base changes its motion (the drive corners), not at every re-aiming knot. Between two waypoints
+  a PCHIP joint stays within the two waypoint values (no overshoot) but the configuration leaves the straight
+  segment: the caller must collision-check the samples (the planner does, and falls back to ``smooth=False``).
+  Samples between TOPP-RA's grid points are checked against the limits and the phase is slowed down uniformly when a
+  limit is exceeded.
 * continuous (unbounded angle) joints are unwrapped (``np.unwrap``) before timing, so they take the short way; the
   output keeps the unwrapped values (start equals the input start, later values may differ by multiples of
   :math:`2\\pi`).
@@ -27,10 +36,11 @@ into a :class:`Trajectory` that respects per-joint velocity and acceleration lim
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -38,6 +48,11 @@ logger = logging.getLogger(__name__)
 
 #: Runs shorter than this (joint-space arc length) use the analytic profile: TOPP-RA's solver is not reliable there.
 _TOPPRA_MIN_LENGTH = 1e-6
+#: A smooth phase is slowed down to this fraction of its limits where its dense samples reach them (the limits hold
+#: exactly at TOPP-RA's grid points; between samples the cubic terms can exceed the sampled maximum by ~1e-4).
+_CURVE_MARGIN = 0.995
+#: A smooth phase that takes this many times longer than stopping at each of its waypoints is timed stop by stop.
+SMOOTH_SLOWER_LIMIT = 1.25
 
 __all__ = [
     "Trajectory",
@@ -60,6 +75,7 @@ class _Run:
     sd_knots: np.ndarray = field(default_factory=lambda: np.zeros(0))  # path speed at the knots
     t_knots: np.ndarray = field(default_factory=lambda: np.zeros(0))  # times of the knots (relative to run start)
     t0: float = 0.0  # absolute start time
+    curve: Any = None  # smooth phase: _CurvePath q(s) through ``points`` at ``s_breaks`` (None: straight pieces)
 
     @property
     def length(self) -> float:
@@ -228,7 +244,7 @@ def _run_limits(
             v_lin, a_lin = base_linear_limits
             for j in (ix, iy):
                 frac = abs(d[j]) / nxy
-                if frac > 0:
+                if frac > 1e-12:  # a negligible component keeps its own limit (denormal folds stall TOPP-RA)
                     v[j] = min(v[j], v_lin * frac)
                     a[j] = min(a[j], a_lin * frac)
     return v, a
@@ -279,6 +295,203 @@ class _LinearRunPath:
     @property
     def waypoints(self) -> tuple[np.ndarray, np.ndarray]:
         return self._run.s_breaks, self._run.points
+
+
+def _pchip_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Fritsch-Carlson slopes of the monotone cubic (PCHIP) through (x, y (n, d)): the weighted harmonic mean of the
+    neighbouring secants where they agree in sign, 0 at local extrema; shape-preserving one-sided end slopes. The
+    same slopes as ``scipy.interpolate.PchipInterpolator`` (the tests compare them)."""
+    h = np.diff(x)[:, None]
+    delta = np.diff(y, axis=0) / h
+    m = np.zeros_like(y)
+    if y.shape[0] == 2:
+        m[:] = delta[0]
+        return m
+    w1, w2 = 2.0 * h[1:] + h[:-1], h[1:] + 2.0 * h[:-1]
+    d0, d1 = delta[:-1], delta[1:]
+    agree = (np.sign(d0) * np.sign(d1)) > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        m[1:-1] = np.where(agree, (w1 + w2) / (w1 / d0 + w2 / d1), 0.0)
+
+    def edge(h0, h1, m0, m1):
+        d = ((2.0 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
+        d = np.where(np.sign(d) != np.sign(m0), 0.0, d)
+        return np.where((np.sign(m0) != np.sign(m1)) & (np.abs(d) > 3.0 * np.abs(m0)), 3.0 * m0, d)
+
+    m[0] = edge(h[0], h[1], delta[0], delta[1])
+    m[-1] = edge(h[-1], h[-2], delta[-1], delta[-2])
+    return m
+
+
+class _CurvePath:
+    """A smooth phase as a ``toppra`` geometric path: PCHIP through the phase's waypoints at ``s_breaks``
+    (cubic Hermite pieces with :func:`_pchip_slopes`; evaluated with its first and second derivatives)."""
+
+    def __init__(self, s_breaks: np.ndarray, points: np.ndarray) -> None:
+        self._s = np.asarray(s_breaks, dtype=np.float64)
+        self._points = np.asarray(points, dtype=np.float64)
+        self._m = _pchip_slopes(self._s, self._points)
+
+    def __call__(self, s: float | np.ndarray, order: int = 0) -> np.ndarray:
+        scalar = np.ndim(s) == 0
+        ss = np.clip(np.atleast_1d(np.asarray(s, dtype=np.float64)), self._s[0], self._s[-1])
+        k = np.clip(np.searchsorted(self._s, ss, side="right") - 1, 0, self._s.shape[0] - 2)
+        h = (self._s[k + 1] - self._s[k])[:, None]
+        t = ((ss - self._s[k])[:, None]) / h
+        y0, y1 = self._points[k], self._points[k + 1]
+        m0, m1 = self._m[k] * h, self._m[k + 1] * h  # slopes in the unit parameter t
+        if order == 0:
+            t2, t3 = t * t, t * t * t
+            out = (2 * t3 - 3 * t2 + 1) * y0 + (t3 - 2 * t2 + t) * m0 + (-2 * t3 + 3 * t2) * y1 + (t3 - t2) * m1
+        elif order == 1:
+            t2 = t * t
+            out = ((6 * t2 - 6 * t) * y0 + (3 * t2 - 4 * t + 1) * m0 + (-6 * t2 + 6 * t) * y1 + (3 * t2 - 2 * t) * m1) / h
+        else:
+            out = ((12 * t - 6) * y0 + (6 * t - 4) * m0 + (-12 * t + 6) * y1 + (6 * t - 2) * m1) / (h * h)
+        return out[0] if scalar else out
+
+    @property
+    def dof(self) -> int:
+        return int(self._points.shape[1])
+
+    @property
+    def path_interval(self) -> np.ndarray:
+        return np.array([self._s[0], self._s[-1]])
+
+    @property
+    def waypoints(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._s, self._points
+
+
+def _base_signature(seg: np.ndarray, start: np.ndarray, base_indices: tuple[int, int, int] | None,
+                    tol: float) -> tuple:
+    """What the base does on a segment: ("T", heading, direction) drive, ("R", direction) turn, ("S",) stand."""
+    if base_indices is None:
+        return ("S",)
+    ix, iy, it = base_indices
+    if math.hypot(seg[ix], seg[iy]) > tol:
+        fwd = math.cos(start[it]) * seg[ix] + math.sin(start[it]) * seg[iy]
+        return ("T", float(start[it]), fwd > 0)
+    if abs(seg[it]) > tol:
+        return ("R", seg[it] > 0)
+    return ("S",)
+
+
+def _same_phase(a: tuple, b: tuple, tol: float) -> bool:
+    if a[0] != b[0]:
+        return False
+    if a[0] == "T":
+        return abs(a[1] - b[1]) <= tol and a[2] == b[2]
+    return a == b
+
+
+def _split_phases(q: np.ndarray, base_indices: tuple[int, int, int] | None, collinear_tol: float,
+                  tol: float) -> list[_Run]:
+    """Straight runs (collinear segments) and smooth phases (segments of one base motion, see the module notes)."""
+    seg = np.diff(q, axis=0)
+    sigs = [_base_signature(seg[i], q[i], base_indices, tol) for i in range(seg.shape[0])]
+    runs: list[_Run] = []
+    start = 0
+    for i in range(1, seg.shape[0] + 1):
+        if i < seg.shape[0] and _same_phase(sigs[i], sigs[i - 1], tol):
+            continue
+        pts = q[start : i + 1]
+        straight = _split_runs(pts, collinear_tol)
+        if len(straight) == 1:
+            runs.extend(straight)
+        else:
+            kind = sigs[start][0]
+            d = np.diff(pts, axis=0)
+            if kind == "T":
+                ix, iy, _ = base_indices  # type: ignore[misc]
+                steps = np.hypot(d[:, ix], d[:, iy])
+            elif kind == "R":
+                steps = np.abs(d[:, base_indices[2]])  # type: ignore[index]
+            else:
+                steps = np.linalg.norm(d, axis=1)
+            sb = np.concatenate([[0.0], np.cumsum(steps)])
+            dirs = d / np.linalg.norm(d, axis=1)[:, None]
+            runs.append(_Run(points=pts, s_breaks=sb, dirs=dirs, curve=_CurvePath(sb, pts)))
+        start = i
+    return runs
+
+
+def _curve_limit_ratio(run: _Run, v: np.ndarray, a: np.ndarray, per_interval: int = 8) -> float:
+    """max over dense samples of a smooth phase of max(|q'| sd / v, sqrt(|q'' sd^2 + q' sdd| / a)).
+
+    Each grid interval is sampled at both ends (the left end from inside: q'' of a PCHIP piece is linear and jumps at
+    the waypoints, so the acceleration peaks at interval ends) and ``per_interval`` - 1 points between."""
+    S, SD = run.s_knots, run.sd_knots
+    f = np.linspace(0.0, 1.0, per_interval + 1)
+    f[-1] = 1.0 - 1e-9
+    k = f.shape[0]
+    ds = np.diff(S)
+    s = (S[:-1, None] + f[None, :] * ds[:, None]).reshape(-1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(ds > 0, (SD[1:] ** 2 - SD[:-1] ** 2) / (2.0 * ds), 0.0)
+    u = np.repeat(u, k)
+    sd2 = np.maximum(np.repeat(SD[:-1] ** 2, k) + 2.0 * u * (s - np.repeat(S[:-1], k)), 0.0)
+    d1, d2 = run.curve(s, 1), run.curve(s, 2)
+    vel = np.abs(d1) * np.sqrt(sd2)[:, None] / v
+    acc = np.abs(d2 * sd2[:, None] + d1 * u[:, None]) / a
+    return float(max(vel.max(initial=0.0), math.sqrt(acc.max(initial=0.0))))
+
+
+@functools.lru_cache(maxsize=1)
+def _quiet_constraints() -> tuple[type, type]:
+    """toppra's joint velocity / acceleration constraints without the log string their constructors build from
+    the limit arrays (numpy array printing, ~1 ms per pair: as long as the TOPP-RA solve of a short phase).
+    Limits are validated by :func:`time_parameterize` (positive, finite)."""
+    import toppra.constraint as ta_con
+
+    class QuietVelocity(ta_con.JointVelocityConstraint):
+        def _assert_valid_limits(self) -> None:
+            if self.vlim.shape[1] != 2 or np.any(self.vlim[:, 0] >= self.vlim[:, 1]):
+                raise ValueError("bad velocity limits")
+            self._format_string = "    Velocity limit (psprm)\n"
+
+    class QuietAcceleration(ta_con.JointAccelerationConstraint):
+        def __init__(self, alim: np.ndarray) -> None:  # pylint: disable=super-init-not-called
+            ta_con.LinearConstraint.__init__(self)
+            self.alim = np.array(alim, dtype=float)
+            if self.alim.ndim != 2 or self.alim.shape[1] != 2 or np.any(self.alim[:, 0] >= self.alim[:, 1]):
+                raise ValueError("bad acceleration limits")
+            self.dof = self.alim.shape[0]
+            self.set_discretization_type(ta_con.DiscretizationType.Interpolation)
+            self._format_string = "    Acceleration limit (psprm)\n"
+            self.identical = True
+
+    return QuietVelocity, QuietAcceleration
+
+
+def _profile_curve(run: _Run, v: np.ndarray, a: np.ndarray, n_grid: int,
+                   cache: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """TOPP-RA rest-to-rest profile of a smooth phase, slowed down uniformly if a sample between grid points
+    exceeds a limit (TOPP-RA enforces them at the grid points). ``cache`` keeps the constraint objects per limit
+    vector (their constructors format the limits into log strings: ~2 ms each)."""
+    import toppra.algorithm as ta_algo
+
+    sb = run.s_breaks  # uniform points, the waypoints and 2 points inside every PCHIP piece
+    inner = (sb[:-1, None] + np.diff(sb)[:, None] * np.array([1.0 / 3.0, 2.0 / 3.0])[None, :]).reshape(-1)
+    grid = np.unique(np.concatenate([np.linspace(0.0, run.length, n_grid), sb, inner]))
+    key = (v.tobytes(), a.tobytes())
+    constraints = None if cache is None else cache.get(key)
+    if constraints is None:
+        vel_cls, acc_cls = _quiet_constraints()
+        constraints = [vel_cls(np.stack([-v, v], axis=1)), acc_cls(np.stack([-a, a], axis=1))]
+        if cache is not None:
+            cache[key] = constraints
+    instance = ta_algo.TOPPRA(constraints, run.curve, gridpoints=grid, solver_wrapper="seidel")
+    _, sd, _, _ = instance.compute_parameterization(0.0, 0.0, return_data=True)
+    if sd is None or np.any(~np.isfinite(sd)):
+        raise RuntimeError("toppra failed to parameterise a smooth phase (numerical failure)")
+    sd = np.maximum(np.asarray(sd, dtype=np.float64), 0.0)
+    sd[0] = sd[-1] = 0.0
+    run.s_knots, run.sd_knots = grid, sd
+    ratio = _curve_limit_ratio(run, v, a)
+    if ratio > _CURVE_MARGIN:  # sd / r scales velocities by 1 / r and accelerations by 1 / r^2
+        sd = sd * (_CURVE_MARGIN / ratio)
+    return grid, sd
 
 
 def _profile_toppra(run: _Run, v: np.ndarray, a: np.ndarray, n_grid: int) -> tuple[np.ndarray, np.ndarray]:
@@ -348,6 +561,8 @@ def _evaluate_runs(
     acc = np.zeros((t.shape[0], dof))
     if not runs:
         return pos, vel, acc
+    if any(r.curve is not None for r in runs):
+        return _evaluate_runs_loop(runs, t, pos, vel, acc)
     off = np.concatenate([[0.0], np.cumsum([r.length for r in runs])[:-1]])
     T = np.concatenate([r.t0 + r.t_knots for r in runs])
     S = np.concatenate([o + r.s_knots for o, r in zip(off, runs)])
@@ -372,6 +587,34 @@ def _evaluate_runs(
     return pos, vel, acc
 
 
+def _evaluate_runs_loop(runs: list[_Run], t: np.ndarray, pos: np.ndarray, vel: np.ndarray,
+                        acc: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_evaluate_runs` run by run (smooth phases evaluate their curve and its derivatives)."""
+    for k, r in enumerate(runs):
+        end = r.t0 + r.duration
+        m = (t >= r.t0) & (t < end) if k else t < end
+        if not m.any():
+            continue
+        tau = t[m] - r.t0
+        T, S, SD = r.t_knots, r.s_knots, r.sd_knots
+        i = np.clip(np.searchsorted(T, tau, side="right") - 1, 0, T.shape[0] - 2)
+        ds = S[i + 1] - S[i]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.where(ds > 0, (SD[i + 1] ** 2 - SD[i] ** 2) / (2.0 * ds), 0.0)
+        dt = np.clip(tau - T[i], 0.0, T[i + 1] - T[i])
+        s = np.minimum(S[i] + SD[i] * dt + 0.5 * u * dt * dt, S[i + 1])
+        sd = np.maximum(SD[i] + u * dt, 0.0)
+        if r.curve is None:
+            d = _dirs_on_run(r, s)
+            pos[m], vel[m], acc[m] = _positions_on_run(r, s), d * sd[:, None], d * u[:, None]
+        else:
+            d1 = r.curve(s, 1)
+            pos[m] = r.curve(s, 0)
+            vel[m] = d1 * sd[:, None]
+            acc[m] = r.curve(s, 2) * (sd * sd)[:, None] + d1 * u[:, None]
+    return pos, vel, acc
+
+
 # ====================================================================== public API
 def time_parameterize(
     waypoints: np.ndarray,
@@ -388,8 +631,10 @@ def time_parameterize(
     n_grid: int = 60,
     collinear_tol: float = 1e-9,
     duplicate_tol: float = 1e-12,
+    smooth: bool = False,
 ) -> Trajectory:
-    """Time-parameterise a piecewise-linear joint path exactly (stop at corners, time-optimal straight runs).
+    """Time-parameterise a piecewise-linear joint path exactly (stop at corners, time-optimal straight runs), or with
+    ``smooth`` through the waypoints of each base phase (stops only where the base changes its motion).
 
     Parameters
     ----------
@@ -426,6 +671,11 @@ def time_parameterize(
         (passed without stopping).
     duplicate_tol : float
         Consecutive waypoints closer than this are merged.
+    smooth : bool
+        Smooth phases (module notes): the joints pass the waypoints of a base phase without stopping, on a PCHIP
+        curve timed by TOPP-RA (``toppra`` required). A phase where it fails, or whose smooth timing takes more than
+        ``SMOOTH_SLOWER_LIMIT`` times as long as stopping at its waypoints, is timed straight, stop by stop. The
+        samples leave the straight segments between waypoints: collision-check them.
 
     Returns
     -------
@@ -464,9 +714,50 @@ def time_parameterize(
 
     qk, owner = _dedupe(q, duplicate_tol)
     q = qk[owner]  # waypoints merged as duplicates (closer than duplicate_tol) take their kept value exactly
-    runs = _split_runs(qk, collinear_tol) if qk.shape[0] > 1 else []
+    if smooth and qk.shape[0] > 2:
+        try:
+            import toppra  # noqa: F401
+        except ImportError:
+            logger.warning("toppra is not installed: smooth timing unavailable, stopping at every corner")
+            smooth = False
+    if qk.shape[0] <= 1:
+        runs = []
+    elif smooth:
+        runs = _split_phases(qk, base_indices, collinear_tol, base_tol)
+    else:
+        runs = _split_runs(qk, collinear_tol)
+    timed: list[_Run] = []
+    constraint_cache: dict = {}
+    for run in runs:
+        if run.curve is None:
+            timed.append(run)
+            continue
+        v, a = _run_limits(run, vmax_a, amax_a, base_indices, base_linear_limits)
+        straight = _split_runs(run.points, collinear_tol)
+        for r in straight:
+            r.s_knots, r.sd_knots = _profile_analytic(r, *_run_limits(r, vmax_a, amax_a, base_indices,
+                                                                      base_linear_limits))
+        try:
+            run.s_knots, run.sd_knots = _profile_curve(run, v, a, max(4, n_grid // 8), constraint_cache)
+        except Exception as exc:  # toppra reports numerical failures in several ways
+            logger.warning("toppra failed on a smooth phase (%s): timed straight, stop by stop", exc)
+            timed.extend(straight)
+            continue
+        t_curve = float(_knot_times(run.s_knots, run.sd_knots)[-1])
+        t_stops = sum(float(_knot_times(r.s_knots, r.sd_knots)[-1]) for r in straight)
+        if t_curve > SMOOTH_SLOWER_LIMIT * t_stops:  # sharp turns of the joints: stopping is faster
+            logger.debug("smooth phase %.2f s vs %.2f s stopping at its waypoints: stops kept", t_curve, t_stops)
+            timed.extend(straight)
+        else:
+            timed.append(run)
+    runs = timed
     t0 = 0.0
     for run in runs:
+        if run.curve is not None or len(run.s_knots):  # profiled above
+            run.t_knots = _knot_times(run.s_knots, run.sd_knots)
+            run.t0 = t0
+            t0 += run.duration
+            continue
         v, a = _run_limits(run, vmax_a, amax_a, base_indices, base_linear_limits)
         if method == "toppra" and run.length > _TOPPRA_MIN_LENGTH:
             try:
