@@ -277,3 +277,25 @@ def test_smooth_phases_pass_knots_without_stopping_within_limits(seed: int, head
     p, vv, aa = smooth.evaluate(smooth.times[1:-1])
     np.testing.assert_allclose(p, smooth.positions[1:-1], atol=1e-12)
     np.testing.assert_allclose(vv, smooth.velocities[1:-1], atol=1e-12)
+
+
+def test_pchip_curve_matches_scipy() -> None:
+    """The smooth phases' cubic (_CurvePath) has scipy's PCHIP slopes: same values and first/second derivatives,
+    including joints that stand still and the shape-preserving end slopes."""
+    from scipy.interpolate import PchipInterpolator
+
+    from psprm_core.planning.timing import _CurvePath
+
+    rng = np.random.default_rng(0)
+    for n in (2, 3, 5, 9):
+        for _ in range(20):
+            x = np.concatenate([[0.0], np.cumsum(rng.uniform(0.05, 1.0, n - 1))])
+            y = rng.normal(size=(n, 4))
+            y[:, 1] = 0.3  # a joint that does not move
+            y[:, 2] = 0.7 * x  # the base: linear in its progress
+            ref, ours = PchipInterpolator(x, y, axis=0), _CurvePath(x, y)
+            s = np.linspace(0.0, x[-1], 301)
+            for order in (0, 1, 2):
+                want = ref(s) if order == 0 else ref.derivative(order)(s)
+                np.testing.assert_allclose(ours(s, order), want, atol=1e-9 * max(1.0, np.abs(want).max()))
+            np.testing.assert_allclose(ours(s, 0)[:, 2], np.interp(s, x, y[:, 2]), atol=1e-12)  # linear stays linear
