@@ -110,53 +110,10 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
 
 
 @jit
-def bfs_hops(nbr, deg, goals, n):  # pragma: no cover - compiled
-    """Multi-source BFS: hop distance of the first ``n`` nodes to the nearest goal (``inf`` if unreachable)."""
-    hops = np.full(n, np.inf)
-    queue = np.empty(n, np.int64)
+def _relax_fifo(nbr, deg, hops, queue, tail):  # pragma: no cover - compiled
+    """FIFO label correcting of unit-weight hop distances from the ``tail`` queued nodes (plain BFS when the queue
+    holds the sources of an otherwise infinite labelling). The queue is compacted / grown when full."""
     head = 0
-    tail = 0
-    for q in goals:
-        if hops[q] == np.inf:
-            hops[q] = 0.0
-            queue[tail] = q
-            tail += 1
-    while head < tail:
-        u = queue[head]
-        head += 1
-        hu = hops[u] + 1.0
-        for j in range(deg[u]):
-            v = nbr[u, j]
-            if hops[v] == np.inf:
-                hops[v] = hu
-                queue[tail] = v
-                tail += 1
-    return hops
-
-
-@jit
-def hops_decrease(nbr, deg, hops, eu, ev):  # pragma: no cover - compiled
-    """Exact hop distances after edges ``(eu, ev)`` were added (FIFO label correcting from the new edges)."""
-    cap = max(16, 2 * eu.shape[0])
-    queue = np.empty(cap, np.int64)
-    head = 0
-    tail = 0
-    for i in range(eu.shape[0]):
-        a, b = eu[i], ev[i]
-        x = -1
-        if hops[a] + 1.0 < hops[b]:
-            hops[b] = hops[a] + 1.0
-            x = b
-        elif hops[b] + 1.0 < hops[a]:
-            hops[a] = hops[b] + 1.0
-            x = a
-        if x >= 0:
-            if tail == queue.shape[0]:
-                nq = np.empty(2 * tail, np.int64)
-                nq[:tail] = queue
-                queue = nq
-            queue[tail] = x
-            tail += 1
     while head < tail:
         u = queue[head]
         head += 1
@@ -166,7 +123,7 @@ def hops_decrease(nbr, deg, hops, eu, ev):  # pragma: no cover - compiled
             if hu < hops[v]:
                 hops[v] = hu
                 if tail == queue.shape[0]:
-                    live = tail - head  # compact the consumed prefix, then grow if still full
+                    live = tail - head
                     nq = np.empty(max(2 * live, 16) + 1, np.int64)
                     nq[:live] = queue[head:tail]
                     queue = nq
@@ -175,3 +132,35 @@ def hops_decrease(nbr, deg, hops, eu, ev):  # pragma: no cover - compiled
                 queue[tail] = v
                 tail += 1
     return hops
+
+
+@jit
+def bfs_hops(nbr, deg, goals, n):  # pragma: no cover - compiled
+    """Multi-source BFS: hop distance of the first ``n`` nodes to the nearest goal (``inf`` if unreachable)."""
+    hops = np.full(n, np.inf)
+    queue = np.empty(max(n, 16), np.int64)
+    tail = 0
+    for q in goals:
+        if hops[q] == np.inf:
+            hops[q] = 0.0
+            queue[tail] = q
+            tail += 1
+    return _relax_fifo(nbr, deg, hops, queue, tail)
+
+
+@jit
+def hops_decrease(nbr, deg, hops, eu, ev):  # pragma: no cover - compiled
+    """Exact hop distances after edges ``(eu, ev)`` were added (FIFO label correcting from the new edges)."""
+    queue = np.empty(max(16, 2 * eu.shape[0]), np.int64)
+    tail = 0
+    for i in range(eu.shape[0]):
+        a, b = eu[i], ev[i]
+        if hops[a] + 1.0 < hops[b]:
+            hops[b] = hops[a] + 1.0
+            queue[tail] = b
+            tail += 1
+        elif hops[b] + 1.0 < hops[a]:
+            hops[a] = hops[b] + 1.0
+            queue[tail] = a
+            tail += 1
+    return _relax_fifo(nbr, deg, hops, queue, tail)

@@ -572,19 +572,24 @@ def _evaluate_runs(
     D = np.concatenate([r.dirs for r in runs])
     end = runs[-1].t0 + runs[-1].duration
     m = t < end
-    tau = t[m]
+    s, sd, u = _profile_at(T, S, SD, t[m])
+    k = np.clip(np.searchsorted(B, s, side="right") - 1, 0, B.shape[0] - 1)
+    pos[m] = P[k] + (s - B[k])[:, None] * D[k]
+    vel[m] = D[k] * sd[:, None]
+    acc[m] = D[k] * u[:, None]
+    return pos, vel, acc
+
+
+def _profile_at(T: np.ndarray, S: np.ndarray, SD: np.ndarray, tau: np.ndarray) -> tuple:
+    """Path position, speed and acceleration (s, sd, sdd) at times ``tau`` of a profile with knots (T, S, SD) and
+    constant path acceleration between knots."""
     i = np.clip(np.searchsorted(T, tau, side="right") - 1, 0, T.shape[0] - 2)
     ds = S[i + 1] - S[i]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = np.where(ds > 0, (SD[i + 1] ** 2 - SD[i] ** 2) / (2.0 * ds), 0.0)
     dt = np.clip(tau - T[i], 0.0, T[i + 1] - T[i])
     s = np.minimum(S[i] + SD[i] * dt + 0.5 * u * dt * dt, S[i + 1])
-    sd = np.maximum(SD[i] + u * dt, 0.0)
-    k = np.clip(np.searchsorted(B, s, side="right") - 1, 0, B.shape[0] - 1)
-    pos[m] = P[k] + (s - B[k])[:, None] * D[k]
-    vel[m] = D[k] * sd[:, None]
-    acc[m] = D[k] * u[:, None]
-    return pos, vel, acc
+    return s, np.maximum(SD[i] + u * dt, 0.0), u
 
 
 def _evaluate_runs_loop(runs: list[_Run], t: np.ndarray, pos: np.ndarray, vel: np.ndarray,
@@ -595,15 +600,7 @@ def _evaluate_runs_loop(runs: list[_Run], t: np.ndarray, pos: np.ndarray, vel: n
         m = (t >= r.t0) & (t < end) if k else t < end
         if not m.any():
             continue
-        tau = t[m] - r.t0
-        T, S, SD = r.t_knots, r.s_knots, r.sd_knots
-        i = np.clip(np.searchsorted(T, tau, side="right") - 1, 0, T.shape[0] - 2)
-        ds = S[i + 1] - S[i]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.where(ds > 0, (SD[i + 1] ** 2 - SD[i] ** 2) / (2.0 * ds), 0.0)
-        dt = np.clip(tau - T[i], 0.0, T[i + 1] - T[i])
-        s = np.minimum(S[i] + SD[i] * dt + 0.5 * u * dt * dt, S[i + 1])
-        sd = np.maximum(SD[i] + u * dt, 0.0)
+        s, sd, u = _profile_at(r.t_knots, r.s_knots, r.sd_knots, t[m] - r.t0)
         if r.curve is None:
             d = _dirs_on_run(r, s)
             pos[m], vel[m], acc[m] = _positions_on_run(r, s), d * sd[:, None], d * u[:, None]
