@@ -265,6 +265,46 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     }
 
 
+def surrogate_transfer(scene_name: str = "home", target: str | None = None, samples: int = 200, nodes: int = 3000,
+                       seed: int = 0, threads: int = 2,
+                       distance_bins: tuple = (0.0, 1.5, 3.0, 5.0, float("inf"))) -> dict:
+    """Does the neural scorer rank the planner's own configurations like the real detector does?
+
+    Builds the neural-psprm-line roadmap of the scene, draws ``samples`` of its nodes and scores their camera poses
+    with the neural scorer (surrogate + ray casting, what the planner optimises) and with the oracle (render + real
+    detector, what judges the paths). Reports Spearman's and Pearson's correlation overall and per camera-to-target
+    distance bin, and both means. The surrogate's held-out test set is drawn around the target; this measures it on
+    the distribution PS-PRM actually plans over (occluders, distances and headings of the scene)."""
+    from scipy.stats import spearmanr
+
+    from .planning.factory import make_scorer
+
+    scene, robot, target, p, stats, _ = _built_planner(scene_name, "neural-psprm-line", nodes, 0, seed, threads,
+                                                       target)
+    ids = p.roadmap_node_ids()
+    sel = np.random.default_rng(seed).choice(ids, min(samples, len(ids)), replace=False)
+    cams = robot.camera_poses(p._t(p.graph.configs[sel]))
+    neural = p.scorer.score(cams).double().cpu().numpy()
+    t0 = time.perf_counter()
+    oracle = make_scorer("oracle", scene, [target], robot.config.intrinsics).score(cams).double().cpu().numpy()
+    oracle_s = time.perf_counter() - t0
+    dist = np.linalg.norm(cams[:, :3, 3].double().cpu().numpy() - scene.target(target).center, axis=1)
+
+    def corr(a, b) -> dict:
+        if len(a) < 4 or np.std(a) == 0 or np.std(b) == 0:
+            return {"n": int(len(a)), "spearman": float("nan"), "pearson": float("nan")}
+        return {"n": int(len(a)), "spearman": float(spearmanr(a, b).statistic),
+                "pearson": float(np.corrcoef(a, b)[0, 1]), "neural_mean": float(a.mean()),
+                "oracle_mean": float(b.mean())}
+
+    bins = []
+    for lo, hi in zip(distance_bins[:-1], distance_bins[1:]):
+        m = (dist >= lo) & (dist < hi)
+        bins.append({"from_m": lo, "to_m": hi if np.isfinite(hi) else None, **corr(neural[m], oracle[m])})
+    return {"scene": scene.name, "target": target, "n_nodes": stats.get("n_nodes"), "samples": int(len(sel)),
+            **corr(neural, oracle), "oracle_s": oracle_s, "by_distance": bins}
+
+
 def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames: int = 12) -> dict:
     """Judge an executed path with the real detector: ``frames`` camera frames evenly spaced along ``dense``.
 

@@ -78,3 +78,15 @@ def test_perf_preprocess_oracle_vs_neural(capsys):
     assert res["small_oracle_views"] == res["small_oracle_nodes"] + 5 * res["small_edges"]
     assert res["oracle_s_per_view"] > 100 * res["neural_s_per_view"]
     assert res["ratio_measured_small"] > 1 and res["oracle_build_s_extrapolated"] > res["neural_build_s"]
+
+
+def test_perf_transfer_scores_roadmap_nodes_with_both(capsys):
+    """perf transfer scores the same roadmap nodes with the neural scorer and the oracle: the distance bins partition
+    the samples, correlations are proper numbers, and the oracle's time is measured."""
+    assert main(["perf", "transfer", "--scene", "home", "--target", "tv", "--nodes", "80", "--samples", "12",
+                 "--threads", "1", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["samples"] == res["n"] == 12 and sum(b["n"] for b in res["by_distance"]) == 12
+    assert -1.0 <= res["spearman"] <= 1.0 and 0.0 <= res["neural_mean"] <= 1.0 and 0.0 <= res["oracle_mean"] <= 1.0
+    assert res["oracle_s"] > 0 and res["by_distance"][-1]["to_m"] is None
+

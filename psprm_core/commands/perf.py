@@ -53,6 +53,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     pp.add_argument("--threads", type=int, default=2)
     pp.add_argument("--json", action="store_true")
     pp.set_defaults(func=_preprocess)
+    tr = ps.add_parser("transfer", help="neural scorer vs the real detector on the planner's own roadmap nodes: "
+                                        "rank correlation overall and by distance to the target")
+    tr.add_argument("--scene", default="home")
+    tr.add_argument("--target", default=None)
+    tr.add_argument("--samples", type=int, default=200, help="roadmap nodes scored by both (oracle: ~0.17 s each)")
+    tr.add_argument("--nodes", type=int, default=3000)
+    tr.add_argument("--seed", type=int, default=0)
+    tr.add_argument("--threads", type=int, default=2)
+    tr.add_argument("--json", action="store_true")
+    tr.set_defaults(func=_transfer)
     rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
                                       "until a verified path), and the cost of a full re-score")
     rp.add_argument("--scene", default="dynamic_person")
@@ -108,6 +118,14 @@ def _compare(args) -> int:
                                      frames=args.frames, seed=args.seed, threads=args.threads, target=args.target,
                                      oracle_problems=args.oracle_problems, aimed=not args.unaimed)
     print(json.dumps(res) if args.json else json.dumps(res, indent=2))
+    return 0
+
+
+def _transfer(args) -> int:
+    from ..benchmarks import surrogate_transfer
+
+    _print(surrogate_transfer(args.scene, args.target, samples=args.samples, nodes=args.nodes, seed=args.seed,
+                              threads=args.threads), args.json)
     return 0
 
 
