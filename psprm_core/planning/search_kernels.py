@@ -15,7 +15,6 @@ import functools
 import logging
 from typing import Any
 
-import numpy as np
 
 logger = logging.getLogger(__name__)
 
