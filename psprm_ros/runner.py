@@ -33,6 +33,10 @@ def self_check() -> dict:
     return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods)}
 
 
+#: Python's GIL switch interval in the node processes (default 0.005 s), see :func:`run_nodes`.
+GIL_SWITCH_INTERVAL_S = 0.0005
+
+
 def run_nodes(factories: Sequence[Callable], args=None, description: str = "", prog: str = "") -> int:
     """Start the nodes made by ``factories`` in one process (MultiThreadedExecutor) and spin until shut down."""
     argv = list(sys.argv if args is None else args)
@@ -54,6 +58,10 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
     from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s", stream=sys.stderr)
+    # The planner thread makes thousands of short torch calls per plan, each releasing and re-taking the GIL; while
+    # the executor thread is busy with message callbacks (120 Hz mocap), every re-take can wait a full switch interval
+    # (5 ms by default), which stretched a 0.5 s plan to 10-60 s in the demo. A shorter interval bounds that wait.
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
     rclpy.init(args=argv)
     nodes = []
     executor = MultiThreadedExecutor(num_threads=max(2, opts.threads))
