@@ -268,6 +268,7 @@ def test_smooth_phases_pass_knots_without_stopping_within_limits(seed: int, head
     inner_stops = int((~moving[1:-1]).sum())
     assert inner_stops == 2 and int((np.abs(stop.velocities).max(1)[1:-1] <= 1e-9).sum()) == len(q) - 2
     assert smooth.duration < stop.duration
+    assert smooth.off_segment_mask().any() and not stop.off_segment_mask().any()
     wt = smooth.waypoint_times
     for i in range(len(q) - 1):
         m = (smooth.times >= wt[i]) & (smooth.times <= wt[i + 1])

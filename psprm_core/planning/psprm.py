@@ -1088,10 +1088,7 @@ class PSPRM:
         if not (self.settings.smooth_timing and r.mobile and len(W) > 2):
             return time_parameterize(W, r.velocity, r.acceleration, **kw)
         traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, **kw)
-        curved = np.zeros(len(traj.times), dtype=bool)  # samples off the checked straight pieces
-        for run in traj._runs:
-            if run.curve is not None:
-                curved |= (traj.times > run.t0) & (traj.times < run.t0 + run.duration)
+        curved = traj.off_segment_mask()  # samples off the checked straight pieces
         if curved.any() and bool(self.checker.check(self._t(traj.positions[curved])).any()):
             log.debug("smooth trajectory grazes an obstacle between knots: stopping at every knot instead")
             return time_parameterize(W, r.velocity, r.acceleration, **kw)

@@ -127,6 +127,15 @@ class Trajectory:
         """Number of joints."""
         return int(self.positions.shape[1])
 
+    def off_segment_mask(self) -> np.ndarray:
+        """``(m,)`` bool: samples strictly inside a smooth phase, i.e. off the straight segments between waypoints
+        (all False for ``smooth=False``). Those are the samples a caller must collision-check itself."""
+        mask = np.zeros(self.times.shape[0], dtype=bool)
+        for run in self._runs:
+            if run.curve is not None:
+                mask |= (self.times > run.t0) & (self.times < run.t0 + run.duration)
+        return mask
+
     def evaluate(self, t: float | np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Positions, velocities and accelerations at arbitrary times (clamped to ``[0, duration]``).
 
