@@ -19,6 +19,7 @@ from psprm_core.perception.dataset import (
     split_by_viewpoint,
     split_dataset,
     target_in_fov,
+    view_parameters,
     viewpoint_cells,
 )
 from psprm_core.scene import Target
@@ -172,3 +173,40 @@ def test_split_dataset_on_loaded_data(tmp_path):
     sub = ds.subset(sp["test"])
     assert len(sub) == len(sp["test"]) and sub.target_poses.shape == (len(sub), 4, 4)
     assert sub.class_index.tolist() == [0] * len(sub)
+
+
+def test_view_parameters_recover_the_samplers_draws():
+    cfg = SamplingConfig(intrinsics=CameraIntrinsics())
+    s = generate_samples([FACE, CUP], 500, cfg, seed=4)
+    prm = view_parameters(s["camera_poses"], s["target_index"], [FACE, CUP], cfg.intrinsics)
+    for k in ("distance", "azimuth", "height", "u", "v"):
+        err = np.abs(prm[k] - s[k])
+        if k == "azimuth":
+            err = np.abs(np.angle(np.exp(1j * (prm[k] - s[k]))))
+        assert err.max() < 1e-6, (k, err.max())
+    # the sampler rolls about the line of sight by up to 5 degrees; the recovered roll is that tilt of the x axis
+    assert np.abs(prm["roll"]).max() <= np.radians(5.0) + 1e-9
+    assert np.corrcoef(prm["roll"], s["roll"])[0, 1] > 0.9
+
+
+def test_given_views_are_labelled_resumed_and_split(tmp_path):
+    targets = [FACE, CUP]
+    s = generate_samples(targets, 120, SamplingConfig(), seed=5)
+    s = {k: v[::-1].copy() for k, v in s.items()}  # any order and mix of targets
+    s["origin"] = np.arange(120, dtype=np.int8) % 2
+    source = {"source": "test views", "distance": [0.4, 4.0]}
+    kw = dict(targets=targets, scorer_factory=AnalyticScorerFactory(targets), chunk_size=50, seed=0, progress=False,
+              samples=s, source=source)
+    build_dataset(tmp_path / "g", workers=0, max_chunks=1, **kw)
+    build_dataset(tmp_path / "g", workers=0, **kw)  # resumed: only the two missing chunks are labelled
+    ds = load_dataset(tmp_path / "g")
+    meta = json.loads((tmp_path / "g" / "metadata.json").read_text())
+    assert meta["complete"] and meta["n_samples"] == 120 and meta["sampling"] == source
+    assert sum(meta["counts"]["per_target"].values()) == 120
+    assert meta["counts"]["per_target"]["alice"] == int((s["target_index"] == 0).sum())
+    assert np.allclose(ds.camera_poses, s["camera_poses"]) and np.array_equal(ds.target_index, s["target_index"])
+    ref = AnalyticScorer(targets)
+    assert np.allclose(ds.scores, [ref.score(p, n) for p, n in zip(ds.camera_poses, ds.target_names)])
+    assert sum(len(v) for v in split_dataset(ds).values()) == 120
+    with pytest.raises(ValueError, match="different configuration"):
+        build_dataset(tmp_path / "g", workers=0, **{**kw, "source": {"source": "other views"}})

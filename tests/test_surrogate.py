@@ -215,3 +215,34 @@ def test_alg2_zeroes_occluded_cameras():
     out = perception_scores(m, cams, CUP, "cup", OcclusionChecker.from_scene(scene, "cup1"))
     assert out[0].item() == 0.0 and out[1].item() == raw[1].item() > 0
     assert torch.equal(perception_scores(m, cams, CUP, "cup"), raw)
+
+
+def test_pooled_datasets_are_split_per_source(tmp_path):
+    """Studio views plus views of a second source whose target of the same name stands elsewhere (a scene's
+    roadmap views): each source keeps its own target poses and viewpoint split; metrics are reported per source."""
+    import dataclasses
+
+    from psprm_core.perception.dataset import SamplingConfig, generate_samples, view_parameters
+    from psprm_core.perception.training import _splits, pool_datasets
+
+    build_dataset(tmp_path / "a", [FACE, CUP], Factory([FACE, CUP]), n_samples=2000, chunk_size=1000, seed=2,
+                  workers=0, progress=False)
+    moved = dataclasses.replace(CUP, center=CUP.center + np.array([3.0, -2.0, 0.1]))
+    s = generate_samples([moved], 1000, SamplingConfig(distance=(0.4, 6.0), camera_height=(0.3, 1.2)), seed=3)
+    s.update(view_parameters(s["camera_poses"], s["target_index"], [moved], SamplingConfig().intrinsics))
+    build_dataset(tmp_path / "b", [moved], Factory([moved]), chunk_size=500, workers=0, progress=False, samples=s,
+                  source={"source": "moved cup", "distance": [0.4, 6.0]})
+    pooled = pool_datasets([tmp_path / "a", tmp_path / "b"])
+    assert len(pooled) == 3000 and pooled.classes == ["cup", "face"] and len(pooled.targets) == 3
+    assert np.allclose(pooled.target_poses[2500][:3, 3], moved.center)  # second source: its own cup pose
+    cfg = TrainConfig(epochs=15, lr=2e-3, batch_size=256, patience=8, seed=0, threads=1, max_seconds=20)
+    sp = _splits(pooled, cfg)
+    idx = np.concatenate(list(sp.values()))
+    assert np.array_equal(np.sort(idx), np.arange(3000))
+    for k in sp:  # both sources contribute to every split
+        assert (sp[k] < 2000).any() and (sp[k] >= 2000).any(), k
+    model, report = train_surrogate([tmp_path / "a", tmp_path / "b"], None, cfg, progress=False)
+    by_src = report["metrics"]["test_by_source"]
+    assert set(by_src) == {str(tmp_path / "a"), str(tmp_path / "b")}
+    assert sum(m["n"] for m in by_src.values()) == report["metrics"]["test"]["n"]
+    assert by_src[str(tmp_path / "b")]["spearman"] > 0.9, by_src

@@ -25,10 +25,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--workers", type=int, default=2)
     d.add_argument("--chunk", type=int, default=250, help="samples per chunk file (unit of resumption)")
     d.add_argument("--max-distance", type=float, default=4.0)
+    d.add_argument("--source", choices=("studio", "roadmap"), default="studio",
+                   help="studio: views sampled around each target (0.4 m to --max-distance); roadmap: camera poses of "
+                        "the scene's PS-PRM roadmap nodes and Eq. 1 edge samples (the views the planner chooses "
+                        "among), ray-cast-occluded ones dropped")
+    d.add_argument("--planner", default="neural-psprm-line", help="roadmap source: PS-PRM variant whose roadmap is "
+                                                                  "drawn from")
+    d.add_argument("--nodes", type=int, default=3000, help="roadmap source: roadmap size")
+    d.add_argument("--edge-fraction", type=float, default=0.5, help="roadmap source: share of Eq. 1 edge samples")
     d.set_defaults(func=_dataset)
 
     t = sub.add_parser("train", help="train the perception surrogate MLP on a dataset")
-    t.add_argument("--dataset", default=DEFAULT_DATASET)
+    t.add_argument("--dataset", default=DEFAULT_DATASET,
+                   help="dataset directory, or several separated by commas (each is split by viewpoint on its own; "
+                        "the splits are pooled)")
     t.add_argument("--out", default="psprm_core/data/surrogate.pt")
     t.add_argument("--epochs", type=int, default=200)
     t.add_argument("--lr", type=float, default=1e-4)
@@ -41,7 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     e = sub.add_parser("eval-surrogate", help="evaluate the shipped surrogate on its held-out test split")
     e.add_argument("--checkpoint", default="psprm_core/data/surrogate.pt")
-    e.add_argument("--dataset", default=DEFAULT_DATASET)
+    e.add_argument("--dataset", default=DEFAULT_DATASET, help="dataset directory, or several separated by commas "
+                                                             "(as the checkpoint was trained on)")
     e.add_argument("--occluded", default=DEFAULT_OCCLUDED, help="dataset rendered in a cluttered scene "
                                                                  "(occluded views are evaluated with ray casting)")
     e.add_argument("--allow-incomplete", action="store_true", help="evaluate on a dataset whose build was stopped")
@@ -63,9 +74,27 @@ def _dataset(args) -> int:
     names = args.targets.split(",") if args.targets else scene.target_names
     targets = [scene.target(n) for n in names]
     t0 = time.perf_counter()
-    out = build_dataset(args.out, targets, OracleFactory(str(path)), n_samples=args.samples,
-                        sampling=SamplingConfig(distance=(0.4, args.max_distance)), seed=args.seed,
-                        chunk_size=args.chunk, workers=args.workers)
+    if args.source == "roadmap":
+        from ..perception.scene_views import roadmap_view_source, roadmap_views
+        from ..robot import RobotModel
+
+        robot = RobotModel.load(scene.robot)
+        per_target = max(1, args.samples // len(names))
+        views = roadmap_views(scene, names, per_target, nodes=args.nodes, seed=args.seed, planner=args.planner,
+                              edge_fraction=args.edge_fraction, robot=robot)
+        stats = views.pop("stats")
+        log.info("roadmap views: %s", stats)
+        dist = (float(views["distance"].min()), float(views["distance"].max()))
+        source = roadmap_view_source(args.scene, args.planner, args.nodes, args.seed, per_target,
+                                     args.edge_fraction, dist)
+        out = build_dataset(args.out, targets, OracleFactory(str(path), {"intrinsics": robot.config.intrinsics}),
+                            seed=args.seed, chunk_size=args.chunk, workers=args.workers, samples=views,
+                            source=source)
+        args.samples = len(views["camera_poses"])
+    else:
+        out = build_dataset(args.out, targets, OracleFactory(str(path)), n_samples=args.samples,
+                            sampling=SamplingConfig(distance=(0.4, args.max_distance)), seed=args.seed,
+                            chunk_size=args.chunk, workers=args.workers)
     print(json.dumps({"dataset": str(out), "samples": args.samples, "targets": names,
                       "seconds": round(time.perf_counter() - t0, 1)}))
     return 0
@@ -73,12 +102,14 @@ def _dataset(args) -> int:
 
 def _train(args) -> int:
     from ..perception.dataset import load_dataset
-    from ..perception.training import TrainConfig, train_surrogate
+    from ..perception.training import TrainConfig, pool_datasets, train_surrogate
 
     cfg = TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch, seed=args.seed, threads=args.threads)
-    ds = load_dataset(args.dataset, allow_incomplete=args.allow_incomplete)
-    if not ds.metadata.get("complete", True):
-        log.warning("training on an incomplete dataset: %d samples", len(ds))
+    dss = [load_dataset(d, allow_incomplete=args.allow_incomplete) for d in args.dataset.split(",") if d]
+    for d in dss:
+        if not d.metadata.get("complete", True):
+            log.warning("training on an incomplete dataset %s: %d samples", d.path, len(d))
+    ds = pool_datasets(dss)
     t0 = time.perf_counter()
     _, report = train_surrogate(ds, out_path=args.out, config=cfg)
     report = {k: v for k, v in report.items() if k != "history"} if isinstance(report, dict) else report
@@ -134,7 +165,7 @@ def _eval(args) -> int:
     from ..perception.dataset import load_dataset
     from ..perception.occlusion import OcclusionChecker
     from ..perception.surrogate import load_surrogate
-    from ..perception.training import _splits, TrainConfig, evals_per_s, perception_metrics
+    from ..perception.training import _splits, TrainConfig, evals_per_s, perception_metrics, pool_datasets
     from ..scene import load_scene
 
     ck = Path(args.checkpoint)
@@ -157,10 +188,17 @@ def _eval(args) -> int:
         thr = class_thresholds({t.detector_class for t in ds.targets})
         return np.array([thr[ds.targets[i].detector_class] for i in ds.target_index])
 
-    full = load_dataset(args.dataset, allow_incomplete=args.allow_incomplete)
-    test = full.subset(_splits(full, TrainConfig.from_dict(model.metadata.get("training", {})))["test"])
+    full = pool_datasets([load_dataset(d, allow_incomplete=args.allow_incomplete)
+                          for d in args.dataset.split(",") if d])
+    test_idx = _splits(full, TrainConfig.from_dict(model.metadata.get("training", {})))["test"]
+    test = full.subset(test_idx)
     pred = predict(test)
     out = perception_metrics(pred, test.scores, thresholds(test))
+    for src in full.metadata.get("pooled", []):
+        sel = (test_idx >= src["start"]) & (test_idx < src["stop"])
+        if sel.any():
+            out.setdefault("per_source", {})[src["dir"]] = perception_metrics(pred[sel], test.scores[sel],
+                                                                             thresholds(test)[sel])
     out["thresholds"] = class_thresholds(sorted({t.detector_class for t in test.targets}))
     out["per_class"] = {}
     for c in sorted({t.detector_class for t in test.targets}):

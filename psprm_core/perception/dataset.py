@@ -252,6 +252,30 @@ def target_in_fov(poses: np.ndarray, point: np.ndarray, intrinsics: CameraIntrin
     return inside & (z >= intrinsics.near) & (z <= intrinsics.far)
 
 
+def view_parameters(poses: np.ndarray, target_index: np.ndarray, targets: Sequence[Target],
+                    intrinsics: CameraIntrinsics) -> dict:
+    """The sampler's parameters of arbitrary optical-frame camera poses (views not drawn by
+    :func:`sample_camera_poses`, e.g. a planner's roadmap nodes), so that such views can be split by viewpoint.
+
+    Returns a dict of (n,) arrays: ``distance`` (camera to target centroid), ``azimuth`` (around the target,
+    relative to its facing direction, in (-pi, pi]), ``height`` (camera z), ``u``/``v`` (pixel of the target
+    centroid, unclipped) and ``roll`` (angle of the image x axis below the horizontal, about the line of sight).
+    """
+    poses = np.asarray(poses, float)
+    centres = np.stack([np.asarray(t.center, float) for t in targets])[target_index]
+    yaw0 = np.array([math.atan2(t.facing[1], t.facing[0]) if np.hypot(t.facing[0], t.facing[1]) > 1e-9 else 0.0
+                     for t in targets])[target_index]
+    cam = poses[:, :3, 3]
+    off = cam - centres
+    rel = np.einsum("nji,nj->ni", poses[:, :3, :3], centres - cam)
+    px = intrinsics.project(rel)
+    x_axis = poses[:, :3, 0]
+    roll = np.arcsin(np.clip(-x_axis[:, 2], -1.0, 1.0))
+    az = np.angle(np.exp(1j * (np.arctan2(off[:, 1], off[:, 0]) - yaw0)))
+    return {"distance": np.linalg.norm(off, axis=1), "azimuth": az, "height": cam[:, 2].copy(), "u": px[:, 0],
+            "v": px[:, 1], "roll": roll}
+
+
 def _target_dict(t: Target) -> dict:
     return {"name": t.name, "class": t.detector_class, "center": [float(v) for v in t.center],
             "size": [float(v) for v in t.size], "quat": [float(v) for v in t.quat]}
@@ -424,8 +448,10 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
                   n_samples: int = 50_000, sampling: Optional[SamplingConfig] = None, seed: int = 0,
                   chunk_size: int = 500, workers: int = 2, scorer_description: Optional[str] = None,
                   progress: bool = True, max_chunks: Optional[int] = None, start_method: str = "spawn",
-                  worker_timeout: Optional[float] = None) -> Path:
-    """Sample camera poses around the targets, label them with a scorer, and write a resumable chunked dataset.
+                  worker_timeout: Optional[float] = None, samples: Optional[dict] = None,
+                  source: Optional[dict] = None) -> Path:
+    """Sample camera poses around the targets (or take given ones), label them with a scorer, and write a resumable
+    chunked dataset.
 
     Parameters
     ----------
@@ -458,6 +484,13 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
         Multiprocessing start method (never ``fork``: scorers may hold GPU/GL contexts or torch threads).
     worker_timeout : float, optional
         Abort if no result arrives for this many seconds.
+    samples : dict, optional
+        Views to label instead of sampled ones: ``camera_poses`` (N, 4, 4), ``target_index`` (N,) into ``targets``,
+        and the parameters of :func:`view_parameters`. ``n_samples`` and ``sampling`` are then ignored; the dataset
+        has N samples.
+    source : dict, optional
+        With ``samples``: how they were made (JSON-serialisable), recorded in the metadata as ``sampling`` (it
+        identifies the configuration when resuming). A ``distance`` range there sets the viewpoint split's cells.
 
     Returns
     -------
@@ -474,15 +507,23 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
         raise ValueError("n_samples and chunk_size must be positive")
     if start_method == "fork":
         raise ValueError("start_method 'fork' is not supported; use 'spawn' or 'forkserver'")
-    sampling = sampling or SamplingConfig()
+    if samples is not None:
+        n_samples = int(len(samples["camera_poses"]))
+        if n_samples < 1:
+            raise ValueError("samples holds no views")
+        counts = [int(c) for c in np.bincount(samples["target_index"], minlength=len(targets))]
+        sampling_dict = dict(source or {"source": "given poses"})
+    else:
+        sampling = sampling or SamplingConfig()
+        counts = _per_target_counts(n_samples, len(targets))
+        sampling_dict = sampling.to_dict()
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
 
     classes = sorted({t.detector_class for t in targets})
-    counts = _per_target_counts(n_samples, len(targets))
     n_chunks = math.ceil(n_samples / chunk_size)
     config = {"format": DATASET_FORMAT, "version": DATASET_VERSION, "seed": int(seed), "n_samples": int(n_samples),
-              "chunk_size": int(chunk_size), "n_chunks": n_chunks, "sampling": sampling.to_dict(),
+              "chunk_size": int(chunk_size), "n_chunks": n_chunks, "sampling": sampling_dict,
               "targets": [_target_dict(t) for t in targets]}
     meta_path = out_dir / METADATA_FILE
     if meta_path.exists():
@@ -501,7 +542,8 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
                             "per_class": {c: sum(k for t, k in zip(targets, counts) if t.detector_class == c)
                                           for c in classes}}})
 
-    samples = generate_samples(targets, n_samples, sampling, seed)
+    if samples is None:
+        samples = generate_samples(targets, n_samples, sampling, seed)
     bounds = [(i, i * chunk_size, min(n_samples, (i + 1) * chunk_size)) for i in range(n_chunks)]
     missing = [(i, lo, hi) for i, lo, hi in bounds
                if not (_chunk_path(out_dir, i).exists() and _chunk_valid(_chunk_path(out_dir, i), samples, lo, hi))]

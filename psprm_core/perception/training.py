@@ -314,7 +314,47 @@ def _as_dataset(dataset: Union[str, Path, PerceptionDataset]) -> PerceptionDatas
 
 
 def _splits(ds: PerceptionDataset, cfg: TrainConfig) -> dict:
-    return split_dataset(ds, cfg.split_fractions, cfg.n_azimuth_cells, cfg.n_distance_cells, cfg.split_seed)
+    parts = ds.metadata.get("pooled")
+    if not parts:
+        return split_dataset(ds, cfg.split_fractions, cfg.n_azimuth_cells, cfg.n_distance_cells, cfg.split_seed)
+    out = {"train": [], "val": [], "test": []}
+    for part in parts:  # each source split by its own viewpoint cells, then pooled
+        lo, hi = part["start"], part["stop"]
+        sub = ds.subset(np.arange(lo, hi))
+        sub.metadata = {"sampling": part.get("sampling", {})}
+        for k, idx in split_dataset(sub, cfg.split_fractions, cfg.n_azimuth_cells, cfg.n_distance_cells,
+                                    cfg.split_seed).items():
+            out[k].append(idx + lo)
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def pool_datasets(datasets: Sequence[Union[str, Path, PerceptionDataset]]) -> PerceptionDataset:
+    """One dataset of several (e.g. the studio views and views of the scenes' roadmaps).
+
+    Targets are kept per source (the same name in two sources may sit at different poses); classes are the union.
+    ``metadata["pooled"]`` records each source's index range, directory and sampling, so that training splits each
+    source by its own viewpoint cells (:func:`train_surrogate`) and reports test metrics per source.
+    """
+    dss = [_as_dataset(d) for d in datasets]
+    if not dss:
+        raise ValueError("pool_datasets needs at least one dataset")
+    if len(dss) == 1:
+        return dss[0]
+    keys = set.intersection(*(set(d.params) for d in dss))
+    targets, tidx, parts, start = [], [], [], 0
+    for d in dss:
+        tidx.append(d.target_index + len(targets))
+        targets.extend(d.targets)
+        parts.append({"dir": d.path, "start": start, "stop": start + len(d), "sampling": d.metadata.get("sampling", {}),
+                      "scorer": d.metadata.get("scorer", "")})
+        start += len(d)
+    return PerceptionDataset(
+        camera_poses=np.concatenate([d.camera_poses for d in dss]), target_index=np.concatenate(tidx),
+        scores=np.concatenate([d.scores for d in dss]),
+        params={k: np.concatenate([d.params[k] for d in dss]) for k in sorted(keys)}, targets=targets,
+        classes=sorted(set().union(*(d.classes for d in dss))),
+        metadata={"pooled": parts, "scorer": "; ".join(sorted({p["scorer"] for p in parts}))},
+        path=",".join(d.path for d in dss))
 
 
 def train_surrogate(dataset: Union[str, Path, PerceptionDataset], out_path: Union[str, Path, None] = None,
@@ -327,7 +367,8 @@ def train_surrogate(dataset: Union[str, Path, PerceptionDataset], out_path: Unio
 
     Parameters
     ----------
-    dataset : path or PerceptionDataset
+    dataset : path, PerceptionDataset, or a sequence of them
+        Several are pooled (:func:`pool_datasets`): each is split by its own viewpoint cells.
     out_path : path, optional
         Where to save the checkpoint (``.pt``).
     config : TrainConfig
@@ -341,7 +382,7 @@ def train_surrogate(dataset: Union[str, Path, PerceptionDataset], out_path: Unio
         :func:`perception_metrics`), ``checkpoint`` (path or None).
     """
     cfg = config or TrainConfig()
-    ds = _as_dataset(dataset)
+    ds = pool_datasets(dataset) if isinstance(dataset, (list, tuple)) else _as_dataset(dataset)
     splits = _splits(ds, cfg)
     feats, cls, y = dataset_tensors(ds, cfg.derived_features)
     parts = {k: (feats[v], cls[v], y[v]) for k, v in splits.items()}
@@ -353,6 +394,11 @@ def train_surrogate(dataset: Union[str, Path, PerceptionDataset], out_path: Unio
     model, hist = fit_surrogate(parts["train"], parts["val"] if len(splits["val"]) else None, ds.classes, cfg,
                                 progress=progress)
     metrics = {k: perception_metrics(_predict_features(model, *v[:2]), v[2], cfg.threshold) for k, v in parts.items()}
+    for src in ds.metadata.get("pooled", []):  # test metrics of each pooled source
+        idx = splits["test"][(splits["test"] >= src["start"]) & (splits["test"] < src["stop"])]
+        if len(idx):
+            metrics.setdefault("test_by_source", {})[src["dir"]] = perception_metrics(
+                _predict_features(model, feats[idx], cls[idx]), y[idx], cfg.threshold)
     report = {"dataset_hash": dhash, "dataset_dir": ds.path,
               "split_sizes": {k: int(len(v)) for k, v in splits.items()}, "history": hist, "metrics": metrics,
               "checkpoint": None}
