@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -267,14 +267,18 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
 
 def surrogate_transfer(scene_name: str = "home", target: str | None = None, samples: int = 200, nodes: int = 3000,
                        seed: int = 0, threads: int = 2,
-                       distance_bins: tuple = (0.0, 1.5, 3.0, 5.0, float("inf"))) -> dict:
+                       distance_bins: tuple = (0.0, 1.5, 3.0, 5.0, float("inf")),
+                       checkpoints: Sequence[str] = ()) -> dict:
     """Does the neural scorer rank the planner's own configurations like the real detector does?
 
     Builds the neural-psprm-line roadmap of the scene, draws ``samples`` of its nodes and scores their camera poses
     with the neural scorer (surrogate + ray casting, what the planner optimises) and with the oracle (render + real
     detector, what judges the paths). Reports Spearman's and Pearson's correlation overall and per camera-to-target
     distance bin, and both means. The surrogate's held-out test set is drawn around the target; this measures it on
-    the distribution PS-PRM actually plans over (occluders, distances and headings of the scene)."""
+    the distribution PS-PRM actually plans over (occluders, distances and headings of the scene).
+
+    ``checkpoints``: further surrogate checkpoints scored on the same views against the same oracle labels (reported
+    under ``checkpoints``, keyed by path), e.g. a studio-only and a fine-tuned surrogate side by side."""
     from scipy.stats import spearmanr
 
     from .planning.factory import make_scorer
@@ -297,12 +301,19 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
                 "pearson": float(np.corrcoef(a, b)[0, 1]), "neural_mean": float(a.mean()),
                 "oracle_mean": float(b.mean())}
 
-    bins = []
-    for lo, hi in zip(distance_bins[:-1], distance_bins[1:]):
-        m = (dist >= lo) & (dist < hi)
-        bins.append({"from_m": lo, "to_m": hi if np.isfinite(hi) else None, **corr(neural[m], oracle[m])})
-    return {"scene": scene.name, "target": target, "n_nodes": stats.get("n_nodes"), "samples": int(len(sel)),
-            **corr(neural, oracle), "oracle_s": oracle_s, "by_distance": bins}
+    def report(pred) -> dict:
+        bins = []
+        for lo, hi in zip(distance_bins[:-1], distance_bins[1:]):
+            m = (dist >= lo) & (dist < hi)
+            bins.append({"from_m": lo, "to_m": hi if np.isfinite(hi) else None, **corr(pred[m], oracle[m])})
+        return {**corr(pred, oracle), "by_distance": bins}
+
+    out = {"scene": scene.name, "target": target, "n_nodes": stats.get("n_nodes"), "samples": int(len(sel)),
+           **report(neural), "oracle_s": oracle_s}
+    for ck in checkpoints:
+        sc = make_scorer("neural", scene, [target], robot.config.intrinsics, checkpoint=ck)
+        out.setdefault("checkpoints", {})[str(ck)] = report(sc.score(cams).double().cpu().numpy())
+    return out
 
 
 def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames: int = 12) -> dict:

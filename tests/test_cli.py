@@ -83,10 +83,17 @@ def test_perf_preprocess_oracle_vs_neural(capsys):
 def test_perf_transfer_scores_roadmap_nodes_with_both(capsys):
     """perf transfer scores the same roadmap nodes with the neural scorer and the oracle: the distance bins partition
     the samples, correlations are proper numbers, and the oracle's time is measured."""
+    from psprm_core.planning.factory import default_checkpoint
+
+    ck = str(default_checkpoint())
     assert main(["perf", "transfer", "--scene", "home", "--target", "tv", "--nodes", "80", "--samples", "12",
-                 "--threads", "1", "--json"]) == 0
+                 "--threads", "1", "--checkpoints", ck, "--json"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["samples"] == res["n"] == 12 and sum(b["n"] for b in res["by_distance"]) == 12
     assert -1.0 <= res["spearman"] <= 1.0 and 0.0 <= res["neural_mean"] <= 1.0 and 0.0 <= res["oracle_mean"] <= 1.0
     assert res["oracle_s"] > 0 and res["by_distance"][-1]["to_m"] is None
+    # a further checkpoint is scored on the same views against the same labels: the planner's own one agrees exactly
+    again = res["checkpoints"][ck]
+    assert again["neural_mean"] == res["neural_mean"] and again["spearman"] == res["spearman"]
+    assert [b["n"] for b in again["by_distance"]] == [b["n"] for b in res["by_distance"]]
 

@@ -61,6 +61,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--nodes", type=int, default=3000)
     tr.add_argument("--seed", type=int, default=0)
     tr.add_argument("--threads", type=int, default=2)
+    tr.add_argument("--checkpoints", default="", help="further surrogate checkpoints (comma-separated) scored on "
+                                                      "the same views against the same oracle labels")
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_transfer)
     rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
@@ -125,7 +127,8 @@ def _transfer(args) -> int:
     from ..benchmarks import surrogate_transfer
 
     _print(surrogate_transfer(args.scene, args.target, samples=args.samples, nodes=args.nodes, seed=args.seed,
-                              threads=args.threads), args.json)
+                              threads=args.threads, checkpoints=[c for c in args.checkpoints.split(",") if c]),
+           args.json)
     return 0
 
 
