@@ -10,7 +10,11 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-DEFAULT_DATASET = "psprm_core/data/surrogate_dataset"
+STUDIO_DATASET = "psprm_core/data/surrogate_dataset"
+# the shipped surrogate's training data: the studio views and the oracle-labelled views of the scenes' roadmaps
+# (dynamic_person is left out, to measure how the surrogate carries over to a scene it has not seen)
+DEFAULT_DATASET = ",".join([STUDIO_DATASET] + [f"psprm_core/data/scene_views/{s}" for s in
+                                               ("home", "nursing", "cup_table", "blind_spot_alley")])
 DEFAULT_OCCLUDED = "psprm_core/data/surrogate_occluded"
 
 
@@ -20,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--scene", default="surrogate_studio", help="scene whose targets are viewed")
     d.add_argument("--targets", default=None, help="comma-separated target names (default: all)")
     d.add_argument("--samples", type=int, default=20000, help="total labelled views (split evenly over targets)")
-    d.add_argument("--out", default=DEFAULT_DATASET)
+    d.add_argument("--out", default=STUDIO_DATASET)
     d.add_argument("--seed", type=int, default=0)
     d.add_argument("--workers", type=int, default=2)
     d.add_argument("--chunk", type=int, default=250, help="samples per chunk file (unit of resumption)")
