@@ -1,0 +1,404 @@
+"""Numba kernels behind :mod:`psprm_core.fastpath` (imported only through its :func:`~psprm_core.fastpath.kernels`).
+
+Small-batch CPU versions of the batched torch code a query runs (a few dozen to a few hundred configurations per
+call, where torch's per-operator overhead dominates): forward kinematics of the body tree, camera poses, the damped
+Gauss-Newton projection onto the visibility manifold, and the oriented-box collision check. They follow the torch
+implementations step by step (same formulas, same order of tests) in float64; the callers cast the results back to
+the torch dtype. Compiled on the first call of each kernel and cached on disk (``cache=True``).
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+
+jit = njit(cache=True, nogil=True)
+
+ROOT, REVOLUTE, PRISMATIC = 0, 1, 2
+
+
+# ---------------------------------------------------------------------------------------------- kinematics
+@jit
+def _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t):  # pragma: no cover - compiled
+    """World rotations R (NB, 3, 3) and translations t (NB, 3) of the bodies in ``order`` (root-first, root
+    excluded) for one configuration: T_child = T_parent T_origin Motion(axis, q D + off) (RobotModel._poses)."""
+    for i in range(3):
+        for j in range(3):
+            R[0, i, j] = 0.0
+        t[0, i] = 0.0
+    if mobile:
+        c, s = math.cos(q[2]), math.sin(q[2])
+        R[0, 0, 0], R[0, 0, 1], R[0, 1, 0], R[0, 1, 1], R[0, 2, 2] = c, -s, s, c, 1.0
+        t[0, 0], t[0, 1] = q[0], q[1]
+    else:
+        R[0, 0, 0], R[0, 1, 1], R[0, 2, 2] = 1.0, 1.0, 1.0
+    Rj = np.empty((3, 3))
+    M = np.empty((3, 3))
+    for n in range(order.shape[0]):
+        b = order[n]
+        p = parent[b]
+        v = off[b]
+        for i in range(q.shape[0]):
+            v += q[i] * D[i, b]
+        for i in range(3):
+            for j in range(3):
+                Rj[i, j] = R[p, i, 0] * R_off[b, 0, j] + R[p, i, 1] * R_off[b, 1, j] + R[p, i, 2] * R_off[b, 2, j]
+            t[b, i] = t[p, i] + R[p, i, 0] * t_off[b, 0] + R[p, i, 1] * t_off[b, 1] + R[p, i, 2] * t_off[b, 2]
+        x, y, z = axis[b, 0], axis[b, 1], axis[b, 2]
+        if jtype[b] == PRISMATIC:
+            for i in range(3):
+                t[b, i] += (Rj[i, 0] * x + Rj[i, 1] * y + Rj[i, 2] * z) * v
+                for j in range(3):
+                    R[b, i, j] = Rj[i, j]
+        else:  # Rodrigues (geometry.axis_angle_matrix_torch)
+            c, s = math.cos(v), math.sin(v)
+            oc = 1.0 - c
+            M[0, 0], M[0, 1], M[0, 2] = c + x * x * oc, x * y * oc - z * s, x * z * oc + y * s
+            M[1, 0], M[1, 1], M[1, 2] = y * x * oc + z * s, c + y * y * oc, y * z * oc - x * s
+            M[2, 0], M[2, 1], M[2, 2] = z * x * oc - y * s, z * y * oc + x * s, c + z * z * oc
+            for i in range(3):
+                for j in range(3):
+                    R[b, i, j] = Rj[i, 0] * M[0, j] + Rj[i, 1] * M[1, j] + Rj[i, 2] * M[2, j]
+
+
+@jit
+def _camera(R, t, cam_body, cam_R, cam_t, Rc, tc):  # pragma: no cover - compiled
+    """Optical-frame pose (Rc, tc) from the camera body's world pose (RobotModel._camera_from_body)."""
+    for i in range(3):
+        for j in range(3):
+            Rc[i, j] = R[cam_body, i, 0] * cam_R[0, j] + R[cam_body, i, 1] * cam_R[1, j] + R[cam_body, i, 2] * cam_R[2, j]
+        tc[i] = t[cam_body, i] + R[cam_body, i, 0] * cam_t[0] + R[cam_body, i, 1] * cam_t[1] + \
+            R[cam_body, i, 2] * cam_t[2]
+
+
+@jit
+def camera_poses(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R,
+                 cam_t):  # pragma: no cover - compiled
+    """Camera optical-frame poses (B, 4, 4) of configurations q (B, dof) (RobotModel.camera_poses)."""
+    B, NB = q.shape[0], parent.shape[0]
+    out = np.zeros((B, 4, 4))
+    R, t = np.zeros((NB, 3, 3)), np.zeros((NB, 3))
+    Rc, tc = np.empty((3, 3)), np.empty(3)
+    for r in range(B):
+        _fk(q[r], order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
+        _camera(R, t, cam_body, cam_R, cam_t, Rc, tc)
+        for i in range(3):
+            for j in range(3):
+                out[r, i, j] = Rc[i, j]
+            out[r, i, 3] = tc[i]
+        out[r, 3, 3] = 1.0
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- projection
+@jit
+def _residual(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t, target, cols,
+              line, min_distance, far, th, tv, margin, R, t, Rc, tc, h, J):  # pragma: no cover - compiled
+    """h_M(q) (m,) and its Jacobian J (m, k) over the planning joints ``cols`` for one configuration
+    (VisibilityConstraint.residual_jacobian with RobotModel.camera_jacobian): d p_c / d q_i = -R_c^T (omega_i x p
+    + v0_i). Returns m (3 for the line model, 1 for the frustum model)."""
+    _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
+    _camera(R, t, cam_body, cam_R, cam_t, Rc, tc)
+    pc = np.empty(3)
+    for i in range(3):
+        pc[i] = Rc[0, i] * (target[0] - tc[0]) + Rc[1, i] * (target[1] - tc[1]) + Rc[2, i] * (target[2] - tc[2])
+    k = cols.shape[0]
+    dpc = np.zeros((3, k))
+    w = np.empty(6)
+    vel = np.empty(3)
+    ax = np.empty(3)
+    for c in range(k):
+        jc = cols[c]
+        for i in range(6):
+            w[i] = 0.0
+        for n in range(order.shape[0]):  # twists of the chain's joints, through the drive matrix
+            b = order[n]
+            d = D[jc, b]
+            if d == 0.0 or jtype[b] == ROOT:
+                continue
+            for i in range(3):
+                ax[i] = R[b, i, 0] * axis[b, 0] + R[b, i, 1] * axis[b, 1] + R[b, i, 2] * axis[b, 2]
+            if jtype[b] == PRISMATIC:
+                for i in range(3):
+                    w[3 + i] += d * ax[i]
+            else:
+                w[0] += d * ax[0]
+                w[1] += d * ax[1]
+                w[2] += d * ax[2]
+                w[3] += d * (t[b, 1] * ax[2] - t[b, 2] * ax[1])
+                w[4] += d * (t[b, 2] * ax[0] - t[b, 0] * ax[2])
+                w[5] += d * (t[b, 0] * ax[1] - t[b, 1] * ax[0])
+        if mobile:
+            if jc == 0:
+                w[3] += 1.0
+            elif jc == 1:
+                w[4] += 1.0
+            elif jc == 2:
+                w[2] += 1.0
+                w[3] += q[1]
+                w[4] -= q[0]
+        vel[0] = w[1] * target[2] - w[2] * target[1] + w[3]
+        vel[1] = w[2] * target[0] - w[0] * target[2] + w[4]
+        vel[2] = w[0] * target[1] - w[1] * target[0] + w[5]
+        for i in range(3):
+            dpc[i, c] = -(Rc[0, i] * vel[0] + Rc[1, i] * vel[1] + Rc[2, i] * vel[2])
+    if line:
+        h[0], h[1] = pc[0], pc[1]
+        gap = min_distance - pc[2]
+        h[2] = gap if gap > 0.0 else 0.0
+        act = 1.0 if gap > 0.0 else 0.0
+        for c in range(k):
+            J[0, c] = dpc[0, c]
+            J[1, c] = dpc[1, c]
+            J[2, c] = -dpc[2, c] * act
+        return 3
+    nh, nv = math.sqrt(1.0 + th * th), math.sqrt(1.0 + tv * tv)
+    x, y, z = pc[0], pc[1], pc[2]
+    dist = np.empty(6)
+    dist[0], dist[1] = (x - th * z) / nh, (-x - th * z) / nh
+    dist[2], dist[3] = (y - tv * z) / nv, (-y - tv * z) / nv
+    dist[4], dist[5] = min_distance - z, z - far
+    face = 0
+    for i in range(1, 6):
+        if dist[i] > dist[face]:
+            face = i
+    val = dist[face] + margin
+    h[0] = val if val > 0.0 else 0.0
+    g = np.zeros(3)
+    if face == 0:
+        g[0], g[2] = 1.0 / nh, -th / nh
+    elif face == 1:
+        g[0], g[2] = -1.0 / nh, -th / nh
+    elif face == 2:
+        g[1], g[2] = 1.0 / nv, -tv / nv
+    elif face == 3:
+        g[1], g[2] = -1.0 / nv, -tv / nv
+    elif face == 4:
+        g[2] = -1.0
+    else:
+        g[2] = 1.0
+    act = 1.0 if h[0] > 0.0 else 0.0
+    for c in range(k):
+        J[0, c] = (g[0] * dpc[0, c] + g[1] * dpc[1, c] + g[2] * dpc[2, c]) * act
+    return 1
+
+
+@jit
+def _solve(A, b, m):  # pragma: no cover - compiled
+    """x = A^-1 b for a small (m, m) system, Gaussian elimination with partial pivoting (A, b overwritten)."""
+    for c in range(m):
+        p = c
+        for r in range(c + 1, m):
+            if abs(A[r, c]) > abs(A[p, c]):
+                p = r
+        if p != c:
+            for j in range(m):
+                A[c, j], A[p, j] = A[p, j], A[c, j]
+            b[c], b[p] = b[p], b[c]
+        for r in range(c + 1, m):
+            f = A[r, c] / A[c, c]
+            for j in range(c, m):
+                A[r, j] -= f * A[c, j]
+            b[r] -= f * b[c]
+    x = np.empty(m)
+    for c in range(m - 1, -1, -1):
+        s = b[c]
+        for j in range(c + 1, m):
+            s -= A[c, j] * x[j]
+        x[c] = s / A[c, c]
+    return x
+
+
+@jit
+def project(q0, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t, target, cols,
+            line, min_distance, far, th, tv, margin, lo, hi, tol, max_iters, damping,
+            max_step):  # pragma: no cover - compiled
+    """Damped Gauss-Newton projection onto h_M = 0 (Alg. 1, line 7; VisibilityConstraint.project): per row,
+    q[cols] <- q[cols] - J^T (J J^T + damping I)^-1 h with the step norm capped at ``max_step``, clamped to [lo, hi]
+    (base theta wrapped), until |h| < tol or ``max_iters`` steps. Returns (q (B, dof), |h| at the result (B,))."""
+    B, dof, NB = q0.shape[0], q0.shape[1], parent.shape[0]
+    k = cols.shape[0]
+    q = q0.copy()
+    err_out = np.empty(B)
+    R, t = np.zeros((NB, 3, 3)), np.zeros((NB, 3))
+    Rc, tc = np.empty((3, 3)), np.empty(3)
+    h, J = np.empty(3), np.empty((3, k))
+    A, rhs = np.empty((3, 3)), np.empty(3)
+    for r in range(B):
+        qr = q[r]
+        for it in range(max_iters):
+            m = _residual(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t,
+                          target, cols, line, min_distance, far, th, tv, margin, R, t, Rc, tc, h, J)
+            e = 0.0
+            for i in range(m):
+                e += h[i] * h[i]
+            done = math.sqrt(e) < tol
+            if not done:
+                for i in range(m):
+                    for j in range(m):
+                        s = 0.0
+                        for c in range(k):
+                            s += J[i, c] * J[j, c]
+                        A[i, j] = s + (damping if i == j else 0.0)
+                    rhs[i] = h[i]
+                y = _solve(A, rhs, m)
+                step = np.zeros(k)
+                nrm = 0.0
+                for c in range(k):
+                    s = 0.0
+                    for i in range(m):
+                        s += J[i, c] * y[i]
+                    step[c] = s
+                    nrm += s * s
+                nrm = max(math.sqrt(nrm), 1e-12)
+                scale = min(max_step / nrm, 1.0)
+                for c in range(k):
+                    qr[cols[c]] -= step[c] * scale
+            for i in range(dof):
+                qr[i] = max(min(qr[i], hi[i]), lo[i])
+            if mobile:
+                qr[2] = ((qr[2] + math.pi) % (2.0 * math.pi)) - math.pi
+            if done:
+                break
+        m = _residual(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t,
+                      target, cols, line, min_distance, far, th, tv, margin, R, t, Rc, tc, h, J)
+        e = 0.0
+        for i in range(m):
+            e += h[i] * h[i]
+        err_out[r] = math.sqrt(e)
+    return q, err_out
+
+
+# ---------------------------------------------------------------------------------------------- collision
+@jit
+def _point_box_sqdist(p, bc, bR, bh):  # pragma: no cover - compiled
+    """Squared distance from point p to the oriented box (centre, rotation box->world, half extents)."""
+    s = 0.0
+    for j in range(3):
+        loc = (p[0] - bc[0]) * bR[0, j] + (p[1] - bc[1]) * bR[1, j] + (p[2] - bc[2]) * bR[2, j]
+        cl = max(min(loc, bh[j]), -bh[j])
+        s += (loc - cl) * (loc - cl)
+    return s
+
+
+@jit
+def _obb_overlap(ca, Ra, ha, cb, Rb, hb, eps):  # pragma: no cover - compiled
+    """Separating-axis test of two oriented boxes (collision.obb_overlap: 15 axes, |R| + eps)."""
+    Rm = np.empty((3, 3))
+    AR = np.empty((3, 3))
+    tt = np.empty(3)
+    for i in range(3):
+        for j in range(3):
+            Rm[i, j] = Ra[0, i] * Rb[0, j] + Ra[1, i] * Rb[1, j] + Ra[2, i] * Rb[2, j]
+            AR[i, j] = abs(Rm[i, j]) + eps
+        tt[i] = Ra[0, i] * (cb[0] - ca[0]) + Ra[1, i] * (cb[1] - ca[1]) + Ra[2, i] * (cb[2] - ca[2])
+    for i in range(3):  # A's axes
+        if abs(tt[i]) > ha[i] + AR[i, 0] * hb[0] + AR[i, 1] * hb[1] + AR[i, 2] * hb[2]:
+            return False
+    for j in range(3):  # B's axes
+        tb = tt[0] * Rm[0, j] + tt[1] * Rm[1, j] + tt[2] * Rm[2, j]
+        if abs(tb) > AR[0, j] * ha[0] + AR[1, j] * ha[1] + AR[2, j] * ha[2] + hb[j]:
+            return False
+    for i in range(3):  # A_i x B_j
+        i1, i2 = (i + 1) % 3, (i + 2) % 3
+        for j in range(3):
+            j1, j2 = (j + 1) % 3, (j + 2) % 3
+            lhs = tt[i2] * Rm[i1, j] - tt[i1] * Rm[i2, j]
+            ra = ha[i1] * AR[i2, j] + ha[i2] * AR[i1, j]
+            rb = hb[j1] * AR[i, j2] + hb[j2] * AR[i, j1]
+            if abs(lhs) > ra + rb:
+                return False
+    return True
+
+
+@jit
+def _world_box(R, t, b, c_local, R_local, c, Rw):  # pragma: no cover - compiled
+    """World centre c and rotation Rw of a box given in body b's frame."""
+    for i in range(3):
+        c[i] = R[b, i, 0] * c_local[0] + R[b, i, 1] * c_local[1] + R[b, i, 2] * c_local[2] + t[b, i]
+        for j in range(3):
+            Rw[i, j] = R[b, i, 0] * R_local[0, j] + R[b, i, 1] * R_local[1, j] + R[b, i, 2] * R_local[2, j]
+
+
+@jit
+def _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_c, el_R, el_h,
+             el_r, box_c, box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
+    """Robot (body poses R, t) against the obstacle boxes (CollisionChecker._env): robot bounds vs box bounds, body
+    spheres, body boxes, element spheres, then the exact element-box overlap."""
+    K, nb = box_c.shape[0], bodies.shape[0]
+    if K == 0:
+        return False
+    bc = np.empty((nb, 3))
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for n in range(nb):
+        b = bodies[n]
+        for i in range(3):
+            bc[n, i] = R[b, i, 0] * body_c[b, 0] + R[b, i, 1] * body_c[b, 1] + R[b, i, 2] * body_c[b, 2] + t[b, i]
+            lo[i] = min(lo[i], bc[n, i] - body_r[b])
+            hi[i] = max(hi[i], bc[n, i] + body_r[b])
+    eye = np.eye(3)
+    c, Rw = np.empty(3), np.empty((3, 3))
+    for kb in range(K):
+        if not (lo[0] <= box_aabb[kb, 3] and lo[1] <= box_aabb[kb, 4] and lo[2] <= box_aabb[kb, 5]
+                and hi[0] >= box_aabb[kb, 0] and hi[1] >= box_aabb[kb, 1] and hi[2] >= box_aabb[kb, 2]):
+            continue
+        for n in range(nb):
+            b = bodies[n]
+            if not _point_box_sqdist(bc[n], box_c[kb], box_R[kb], box_h[kb]) < body_r[b] * body_r[b]:
+                continue
+            _world_box(R, t, b, body_box_c[b], eye, c, Rw)
+            if not _obb_overlap(c, Rw, body_box_h[b], box_c[kb], box_R[kb], box_h[kb], eps):
+                continue
+            for m in range(el_count[b]):
+                e = el_order[el_start[b] + m]
+                _world_box(R, t, b, el_c[e], el_R[e], c, Rw)
+                if not _point_box_sqdist(c, box_c[kb], box_R[kb], box_h[kb]) < el_r[e] * el_r[e]:
+                    continue
+                if _obb_overlap(c, Rw, el_h[e], box_c[kb], box_R[kb], box_h[kb], eps):
+                    return True
+    return False
+
+
+@jit
+def _self_hit(R, t, pairs, el_body, el_c, el_R, el_h, el_r, eps):  # pragma: no cover - compiled
+    """Self-collision of the element pairs (CollisionChecker._pairs_hits): bounding spheres, then exact overlap."""
+    ca, cb = np.empty(3), np.empty(3)
+    Ra, Rb = np.empty((3, 3)), np.empty((3, 3))
+    for p in range(pairs.shape[0]):
+        a, b = pairs[p, 0], pairs[p, 1]
+        _world_box(R, t, el_body[a], el_c[a], el_R[a], ca, Ra)
+        _world_box(R, t, el_body[b], el_c[b], el_R[b], cb, Rb)
+        d2 = (ca[0] - cb[0]) ** 2 + (ca[1] - cb[1]) ** 2 + (ca[2] - cb[2]) ** 2
+        if not d2 < (el_r[a] + el_r[b]) ** 2:
+            continue
+        if _obb_overlap(ca, Ra, el_h[a], cb, Rb, el_h[b], eps):
+            return True
+    return False
+
+
+@jit
+def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile, lower, upper, bodies, body_c,
+          body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, box_c,
+          box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
+    """Collision flags (B, 3): joint limits, environment, self (CollisionChecker.check_detailed). Without
+    ``detailed`` a row stops at its first violation (only the OR of the three is meaningful then)."""
+    B, dof, NB = q.shape[0], q.shape[1], parent.shape[0]
+    out = np.zeros((B, 3), np.bool_)
+    R, t = np.zeros((NB, 3, 3)), np.zeros((NB, 3))
+    for r in range(B):
+        qr = q[r]
+        lim = False
+        for i in range(dof):
+            if not (qr[i] >= lower[i] and qr[i] <= upper[i]):  # outside, or NaN
+                lim = True
+        out[r, 0] = lim
+        if lim and not detailed:
+            continue
+        _fk(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
+        out[r, 1] = _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order,
+                             el_c, el_R, el_h, el_r, box_c, box_R, box_h, box_aabb, eps)
+        if out[r, 1] and not detailed:
+            continue
+        out[r, 2] = _self_hit(R, t, pairs, el_body, el_c, el_R, el_h, el_r, eps)
+    return out
