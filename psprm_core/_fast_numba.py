@@ -21,7 +21,8 @@ ROOT, REVOLUTE, PRISMATIC = 0, 1, 2
 @jit
 def _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t):  # pragma: no cover - compiled
     """World rotations R (NB, 3, 3) and translations t (NB, 3) of the bodies in ``order`` (root-first, root
-    excluded) for one configuration: T_child = T_parent T_origin Motion(axis, q D + off) (RobotModel._poses)."""
+    excluded) for one configuration: T_child = T_parent T_origin Motion(axis, q D + off) (RobotModel._poses).
+    R[NB] and R[NB + 1] are scratch (the callers allocate NB + 2 rotations)."""
     for i in range(3):
         for j in range(3):
             R[0, i, j] = 0.0
@@ -32,8 +33,9 @@ def _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t):  # p
         t[0, 0], t[0, 1] = q[0], q[1]
     else:
         R[0, 0, 0], R[0, 1, 1], R[0, 2, 2] = 1.0, 1.0, 1.0
-    Rj = np.empty((3, 3))
-    M = np.empty((3, 3))
+    NB = parent.shape[0]
+    Rj = R[NB]
+    M = R[NB + 1]
     for n in range(order.shape[0]):
         b = order[n]
         p = parent[b]
@@ -77,7 +79,7 @@ def camera_poses(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, ca
     """Camera optical-frame poses (B, 4, 4) of configurations q (B, dof) (RobotModel.camera_poses)."""
     B, NB = q.shape[0], parent.shape[0]
     out = np.zeros((B, 4, 4))
-    R, t = np.zeros((NB, 3, 3)), np.zeros((NB, 3))
+    R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
     Rc, tc = np.empty((3, 3)), np.empty(3)
     for r in range(B):
         _fk(q[r], order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
@@ -220,7 +222,7 @@ def project(q0, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_bo
     k = cols.shape[0]
     q = q0.copy()
     err_out = np.empty(B)
-    R, t = np.zeros((NB, 3, 3)), np.zeros((NB, 3))
+    R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
     Rc, tc = np.empty((3, 3)), np.empty(3)
     h, J = np.empty(3), np.empty((3, k))
     A, rhs = np.empty((3, 3)), np.empty(3)
@@ -282,11 +284,9 @@ def _point_box_sqdist(p, bc, bR, bh):  # pragma: no cover - compiled
 
 
 @jit
-def _obb_overlap(ca, Ra, ha, cb, Rb, hb, eps):  # pragma: no cover - compiled
-    """Separating-axis test of two oriented boxes (collision.obb_overlap: 15 axes, |R| + eps)."""
-    Rm = np.empty((3, 3))
-    AR = np.empty((3, 3))
-    tt = np.empty(3)
+def _obb_overlap(ca, Ra, ha, cb, Rb, hb, eps, W):  # pragma: no cover - compiled
+    """Separating-axis test of two oriented boxes (collision.obb_overlap: 15 axes, |R| + eps); W: scratch (3, 3, 3)."""
+    Rm, AR, tt = W[0], W[1], W[2, 0]
     for i in range(3):
         for j in range(3):
             Rm[i, j] = Ra[0, i] * Rb[0, j] + Ra[1, i] * Rb[1, j] + Ra[2, i] * Rb[2, j]
@@ -321,71 +321,83 @@ def _world_box(R, t, b, c_local, R_local, c, Rw):  # pragma: no cover - compiled
 
 
 @jit
+def _centre(R, t, b, c_local, c):  # pragma: no cover - compiled
+    """World position c of a point given in body b's frame."""
+    for i in range(3):
+        c[i] = R[b, i, 0] * c_local[0] + R[b, i, 1] * c_local[1] + R[b, i, 2] * c_local[2] + t[b, i]
+
+
+@jit
 def _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_c, el_R, el_h,
-             el_r, box_c, box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
+             el_r, box_c, box_R, box_h, box_aabb, eps, bc, c, Rw, eye, W):  # pragma: no cover - compiled
     """Robot (body poses R, t) against the obstacle boxes (CollisionChecker._env): robot bounds vs box bounds, body
-    spheres, body boxes, element spheres, then the exact element-box overlap."""
+    spheres, body boxes, element spheres, then the exact element-box overlap. bc, c, Rw, eye, W: scratch."""
     K, nb = box_c.shape[0], bodies.shape[0]
     if K == 0:
         return False
-    bc = np.empty((nb, 3))
-    lo = np.full(3, np.inf)
-    hi = np.full(3, -np.inf)
+    lo0 = lo1 = lo2 = np.inf
+    hi0 = hi1 = hi2 = -np.inf
     for n in range(nb):
         b = bodies[n]
-        for i in range(3):
-            bc[n, i] = R[b, i, 0] * body_c[b, 0] + R[b, i, 1] * body_c[b, 1] + R[b, i, 2] * body_c[b, 2] + t[b, i]
-            lo[i] = min(lo[i], bc[n, i] - body_r[b])
-            hi[i] = max(hi[i], bc[n, i] + body_r[b])
-    eye = np.eye(3)
-    c, Rw = np.empty(3), np.empty((3, 3))
+        _centre(R, t, b, body_c[b], bc[n])
+        r = body_r[b]
+        lo0, lo1, lo2 = min(lo0, bc[n, 0] - r), min(lo1, bc[n, 1] - r), min(lo2, bc[n, 2] - r)
+        hi0, hi1, hi2 = max(hi0, bc[n, 0] + r), max(hi1, bc[n, 1] + r), max(hi2, bc[n, 2] + r)
     for kb in range(K):
-        if not (lo[0] <= box_aabb[kb, 3] and lo[1] <= box_aabb[kb, 4] and lo[2] <= box_aabb[kb, 5]
-                and hi[0] >= box_aabb[kb, 0] and hi[1] >= box_aabb[kb, 1] and hi[2] >= box_aabb[kb, 2]):
+        if not (lo0 <= box_aabb[kb, 3] and lo1 <= box_aabb[kb, 4] and lo2 <= box_aabb[kb, 5]
+                and hi0 >= box_aabb[kb, 0] and hi1 >= box_aabb[kb, 1] and hi2 >= box_aabb[kb, 2]):
             continue
         for n in range(nb):
             b = bodies[n]
             if not _point_box_sqdist(bc[n], box_c[kb], box_R[kb], box_h[kb]) < body_r[b] * body_r[b]:
                 continue
             _world_box(R, t, b, body_box_c[b], eye, c, Rw)
-            if not _obb_overlap(c, Rw, body_box_h[b], box_c[kb], box_R[kb], box_h[kb], eps):
+            if not _obb_overlap(c, Rw, body_box_h[b], box_c[kb], box_R[kb], box_h[kb], eps, W):
                 continue
             for m in range(el_count[b]):
                 e = el_order[el_start[b] + m]
-                _world_box(R, t, b, el_c[e], el_R[e], c, Rw)
+                _centre(R, t, b, el_c[e], c)
                 if not _point_box_sqdist(c, box_c[kb], box_R[kb], box_h[kb]) < el_r[e] * el_r[e]:
                     continue
-                if _obb_overlap(c, Rw, el_h[e], box_c[kb], box_R[kb], box_h[kb], eps):
+                _world_box(R, t, b, el_c[e], el_R[e], c, Rw)
+                if _obb_overlap(c, Rw, el_h[e], box_c[kb], box_R[kb], box_h[kb], eps, W):
                     return True
     return False
 
 
 @jit
-def _self_hit(R, t, pairs, el_body, el_c, el_R, el_h, el_r, eps):  # pragma: no cover - compiled
-    """Self-collision of the element pairs (CollisionChecker._pairs_hits): bounding spheres, then exact overlap."""
-    ca, cb = np.empty(3), np.empty(3)
-    Ra, Rb = np.empty((3, 3)), np.empty((3, 3))
+def _self_hit(R, t, pairs, pair_els, el_body, el_c, el_R, el_h, el_r, eps, ec, ca, cb, Ra, Rb,
+              W):  # pragma: no cover - compiled
+    """Self-collision of the element pairs (CollisionChecker._pairs_hits): bounding spheres of the element centres
+    (computed once, for the elements in ``pair_els``), then the exact overlap. ec, ca, cb, Ra, Rb, W: scratch."""
+    for n in range(pair_els.shape[0]):
+        e = pair_els[n]
+        _centre(R, t, el_body[e], el_c[e], ec[e])
     for p in range(pairs.shape[0]):
         a, b = pairs[p, 0], pairs[p, 1]
-        _world_box(R, t, el_body[a], el_c[a], el_R[a], ca, Ra)
-        _world_box(R, t, el_body[b], el_c[b], el_R[b], cb, Rb)
-        d2 = (ca[0] - cb[0]) ** 2 + (ca[1] - cb[1]) ** 2 + (ca[2] - cb[2]) ** 2
+        d2 = (ec[a, 0] - ec[b, 0]) ** 2 + (ec[a, 1] - ec[b, 1]) ** 2 + (ec[a, 2] - ec[b, 2]) ** 2
         if not d2 < (el_r[a] + el_r[b]) ** 2:
             continue
-        if _obb_overlap(ca, Ra, el_h[a], cb, Rb, el_h[b], eps):
+        _world_box(R, t, el_body[a], el_c[a], el_R[a], ca, Ra)
+        _world_box(R, t, el_body[b], el_c[b], el_R[b], cb, Rb)
+        if _obb_overlap(ca, Ra, el_h[a], cb, Rb, el_h[b], eps, W):
             return True
     return False
 
 
 @jit
 def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile, lower, upper, bodies, body_c,
-          body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, box_c,
-          box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
+          body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs,
+          pair_els, box_c, box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
     """Collision flags (B, 3): joint limits, environment, self (CollisionChecker.check_detailed). Without
     ``detailed`` a row stops at its first violation (only the OR of the three is meaningful then)."""
-    B, dof, NB = q.shape[0], q.shape[1], parent.shape[0]
+    B, dof, NB, E = q.shape[0], q.shape[1], parent.shape[0], el_c.shape[0]
     out = np.zeros((B, 3), np.bool_)
-    R, t = np.zeros((NB, 3, 3)), np.zeros((NB, 3))
+    R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
+    bc, ec = np.empty((bodies.shape[0], 3)), np.empty((E, 3))
+    c, c2 = np.empty(3), np.empty(3)
+    Rw, Rw2, eye = np.empty((3, 3)), np.empty((3, 3)), np.eye(3)
+    W = np.empty((3, 3, 3))
     for r in range(B):
         qr = q[r]
         lim = False
@@ -397,8 +409,160 @@ def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile,
             continue
         _fk(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
         out[r, 1] = _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order,
-                             el_c, el_R, el_h, el_r, box_c, box_R, box_h, box_aabb, eps)
+                             el_c, el_R, el_h, el_r, box_c, box_R, box_h, box_aabb, eps, bc, c, Rw, eye, W)
         if out[r, 1] and not detailed:
             continue
-        out[r, 2] = _self_hit(R, t, pairs, el_body, el_c, el_R, el_h, el_r, eps)
+        out[r, 2] = _self_hit(R, t, pairs, pair_els, el_body, el_c, el_R, el_h, el_r, eps, ec, c, c2, Rw, Rw2, W)
     return out
+
+
+# ---------------------------------------------------------------------------------------------- occlusion
+@jit
+def _slab(o, d, half, count_inside, eps):  # pragma: no cover - compiled
+    """Slab test of the segment o -> o + d against a box centred at the origin with half extents ``half`` (box
+    frame; perception.occlusion._slab_hits)."""
+    t_in, t_out = -np.inf, np.inf
+    for j in range(3):
+        dj = d[j] if abs(d[j]) >= eps else eps
+        inv = 1.0 / dj
+        mid = -o[j] * inv
+        spread = half[j] * abs(inv)
+        t_in = max(t_in, mid - spread)
+        t_out = min(t_out, mid + spread)
+    hit = t_in <= t_out and t_out > 0.0 and t_in < 1.0
+    if not count_inside:
+        hit = hit and t_in > 0.0
+    return hit
+
+
+@jit
+def occlusion(pos, pts_local, centre_local, fat_half, box_c, box_R, box_h, count_inside,
+              eps):  # pragma: no cover - compiled
+    """Occlusion scores of Alg. 2 (B,): the fraction of the rays from each camera position (B, 3) to the target's M
+    sample points (given in every box frame, (M, K, 3)) that a box blocks (perception.occlusion.occlusion_scores:
+    the camera -> centre segment against the boxes inflated by the points' radius first, then the M rays against
+    the candidate boxes)."""
+    B, M, K = pos.shape[0], pts_local.shape[0], box_c.shape[0]
+    out = np.zeros(B)
+    o, d = np.empty(3), np.empty(3)
+    blocked = np.zeros(M, np.bool_)
+    for b in range(B):
+        blocked[:] = False
+        for k in range(K):
+            for i in range(3):
+                o[i] = box_R[k, 0, i] * (pos[b, 0] - box_c[k, 0]) + box_R[k, 1, i] * (pos[b, 1] - box_c[k, 1]) + \
+                    box_R[k, 2, i] * (pos[b, 2] - box_c[k, 2])
+                d[i] = centre_local[k, i] - o[i]
+            if not _slab(o, d, fat_half[k], True, eps):
+                continue
+            for m in range(M):
+                if blocked[m]:
+                    continue
+                for i in range(3):
+                    d[i] = pts_local[m, k, i] - o[i]
+                if _slab(o, d, box_h[k], count_inside, eps):
+                    blocked[m] = True
+        n = 0
+        for m in range(M):
+            n += blocked[m]
+        out[b] = n / M
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- motion
+@jit
+def _wrap(a):  # pragma: no cover - compiled
+    return ((a + math.pi) % (2.0 * math.pi)) - math.pi
+
+
+@jit
+def _base_plan(qa, qb):  # pragma: no cover - compiled
+    """Heading of the straight part and the phase lengths (rot1, trans, rot2) of the rotate-translate-rotate base
+    motion qa -> qb (motion.DiffDriveMotion._base_plan)."""
+    dx, dy = qb[0] - qa[0], qb[1] - qa[1]
+    d = math.sqrt(dx * dx + dy * dy)
+    fwd = math.atan2(dy, dx)
+    rev = _wrap(fwd + math.pi)
+    cost_f = abs(_wrap(fwd - qa[2])) + abs(_wrap(qb[2] - fwd))
+    cost_r = abs(_wrap(rev - qa[2])) + abs(_wrap(qb[2] - rev))
+    phi = rev if cost_r < cost_f else fwd
+    if d < 1e-6:
+        phi = qa[2]
+    return phi, _wrap(phi - qa[2]), d, _wrap(qb[2] - phi)
+
+
+@jit
+def _distance(qa, qb, w_rot, mobile):  # pragma: no cover - compiled
+    s, j0 = 0.0, 3 if mobile else 0
+    for i in range(j0, qa.shape[0]):
+        s += (qb[i] - qa[i]) ** 2
+    if not mobile:
+        return math.sqrt(s)
+    _, r1, d, r2 = _base_plan(qa, qb)
+    return w_rot * (abs(r1) + abs(r2)) + d + math.sqrt(s)
+
+
+@jit
+def distance(qa, qb, w_rot, mobile):  # pragma: no cover - compiled
+    """Motion cost (E,) of the local motions qa -> qb (E, dof): w_rot (|dtheta_1| + |dtheta_2|) + |dxy| +
+    ||dq_joints|| on a differential-drive base, the Euclidean distance otherwise (DiffDriveMotion.distance)."""
+    out = np.empty(qa.shape[0])
+    for r in range(qa.shape[0]):
+        out[r] = _distance(qa[r], qb[r], w_rot, mobile)
+    return out
+
+
+@jit
+def interpolate(qa, qb, s, w_rot, mobile):  # pragma: no cover - compiled
+    """Configurations at fractions s (E,) of the local motions qa -> qb (E, dof): the base runs through its three
+    phases in proportion to their weighted lengths, the joints linearly (DiffDriveMotion.interpolate)."""
+    E, dof = qa.shape
+    out = np.empty((E, dof))
+    for r in range(E):
+        a, b, f = qa[r], qb[r], s[r]
+        if not mobile:
+            for i in range(dof):
+                out[r, i] = a[i] + (b[i] - a[i]) * f
+            continue
+        _, r1, d, r2 = _base_plan(a, b)
+        l1, l2, l3 = w_rot * abs(r1), d, w_rot * abs(r2)
+        total = max(l1 + l2 + l3, 1e-12)
+        u = f * total
+        f1 = min(max(u / max(l1, 1e-12), 0.0), 1.0) if l1 > 0 else 1.0
+        f2 = min(max((u - l1) / max(l2, 1e-12), 0.0), 1.0) if l2 > 0 else 1.0
+        f3 = min(max((u - l1 - l2) / max(l3, 1e-12), 0.0), 1.0) if l3 > 0 else (1.0 if f >= 1 else 0.0)
+        out[r, 0] = a[0] + (b[0] - a[0]) * f2
+        out[r, 1] = a[1] + (b[1] - a[1]) * f2
+        out[r, 2] = _wrap(a[2] + r1 * f1 + r2 * f3)
+        for i in range(3, dof):
+            out[r, i] = a[i] + (b[i] - a[i]) * f
+    return out
+
+
+@jit
+def pieces(a, b, resolution, max_steps, include_start, w_rot, mobile):  # pragma: no cover - compiled
+    """Points every ``resolution`` (motion cost) on the straight joint-space pieces a[i] -> b[i] (theta the short
+    way): n = ceil(length / resolution) steps clamped to [1, max_steps], points at k / n for k = 0 (or 1) .. n - 1.
+    Returns (piece index (P,), points (P, dof)) (PSPRM._pieces)."""
+    E, dof = a.shape
+    n = np.empty(E, np.int64)
+    total = 0
+    for r in range(E):
+        n[r] = min(max(int(math.ceil(_distance(a[r], b[r], w_rot, mobile) / resolution)), 1), max_steps)
+        total += n[r] if include_start else n[r] - 1
+    seg = np.empty(total, np.int64)
+    pts = np.empty((total, dof))
+    diff = np.empty(dof)
+    p = 0
+    for r in range(E):
+        for i in range(dof):
+            diff[i] = b[r, i] - a[r, i]
+        if mobile:
+            diff[2] = _wrap(diff[2])
+        for k in range(0 if include_start else 1, n[r]):
+            frac = k / n[r]
+            seg[p] = r
+            for i in range(dof):
+                pts[p, i] = a[r, i] + diff[i] * frac
+            p += 1
+    return seg, pts

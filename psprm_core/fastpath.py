@@ -135,7 +135,7 @@ def _checker_arrays(checker) -> tuple:
                       _f64(checker.body_box_c), _f64(checker.body_box_h), _i64(checker.body_el_start),
                       _i64(checker.body_el_count), _i64(checker.body_el_order), _i64(checker.el_body),
                       _f64(checker.el_c), _f64(checker.el_R), _f64(checker.el_h), _f64(checker.el_r),
-                      _i64(checker.self_pairs).reshape(-1, 2)),
+                      _i64(checker.self_pairs).reshape(-1, 2), np.unique(_i64(checker.self_pairs))),
             "boxes": None, "boxes_of": None}
     bx = checker.boxes
     if cache["boxes_of"] is not bx:
@@ -150,8 +150,112 @@ def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
     Without ``detailed`` a row stops at its first violation: only the OR over a row is meaningful."""
     all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
     (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
-     pairs), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
+     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
     return kernels().check(_f64(q.to(checker.dtype)), bool(detailed), all_bodies, parent, jtype, R_off, t_off, axis,
                            D, off, mobile, _f64(checker.lower), _f64(checker.upper), bodies, body_c, body_r, box_c_b,
-                           box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, box_c,
-                           box_R, box_h, box_aabb, 1e-6)
+                           box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els,
+                           box_c, box_R, box_h, box_aabb, 1e-6)
+
+
+# ---------------------------------------------------------------------------------------------- perception
+def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
+    """Occlusion scores (B,) of camera positions (B, 3), as :meth:`OcclusionChecker.score` (Alg. 2, line 5)."""
+    from .perception.occlusion import _EPS_DIR
+
+    key = (id(occ.boxes), id(occ.target_points))
+    arr = getattr(occ, "_fast_arrays", None)
+    if arr is None or arr[0] != key:
+        bx, pts = occ.boxes, _f64(occ.target_points).reshape(-1, 3)
+        c, R, h = _f64(bx.centers).reshape(-1, 3), _f64(bx.rotations).reshape(-1, 3, 3), _f64(bx.half_extents)
+        h = h.reshape(-1, 3)
+        centre = pts.mean(0)
+        r = np.linalg.norm(pts - centre, axis=1).max() if len(pts) else 0.0
+        local = lambda p: np.einsum("...kj,kji->...ki", p[..., None, :] - c, R)  # noqa: E731 - R_k^T (p - c_k)
+        arr = (key, np.ascontiguousarray(local(pts)), np.ascontiguousarray(local(centre)), h + r, c, R, h)
+        occ._fast_arrays = arr
+    _, pts_local, centre_local, fat_half, c, R, h = arr
+    if len(c) == 0 or pts_local.shape[0] == 0:
+        return torch.zeros(pos.shape[0], dtype=pos.dtype)
+    out = kernels().occlusion(_f64(pos), pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside),
+                              float(_EPS_DIR))
+    return torch.from_numpy(out).to(pos.dtype)
+
+
+def _mlp(model, cls: int) -> list:
+    """The surrogate's layers as (W^T (in, out), b) pairs for one class, with the feature normalisation and the
+    class's one-hot column folded into the first layer (as :meth:`PerceptionSurrogate._folded_first_layer`); cached
+    on the model until a parameter or buffer changes (in-place updates bump the tensors' versions)."""
+    tensors = list(model.parameters()) + list(model.buffers())
+    key = (cls,) + tuple((id(t), t._version) for t in tensors)
+    cache = getattr(model, "_fast_mlp", None)
+    if cache is None or cache[0] != key:
+        with torch.no_grad():
+            w1, b1, _ = model._folded_first_layer(cls)
+            layers = [(w1, b1)]
+            for mod in model.net[2:]:
+                if isinstance(mod, torch.nn.Linear):
+                    layers.append((mod.weight.t().contiguous(), mod.bias.detach().clone()))
+        cache = model._fast_mlp = (key, layers)
+    return cache[1]
+
+
+def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
+    """Surrogate scores (B,) of un-normalised pose features (B, F) for one class index, as
+    :meth:`PerceptionSurrogate.predict_features` (Alg. 2, line 4: c_p = NN(T_c, O)): ReLU hidden layers, sigmoid
+    output, with the folded layers kept between calls (torch's GEMM is the fastest here; numpy's is 5x slower at
+    this shape)."""
+    layers = _mlp(model, cls)
+    h = feats.to(layers[0][0].dtype)
+    with torch.no_grad():
+        for i, (w, b) in enumerate(layers):
+            if i:
+                h.relu_()
+            h = torch.addmm(b, h, w)
+        return torch.sigmoid(h).squeeze(-1)
+
+
+def pose_features(cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
+    """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4), in numpy
+    (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``)."""
+    c, tg = _f64(cam), _f64(target_pose)
+    Rc = c[:, :3, :3]
+    trans = np.einsum("bji,bj->bi", Rc, tg[:3, 3] - c[:, :3, 3])
+    rot2 = np.einsum("bji,jk->bik", Rc, tg[:3, :2])
+    feats = [trans, rot2[:, :, 0], rot2[:, :, 1]]
+    if derived:
+        facing = rot2[:, :, 0]
+        dist = np.maximum(np.linalg.norm(trans, axis=1), 1e-9)
+        tz = np.maximum(trans[:, 2], 1e-3)
+        feats += [dist[:, None], (trans[:, 2] / dist)[:, None], (-(facing * trans).sum(1) / dist)[:, None],
+                  np.clip(trans[:, 0] / tz, -4.0, 4.0)[:, None], np.clip(trans[:, 1] / tz, -4.0, 4.0)[:, None]]
+    return torch.from_numpy(np.concatenate(feats, 1))
+
+
+# ---------------------------------------------------------------------------------------------- motion
+MOTION_MAX_BATCH = 1 << 16  # the metric is cheaper compiled at any size (a query ranks every roadmap node with it)
+
+
+def motion_applies(qa: torch.Tensor, qb: torch.Tensor) -> bool:
+    """Whether a pair of batches (E, dof) takes the compiled motion kernels (same shape, see :func:`applies`)."""
+    return qa.dim() == 2 and qa.shape == qb.shape and qa.dtype == qb.dtype and qb.device.type == "cpu" and \
+        not (qb.requires_grad and torch.is_grad_enabled()) and applies(qa, MOTION_MAX_BATCH)
+
+
+def motion_distance(motion, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
+    """:meth:`DiffDriveMotion.distance` of same-shape CPU batches."""
+    out = kernels().distance(_f64(qa), _f64(qb), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(out).to(qa.dtype)
+
+
+def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """:meth:`DiffDriveMotion.interpolate` of same-shape CPU batches."""
+    out = kernels().interpolate(_f64(qa), _f64(qb), _f64(s).reshape(-1), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(out).to(qa.dtype)
+
+
+def pieces(motion, a: torch.Tensor, b: torch.Tensor, resolution: float, max_steps: int,
+           include_start: bool) -> tuple:
+    """``PSPRM._pieces``: (piece index, points every ``resolution`` on the pieces a[i] -> b[i])."""
+    seg, pts = kernels().pieces(_f64(a), _f64(b), float(resolution), int(max_steps), bool(include_start),
+                                float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(seg), torch.from_numpy(pts).to(a.dtype)

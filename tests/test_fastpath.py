@@ -147,3 +147,83 @@ def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
             assert ra.cost == pytest.approx(rb.cost, rel=1e-4)
             assert np.abs(ra.waypoints - rb.waypoints).max() < 1e-2  # float32 re-aimed knots
     assert solved >= len(probs) // 2
+
+
+@pytest.mark.parametrize("scene_name", ["home", "nursing"])
+def test_occlusion_scores_match_torch(scene_name):
+    """Ray-cast occlusion (Alg. 2) of cameras spread over the scene, some of them behind occluders."""
+    from psprm_core.perception.occlusion import OcclusionChecker
+
+    scene = load_scene(resolve_named("scene", scene_name))
+    rng = np.random.default_rng(5)
+    for target in scene.target_names[:3]:
+        occ = OcclusionChecker.from_scene(scene, target)
+        pos = np.concatenate([rng.uniform(scene.workspace[:, 0], scene.workspace[:, 1], (500, 2)),
+                              rng.uniform(0.3, 1.8, (500, 1))], 1)
+        for dtype in (torch.float64, torch.float32):
+            cams = torch.as_tensor(pos, dtype=dtype)
+            fast = occ.score(cams)
+            with fastpath.disabled():
+                ref = occ.score(cams)
+            assert fast.dtype == dtype and torch.equal(fast, ref)
+            assert 0 < int((ref > 0).sum()) < len(ref)  # some rays blocked, some not
+
+
+def test_surrogate_scores_match_torch(load_robot):
+    """The numpy MLP (normalisation folded into the first layer) and pose features give the torch scores; a
+    changed weight is picked up (the folded layers are cached by the tensors' versions)."""
+    from psprm_core.perception.surrogate import PerceptionSurrogate
+
+    torch.manual_seed(0)
+    robot, scene = _robot_scene("stretch2", load_robot)
+    m = PerceptionSurrogate(["cup", "face", "tv"])
+    m.fit_normalization(torch.randn(500, m.n_pose_features, dtype=torch.float64) * 2 + 0.5)
+    with torch.no_grad():  # larger weights than the initialisation's: scores spread over (0, 1)
+        for p in m.net.parameters():
+            p *= 2.5
+        m.net[-1].bias.zero_()
+    cams = robot.camera_poses(torch.as_tensor(_configs(robot, scene, 200, 6), dtype=torch.float32))
+    target = torch.as_tensor(np.eye(4))
+    target[:3, 3] = torch.tensor([2.0, 1.0, 0.9])
+    for cls in ("cup", "tv", 1):
+        fast = m.predict(cams, target, cls)
+        with fastpath.disabled():
+            ref = m.predict(cams, target, cls)
+        assert fast.dtype == ref.dtype and fast.shape == (200,)
+        assert (fast - ref).abs().max() < 1e-5 and ref.std() > 0.05
+    with torch.no_grad():
+        m.net[-1].bias += 1.0
+    fast = m.predict(cams, target, "cup")
+    with fastpath.disabled():
+        ref = m.predict(cams, target, "cup")
+    assert (fast - ref).abs().max() < 1e-5
+
+
+@pytest.mark.parametrize("name", ["stretch2", "fetchlike"])
+def test_motion_metric_interpolation_and_pieces_match_torch(name, load_robot):
+    """Diff-drive metric and interpolation (rotate, translate, rotate; including pure turns and standing still) and
+    the planner's dense pieces: same lengths, same number of points, same points."""
+    from psprm_core.motion import DiffDriveMotion
+
+    robot, scene = _robot_scene(name, load_robot)
+    m = DiffDriveMotion(robot)
+    qa = torch.as_tensor(_configs(robot, scene, 400, 7), dtype=torch.float64)
+    qb = torch.as_tensor(_configs(robot, scene, 400, 8), dtype=torch.float64)
+    qb[:50, :2] = qa[:50, :2]  # turns in place
+    qb[50:60] = qa[50:60]  # no motion
+    s = torch.as_tensor(np.random.default_rng(9).uniform(0, 1, 400))
+    s[:20] = 1.0
+    s[20:40] = 0.0
+    with fastpath.disabled():
+        ref_d, ref_i = m.distance(qa, qb), m.interpolate(qa, qb, s)
+    assert (m.distance(qa, qb) - ref_d).abs().max() < 1e-12
+    assert (m.interpolate(qa, qb, s) - ref_i).abs().max() < 1e-12
+    assert (m.distance(qa.float(), qb.float()) - ref_d).abs().max() < 1e-4  # float32 inputs, float32 result
+    planner = PSPRM.__new__(PSPRM)  # only the motion, robot and settings are needed by _pieces
+    planner.robot, planner.motion, planner.settings = robot, m, PSPRMSettings()
+    for include_start in (True, False):
+        seg, pts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+        with fastpath.disabled():
+            rseg, rpts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+        assert torch.equal(seg, rseg) and len(seg) > 1000
+        assert (pts - rpts).abs().max() < 1e-12

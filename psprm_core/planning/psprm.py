@@ -28,6 +28,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import torch
 
+from .. import fastpath
 from ..collision import BoxTensors, CollisionChecker
 from ..errors import ConfigError
 from ..motion import DiffDriveMotion
@@ -1111,6 +1112,8 @@ class PSPRM:
         Each piece is split into n = ceil(length / resolution) steps (at most ``max_steps``); the points are at
         fractions k / n for k = 0 .. n-1 (``include_start``) or k = 1 .. n-1. Returns (piece index, points).
         """
+        if fastpath.motion_applies(a, b):  # CPU: one compiled pass (same lengths, same points)
+            return fastpath.pieces(self.motion, a, b, self.settings.edge_resolution, max_steps, include_start)
         diff = b - a
         if self.robot.mobile:
             diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
