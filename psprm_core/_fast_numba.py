@@ -566,3 +566,120 @@ def pieces(a, b, resolution, max_steps, include_start, w_rot, mobile):  # pragma
                 pts[p, i] = a[r, i] + diff[i] * frac
             p += 1
     return seg, pts
+
+
+@jit
+def nearest(qq, rm, k, w_rot, mobile):  # pragma: no cover - compiled
+    """The k roadmap configurations rm (N, dof) nearest to each query configuration qq (Q, dof) under the motion
+    metric (DiffDriveMotion.distance): indices (Q, k) sorted by distance (ties by index). Rows whose lower bound
+    |dxy| + ||dq_joints|| (the metric without its base rotations) exceeds the current k-th distance are skipped, so
+    only a few exact distances are evaluated."""
+    Q, N, dof = qq.shape[0], rm.shape[0], rm.shape[1]
+    out = np.empty((Q, k), np.int64)
+    bd = np.empty(k)
+    bi = np.empty(k, np.int64)
+    j0 = 3 if mobile else 0
+    for qi in range(Q):
+        a = qq[qi]
+        n = 0
+        for r in range(N):
+            b = rm[r]
+            s = 0.0
+            for i in range(j0, dof):
+                s += (b[i] - a[i]) ** 2
+            lb = math.sqrt(s)
+            if mobile:
+                lb += math.sqrt((b[0] - a[0]) ** 2 + (b[1] - a[1]) ** 2)
+            if n == k and lb > bd[k - 1]:
+                continue
+            d = _distance(a, b, w_rot, mobile)
+            if n == k and d >= bd[k - 1]:
+                continue
+            p = n if n < k else k - 1  # insert, keeping (distance, index) order; ties keep the earlier index first
+            while p > 0 and bd[p - 1] > d:
+                if p < k:
+                    bd[p], bi[p] = bd[p - 1], bi[p - 1]
+                p -= 1
+            bd[p], bi[p] = d, r
+            if n < k:
+                n += 1
+        for j in range(k):
+            out[qi, j] = bi[j]
+    return out
+
+
+@jit
+def edge_knot_seeds(qa, qb, n_interp, w_rot, mobile):  # pragma: no cover - compiled
+    """Knots of the local motions qa -> qb (E, dof) before the camera joints re-aim (PSPRM.edge_knots): the ends,
+    the base's two drive corners and the N Eq. 1 samples s = i / (N + 1), sorted along the motion (stable), and the
+    positions (E, N) of the N samples among them. Returns (knots (E, M, dof), interior (E, N))."""
+    E, dof = qa.shape
+    nc = 2 if mobile else 0
+    M = n_interp + nc + 2
+    knots = np.empty((E, M, dof))
+    interior = np.empty((E, n_interp), np.int64)
+    s_all = np.empty(M)
+    order = np.empty(M, np.int64)
+    for r in range(E):
+        a, b = qa[r], qb[r]
+        s_all[0] = 0.0
+        for i in range(n_interp):
+            s_all[1 + i] = (i + 1) / (n_interp + 1)
+        if mobile:
+            _, r1, d, r2 = _base_plan(a, b)
+            l1, l2, l3 = w_rot * abs(r1), d, w_rot * abs(r2)
+            tot = max(l1 + l2 + l3, 1e-12)
+            s_all[1 + n_interp] = l1 / tot
+            s_all[2 + n_interp] = (l1 + l2) / tot
+        s_all[M - 1] = 1.0
+        for i in range(M):  # stable insertion sort of the fractions
+            order[i] = i
+            p = i
+            while p > 0 and s_all[order[p - 1]] > s_all[i]:
+                order[p] = order[p - 1]
+                p -= 1
+            order[p] = i
+        for p in range(M):
+            if 1 <= order[p] <= n_interp:
+                interior[r, order[p] - 1] = p
+        ar, br = np.empty((M, dof)), np.empty((M, dof))
+        sr = np.empty(M)
+        for p in range(M):
+            ar[p] = a
+            br[p] = b
+            sr[p] = s_all[order[p]]
+        knots[r] = interpolate(ar, br, sr, w_rot, mobile)
+    return knots, interior
+
+
+# ---------------------------------------------------------------------------------------------- surrogate features
+@jit
+def pose_features(cam, tgt, derived):  # pragma: no cover - compiled
+    """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4): the
+    target's position t = R_c^T (p_t - p_c) and first two axes R_c^T R_t[:, :2] in the optical frame, then distance,
+    bearing cosine, facing cosine and the clipped image-plane coordinates (perception.surrogate
+    relative_pose_features / derived_features)."""
+    B = cam.shape[0]
+    F = 14 if derived else 9
+    out = np.empty((B, F))
+    for b in range(B):
+        for i in range(3):
+            s = 0.0
+            for j in range(3):
+                s += cam[b, j, i] * (tgt[j, 3] - cam[b, j, 3])
+            out[b, i] = s
+            for c in range(2):
+                s = 0.0
+                for j in range(3):
+                    s += cam[b, j, i] * tgt[j, c]
+                out[b, 3 + 3 * c + i] = s
+        if derived:
+            tx, ty, tz = out[b, 0], out[b, 1], out[b, 2]
+            dist = max(math.sqrt(tx * tx + ty * ty + tz * tz), 1e-9)
+            out[b, 9] = dist
+            out[b, 10] = tz / dist
+            out[b, 11] = -(out[b, 3] * tx + out[b, 4] * ty + out[b, 5] * tz) / dist
+            tzc = max(tz, 1e-3)
+            out[b, 12] = min(max(tx / tzc, -4.0), 4.0)
+            out[b, 13] = min(max(ty / tzc, -4.0), 4.0)
+    return out

@@ -184,10 +184,11 @@ def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
 def _mlp(model, cls: int) -> list:
     """The surrogate's layers as (W^T (in, out), b) pairs for one class, with the feature normalisation and the
     class's one-hot column folded into the first layer (as :meth:`PerceptionSurrogate._folded_first_layer`); cached
-    on the model until a parameter or buffer changes (in-place updates bump the tensors' versions)."""
-    tensors = list(model.parameters()) + list(model.buffers())
-    key = (cls,) + tuple((id(t), t._version) for t in tensors)
+    on the model until a parameter or buffer changes: in place (the tensors' versions) or by new storage
+    (``.to()``, ``load_state_dict``)."""
     cache = getattr(model, "_fast_mlp", None)
+    tensors = cache[1] if cache is not None else list(model.parameters()) + list(model.buffers())
+    key = (cls,) + tuple((t._version, t.data_ptr()) for t in tensors)
     if cache is None or cache[0] != key:
         with torch.no_grad():
             w1, b1, _ = model._folded_first_layer(cls)
@@ -195,8 +196,8 @@ def _mlp(model, cls: int) -> list:
             for mod in model.net[2:]:
                 if isinstance(mod, torch.nn.Linear):
                     layers.append((mod.weight.t().contiguous(), mod.bias.detach().clone()))
-        cache = model._fast_mlp = (key, layers)
-    return cache[1]
+        cache = model._fast_mlp = (key, tensors, layers)
+    return cache[2]
 
 
 def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
@@ -215,20 +216,9 @@ def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
 
 
 def pose_features(cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
-    """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4), in numpy
-    (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``)."""
-    c, tg = _f64(cam), _f64(target_pose)
-    Rc = c[:, :3, :3]
-    trans = np.einsum("bji,bj->bi", Rc, tg[:3, 3] - c[:, :3, 3])
-    rot2 = np.einsum("bji,jk->bik", Rc, tg[:3, :2])
-    feats = [trans, rot2[:, :, 0], rot2[:, :, 1]]
-    if derived:
-        facing = rot2[:, :, 0]
-        dist = np.maximum(np.linalg.norm(trans, axis=1), 1e-9)
-        tz = np.maximum(trans[:, 2], 1e-3)
-        feats += [dist[:, None], (trans[:, 2] / dist)[:, None], (-(facing * trans).sum(1) / dist)[:, None],
-                  np.clip(trans[:, 0] / tz, -4.0, 4.0)[:, None], np.clip(trans[:, 1] / tz, -4.0, 4.0)[:, None]]
-    return torch.from_numpy(np.concatenate(feats, 1))
+    """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4)
+    (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``), compiled."""
+    return torch.from_numpy(kernels().pose_features(_f64(cam), _f64(target_pose), bool(derived)))
 
 
 # ---------------------------------------------------------------------------------------------- motion
@@ -259,3 +249,17 @@ def pieces(motion, a: torch.Tensor, b: torch.Tensor, resolution: float, max_step
     seg, pts = kernels().pieces(_f64(a), _f64(b), float(resolution), int(max_steps), bool(include_start),
                                 float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(seg), torch.from_numpy(pts).to(a.dtype)
+
+
+def nearest(motion, qq: torch.Tensor, rm: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices (Q, k) of the k configurations of ``rm`` (N, dof) nearest to each of ``qq`` (Q, dof) under the
+    motion metric, sorted by distance (``motion.distance`` of every pair, then ``topk``)."""
+    out = kernels().nearest(_f64(qq), _f64(rm), int(k), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(out)
+
+
+def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -> tuple:
+    """Knots (E, M, dof) of the local motions qa -> qb before the camera joints re-aim, and the positions (E, N) of
+    the Eq. 1 samples among them (the first half of ``PSPRM.edge_knots``)."""
+    kn, ki = kernels().edge_knot_seeds(_f64(qa), _f64(qb), int(n_interp), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)

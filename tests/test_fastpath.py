@@ -227,3 +227,27 @@ def test_motion_metric_interpolation_and_pieces_match_torch(name, load_robot):
             rseg, rpts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
         assert torch.equal(seg, rseg) and len(seg) > 1000
         assert (pts - rpts).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("name", ["stretch2", "fetchlike"])
+def test_edge_knots_and_nearest_nodes_match_torch(name, load_robot):
+    """A query's connection edges: the knots (drive corners and Eq. 1 samples, sorted; re-aimed camera joints) and
+    the connect_k nearest roadmap nodes under the motion metric."""
+    robot, scene = _robot_scene(name, load_robot)
+    target = scene.target(scene.target_names[0]).center
+    planner = PSPRM(robot, scene, GeometricScorer(scene, scene.target_names[0], robot.config.intrinsics), target,
+                    PSPRMSettings())
+    planner.dtype = torch.float64
+    qa = torch.as_tensor(_configs(robot, scene, 40, 10), dtype=torch.float64)
+    qb = torch.as_tensor(_configs(robot, scene, 40, 11), dtype=torch.float64)
+    qb[:5, :2] = qa[:5, :2]  # turns in place: a drive corner at s = 0 or 1
+    qb[5:8, 2] = qa[5:8, 2]
+    kn, ki = planner.edge_knots(qa, qb)
+    with fastpath.disabled():
+        rkn, rki = planner.edge_knots(qa, qb)
+    assert kn.shape == rkn.shape and torch.equal(ki, rki)
+    assert (kn - rkn).abs().max() < 1e-6
+    rm = torch.as_tensor(_configs(robot, scene, 3000, 12), dtype=torch.float64)
+    got = fastpath.nearest(planner.motion, qa[:6], rm, 12)
+    d = planner.motion.distance(qa[:6].repeat_interleave(len(rm), 0), rm.repeat(6, 1)).reshape(6, -1)
+    assert torch.equal(got, d.topk(12, largest=False).indices)

@@ -399,7 +399,15 @@ class PSPRM:
 
     # ---- build (Alg. 1) --------------------------------------------------------------------------------------------
     def build(self, template: Optional[np.ndarray] = None) -> dict:
-        """Sample, project, connect and score the roadmap; returns build statistics."""
+        """Sample, project, connect and score the roadmap; returns build statistics.
+
+        The build works on large batches and keeps the torch path throughout: the compiled small-batch kernels of
+        :mod:`psprm_core.fastpath` (and numba's one-time start-up, about 0.7 s per process) are left to the
+        queries."""
+        with fastpath.disabled():
+            return self._build(template)
+
+    def _build(self, template: Optional[np.ndarray]) -> dict:
         s = self.settings
         rng = np.random.default_rng(s.seed)
         torch.manual_seed(s.seed)
@@ -574,6 +582,9 @@ class PSPRM:
         """
         E, n = qa.shape[0], self.settings.n_interp
         dt, dev = qa.dtype, qa.device
+        if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: compiled
+            knots, interior_idx = fastpath.edge_knot_seeds(self.motion, qa, qb, n)
+            return self._track_knots(knots), interior_idx
         if self.robot.mobile:
             _, r1, d, r2 = self.motion._base_plan(qa, qb)
             l1, l2, l3 = self.motion.w_rot * r1.abs(), d, self.motion.w_rot * r2.abs()
@@ -590,13 +601,18 @@ class PSPRM:
         interior_idx = inv[:, 1:1 + n]
         M = s_all.shape[1]
         knots = self.motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0), s_sorted.reshape(-1))
-        knots = knots.reshape(E, M, -1)
+        return self._track_knots(knots.reshape(E, M, -1)), interior_idx
+
+    def _track_knots(self, knots: torch.Tensor) -> torch.Tensor:
+        """Knots (E, M, dof) with the non-base camera joints of the interior ones re-projected onto the visibility
+        manifold (``track_iters`` Gauss-Newton steps of Alg. 1, line 7, from the interpolated values)."""
+        E, M, dof = knots.shape
         if len(self.track_cols) and M > 2:
-            inner = knots[:, 1:-1].reshape(-1, knots.shape[-1])
+            inner = knots[:, 1:-1].reshape(-1, dof)
             ps = dataclasses.replace(self.settings.projection, max_iters=self.settings.track_iters)
             proj, _ = self.constraint.project(inner, ps, self._lo, self._hi, joints=self.track_cols)
             knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
-        return knots, interior_idx
+        return knots
 
     def _query_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """:meth:`edge_knots` of start/goal query edges, cached by their end configurations (the cache is cleared
@@ -852,9 +868,13 @@ class PSPRM:
             qq = qs[[i for i, _ in queries]]
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
-            d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0), rm.repeat(len(qq), 1)).reshape(len(qq), -1)
             kk = min(connect_k or self.settings.connect_k, rm.shape[0])
-            cand = d.topk(kk, largest=False).indices  # (Q, kk)
+            if fastpath.motion_applies(qq, qq) and kk > 0:  # CPU: one compiled pass that skips far nodes early
+                cand = fastpath.nearest(self.motion, qq, rm, kk)
+            else:
+                d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0),
+                                         rm.repeat(len(qq), 1)).reshape(len(qq), -1)
+                cand = d.topk(kk, largest=False).indices  # (Q, kk)
             src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
             qa, qb = qq[src], rm[dst]
