@@ -361,6 +361,7 @@ class PSPRM:
         self.max_motion = 1.0
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
+        self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
         self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
         self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
         self._blocked_nodes: set = set()  # roadmap nodes / edges removed because a moved obstacle blocked them
@@ -647,6 +648,12 @@ class PSPRM:
         g = self.graph
         edge_ids = np.asarray(edge_ids, dtype=np.int64)
         miss = edge_ids[~self.knots.known(edge_ids)]
+        if len(miss) and self._pending_query_knots is not None:  # the current query's own edges, from their ends
+            peids, ua, qa, qb = self._pending_query_knots
+            sel = np.nonzero(np.isin(peids, miss))[0]
+            if len(sel):
+                self._put_knots(peids[sel], ua[sel], *self._query_knots(qa[sel], qb[sel]))
+                miss = edge_ids[~self.knots.known(edge_ids)]
         if len(miss):
             miss = np.unique(miss)
             self.knots.put(miss, *self.edge_knots(self._t(g.configs[g.edge_u[miss]]), self._t(g.configs[g.edge_v[miss]])))
@@ -927,9 +934,9 @@ class PSPRM:
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
                 eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False)
                 added_edges.extend(eids)
-                # the knots of every candidate query edge in one batch: the manifold re-projection of the interior
-                # knots costs about the same for 3 edges as for 30, and a lazy search verifies a few per iteration
-                self._put_knots(np.asarray(eids), ua, *self._query_knots(qa[near], qb[near]))
+                # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
+                # verifies it (usually one or two at each end): stored_knots() takes them from here
+                self._pending_query_knots = (np.asarray(eids, dtype=np.int64), np.asarray(ua), qa[near], qb[near])
             elif len(near):
                 ok, pe, kn, ki = self._query_edges(qa[near], qb[near])
                 keep = near[ok]
@@ -972,6 +979,7 @@ class PSPRM:
             result.query_ms = (time.perf_counter() - t0) * 1e3
             return result
         finally:
+            self._pending_query_knots = None
             # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
             # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
             if added_edges:
