@@ -683,3 +683,47 @@ def pose_features(cam, tgt, derived):  # pragma: no cover - compiled
             out[b, 12] = min(max(tx / tzc, -4.0), 4.0)
             out[b, 13] = min(max(ty / tzc, -4.0), 4.0)
     return out
+
+
+# ---------------------------------------------------------------------------------------------- surrogate MLP
+@jit
+def mlp(x, w1, b1, ws, bs, wo, bo):  # pragma: no cover - compiled
+    """Surrogate MLP (Alg. 2, line 4) on a few rows, float32: h = relu(x W1 + b1), then relu(h W_l + b_l) per hidden
+    layer, score = sigmoid(h w_o + b_o). Rows are processed together so each weight row is read once per layer;
+    inputs a ReLU zeroed are skipped."""
+    B, F = x.shape
+    H = b1.shape[0]
+    h = np.empty((B, H), np.float32)
+    h2 = np.empty((B, H), np.float32)
+    for r in range(B):
+        h[r, :] = b1
+    for k in range(F):
+        wk = w1[k]
+        for r in range(B):
+            xk = x[r, k]
+            for j in range(H):
+                h[r, j] += xk * wk[j]
+    for r in range(B):
+        for j in range(H):
+            h[r, j] = max(h[r, j], np.float32(0.0))
+    for layer in range(ws.shape[0]):
+        for r in range(B):
+            h2[r, :] = bs[layer]
+        W = ws[layer]
+        for k in range(H):
+            wk = W[k]
+            for r in range(B):
+                hk = h[r, k]
+                if hk > 0:
+                    for j in range(H):
+                        h2[r, j] += hk * wk[j]
+        for r in range(B):
+            for j in range(H):
+                h[r, j] = max(h2[r, j], np.float32(0.0))
+    out = np.empty(B, np.float32)
+    for r in range(B):
+        s = bo
+        for k in range(H):
+            s += h[r, k] * wo[k]
+        out[r] = 1.0 / (1.0 + math.exp(-s))
+    return out
