@@ -68,7 +68,8 @@ def _camera(R, t, cam_body, cam_R, cam_t, Rc, tc):  # pragma: no cover - compile
     """Optical-frame pose (Rc, tc) from the camera body's world pose (RobotModel._camera_from_body)."""
     for i in range(3):
         for j in range(3):
-            Rc[i, j] = R[cam_body, i, 0] * cam_R[0, j] + R[cam_body, i, 1] * cam_R[1, j] + R[cam_body, i, 2] * cam_R[2, j]
+            Rc[i, j] = R[cam_body, i, 0] * cam_R[0, j] + R[cam_body, i, 1] * cam_R[1, j] + \
+                R[cam_body, i, 2] * cam_R[2, j]
         tc[i] = t[cam_body, i] + R[cam_body, i, 0] * cam_t[0] + R[cam_body, i, 1] * cam_t[1] + \
             R[cam_body, i, 2] * cam_t[2]
 

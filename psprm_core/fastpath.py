@@ -75,6 +75,18 @@ def _f64(x) -> np.ndarray:
     return np.ascontiguousarray(np.asarray(x, dtype=np.float64))
 
 
+def _const64(t: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
+    """float64 copy of a constant tensor (limits, target point), first rounded to ``dtype`` if given (as the torch
+    path casts it); kept on the tensor until it changes in place."""
+    cache = getattr(t, "_fast_f64", None)
+    if cache is None:
+        cache = t._fast_f64 = {}
+    got = cache.get(dtype)
+    if got is None or got[0] != t._version:
+        got = cache[dtype] = (t._version, _f64(t if dtype is None else t.to(dtype)))
+    return got[1]
+
+
 def _i64(x) -> np.ndarray:
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
@@ -101,9 +113,13 @@ def robot_arrays(robot) -> tuple:
 
 
 def _camera_args(robot) -> tuple:
-    _, chain, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
-    return (chain, parent, jtype, R_off, t_off, axis, D, off, mobile, int(robot.camera_body),
-            _f64(robot.camera_offset[:3, :3]), _f64(robot.camera_offset[:3, 3]))
+    args = getattr(robot, "_fast_camera_args", None)
+    if args is None:
+        _, chain, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
+        args = robot._fast_camera_args = (chain, parent, jtype, R_off, t_off, axis, D, off, mobile,
+                                          int(robot.camera_body), _f64(robot.camera_offset[:3, :3]),
+                                          _f64(robot.camera_offset[:3, 3]))
+    return args
 
 
 def camera_poses(robot, q: torch.Tensor) -> torch.Tensor:
@@ -116,11 +132,11 @@ def camera_poses(robot, q: torch.Tensor) -> torch.Tensor:
 def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray) -> tuple:
     """:meth:`VisibilityConstraint.project` of ``q`` (B, dof) over the joints ``cols``: (projected q, converged)."""
     intr = constraint.intr
-    target = _f64(constraint.target.to(q.dtype))
+    target = _const64(constraint.target, q.dtype)
     qn, err = kernels().project(
         _f64(q), *_camera_args(constraint.robot), target, _i64(cols), constraint.kind == "line",
         float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
-        float(constraint.margin), _f64(lo), _f64(hi), float(settings.tolerance), int(settings.max_iters),
+        float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(settings.max_iters),
         float(settings.damping), float(settings.max_step))
     return torch.from_numpy(qn).to(q.dtype), torch.from_numpy(err < settings.tolerance)
 
@@ -152,8 +168,9 @@ def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
     all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
     (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
      pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
+    lower, upper = _const64(checker.lower), _const64(checker.upper)
     return kernels().check(_f64(q.to(checker.dtype)), bool(detailed), all_bodies, parent, jtype, R_off, t_off, axis,
-                           D, off, mobile, _f64(checker.lower), _f64(checker.upper), bodies, body_c, body_r, box_c_b,
+                           D, off, mobile, lower, upper, bodies, body_c, body_r, box_c_b,
                            box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els,
                            box_c, box_R, box_h, box_aabb, 1e-6)
 
