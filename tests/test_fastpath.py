@@ -253,3 +253,19 @@ def test_edge_knots_and_nearest_nodes_match_torch(name, load_robot):
     got = fastpath.nearest(planner.motion, qa[:6], rm, 12)
     d = planner.motion.distance(qa[:6].repeat_interleave(len(rm), 0), rm.repeat(6, 1)).reshape(6, -1)
     assert torch.equal(got, d.topk(12, largest=False).indices)
+
+
+def test_warm_up_loads_the_query_kernels(load_robot):
+    """After ``warm_up`` the kernels a query uses are compiled for the planner's argument types (no compilation in
+    the first query); on CPU without numba it does nothing."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.target_names[0]
+    planner = PSPRM(robot, scene, GeometricScorer(scene, target, robot.config.intrinsics),
+                    scene.target(target).center, PSPRMSettings())
+    assert planner.warm_up() > 0
+    K = fastpath.kernels()
+    for name in ("check", "camera_poses", "project", "occlusion", "edge_knot_seeds", "pieces", "distance",
+                 "nearest"):
+        assert getattr(K, name).signatures, name
+    with mock.patch.object(fastpath, "available", lambda: False):
+        assert planner.warm_up() == 0.0

@@ -477,6 +477,25 @@ class PSPRM:
         log.info("PS-PRM built: %s", self.stats)
         return self.stats
 
+    def warm_up(self) -> float:
+        """Compile (first run after an install or a change of the kernels' source) or load from numba's disk cache
+        every small-batch kernel a query uses (:mod:`psprm_core.fastpath`), on two template configurations, so that
+        the first query does not pay for it. Returns the seconds it took (0 without numba or on a GPU device)."""
+        t0 = time.perf_counter()
+        if self.device.type != "cpu" or not fastpath.available():
+            return 0.0
+        q = self._t(np.stack([self.template, self.template]))
+        qb = q.clone()
+        qb[1, 0] += 0.1
+        self.checker.check(q)
+        self.checker.check_detailed(q)
+        self.score_configs(q)
+        self.edge_knots(q, qb)
+        self._pieces(q, qb, max_steps=200, include_start=False)
+        self.motion.distance(q, qb)
+        fastpath.nearest(self.motion, q, qb, 1)
+        return time.perf_counter() - t0
+
     def components(self) -> tuple:
         """Connected components of the roadmap: (valid roadmap node ids, component label of each)."""
         from scipy.sparse.csgraph import connected_components
