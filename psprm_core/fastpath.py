@@ -6,11 +6,17 @@ such call costs 1-10 ms of per-operator overhead, far more than its arithmetic. 
 :mod:`psprm_core._fast_numba` compute the same quantities row by row in float64:
 
 * :func:`camera_poses` - :meth:`RobotModel.camera_poses`;
-* :func:`project` - :meth:`VisibilityConstraint.project` (line and frustum models);
-* :func:`check` - :meth:`CollisionChecker.check` / :meth:`~CollisionChecker.check_detailed`.
+* :func:`project` - :meth:`VisibilityConstraint.project` (Alg. 1, line 7; line and frustum models);
+* :func:`check` - :meth:`CollisionChecker.check` / :meth:`~CollisionChecker.check_detailed`;
+* :func:`occlusion_scores`, :func:`pose_features`, :func:`surrogate_scores` - the neural score of Alg. 2
+  (:class:`OcclusionChecker`, :meth:`PerceptionSurrogate.predict`);
+* :func:`motion_distance`, :func:`motion_interpolate`, :func:`pieces`, :func:`nearest`, :func:`edge_knot_seeds` - the
+  diff-drive metric and local motions (:class:`DiffDriveMotion`, ``PSPRM._pieces``, the query's nearest roadmap
+  nodes, the knots of Eq. 1 edges).
 
-The callers use them only for CPU tensors of at most :data:`MAX_BATCH` rows outside autograd (:func:`applies`); large
-batches (the roadmap build) and CUDA tensors keep the torch path. Nothing is compiled at import: numba compiles a
+The callers use them only for CPU tensors of at most :data:`MAX_BATCH` rows outside autograd (:func:`applies`; the
+metric up to :data:`MOTION_MAX_BATCH` rows); CUDA tensors keep the torch path, and ``PSPRM.build`` runs with the fast
+paths off (large batches; numba's start-up stays out of the build time). Nothing is compiled at import: numba compiles a
 kernel on its first call (cached on disk with ``cache=True``). Without numba (:func:`available` false) every call takes
 the torch path. :func:`disabled` turns the fast paths off in a block (tests compare both).
 """
