@@ -88,8 +88,9 @@ def _const64(t: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
     if cache is None:
         cache = t._fast_f64 = {}
     got = cache.get(dtype)
-    if got is None or got[0] != t._version:
-        got = cache[dtype] = (t._version, _f64(t if dtype is None else t.to(dtype)))
+    key = (t._version, t.data_ptr())  # in-place changes; a copied tensor (and its copied attributes) has new storage
+    if got is None or got[0] != key:
+        got = cache[dtype] = (key, _f64(t if dtype is None else t.to(dtype)))
     return got[1]
 
 

@@ -269,3 +269,20 @@ def test_warm_up_loads_the_query_kernels(load_robot):
         assert getattr(K, name).signatures, name
     with mock.patch.object(fastpath, "available", lambda: False):
         assert planner.warm_up() == 0.0
+
+
+def test_constant_inputs_follow_in_place_changes(load_robot):
+    """Limits kept between calls are refreshed when the tensor changes in place (or is a copy)."""
+    import copy
+
+    robot, scene = _robot_scene("stretch2", load_robot)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    q = torch.as_tensor(_configs(robot, scene, 50, 13), dtype=torch.float32)
+    before = checker.check_detailed(q)["limits"]
+    checker.upper[-1] = -10.0  # every configuration now violates the last joint's limit
+    assert checker.check_detailed(q)["limits"].all() and not before.all()
+    other = copy.deepcopy(checker)
+    other.upper[-1] = 10.0
+    with fastpath.disabled():
+        ref = other.check_detailed(q)["limits"]
+    assert torch.equal(other.check_detailed(q)["limits"], ref)
