@@ -25,6 +25,7 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
+from . import fastpath
 from .robot import RobotModel
 
 log = logging.getLogger(__name__)
@@ -196,6 +197,8 @@ class CollisionChecker:
         q = q.to(self.device, self.dtype)
         if q.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=self.device)
+        if fastpath.applies(q):  # a few configurations on the CPU: the compiled check (same flags)
+            return torch.from_numpy(fastpath.check(self, q).any(-1))
         return torch.cat([self._check_chunk(q[s:s + self.chunk]) for s in range(0, q.shape[0], self.chunk)])
 
     def valid(self, q: torch.Tensor) -> torch.Tensor:
@@ -204,6 +207,9 @@ class CollisionChecker:
     def check_detailed(self, q: torch.Tensor) -> dict:
         """Separate flags: ``limits``, ``environment``, ``self`` (each (B,) bool)."""
         q = q.to(self.device, self.dtype)
+        if fastpath.applies(q):
+            f = torch.from_numpy(fastpath.check(self, q, detailed=True))
+            return {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
         poses = self.robot.body_poses(q)
         return {"limits": self.limits_violated(q), "environment": self._env(poses), "self": self._self(poses)}
 

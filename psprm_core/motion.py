@@ -16,6 +16,7 @@ import math
 
 import torch
 
+from . import fastpath
 from .geometry import wrap_angle
 from .robot import RobotModel
 
@@ -47,6 +48,8 @@ class DiffDriveMotion:
 
     def distance(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
         """Motion cost between configurations (E, dof) and (E, dof) -> (E,) (see module docstring)."""
+        if fastpath.motion_applies(qa, qb):  # CPU batches: compiled, same formula
+            return fastpath.motion_distance(self, qa, qb)
         qa, qb = torch.broadcast_tensors(qa, qb)
         if not self.mobile:
             return (qb - qa).norm(dim=-1)
@@ -58,6 +61,8 @@ class DiffDriveMotion:
 
         The base fraction follows the three phases in proportion to their weighted lengths; joints move linearly.
         """
+        if fastpath.motion_applies(qa, qb) and s.shape == qa.shape[:1] and fastpath.applies(s.unsqueeze(-1)):
+            return fastpath.motion_interpolate(self, qa, qb, s)
         if not self.mobile:
             return qa + (qb - qa) * s.unsqueeze(-1)
         phi, r1, d, r2 = self._base_plan(qa, qb)

@@ -24,6 +24,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from . import fastpath
 from .camera import CameraIntrinsics
 from .errors import ConfigError, RobotModelError
 from .geometry import axis_angle_matrix_torch
@@ -585,6 +586,8 @@ class RobotModel:
         """Camera optical-frame poses (B, 4, 4) in the scene frame."""
         if body_poses is not None:
             Rb, tb = body_poses[0][:, self.camera_body], body_poses[1][:, self.camera_body]
+        elif q.dim() == 2 and q.shape[1] == self.dof and fastpath.applies(q):  # a few rows on the CPU: compiled FK
+            return fastpath.camera_poses(self, q)
         else:  # the camera chain only
             Rs, ts = self._poses(q, only=self.camera_chain)
             Rb, tb = Rs[self.camera_body], ts[self.camera_body]

@@ -46,6 +46,7 @@ from typing import Iterable, Optional, Sequence, Union
 import numpy as np
 import torch
 
+from .. import fastpath
 from ..geometry import quat_to_matrix
 from ..scene import Box, Scene, Target
 
@@ -420,6 +421,8 @@ class OcclusionChecker:
         pos = camera_positions(torch.as_tensor(cameras))
         if not pos.is_floating_point():
             pos = pos.double()
+        if fastpath.applies(pos):  # a few cameras on the CPU: the same rays, compiled
+            return fastpath.occlusion_scores(self, pos)
         boxes, pts = self._on(pos.device, pos.dtype)
         return occlusion_scores(pos, pts, boxes, self.count_inside, self.chunk_elements)
 

@@ -35,6 +35,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from .. import fastpath
+
 log = logging.getLogger(__name__)
 
 #: Names of the 9 relative-pose features.
@@ -300,6 +302,12 @@ class PerceptionSurrogate(nn.Module):
         out_device = cam.device
         if cam.dim() == 2:
             cam = cam.unsqueeze(0)
+        if (cam.shape[-2:] == (4, 4) and self.device.type == "cpu" and fastpath.applies(cam)
+                and isinstance(target_pose, (torch.Tensor, np.ndarray)) and tuple(target_pose.shape) == (4, 4)):
+            cls = self._class_arg(class_name, cam.shape[0])
+            if not (isinstance(cls, torch.Tensor) and cls.dim() > 0):  # one class: numpy features and MLP
+                return fastpath.surrogate_scores(self, fastpath.pose_features(cam, target_pose, self.derived),
+                                                 int(cls))
         feats = pose_features(cam, target_pose, self.derived)
         return self.predict_features(feats, class_name, chunk_size).to(out_device)
 

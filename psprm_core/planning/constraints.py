@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from .. import fastpath
 from ..camera import CameraIntrinsics
 from ..geometry import wrap_angle
 from ..robot import RobotModel
@@ -166,6 +167,8 @@ class VisibilityConstraint:
                                dtype=torch.long, device=q.device)
         if len(cols) == 0:
             return q.detach().clone(), self.error(q).detach() < settings.tolerance
+        if fastpath.applies(q):  # a few rows on the CPU: the same iteration, compiled
+            return fastpath.project(self, q, settings, lo, hi, cols.numpy())
         for _ in range(settings.max_iters):
             idx = torch.nonzero(active, as_tuple=True)[0]
             if len(idx) == 0:

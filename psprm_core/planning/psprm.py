@@ -28,6 +28,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 import torch
 
+from .. import fastpath
 from ..collision import BoxTensors, CollisionChecker
 from ..errors import ConfigError
 from ..motion import DiffDriveMotion
@@ -360,6 +361,7 @@ class PSPRM:
         self.max_motion = 1.0
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
+        self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
         self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
         self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
         self._blocked_nodes: set = set()  # roadmap nodes / edges removed because a moved obstacle blocked them
@@ -398,7 +400,15 @@ class PSPRM:
 
     # ---- build (Alg. 1) --------------------------------------------------------------------------------------------
     def build(self, template: Optional[np.ndarray] = None) -> dict:
-        """Sample, project, connect and score the roadmap; returns build statistics."""
+        """Sample, project, connect and score the roadmap; returns build statistics.
+
+        The build works on large batches and keeps the torch path throughout: the compiled small-batch kernels of
+        :mod:`psprm_core.fastpath` (and numba's one-time start-up, about 0.7 s per process) are left to the
+        queries."""
+        with fastpath.disabled():
+            return self._build(template)
+
+    def _build(self, template: Optional[np.ndarray]) -> dict:
         s = self.settings
         rng = np.random.default_rng(s.seed)
         torch.manual_seed(s.seed)
@@ -466,6 +476,25 @@ class PSPRM:
         }
         log.info("PS-PRM built: %s", self.stats)
         return self.stats
+
+    def warm_up(self) -> float:
+        """Compile (first run after an install or a change of the kernels' source) or load from numba's disk cache
+        every small-batch kernel a query uses (:mod:`psprm_core.fastpath`), on two template configurations, so that
+        the first query does not pay for it. Returns the seconds it took (0 without numba or on a GPU device)."""
+        t0 = time.perf_counter()
+        if self.device.type != "cpu" or not fastpath.available():
+            return 0.0
+        q = self._t(np.stack([self.template, self.template]))
+        qb = q.clone()
+        qb[1, 0] += 0.1
+        self.checker.check(q)
+        self.checker.check_detailed(q)
+        self.score_configs(q)
+        self.edge_knots(q, qb)
+        self._pieces(q, qb, max_steps=200, include_start=False)
+        self.motion.distance(q, qb)
+        fastpath.nearest(self.motion, q, qb, 1)
+        return time.perf_counter() - t0
 
     def components(self) -> tuple:
         """Connected components of the roadmap: (valid roadmap node ids, component label of each)."""
@@ -573,6 +602,9 @@ class PSPRM:
         """
         E, n = qa.shape[0], self.settings.n_interp
         dt, dev = qa.dtype, qa.device
+        if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: compiled
+            knots, interior_idx = fastpath.edge_knot_seeds(self.motion, qa, qb, n)
+            return self._track_knots(knots), interior_idx
         if self.robot.mobile:
             _, r1, d, r2 = self.motion._base_plan(qa, qb)
             l1, l2, l3 = self.motion.w_rot * r1.abs(), d, self.motion.w_rot * r2.abs()
@@ -589,13 +621,18 @@ class PSPRM:
         interior_idx = inv[:, 1:1 + n]
         M = s_all.shape[1]
         knots = self.motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0), s_sorted.reshape(-1))
-        knots = knots.reshape(E, M, -1)
+        return self._track_knots(knots.reshape(E, M, -1)), interior_idx
+
+    def _track_knots(self, knots: torch.Tensor) -> torch.Tensor:
+        """Knots (E, M, dof) with the non-base camera joints of the interior ones re-projected onto the visibility
+        manifold (``track_iters`` Gauss-Newton steps of Alg. 1, line 7, from the interpolated values)."""
+        E, M, dof = knots.shape
         if len(self.track_cols) and M > 2:
-            inner = knots[:, 1:-1].reshape(-1, knots.shape[-1])
+            inner = knots[:, 1:-1].reshape(-1, dof)
             ps = dataclasses.replace(self.settings.projection, max_iters=self.settings.track_iters)
             proj, _ = self.constraint.project(inner, ps, self._lo, self._hi, joints=self.track_cols)
             knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
-        return knots, interior_idx
+        return knots
 
     def _query_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """:meth:`edge_knots` of start/goal query edges, cached by their end configurations (the cache is cleared
@@ -630,6 +667,12 @@ class PSPRM:
         g = self.graph
         edge_ids = np.asarray(edge_ids, dtype=np.int64)
         miss = edge_ids[~self.knots.known(edge_ids)]
+        if len(miss) and self._pending_query_knots is not None:  # the current query's own edges, from their ends
+            peids, ua, qa, qb = self._pending_query_knots
+            sel = np.nonzero((peids[:, None] == miss[None, :]).any(1))[0]  # a few dozen x a few: cheaper than isin
+            if len(sel):
+                self._put_knots(peids[sel], ua[sel], *self._query_knots(qa[sel], qb[sel]))
+                miss = edge_ids[~self.knots.known(edge_ids)]
         if len(miss):
             miss = np.unique(miss)
             self.knots.put(miss, *self.edge_knots(self._t(g.configs[g.edge_u[miss]]), self._t(g.configs[g.edge_v[miss]])))
@@ -851,9 +894,13 @@ class PSPRM:
             qq = qs[[i for i, _ in queries]]
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
-            d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0), rm.repeat(len(qq), 1)).reshape(len(qq), -1)
             kk = min(connect_k or self.settings.connect_k, rm.shape[0])
-            cand = d.topk(kk, largest=False).indices  # (Q, kk)
+            if fastpath.motion_applies(qq, qq) and kk > 0:  # CPU: one compiled pass that skips far nodes early
+                cand = fastpath.nearest(self.motion, qq, rm, kk)
+            else:
+                d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0),
+                                         rm.repeat(len(qq), 1)).reshape(len(qq), -1)
+                cand = d.topk(kk, largest=False).indices  # (Q, kk)
             src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
             qa, qb = qq[src], rm[dst]
@@ -906,9 +953,9 @@ class PSPRM:
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
                 eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False)
                 added_edges.extend(eids)
-                # the knots of every candidate query edge in one batch: the manifold re-projection of the interior
-                # knots costs about the same for 3 edges as for 30, and a lazy search verifies a few per iteration
-                self._put_knots(np.asarray(eids), ua, *self._query_knots(qa[near], qb[near]))
+                # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
+                # verifies it (usually one or two at each end): stored_knots() takes them from here
+                self._pending_query_knots = (np.asarray(eids, dtype=np.int64), np.asarray(ua), qa[near], qb[near])
             elif len(near):
                 ok, pe, kn, ki = self._query_edges(qa[near], qb[near])
                 keep = near[ok]
@@ -951,6 +998,7 @@ class PSPRM:
             result.query_ms = (time.perf_counter() - t0) * 1e3
             return result
         finally:
+            self._pending_query_knots = None
             # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
             # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
             if added_edges:
@@ -1111,6 +1159,8 @@ class PSPRM:
         Each piece is split into n = ceil(length / resolution) steps (at most ``max_steps``); the points are at
         fractions k / n for k = 0 .. n-1 (``include_start``) or k = 1 .. n-1. Returns (piece index, points).
         """
+        if fastpath.motion_applies(a, b):  # CPU: one compiled pass (same lengths, same points)
+            return fastpath.pieces(self.motion, a, b, self.settings.edge_resolution, max_steps, include_start)
         diff = b - a
         if self.robot.mobile:
             diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi

@@ -1,0 +1,303 @@
+"""Small-batch CPU fast paths: compiled (numba) kernels for the few-dozen-configuration batches of a query.
+
+A PS-PRM query makes about ten batched calls (FK, the Gauss-Newton re-aiming of Alg. 1 line 7 at the knots of its
+connection edges, the collision checks of Lazy PRM) on a few dozen to a few hundred configurations each. In torch each
+such call costs 1-10 ms of per-operator overhead, far more than its arithmetic. The kernels of
+:mod:`psprm_core._fast_numba` compute the same quantities row by row in float64:
+
+* :func:`camera_poses` - :meth:`RobotModel.camera_poses`;
+* :func:`project` - :meth:`VisibilityConstraint.project` (Alg. 1, line 7; line and frustum models);
+* :func:`check` - :meth:`CollisionChecker.check` / :meth:`~CollisionChecker.check_detailed`;
+* :func:`occlusion_scores`, :func:`pose_features`, :func:`surrogate_scores` - the neural score of Alg. 2
+  (:class:`OcclusionChecker`, :meth:`PerceptionSurrogate.predict`);
+* :func:`motion_distance`, :func:`motion_interpolate`, :func:`pieces`, :func:`nearest`, :func:`edge_knot_seeds` - the
+  diff-drive metric and local motions (:class:`DiffDriveMotion`, ``PSPRM._pieces``, the query's nearest roadmap
+  nodes, the knots of Eq. 1 edges).
+
+The callers use them only for CPU tensors of at most :data:`MAX_BATCH` rows outside autograd (:func:`applies`; the
+metric up to :data:`MOTION_MAX_BATCH` rows); CUDA tensors keep the torch path, and ``PSPRM.build`` runs with the fast
+paths off (large batches; numba's start-up stays out of the build time). Nothing is compiled at import: numba compiles a
+kernel on its first call (cached on disk with ``cache=True``). Without numba (:func:`available` false) every call takes
+the torch path. :func:`disabled` turns the fast paths off in a block (tests compare both).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+from typing import Any, Iterator
+
+import numpy as np
+import torch
+
+log = logging.getLogger(__name__)
+
+MAX_BATCH = 1024  # rows up to which a CPU call uses the compiled kernels
+MLP_MAX_ROWS = 32  # views up to which the surrogate MLP runs compiled (torch's multi-threaded GEMM beyond)
+_state = {"enabled": True}
+
+
+@functools.lru_cache(maxsize=1)
+def available() -> bool:
+    """Whether numba is importable (otherwise every call takes the torch path)."""
+    try:
+        import numba  # noqa: F401
+    except Exception as exc:  # pragma: no cover - numba is a pinned requirement
+        log.warning("numba unavailable (%s): small batches use the torch path", exc)
+        return False
+    return True
+
+
+@functools.lru_cache(maxsize=1)
+def kernels() -> Any:
+    """The jitted kernels (:mod:`psprm_core._fast_numba`), imported on first use."""
+    from . import _fast_numba
+
+    return _fast_numba
+
+
+@contextlib.contextmanager
+def disabled() -> Iterator[None]:
+    """Run a block with the fast paths off (the torch path everywhere)."""
+    old = _state["enabled"]
+    _state["enabled"] = False
+    try:
+        yield
+    finally:
+        _state["enabled"] = old
+
+
+def applies(x: torch.Tensor, max_batch: int = MAX_BATCH) -> bool:
+    """Whether a batch ``x`` (B, ...) takes the compiled path: a CPU tensor of 1..max_batch rows that needs no
+    gradient, fast paths enabled, numba available."""
+    return (_state["enabled"] and x.device.type == "cpu" and 0 < x.shape[0] <= max_batch
+            and not (x.requires_grad and torch.is_grad_enabled()) and available())
+
+
+def _f64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().double().numpy()
+    return np.ascontiguousarray(np.asarray(x, dtype=np.float64))
+
+
+def _const64(t: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
+    """float64 copy of a constant tensor (limits, target point), first rounded to ``dtype`` if given (as the torch
+    path casts it); kept on the tensor until it changes in place."""
+    cache = getattr(t, "_fast_f64", None)
+    if cache is None:
+        cache = t._fast_f64 = {}
+    got = cache.get(dtype)
+    key = (t._version, t.data_ptr())  # in-place changes; a copied tensor (and its copied attributes) has new storage
+    if got is None or got[0] != key:
+        got = cache[dtype] = (key, _f64(t if dtype is None else t.to(dtype)))
+    return got[1]
+
+
+def _i64(x) -> np.ndarray:
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.ascontiguousarray(np.asarray(x, dtype=np.int64))
+
+
+# ---------------------------------------------------------------------------------------------- robot
+def robot_arrays(robot) -> tuple:
+    """The body tree of a :class:`~psprm_core.robot.RobotModel` as arrays (cached on the model): (all bodies in FK
+    order, camera chain order, parent, joint type, R_off, t_off, axis, D, offset, mobile)."""
+    arr = getattr(robot, "_fast_arrays", None)
+    if arr is None:
+        K = kernels()
+        NB = len(robot.bodies)
+        jtype = np.array([K.ROOT if j is None else (K.PRISMATIC if j.type == "prismatic" else K.REVOLUTE)
+                          for j in robot.body_joint], dtype=np.int64)
+        offs = np.stack(robot.body_joint_offset)
+        axes = np.stack([j.axis if j is not None else np.zeros(3) for j in robot.body_joint])
+        arr = (np.arange(1, NB, dtype=np.int64), _i64(robot.camera_chain[1:]), _i64(robot.parent_body), jtype,
+               _f64(offs[:, :3, :3]), _f64(offs[:, :3, 3]), _f64(axes), _f64(robot.drive_matrix),
+               _f64(robot.drive_offset), bool(robot.mobile))
+        robot._fast_arrays = arr
+    return arr
+
+
+def _camera_args(robot) -> tuple:
+    args = getattr(robot, "_fast_camera_args", None)
+    if args is None:
+        _, chain, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
+        args = robot._fast_camera_args = (chain, parent, jtype, R_off, t_off, axis, D, off, mobile,
+                                          int(robot.camera_body), _f64(robot.camera_offset[:3, :3]),
+                                          _f64(robot.camera_offset[:3, 3]))
+    return args
+
+
+def camera_poses(robot, q: torch.Tensor) -> torch.Tensor:
+    """Camera optical-frame poses (B, 4, 4) of ``q`` (B, dof), as :meth:`RobotModel.camera_poses`."""
+    out = kernels().camera_poses(_f64(q), *_camera_args(robot))
+    return torch.from_numpy(out).to(q.dtype)
+
+
+# ---------------------------------------------------------------------------------------------- projection
+def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray) -> tuple:
+    """:meth:`VisibilityConstraint.project` of ``q`` (B, dof) over the joints ``cols``: (projected q, converged)."""
+    intr = constraint.intr
+    target = _const64(constraint.target, q.dtype)
+    qn, err = kernels().project(
+        _f64(q), *_camera_args(constraint.robot), target, _i64(cols), constraint.kind == "line",
+        float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
+        float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(settings.max_iters),
+        float(settings.damping), float(settings.max_step))
+    return torch.from_numpy(qn).to(q.dtype), torch.from_numpy(err < settings.tolerance)
+
+
+# ---------------------------------------------------------------------------------------------- collision
+def _checker_arrays(checker) -> tuple:
+    """Collision model and obstacle arrays of a :class:`~psprm_core.collision.CollisionChecker` (cached on it; the
+    obstacle part is rebuilt when its box set is replaced)."""
+    cache = getattr(checker, "_fast_arrays", None)
+    if cache is None:
+        cache = checker._fast_arrays = {
+            "model": (_i64(checker.bodies_with_elements), _f64(checker.body_c), _f64(checker.body_r),
+                      _f64(checker.body_box_c), _f64(checker.body_box_h), _i64(checker.body_el_start),
+                      _i64(checker.body_el_count), _i64(checker.body_el_order), _i64(checker.el_body),
+                      _f64(checker.el_c), _f64(checker.el_R), _f64(checker.el_h), _f64(checker.el_r),
+                      _i64(checker.self_pairs).reshape(-1, 2), np.unique(_i64(checker.self_pairs))),
+            "boxes": None, "boxes_of": None}
+    bx = checker.boxes
+    if cache["boxes_of"] is not bx:
+        cache["boxes"] = (_f64(bx.center).reshape(-1, 3), _f64(bx.rotation).reshape(-1, 3, 3),
+                          _f64(bx.half).reshape(-1, 3), _f64(bx.aabb()).reshape(-1, 6))
+        cache["boxes_of"] = bx
+    return cache["model"], cache["boxes"]
+
+
+def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
+    """Collision flags (B, 3) of ``q`` (B, dof): limits, environment, self (:meth:`CollisionChecker.check_detailed`).
+    Without ``detailed`` a row stops at its first violation: only the OR over a row is meaningful."""
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
+    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
+    lower, upper = _const64(checker.lower), _const64(checker.upper)
+    return kernels().check(_f64(q.to(checker.dtype)), bool(detailed), all_bodies, parent, jtype, R_off, t_off, axis,
+                           D, off, mobile, lower, upper, bodies, body_c, body_r, box_c_b,
+                           box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els,
+                           box_c, box_R, box_h, box_aabb, 1e-6)
+
+
+# ---------------------------------------------------------------------------------------------- perception
+def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
+    """Occlusion scores (B,) of camera positions (B, 3), as :meth:`OcclusionChecker.score` (Alg. 2, line 5)."""
+    from .perception.occlusion import _EPS_DIR
+
+    key = (id(occ.boxes), id(occ.target_points))
+    arr = getattr(occ, "_fast_arrays", None)
+    if arr is None or arr[0] != key:
+        bx, pts = occ.boxes, _f64(occ.target_points).reshape(-1, 3)
+        c, R, h = _f64(bx.centers).reshape(-1, 3), _f64(bx.rotations).reshape(-1, 3, 3), _f64(bx.half_extents)
+        h = h.reshape(-1, 3)
+        centre = pts.mean(0)
+        r = np.linalg.norm(pts - centre, axis=1).max() if len(pts) else 0.0
+        local = lambda p: np.einsum("...kj,kji->...ki", p[..., None, :] - c, R)  # noqa: E731 - R_k^T (p - c_k)
+        arr = (key, np.ascontiguousarray(local(pts)), np.ascontiguousarray(local(centre)), h + r, c, R, h)
+        occ._fast_arrays = arr
+    _, pts_local, centre_local, fat_half, c, R, h = arr
+    if len(c) == 0 or pts_local.shape[0] == 0:
+        return torch.zeros(pos.shape[0], dtype=pos.dtype)
+    out = kernels().occlusion(_f64(pos), pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside),
+                              float(_EPS_DIR))
+    return torch.from_numpy(out).to(pos.dtype)
+
+
+def _mlp(model, cls: int) -> list:
+    """The surrogate's layers as (W^T (in, out), b) pairs for one class, with the feature normalisation and the
+    class's one-hot column folded into the first layer (as :meth:`PerceptionSurrogate._folded_first_layer`); cached
+    on the model until a parameter or buffer changes: in place (the tensors' versions) or by new storage
+    (``.to()``, ``load_state_dict``)."""
+    cache = getattr(model, "_fast_mlp", None)
+    tensors = cache[1] if cache is not None else list(model.parameters()) + list(model.buffers())
+    key = (cls,) + tuple((t._version, t.data_ptr()) for t in tensors)
+    if cache is None or cache[0] != key:
+        with torch.no_grad():
+            w1, b1, _ = model._folded_first_layer(cls)
+            layers = [(w1, b1)]
+            for mod in model.net[2:]:
+                if isinstance(mod, torch.nn.Linear):
+                    layers.append((mod.weight.t().contiguous(), mod.bias.detach().clone()))
+            compiled = None
+            if all(w.dtype == torch.float32 for w, _ in layers) and len(layers) >= 2 and layers[-1][0].shape[1] == 1:
+                hid = layers[1:-1]
+                H = w1.shape[1]
+                compiled = (w1.numpy(), b1.numpy(),
+                            np.ascontiguousarray(np.stack([w.numpy() for w, _ in hid]) if hid else
+                                                 np.zeros((0, H, H), np.float32)),
+                            np.ascontiguousarray(np.stack([b.numpy() for _, b in hid]) if hid else
+                                                 np.zeros((0, H), np.float32)),
+                            np.ascontiguousarray(layers[-1][0].numpy()[:, 0]), np.float32(layers[-1][1].item()))
+        cache = model._fast_mlp = (key, tensors, layers, compiled)
+    return cache[2], cache[3]
+
+
+def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
+    """Surrogate scores (B,) of un-normalised pose features (B, F) for one class index, as
+    :meth:`PerceptionSurrogate.predict_features` (Alg. 2, line 4: c_p = NN(T_c, O)): ReLU hidden layers, sigmoid
+    output, with the folded layers kept between calls. Up to :data:`MLP_MAX_ROWS` rows a compiled float32 kernel
+    (a query scores 2-14 views per call: 35-550 us, and no thread-pool hand-off that stalls on a busy machine),
+    above that torch's GEMM (numpy's is 5x slower at this shape)."""
+    layers, compiled = _mlp(model, cls)
+    if compiled is not None and feats.shape[0] <= MLP_MAX_ROWS:  # single-threaded, no per-layer dispatch
+        return torch.from_numpy(kernels().mlp(feats.numpy().astype(np.float32), *compiled))
+    h = feats.to(layers[0][0].dtype)
+    with torch.no_grad():
+        for i, (w, b) in enumerate(layers):
+            if i:
+                h.relu_()
+            h = torch.addmm(b, h, w)
+        return torch.sigmoid(h).squeeze(-1)
+
+
+def pose_features(cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
+    """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4)
+    (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``), compiled."""
+    return torch.from_numpy(kernels().pose_features(_f64(cam), _f64(target_pose), bool(derived)))
+
+
+# ---------------------------------------------------------------------------------------------- motion
+MOTION_MAX_BATCH = 1 << 16  # the metric is cheaper compiled at any size (a query ranks every roadmap node with it)
+
+
+def motion_applies(qa: torch.Tensor, qb: torch.Tensor) -> bool:
+    """Whether a pair of batches (E, dof) takes the compiled motion kernels (same shape, see :func:`applies`)."""
+    return qa.dim() == 2 and qa.shape == qb.shape and qa.dtype == qb.dtype and qb.device.type == "cpu" and \
+        not (qb.requires_grad and torch.is_grad_enabled()) and applies(qa, MOTION_MAX_BATCH)
+
+
+def motion_distance(motion, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
+    """:meth:`DiffDriveMotion.distance` of same-shape CPU batches."""
+    out = kernels().distance(_f64(qa), _f64(qb), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(out).to(qa.dtype)
+
+
+def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+    """:meth:`DiffDriveMotion.interpolate` of same-shape CPU batches."""
+    out = kernels().interpolate(_f64(qa), _f64(qb), _f64(s).reshape(-1), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(out).to(qa.dtype)
+
+
+def pieces(motion, a: torch.Tensor, b: torch.Tensor, resolution: float, max_steps: int,
+           include_start: bool) -> tuple:
+    """``PSPRM._pieces``: (piece index, points every ``resolution`` on the pieces a[i] -> b[i])."""
+    seg, pts = kernels().pieces(_f64(a), _f64(b), float(resolution), int(max_steps), bool(include_start),
+                                float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(seg), torch.from_numpy(pts).to(a.dtype)
+
+
+def nearest(motion, qq: torch.Tensor, rm: torch.Tensor, k: int) -> torch.Tensor:
+    """Indices (Q, k) of the k configurations of ``rm`` (N, dof) nearest to each of ``qq`` (Q, dof) under the
+    motion metric, sorted by distance (``motion.distance`` of every pair, then ``topk``)."""
+    out = kernels().nearest(_f64(qq), _f64(rm), int(k), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(out)
+
+
+def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -> tuple:
+    """Knots (E, M, dof) of the local motions qa -> qb before the camera joints re-aim, and the positions (E, N) of
+    the Eq. 1 samples among them (the first half of ``PSPRM.edge_knots``)."""
+    kn, ki = kernels().edge_knot_seeds(_f64(qa), _f64(qb), int(n_interp), float(motion.w_rot), bool(motion.mobile))
+    return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)

@@ -1,0 +1,288 @@
+"""Small-batch CPU fast paths (``psprm_core.fastpath``): the compiled kernels give the torch path's results (camera
+poses, manifold projection, collision flags) on random inputs, the planner returns the same paths with them on and
+off, and without numba (or for large batches, gradients) every call takes the torch path."""
+
+from __future__ import annotations
+
+from unittest import mock
+
+import numpy as np
+import pytest
+import torch
+
+from psprm_core import fastpath
+from psprm_core.benchmarks import random_problems
+from psprm_core.collision import CollisionChecker
+from psprm_core.paths import resolve_named
+from psprm_core.perception.scoring import GeometricScorer
+from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
+from psprm_core.planning.psprm import PSPRM, PSPRMSettings
+from psprm_core.reference import sample_uniform
+from psprm_core.scene import load_scene
+
+ROBOT_SCENES = {"stretch2": "home", "fetchlike": "nursing", "ur5_mobile": "blind_spot_alley"}
+
+
+def _configs(robot, scene, n: int, seed: int) -> np.ndarray:
+    """Uniform configurations over the joint limits and the scene's workspace, some outside the limits."""
+    rng = np.random.default_rng(seed)
+    q = sample_uniform(robot, n, rng, base_box=scene.workspace)
+    q[:, 2] = rng.uniform(-4, 4, n)  # theta beyond (-pi, pi]
+    q[::37, -1] += 5.0  # beyond the limit
+    return q
+
+
+def _robot_scene(name, load_robot):
+    robot = load_robot(name)
+    scene = load_scene(resolve_named("scene", ROBOT_SCENES[name]))
+    assert scene.robot == name
+    return robot, scene
+
+
+@pytest.mark.parametrize("name", sorted(ROBOT_SCENES))
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_camera_poses_match_torch(name, dtype, load_robot):
+    robot, scene = _robot_scene(name, load_robot)
+    q = torch.as_tensor(_configs(robot, scene, 300, 0), dtype=dtype)
+    fast = robot.camera_poses(q)
+    with fastpath.disabled():
+        ref = robot.camera_poses(q)
+    assert fast.dtype == ref.dtype == dtype and fast.shape == ref.shape
+    assert (fast - ref).abs().max() < (1e-12 if dtype == torch.float64 else 1e-5)
+
+
+@pytest.mark.parametrize("name", sorted(ROBOT_SCENES))
+@pytest.mark.parametrize("kind", ["line", "frustum"])
+def test_projection_matches_torch(name, kind, load_robot):
+    """Same iterates in float64 (same steps, same stopping, same converged flags), with all camera joints and with
+    the non-base ones only (the edge knots' re-aiming)."""
+    robot, scene = _robot_scene(name, load_robot)
+    target = scene.target(scene.target_names[0]).center
+    c = VisibilityConstraint(robot, kind, target, margin=0.05, min_distance=0.5)
+    q = torch.as_tensor(_configs(robot, scene, 150, 1), dtype=torch.float64)
+    lo = torch.as_tensor(np.where(np.isfinite(robot.lower), robot.lower, -1e9))
+    hi = torch.as_tensor(np.where(np.isfinite(robot.upper), robot.upper, 1e9))
+    joints = np.nonzero(c._camera_joints())[0]
+    unconverged = 0
+    for cols in (None, joints[joints >= 3]):
+        for iters in (3, 20):
+            ps = ProjectionSettings(max_iters=iters)
+            qf, okf = c.project(q, ps, lo, hi, joints=cols)
+            with fastpath.disabled():
+                qr, okr = c.project(q, ps, lo, hi, joints=cols)
+            assert okf.dtype == torch.bool and torch.equal(okf, okr)
+            assert int(okr.sum()) > 0
+            unconverged += int((~okr).sum())
+            assert (qf - qr).abs().max() < 1e-6  # float rounding, amplified by ill-conditioned steps
+    assert unconverged > 0  # both outcomes occur
+
+
+@pytest.mark.parametrize("name", sorted(ROBOT_SCENES))
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_collision_flags_match_torch(name, dtype, load_robot):
+    robot, scene = _robot_scene(name, load_robot)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace, dtype=dtype)
+    q = torch.as_tensor(_configs(robot, scene, 600, 2), dtype=dtype)
+    q[5, 0] = float("nan")
+    fast, bad = checker.check_detailed(q), checker.check(q)
+    with fastpath.disabled():
+        ref, ref_bad = checker.check_detailed(q), checker.check(q)
+    for k in ("limits", "environment", "self"):
+        assert fast[k].dtype == torch.bool and torch.equal(fast[k], ref[k]), k
+        assert 0 < int(ref[k].sum()) < len(q), k  # each kind of collision occurs, and free rows too
+    assert torch.equal(bad, ref_bad) and bool(bad[5])
+    # a moved obstacle set is picked up (the compiled path caches the boxes by their tensors)
+    checker.set_boxes([])
+    free = checker.check_detailed(q)
+    with fastpath.disabled():
+        free_ref = checker.check_detailed(q)
+    assert not free["environment"].any() and torch.equal(free["self"], free_ref["self"])
+
+
+def test_fast_path_only_for_small_cpu_batches_without_gradients(load_robot):
+    robot = load_robot("stretch2")
+    q = torch.zeros(4, robot.dof)
+    assert fastpath.applies(q)
+    assert not fastpath.applies(torch.zeros(fastpath.MAX_BATCH + 1, robot.dof))
+    assert not fastpath.applies(torch.zeros(0, robot.dof))
+    assert not fastpath.applies(q.clone().requires_grad_())
+    with fastpath.disabled():
+        assert not fastpath.applies(q)
+    with mock.patch.object(fastpath, "available", lambda: False):  # numba 'missing'
+        assert not fastpath.applies(q)
+        with mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
+            T = robot.camera_poses(q)
+    assert torch.allclose(T, robot.camera_poses(q), atol=1e-6)
+    # autograd still flows through the torch path
+    qg = torch.zeros(3, robot.dof, dtype=torch.float64, requires_grad=True)
+    robot.camera_poses(qg)[:, :3, 3].sum().backward()
+    assert qg.grad is not None and qg.grad.abs().sum() > 0
+
+
+def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
+    """One roadmap, queried by two planners (one loaded from the other's file): with and without the compiled
+    small-batch paths every query gives the same path and cost (the re-aimed knots agree up to float32 rounding of
+    the torch path's Gauss-Newton iterates)."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.problems[0].target
+    scorer = GeometricScorer(scene, target, robot.config.intrinsics)
+    settings = PSPRMSettings(n_nodes=400, seed=3, query_repair_nodes=0)  # repairs grow nodes: not compared
+    focus = scene.target(target).center
+    a = PSPRM(robot, scene, scorer, focus, settings)
+    assert a.build()["success"]
+    b = PSPRM(robot, scene, scorer, focus, settings)
+    b.load(a.save(tmp_path / "roadmap.npz"))
+    probs = random_problems(robot, scene, a.checker, 8, np.random.default_rng(4), robot.default_configuration(),
+                            focus, aimed_only=True, aim_restarts=4)
+    assert len(probs) >= 6
+    solved = 0
+    for start, goal in probs:
+        ra = a.plan(start, goal, timing=False)
+        with fastpath.disabled():
+            rb = b.plan(start, goal, timing=False)
+        assert ra.success == rb.success
+        if ra.success:
+            solved += 1
+            assert ra.path_nodes == rb.path_nodes
+            assert ra.cost == pytest.approx(rb.cost, rel=1e-4)
+            assert np.abs(ra.waypoints - rb.waypoints).max() < 1e-2  # float32 re-aimed knots
+    assert solved >= len(probs) // 2
+
+
+@pytest.mark.parametrize("scene_name", ["home", "nursing"])
+def test_occlusion_scores_match_torch(scene_name):
+    """Ray-cast occlusion (Alg. 2) of cameras spread over the scene, some of them behind occluders."""
+    from psprm_core.perception.occlusion import OcclusionChecker
+
+    scene = load_scene(resolve_named("scene", scene_name))
+    rng = np.random.default_rng(5)
+    for target in scene.target_names[:3]:
+        occ = OcclusionChecker.from_scene(scene, target)
+        pos = np.concatenate([rng.uniform(scene.workspace[:, 0], scene.workspace[:, 1], (500, 2)),
+                              rng.uniform(0.3, 1.8, (500, 1))], 1)
+        for dtype in (torch.float64, torch.float32):
+            cams = torch.as_tensor(pos, dtype=dtype)
+            fast = occ.score(cams)
+            with fastpath.disabled():
+                ref = occ.score(cams)
+            assert fast.dtype == dtype and torch.equal(fast, ref)
+            assert 0 < int((ref > 0).sum()) < len(ref)  # some rays blocked, some not
+
+
+def test_surrogate_scores_match_torch(load_robot):
+    """The numpy MLP (normalisation folded into the first layer) and pose features give the torch scores; a
+    changed weight is picked up (the folded layers are cached by the tensors' versions)."""
+    from psprm_core.perception.surrogate import PerceptionSurrogate
+
+    torch.manual_seed(0)
+    robot, scene = _robot_scene("stretch2", load_robot)
+    m = PerceptionSurrogate(["cup", "face", "tv"])
+    m.fit_normalization(torch.randn(500, m.n_pose_features, dtype=torch.float64) * 2 + 0.5)
+    with torch.no_grad():  # larger weights than the initialisation's: scores spread over (0, 1)
+        for p in m.net.parameters():
+            p *= 2.5
+        m.net[-1].bias.zero_()
+    cams = robot.camera_poses(torch.as_tensor(_configs(robot, scene, 200, 6), dtype=torch.float32))
+    target = torch.as_tensor(np.eye(4))
+    target[:3, 3] = torch.tensor([2.0, 1.0, 0.9])
+    for cls in ("cup", "tv", 1):
+        for rows in (3, fastpath.MLP_MAX_ROWS, 200):  # the compiled MLP, and torch's GEMM above MLP_MAX_ROWS
+            fast = m.predict(cams[:rows], target, cls)
+            with fastpath.disabled():
+                ref = m.predict(cams[:rows], target, cls)
+            assert fast.dtype == ref.dtype and fast.shape == (rows,)
+            assert (fast - ref).abs().max() < 1e-5
+        assert ref.std() > 0.05
+    with torch.no_grad():
+        m.net[-1].bias += 1.0
+    fast = m.predict(cams, target, "cup")
+    with fastpath.disabled():
+        ref = m.predict(cams, target, "cup")
+    assert (fast - ref).abs().max() < 1e-5
+
+
+@pytest.mark.parametrize("name", ["stretch2", "fetchlike"])
+def test_motion_metric_interpolation_and_pieces_match_torch(name, load_robot):
+    """Diff-drive metric and interpolation (rotate, translate, rotate; including pure turns and standing still) and
+    the planner's dense pieces: same lengths, same number of points, same points."""
+    from psprm_core.motion import DiffDriveMotion
+
+    robot, scene = _robot_scene(name, load_robot)
+    m = DiffDriveMotion(robot)
+    qa = torch.as_tensor(_configs(robot, scene, 400, 7), dtype=torch.float64)
+    qb = torch.as_tensor(_configs(robot, scene, 400, 8), dtype=torch.float64)
+    qb[:50, :2] = qa[:50, :2]  # turns in place
+    qb[50:60] = qa[50:60]  # no motion
+    s = torch.as_tensor(np.random.default_rng(9).uniform(0, 1, 400))
+    s[:20] = 1.0
+    s[20:40] = 0.0
+    with fastpath.disabled():
+        ref_d, ref_i = m.distance(qa, qb), m.interpolate(qa, qb, s)
+    assert (m.distance(qa, qb) - ref_d).abs().max() < 1e-12
+    assert (m.interpolate(qa, qb, s) - ref_i).abs().max() < 1e-12
+    assert (m.distance(qa.float(), qb.float()) - ref_d).abs().max() < 1e-4  # float32 inputs, float32 result
+    planner = PSPRM.__new__(PSPRM)  # only the motion, robot and settings are needed by _pieces
+    planner.robot, planner.motion, planner.settings = robot, m, PSPRMSettings()
+    for include_start in (True, False):
+        seg, pts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+        with fastpath.disabled():
+            rseg, rpts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+        assert torch.equal(seg, rseg) and len(seg) > 1000
+        assert (pts - rpts).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("name", ["stretch2", "fetchlike"])
+def test_edge_knots_and_nearest_nodes_match_torch(name, load_robot):
+    """A query's connection edges: the knots (drive corners and Eq. 1 samples, sorted; re-aimed camera joints) and
+    the connect_k nearest roadmap nodes under the motion metric."""
+    robot, scene = _robot_scene(name, load_robot)
+    target = scene.target(scene.target_names[0]).center
+    planner = PSPRM(robot, scene, GeometricScorer(scene, scene.target_names[0], robot.config.intrinsics), target,
+                    PSPRMSettings())
+    planner.dtype = torch.float64
+    qa = torch.as_tensor(_configs(robot, scene, 40, 10), dtype=torch.float64)
+    qb = torch.as_tensor(_configs(robot, scene, 40, 11), dtype=torch.float64)
+    qb[:5, :2] = qa[:5, :2]  # turns in place: a drive corner at s = 0 or 1
+    qb[5:8, 2] = qa[5:8, 2]
+    kn, ki = planner.edge_knots(qa, qb)
+    with fastpath.disabled():
+        rkn, rki = planner.edge_knots(qa, qb)
+    assert kn.shape == rkn.shape and torch.equal(ki, rki)
+    assert (kn - rkn).abs().max() < 1e-6
+    rm = torch.as_tensor(_configs(robot, scene, 3000, 12), dtype=torch.float64)
+    got = fastpath.nearest(planner.motion, qa[:6], rm, 12)
+    d = planner.motion.distance(qa[:6].repeat_interleave(len(rm), 0), rm.repeat(6, 1)).reshape(6, -1)
+    assert torch.equal(got, d.topk(12, largest=False).indices)
+
+
+def test_warm_up_loads_the_query_kernels(load_robot):
+    """After ``warm_up`` the kernels a query uses are compiled for the planner's argument types (no compilation in
+    the first query); on CPU without numba it does nothing."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.target_names[0]
+    planner = PSPRM(robot, scene, GeometricScorer(scene, target, robot.config.intrinsics),
+                    scene.target(target).center, PSPRMSettings())
+    assert planner.warm_up() > 0
+    K = fastpath.kernels()
+    for name in ("check", "camera_poses", "project", "occlusion", "edge_knot_seeds", "pieces", "distance",
+                 "nearest"):
+        assert getattr(K, name).signatures, name
+    with mock.patch.object(fastpath, "available", lambda: False):
+        assert planner.warm_up() == 0.0
+
+
+def test_constant_inputs_follow_in_place_changes(load_robot):
+    """Limits kept between calls are refreshed when the tensor changes in place (or is a copy)."""
+    import copy
+
+    robot, scene = _robot_scene("stretch2", load_robot)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    q = torch.as_tensor(_configs(robot, scene, 50, 13), dtype=torch.float32)
+    before = checker.check_detailed(q)["limits"]
+    checker.upper[-1] = -10.0  # every configuration now violates the last joint's limit
+    assert checker.check_detailed(q)["limits"].all() and not before.all()
+    other = copy.deepcopy(checker)
+    other.upper[-1] = 10.0
+    with fastpath.disabled():
+        ref = other.check_detailed(q)["limits"]
+    assert torch.equal(other.check_detailed(q)["limits"], ref)
