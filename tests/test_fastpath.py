@@ -15,6 +15,7 @@ from psprm_core.benchmarks import random_problems
 from psprm_core.collision import CollisionChecker
 from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer
+from psprm_core.planning import search_kernels
 from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.reference import sample_uniform
@@ -267,8 +268,13 @@ def test_warm_up_loads_the_query_kernels(load_robot):
     for name in ("check", "camera_poses", "project", "occlusion", "edge_knot_seeds", "pieces", "distance",
                  "nearest"):
         assert getattr(K, name).signatures, name
+    S = search_kernels.kernels()
+    for name in ("astar", "bfs_hops", "hops_decrease"):  # the roadmap searches' kernels too
+        assert getattr(S, name).signatures, name
     with mock.patch.object(fastpath, "available", lambda: False):
-        assert planner.warm_up() == 0.0
+        assert planner.warm_up() > 0  # the search kernels still load
+        with mock.patch.object(search_kernels, "available", lambda: False):
+            assert planner.warm_up() == 0.0
 
 
 def test_constant_inputs_follow_in_place_changes(load_robot):

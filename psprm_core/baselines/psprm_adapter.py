@@ -42,6 +42,8 @@ class PSPRMBenchPlanner:
         t0 = time.perf_counter()
         stats = self.planner.build()
         self._built = bool(stats.get("success", True))
+        if self._built:  # compiling the query kernels is preprocessing too, not the first problem's planning time
+            stats["warm_up_s"] = self.planner.warm_up()
         return {"preprocess_s": time.perf_counter() - t0, **{k: v for k, v in stats.items()
                                                               if isinstance(v, (int, float, bool, str))}}
 

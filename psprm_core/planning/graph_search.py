@@ -551,6 +551,18 @@ def _run_astar(
                         goal=goal)
 
 
+def warm_up() -> bool:
+    """Compile, or load from numba's disk cache, the search kernels (A*, hop BFS, hop update after additions) on a
+    four-node roadmap, so that the first real query does not pay for it. Returns whether the kernels are in use."""
+    if not _compiled():
+        return False
+    g = Roadmap.from_edges(4, np.array([[0, 1], [1, 2]]), np.array([1.0, 1.0]))
+    astar(g, 0, [2], heuristic="hop")  # bfs_hops + astar
+    g.add_edges(np.array([2]), np.array([3]), np.array([1.0]))
+    astar(g, 0, [2], heuristic="hop")  # cached hops updated after the addition: hops_decrease
+    return True
+
+
 def astar(
     graph: Roadmap,
     start: int,
