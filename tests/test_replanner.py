@@ -377,6 +377,37 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p._repair_added <= p.settings.query_repair_budget
 
 
+def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkeypatch):
+    """A query that still fails after the local repair tries once more with each end connected to its
+    ``query_wide_k`` nearest roadmap nodes, however long those edges are (checked and scored like any other);
+    ``query_wide_k = 0`` turns it off, and a success never reaches it."""
+    p = replanner.planner
+    q, goals = replanner.q, replanner.goals
+    real = p._plan_once
+    calls = []
+
+    def only_wide_succeeds(*a, **k):
+        calls.append((k.get("extra_candidates"), k.get("connect_k")))
+        if k.get("connect_k") == 150 and k.get("extra_candidates") == {}:
+            return real(*a, **k)
+        return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
+
+    monkeypatch.setattr(p, "_plan_once", only_wide_succeeds)
+    s0 = p.settings
+    try:
+        p.settings = dataclasses.replace(s0, query_wide_k=150, query_repair_failures=10**6)
+        res = p.plan(q, goals, timing=False)
+        assert res.success and "150 nearest" in res.reason and calls[-1] == ({}, 150)
+        assert len(calls) >= 3  # the plain query and at least one repair came first
+        assert res.query_ms >= 1.0 and np.isfinite(res.cost)
+        calls.clear()
+        p.settings = dataclasses.replace(s0, query_wide_k=0, query_repair_failures=10**6)
+        assert not p.plan(q, goals, timing=False).success
+        assert all(c != ({}, 150) for c in calls)
+    finally:
+        p.settings = s0
+
+
 def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, monkeypatch):
     """The repeated query after a repair connects each end to every node grown for it (heading-line nodes rank far
     under the motion metric when the camera joints must re-aim) and to ``query_repair_connect_k`` nearest nodes;

@@ -49,6 +49,7 @@ SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces to
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
                   "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
+                  "query_wide_k",
                   "smooth_timing")
 
 VARIANTS = {
@@ -84,6 +85,7 @@ class PSPRMSettings:
     query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
     query_repair_rounds: int = 3  # repair rounds of a failing query (radius x 1.5 each round), within the budget
     query_repair_failures: int = 25  # failed (rolled back) repairs per built/loaded roadmap; then no more repairs
+    query_wide_k: int = 0  # last resort of a failing query: each end tries its k nearest nodes, however far (0: off)
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -809,12 +811,30 @@ class PSPRM:
         that succeeds stay in the roadmap, within ``query_repair_budget``; those of a repair that fails are removed
         again, so that they do not use up the budget of later queries; after ``query_repair_failures`` such failed
         repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
-        unreachable cannot make a long-running planner grow without end."""
+        unreachable cannot make a long-running planner grow without end.
+
+        Last resort (``query_wide_k`` > 0): each end tries its ``query_wide_k`` nearest roadmap nodes, however far
+        (long connections, checked and scored like any other), for ends whose few free motions lead beyond the
+        repair's neighbours (a robot across a shelf aisle)."""
         res = self._plan_once(start, goals, timing, goal_costs)
-        s = self.settings
         if res.success or "reachable" not in res.reason or self.graph is None:
             return res
         t0 = time.perf_counter()
+        out = self._repair_query(start, goals, timing, goal_costs, res)
+        k = self.settings.query_wide_k
+        if not out.success and "reachable" in out.reason and k > self.settings.query_repair_connect_k:
+            wide = self._plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k)
+            if wide.success or "reachable" not in wide.reason:
+                out = wide
+                if wide.success:
+                    out.reason = f"ok after connecting to the {k} nearest roadmap nodes"
+        out.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
+        return out
+
+    def _repair_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
+                      goal_costs: Optional[np.ndarray], res: PlanResult) -> PlanResult:
+        """The local roadmap repair of :meth:`plan` after the failed query ``res``."""
+        s = self.settings
         ends = [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, self.robot.dof))[:4]
         added, grown, again = 0, {}, None
         mobile = self.robot.mobile
@@ -850,7 +870,6 @@ class PSPRM:
             self._repair_failed += 1
             self._index = None
             added = 0
-        again.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         if again.success:
             again.reason = f"ok after a local roadmap repair ({added} nodes)"
         log.debug("query repair: %d nodes grown, %s", added, again.reason)
