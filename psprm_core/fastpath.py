@@ -39,14 +39,20 @@ _state = {"enabled": True}
 
 
 @functools.lru_cache(maxsize=1)
-def available() -> bool:
-    """Whether numba is importable (otherwise every call takes the torch path)."""
+def numba_importable() -> bool:
+    """Whether numba can be imported (checked once, with one warning if not). Both the compiled small-batch paths
+    (:func:`available`) and the compiled roadmap searches (:mod:`psprm_core.planning.search_kernels`) need it."""
     try:
         import numba  # noqa: F401
     except Exception as exc:  # pragma: no cover - numba is a pinned requirement
-        log.warning("numba unavailable (%s): small batches use the torch path", exc)
+        log.warning("numba unavailable (%s): small batches use the torch path, graph searches the Python loops", exc)
         return False
     return True
+
+
+def available() -> bool:
+    """Whether the compiled small-batch paths can run (otherwise every call takes the torch path)."""
+    return numba_importable()
 
 
 @functools.lru_cache(maxsize=1)

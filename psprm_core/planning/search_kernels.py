@@ -12,24 +12,16 @@ Nothing is compiled at import: numba compiles a kernel on its first call (about 
 from __future__ import annotations
 
 import functools
-import logging
 from typing import Any
-
-
-logger = logging.getLogger(__name__)
 
 __all__ = ["available", "kernels"]
 
 
-@functools.lru_cache(maxsize=1)
 def available() -> bool:
     """Whether numba is importable (the searches fall back to the Python loops otherwise, with one warning)."""
-    try:
-        import numba  # noqa: F401
-    except Exception as exc:  # pragma: no cover - numba is a pinned requirement
-        logger.warning("numba unavailable (%s): graph searches use the slower pure-Python loops", exc)
-        return False
-    return True
+    from ..fastpath import numba_importable
+
+    return numba_importable()
 
 
 @functools.lru_cache(maxsize=1)
