@@ -404,6 +404,10 @@ def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkey
         p.settings = dataclasses.replace(s0, query_wide_k=0, query_repair_failures=10**6)
         assert not p.plan(q, goals, timing=False).success
         assert all(c != ({}, 150) for c in calls)
+        # once the failed-repair cap is reached, a failing query is given up without repair or wide attempt
+        calls.clear()
+        p.settings = dataclasses.replace(s0, query_wide_k=150, query_repair_failures=p._repair_failed)
+        assert not p.plan(q, goals, timing=False).success and len(calls) == 1
     finally:
         p.settings = s0
 

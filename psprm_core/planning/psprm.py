@@ -815,14 +815,19 @@ class PSPRM:
 
         Last resort (``query_wide_k`` > 0): each end tries its ``query_wide_k`` nearest roadmap nodes, however far
         (long connections, checked and scored like any other), for ends whose few free motions lead beyond the
-        repair's neighbours (a robot across a shelf aisle)."""
+        repair's neighbours (a robot across a shelf aisle); like the repair, not once ``query_repair_failures`` is
+        reached."""
         res = self._plan_once(start, goals, timing, goal_costs)
         if res.success or "reachable" not in res.reason or self.graph is None:
             return res
         t0 = time.perf_counter()
         out = self._repair_query(start, goals, timing, goal_costs, res)
-        k = self.settings.query_wide_k
-        if not out.success and "reachable" in out.reason and k > self.settings.query_repair_connect_k:
+        s = self.settings
+        k = s.query_wide_k
+        # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
+        # and again): no wide attempt either
+        if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
+                and self._repair_failed < s.query_repair_failures):
             wide = self._plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k)
             if wide.success or "reachable" not in wide.reason:
                 out = wide
