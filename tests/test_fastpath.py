@@ -120,6 +120,42 @@ def test_fast_path_only_for_small_cpu_batches_without_gradients(load_robot):
     assert qg.grad is not None and qg.grad.abs().sum() > 0
 
 
+def test_bulk_mode_splits_large_batches_over_threads_with_the_same_results(load_robot):
+    """Inside ``fastpath.bulk`` (the roadmap build) batches beyond MAX_BATCH take the kernels too, split into row
+    chunks run on worker threads; the results are the torch path's (collision flags identical, projection and camera
+    poses within float rounding), in row order."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    n = 3 * fastpath.BULK_CHUNK + 17  # several chunks and a ragged last one
+    q = torch.as_tensor(_configs(robot, scene, n, 7), dtype=torch.float32)
+    assert not fastpath.applies(q)
+    calls = []
+    real = fastpath.kernels()
+
+    class Spy:  # counts the kernel calls (one per chunk) and the rows each got
+        def __getattr__(self, name):
+            fn = getattr(real, name)
+            return lambda *a: (calls.append((name, a[0].shape[0])), fn(*a))[1]
+
+    target = scene.target(scene.target_names[0]).center
+    con = VisibilityConstraint(robot, "line", target)
+    with fastpath.disabled():
+        ref_bad, ref_T = checker.check(q), robot.camera_poses(q)
+        ref_q, ref_ok = con.project(q.double(), ProjectionSettings(max_iters=5))
+    with fastpath.bulk(workers=2), mock.patch.object(fastpath, "kernels", lambda: Spy()):
+        assert fastpath.applies(q)
+        bad, T = checker.check(q), robot.camera_poses(q)
+        pq, ok = con.project(q.double(), ProjectionSettings(max_iters=5))
+    assert not fastpath.applies(q)  # back to small batches only
+    chunks = [r for name, r in calls if name == "check"]
+    assert len(chunks) > 1 and sum(chunks) == n
+    assert torch.equal(bad, ref_bad) and 0 < int(bad.sum()) < n
+    assert (T - ref_T).abs().max() < 1e-5
+    assert torch.equal(ok, ref_ok) and (pq - ref_q).abs().max() < 1e-6
+    with fastpath.disabled(), fastpath.bulk(workers=2):
+        assert not fastpath.applies(q)
+
+
 def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
     """One roadmap, queried by two planners (one loaded from the other's file): with and without the compiled
     small-batch paths every query gives the same path and cost (the re-aimed knots agree up to float32 rounding of
