@@ -94,6 +94,26 @@ def bulk(workers: int | None = None) -> Iterator[None]:
         _state["bulk"] = old
 
 
+@contextlib.contextmanager
+def one_thread(device: torch.device | str = "cpu") -> Iterator[None]:
+    """Run a block of small CPU batches (a query) with torch's intra-op parallelism off, restoring the thread count
+    after it (CUDA devices, or one thread already: nothing changes).
+
+    With 2 threads even a reduction over a few hundred numbers can open a parallel region; on a machine whose other
+    core is busy that region waits for its second thread to be scheduled, up to a scheduler time slice (4-6 ms). With
+    another process busy on the other core, the home query's median was 21 ms with 2 threads and 8.5 ms with one.
+    The thread count is process-wide: torch work in other threads during the block runs single-threaded too."""
+    n = torch.get_num_threads()
+    if n == 1 or torch.device(device).type != "cpu":
+        yield
+        return
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 def fits(rows: int, max_batch: int = MAX_BATCH) -> bool:
     """Whether a call over ``rows`` rows is small enough for the compiled path (any size inside :func:`bulk`)."""
     return 0 < rows and (rows <= max_batch or _state["bulk"] > 0)

@@ -328,3 +328,39 @@ def test_constant_inputs_follow_in_place_changes(load_robot):
     with fastpath.disabled():
         ref = other.check_detailed(q)["limits"]
     assert torch.equal(other.check_detailed(q)["limits"], ref)
+
+
+def test_queries_run_with_one_intra_op_thread(load_robot):
+    """A query's small batches run with torch's intra-op parallelism off (a parallel region of a few microseconds
+    can wait a whole scheduler slice for its second thread on a busy machine); the thread count is restored after
+    the query, also when it fails."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.problems[0].target
+    focus = scene.target(target).center
+    seen = []
+
+    class Recording(GeometricScorer):
+        def score(self, cameras):
+            seen.append(torch.get_num_threads())
+            return super().score(cameras)
+
+    p = PSPRM(robot, scene, Recording(scene, target, robot.config.intrinsics), focus,
+              PSPRMSettings(n_nodes=200, seed=1, query_repair_nodes=0))
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        assert p.build()["success"]
+        assert seen and max(seen) == 2  # the build keeps torch's threads (large GEMMs)
+        seen.clear()
+        q = p.graph.configs[p.roadmap_node_ids()[:2]]
+        p.plan(q[0], q[1], timing=False)
+        assert seen and set(seen) == {1}
+        assert torch.get_num_threads() == 2
+        bad = q[0].copy()
+        bad[0] = float("nan")
+        assert not p.plan(bad, q[1]).success and torch.get_num_threads() == 2
+        with fastpath.one_thread("cpu"):
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(old)

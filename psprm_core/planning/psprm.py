@@ -17,6 +17,7 @@ the node path into differential-drive corners and time-parameterise it within th
 from __future__ import annotations
 
 import dataclasses
+import functools
 import hashlib
 import json
 import logging
@@ -198,6 +199,17 @@ class PlanResult:
         if self.trajectory is not None:
             d["duration_s"] = float(self.trajectory.times[-1])
         return d
+
+
+def _one_thread(method: Callable) -> Callable:
+    """Run a planner method (a query: small batches) with torch's intra-op parallelism off (:func:`fastpath.one_thread`)."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with fastpath.one_thread(self.device):
+            return method(self, *args, **kwargs)
+
+    return run
 
 
 def _flags(have: np.ndarray, ids) -> np.ndarray:
@@ -804,6 +816,7 @@ class PSPRM:
         g.set_weights(ids, w)
         self.settings = dataclasses.replace(self.settings, alpha=alpha)
 
+    @_one_thread
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
              goal_costs: Optional[np.ndarray] = None) -> PlanResult:
         """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see
