@@ -288,6 +288,55 @@ def test_lazy_astar_avoids_invalid_edges_and_is_optimal(search_backend: str, cas
     np.testing.assert_array_equal(np.asarray(g.weights), w0)  # apply_to_graph=False leaves the roadmap alone
 
 
+@SETTINGS
+@given(random_graphs(), st.data())
+def test_lazy_astar_optimal_for_working_weights_when_verification_lowers_them(case: dict[str, Any],
+                                                                             data: Any) -> None:
+    """Verified weights may also go down (an edge's interior scores beat its endpoint estimate). The result is
+    optimal for the working weights (verified where verified, the estimate elsewhere, rejected edges removed),
+    including when the search stops without re-searching after a verification that only lowered its path's
+    weights."""
+    g, start, goals = case["g"], case["start"], case["goals"]
+    valid_goals = [q for q in goals if g.node_valid[q]]
+    if not g.node_valid[start] or not valid_goals:
+        return
+    ne = g.n_edges
+    bad = set(data.draw(st.lists(st.integers(0, max(ne - 1, 0)), max_size=max(ne // 4, 1)))) if ne else set()
+    scale = np.asarray(data.draw(st.lists(st.sampled_from([0.0, 0.25, 0.5, 1.0, 1.5, 3.0]), min_size=ne,
+                                          max_size=ne)), dtype=float)
+    w0 = np.asarray(g.weights).copy()
+    true_w = w0 * scale
+
+    def verify(edge_ids: np.ndarray, path: list[int]) -> EdgeCheck:
+        ids = edge_ids.tolist()
+        return EdgeCheck(invalid=[e for e in ids if e in bad], weights={e: true_w[e] for e in ids if e not in bad})
+
+    res = lazy_astar(g, start, goals, verify)
+    work = w0.copy()
+    for e, val in res.updated_edges.items():
+        work[e] = val
+    work[res.invalidated_edges] = np.inf
+    ref = reference_dijkstra(g.n_nodes, valid_edge_list(g, work), valid_goals)[start]
+    if math.isinf(ref):
+        assert not res.success
+    else:
+        assert_valid_path(g, res, start, set(valid_goals), work)
+        assert set(res.edges) <= set(res.verified_edges) and not set(res.edges) & bad
+        assert abs(res.cost - ref) <= 1e-9 * max(1.0, ref)
+        assert abs(res.cost - sum(work[e] for e in res.edges)) <= 1e-9 * max(1.0, ref)
+
+
+def test_lazy_astar_no_research_after_only_lower_weights() -> None:
+    """A verification that rejects nothing and only lowers the path's weights ends the search (one search, not
+    two); one that raises a weight is followed by another search, which may pick another path."""
+    g = Roadmap.from_edges(4, np.array([[0, 1], [1, 3], [0, 2], [2, 3]]), np.array([1.0, 1.0, 1.2, 1.2]))
+    lower = lazy_astar(g, 0, 3, lambda e, p: EdgeCheck(weights={int(x): 0.5 for x in e}))
+    assert lower.success and lower.path == [0, 1, 3] and lower.iterations == 1 and lower.cost == 1.0
+    higher = lazy_astar(g, 0, 3, lambda e, p: EdgeCheck(weights={int(x): 2.0 if x < 2 else 1.2 for x in e}))
+    assert higher.success and higher.path == [0, 2, 3] and higher.iterations == 2
+    assert higher.cost == pytest.approx(2.4)
+
+
 # ---------------------------------------------------------------------------- unit tests
 def _two_components() -> Roadmap:
     return Roadmap.from_edges(6, np.array([[0, 1], [1, 2], [3, 4], [4, 5]]), np.array([1.0, 1.0, 1.0, 1.0]))

@@ -634,6 +634,9 @@ def lazy_astar(
 ) -> SearchResult:
     """Lazy A*: search, verify the unverified edges of the path, update, re-search until the path is verified.
 
+    No re-search follows a verification that rejected no edge and changed only weights of the path itself, none of
+    them upwards: the path is still optimal (any other path gains at most the decreases on the edges it shares).
+
     The replanner uses it to evaluate the edge perception score (Eq. 1, expensive: N interpolated configurations)
     and hence the final Eq. 2 weight only for edges on candidate paths; the unverified edges keep their current
     (e.g. optimistic, endpoint-only) weights.
@@ -711,12 +714,19 @@ def lazy_astar(
         check = _normalise_check(verify(todo.copy(), list(result.path)))
         verified[todo] = True
         checked.extend(todo.tolist())
+        # the path stays optimal, without another search, when no edge was rejected and the verification changed
+        # only weights of this path, none of them upwards: any other path gains at most the decreases on the edges
+        # it shares with this one
+        on_path = set(todo.tolist())
+        kept = not check.invalid
         for e, val in (check.weights or {}).items():
             e, val = int(e), float(val)
             if not (val >= 0):
                 raise ValueError(f"verified weight of edge {e} must be non-negative, got {val}")
             if val < w_arr[e]:
                 stale = True
+            if val > w_arr[e] or e not in on_path:
+                kept = False
             w_arr[e] = val
             if w_list is not None:
                 w_list[e] = val
@@ -731,6 +741,13 @@ def lazy_astar(
             invalidated.append(e)
             updated.pop(e, None)
         logger.debug("lazy A* iteration %d: %d edges verified, %d invalid", it, todo.size, len(check.invalid))
+        if kept and not (~verified[path_e]).any():
+            cost = 0.0
+            for e in path_e.tolist():  # in path order, as the search accumulates it
+                cost += float(w_arr[e])
+            result.cost = cost
+            result.reason = "ok" if it == 1 else f"ok after {it} lazy searches"
+            break
     else:
         result = _fail(f"lazy A* did not converge in {max_iterations} iterations", total_expanded)
         result.iterations = max_iterations
