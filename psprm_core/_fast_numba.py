@@ -417,6 +417,38 @@ def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile,
     return out
 
 
+@jit
+def env_hits(q, want_aabb, order, parent, jtype, R_off, t_off, axis, D, off, mobile, bodies, body_c, body_r,
+             body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, box_c, box_R, box_h,
+             box_aabb, eps):  # pragma: no cover - compiled
+    """Environment flags (B,) against the given boxes only (no limits, no self-collision:
+    CollisionChecker.env_hits) and, with ``want_aabb``, the robot's world bounds (B, 6) = [min xyz, max xyz] of
+    every element box (CollisionChecker._aabb: half extents sum_j |(R_b R_e)_ij| h_j), from the same FK."""
+    B, NB, E = q.shape[0], parent.shape[0], el_c.shape[0]
+    hit = np.zeros(B, np.bool_)
+    aabb = np.zeros((B if want_aabb else 0, 6))
+    R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
+    bc = np.empty((bodies.shape[0], 3))
+    c = np.empty(3)
+    Rw, eye = np.empty((3, 3)), np.eye(3)
+    W = np.empty((3, 3, 3))
+    for r in range(B):
+        _fk(q[r], order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
+        hit[r] = _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_c,
+                          el_R, el_h, el_r, box_c, box_R, box_h, box_aabb, eps, bc, c, Rw, eye, W)
+        if want_aabb:
+            for i in range(3):
+                aabb[r, i] = np.inf
+                aabb[r, 3 + i] = -np.inf
+            for e in range(E):
+                _world_box(R, t, el_body[e], el_c[e], el_R[e], c, Rw)
+                for i in range(3):
+                    ext = abs(Rw[i, 0]) * el_h[e, 0] + abs(Rw[i, 1]) * el_h[e, 1] + abs(Rw[i, 2]) * el_h[e, 2]
+                    aabb[r, i] = min(aabb[r, i], c[i] - ext)
+                    aabb[r, 3 + i] = max(aabb[r, 3 + i], c[i] + ext)
+    return hit, aabb
+
+
 # ---------------------------------------------------------------------------------------------- occlusion
 @jit
 def _slab(o, d, half, count_inside, eps):  # pragma: no cover - compiled

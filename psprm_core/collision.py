@@ -220,6 +220,10 @@ class CollisionChecker:
         (:meth:`robot_aabb`), from the same forward kinematics."""
         q = q.to(self.device, self.dtype)
         bt = boxes if isinstance(boxes, BoxTensors) else BoxTensors.from_boxes(boxes, self.device, self.dtype)
+        if fastpath.applies(q):  # CPU: the compiled kernel (same flags and bounds)
+            hit, aabb = fastpath.env_hits(self, q, bt, return_aabb)
+            hit = torch.from_numpy(hit)
+            return (hit, torch.from_numpy(aabb).to(self.dtype)) if return_aabb else hit
         saved = self.boxes
         hits, boxes_out = [], []
         try:
@@ -241,6 +245,9 @@ class CollisionChecker:
         configurations (B, dof) (the union of the element boxes' world bounds). A configuration whose bounds
         miss a box's bounds (:meth:`BoxTensors.aabb`) cannot touch it."""
         q = q.to(self.device, self.dtype)
+        if fastpath.applies(q):
+            return torch.from_numpy(fastpath.env_hits(self, q, BoxTensors.from_boxes([], self.device, self.dtype),
+                                                      True)[1]).to(self.dtype)
         return torch.cat([self._aabb(self.robot.body_poses(q[s:s + self.chunk]))
                           for s in range(0, q.shape[0], self.chunk)]) if q.shape[0] else \
             torch.zeros(0, 6, dtype=self.dtype, device=self.device)

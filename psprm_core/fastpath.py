@@ -119,10 +119,12 @@ def fits(rows: int, max_batch: int = MAX_BATCH) -> bool:
     return 0 < rows and (rows <= max_batch or _state["bulk"] > 0)
 
 
-def applies(x: torch.Tensor, max_batch: int = MAX_BATCH) -> bool:
+def applies(x: torch.Tensor, max_batch: int = MAX_BATCH, bulk: bool = True) -> bool:
     """Whether a batch ``x`` (B, ...) takes the compiled path: a CPU tensor of 1..max_batch rows (any number inside
-    :func:`bulk`) that needs no gradient, fast paths enabled, numba available."""
-    return (_state["enabled"] and x.device.type == "cpu" and fits(x.shape[0], max_batch)
+    :func:`bulk`, unless ``bulk`` is false: callers whose torch path is faster on large batches) that needs no
+    gradient, fast paths enabled, numba available."""
+    return (_state["enabled"] and x.device.type == "cpu"
+            and (fits(x.shape[0], max_batch) if bulk else 0 < x.shape[0] <= max_batch)
             and not (x.requires_grad and torch.is_grad_enabled()) and available())
 
 
@@ -252,6 +254,19 @@ def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
                            D, off, mobile, lower, upper, bodies, body_c, body_r, box_c_b,
                            box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els,
                            box_c, box_R, box_h, box_aabb, 1e-6)
+
+
+def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
+    """:meth:`CollisionChecker.env_hits` of ``q`` (B, dof) against ``boxes`` (:class:`BoxTensors`) only: flags (B,)
+    and, with ``want_aabb``, the robot's world bounds (B, 6) (else an empty array)."""
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
+    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+     _, _), _ = _checker_arrays(checker)
+    box = (_f64(boxes.center).reshape(-1, 3), _f64(boxes.rotation).reshape(-1, 3, 3), _f64(boxes.half).reshape(-1, 3),
+           _f64(boxes.aabb()).reshape(-1, 6))
+    return _rows(kernels().env_hits, 1, _f64(q.to(checker.dtype)), bool(want_aabb), all_bodies, parent, jtype, R_off,
+                 t_off, axis, D, off, mobile, bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order,
+                 el_body, el_c, el_R, el_h, el_r, *box, 1e-6)
 
 
 # ---------------------------------------------------------------------------------------------- perception

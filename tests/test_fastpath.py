@@ -100,6 +100,31 @@ def test_collision_flags_match_torch(name, dtype, load_robot):
     assert not free["environment"].any() and torch.equal(free["self"], free_ref["self"])
 
 
+@pytest.mark.parametrize("name", sorted(ROBOT_SCENES))
+def test_env_hits_and_robot_bounds_match_torch(name, load_robot):
+    """Flags against a subset of the obstacles (what an obstacle move re-checks) and the robot's world bounds (the
+    spatial index of the edge knots), compiled vs torch."""
+    from psprm_core.collision import BoxTensors
+
+    robot, scene = _robot_scene(name, load_robot)
+    boxes = scene.collision_boxes()
+    checker = CollisionChecker(robot, boxes, workspace=scene.workspace)
+    q = torch.as_tensor(_configs(robot, scene, 800, 3), dtype=torch.float32)
+    for subset in (boxes[::2], boxes[1:4], []):
+        bt = BoxTensors.from_boxes(subset)
+        hit, aabb = checker.env_hits(q, bt, return_aabb=True)
+        with fastpath.disabled():
+            ref, ref_aabb = checker.env_hits(q, bt, return_aabb=True)
+        assert hit.dtype == torch.bool and torch.equal(hit, ref)
+        assert torch.equal(checker.env_hits(q, subset), ref)
+        assert aabb.shape == (len(q), 6) and (aabb - ref_aabb).abs().max() < 1e-4
+        if len(subset) >= 3:
+            assert 0 < int(ref.sum()) < len(q)
+    with fastpath.disabled():
+        ref_bounds = checker.robot_aabb(q)
+    assert (checker.robot_aabb(q) - ref_bounds).abs().max() < 1e-4
+
+
 def test_fast_path_only_for_small_cpu_batches_without_gradients(load_robot):
     robot = load_robot("stretch2")
     q = torch.zeros(4, robot.dof)

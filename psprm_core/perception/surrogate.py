@@ -302,7 +302,7 @@ class PerceptionSurrogate(nn.Module):
         out_device = cam.device
         if cam.dim() == 2:
             cam = cam.unsqueeze(0)
-        if (cam.shape[-2:] == (4, 4) and self.device.type == "cpu" and fastpath.applies(cam)
+        if (cam.shape[-2:] == (4, 4) and self.device.type == "cpu" and fastpath.applies(cam, bulk=False)
                 and isinstance(target_pose, (torch.Tensor, np.ndarray)) and tuple(target_pose.shape) == (4, 4)):
             cls = self._class_arg(class_name, cam.shape[0])
             if not (isinstance(cls, torch.Tensor) and cls.dim() > 0):  # one class: numpy features and MLP

@@ -212,6 +212,19 @@ def _one_thread(method: Callable) -> Callable:
     return run
 
 
+def _large_batches(method: Callable) -> Callable:
+    """Run a planner method whose batches can be large (build, re-scoring, invalidation near moved obstacles, repair
+    growth) with the compiled kernels for any batch size, rows split over torch's thread count
+    (:func:`fastpath.bulk`; inside a query that is one thread)."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with fastpath.bulk():
+            return method(self, *args, **kwargs)
+
+    return run
+
+
 def _flags(have: np.ndarray, ids) -> np.ndarray:
     """``have[ids]`` with False for ids beyond the array."""
     ids = np.asarray(ids, dtype=np.int64)
@@ -1245,6 +1258,7 @@ class PSPRM:
             self.node_scores = np.concatenate([self.node_scores, np.full(g.n_nodes - len(self.node_scores), np.nan)])
         return self.node_scores
 
+    @_large_batches
     def rescore(self, full: bool = False, tol: float = 1e-4) -> dict:
         """Re-score the roadmap after the target or an occluder moved.
 
@@ -1379,6 +1393,7 @@ class PSPRM:
             self.knots.put_aabb(np.asarray(edges, dtype=np.int64)[e_pos], (idx % (M - 2)).cpu().numpy() + 1, aabb)
         return hit.reshape(E, M - 2).any(-1).cpu().numpy()
 
+    @_large_batches
     def invalidate_near(self, boxes: Sequence, old_boxes: Sequence = (), margin: float = 0.05) -> dict:
         """Obstacle update (after :meth:`set_scene`): re-check only what the moved ``boxes`` (new poses) can touch.
 
@@ -1455,6 +1470,7 @@ class PSPRM:
                     back_e = len(got)
         return {"restored_nodes": int(back_n), "restored_edges": int(back_e)}
 
+    @_large_batches
     def grow(self, n: int, center: Optional[np.ndarray] = None, radius: float = 1.5,
              rng: Optional[np.random.Generator] = None, timeout_s: float = 2.0,
              heading: Optional[float] = None) -> dict:
