@@ -184,7 +184,7 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
         "scene": scene.name, "planner": planner, "target": target, "threads": threads, "aimed": aimed,
         "heuristic": p.settings.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
         "build_s": stats.get("build_s"), "sample_s": stats.get("sample_s"), "edges_s": stats.get("edges_s"),
-        "score_s": stats.get("score_s"),
+        "score_s": stats.get("score_s"), "warm_up_s": stats.get("warm_up_s"),
         "queries": len(probs), "success_rate": ok / len(probs),
         "query_ms": float(np.median(times)), "query_p95_ms": float(np.percentile(times, 95)),
         "mean_perception_score": float(np.mean(scores)) if scores else float("nan"),

@@ -526,6 +526,7 @@ class PSPRM:
         qb[1, 0] += 0.1
         self.checker.check(q)
         self.checker.check_detailed(q)
+        self.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
         self.score_configs(q)
         self.edge_knots(q, qb)
         self._pieces(q, qb, max_steps=200, include_start=False)
