@@ -514,13 +514,17 @@ class PSPRM:
         """Compile (first run after an install or a change of the kernels' source) or load from numba's disk cache
         every small-batch kernel a query uses (:mod:`psprm_core.fastpath`), on two template configurations, and the
         roadmap searches' kernels (:func:`~psprm_core.planning.graph_search.warm_up`), so that the first query does
-        not pay for it. Returns the seconds it took (0 without numba: nothing to compile)."""
+        not pay for it; also times a three-knot path, which imports TOPP-RA (and matplotlib through it, about 1.4 s)
+        now rather than in the first plan. Returns the seconds it took."""
         from .graph_search import warm_up as warm_up_search
 
         t0 = time.perf_counter()
-        searched = warm_up_search()
+        W = np.stack([self.template] * 3)
+        W[1:, 0] += (0.2, 0.4)
+        self._timed(W)
+        warm_up_search()
         if self.device.type != "cpu" or not fastpath.available():
-            return time.perf_counter() - t0 if searched else 0.0
+            return time.perf_counter() - t0
         q = self._t(np.stack([self.template, self.template]))
         qb = q.clone()
         qb[1, 0] += 0.1
