@@ -520,8 +520,14 @@ class PSPRM:
 
         t0 = time.perf_counter()
         W = np.stack([self.template] * 3)
-        W[1:, 0] += (0.2, 0.4)
-        self._timed(W)
+        if self.robot.mobile:  # drive 0.2 m and 0.4 m straight ahead
+            W[1:, :2] += np.outer([0.2, 0.4], [np.cos(W[0, 2]), np.sin(W[0, 2])])
+        else:
+            W[1:, -1] += (0.05, 0.1)
+        try:
+            self._timed(W)
+        except Exception as exc:  # the warm-up must never stop a build; the first plan then loads TOPP-RA itself
+            log.debug("trajectory timing warm-up failed: %s", exc)
         warm_up_search()
         if self.device.type != "cpu" or not fastpath.available():
             return time.perf_counter() - t0
