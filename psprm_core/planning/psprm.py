@@ -435,7 +435,7 @@ class PSPRM:
         per install, compiled) by :meth:`warm_up` first; that one-time start-up of the process is reported as
         ``warm_up_s`` and is not part of ``build_s``."""
         self.template = self.robot.default_configuration() if template is None else np.asarray(template, float)
-        warm = self.warm_up()
+        warm = self.warm_up(score=False)
         with fastpath.bulk():
             stats = self._build(self.template)
         stats["warm_up_s"] = warm
@@ -510,12 +510,13 @@ class PSPRM:
         log.info("PS-PRM built: %s", self.stats)
         return self.stats
 
-    def warm_up(self) -> float:
+    def warm_up(self, score: bool = True) -> float:
         """Compile (first run after an install or a change of the kernels' source) or load from numba's disk cache
         every small-batch kernel a query uses (:mod:`psprm_core.fastpath`), on two template configurations, and the
         roadmap searches' kernels (:func:`~psprm_core.planning.graph_search.warm_up`), so that the first query does
         not pay for it; also times a three-knot path, which imports TOPP-RA (and matplotlib through it, about 1.4 s)
-        now rather than in the first plan. Returns the seconds it took."""
+        now rather than in the first plan. ``score=False`` leaves out the scorer (the build's own warm-up: it must
+        not score views of its own, e.g. with the oracle). Returns the seconds it took."""
         from .graph_search import warm_up as warm_up_search
 
         t0 = time.perf_counter()
@@ -537,7 +538,8 @@ class PSPRM:
         self.checker.check(q)
         self.checker.check_detailed(q)
         self.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
-        self.score_configs(q)
+        if score:
+            self.score_configs(q)
         self.edge_knots(q, qb)
         self._pieces(q, qb, max_steps=200, include_start=False)
         self.motion.distance(q, qb)
