@@ -90,14 +90,14 @@ class PSPRMSettings:
     query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
     query_repair_rounds: int = 3  # repair rounds of a failing query (radius x 1.5 each round), within the budget
     query_repair_failures: int = 25  # failed (rolled back) repairs per built/loaded roadmap; then no more repairs
-    query_wide_k: int = 0  # last resort of a failing query: each end tries its k nearest nodes, however far (0: off)
-    query_untracked_fallback: bool = True  # repaired/wide queries keep a connection with untracked camera joints
+    query_wide_k: int = 0  # last resort (after the escape): each end tries its k nearest nodes, however far (0: off)
+    query_untracked_fallback: bool = True  # escape/wide queries keep a connection with untracked camera joints
     # when its re-aimed version collides
-    query_escape_s: float = 0.0  # > 0: time (s) of the escape search of a query that still fails (0: off)
+    query_escape_s: float = 0.0  # > 0: time (s) of the escape search of a query whose repair failed (0: off)
     query_escape_nodes: int = 1500  # at most this many configurations in an end's escape tree
     query_escape_radius: float = 2.5  # m: half the escape samples put the base within this distance of the end,
     # the others within twice that
-    query_escape_step: float = 0.4  # motion-cost units: longest extension of the escape tree
+    query_escape_step: float = 0.4  # motion-cost units: the escape tree's short extensions (long ones: ESCAPE_LONG x)
     query_escape_connect_k: int = 6  # nearest roadmap nodes each new escape configuration tries to connect to
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
@@ -874,22 +874,21 @@ class PSPRM:
         repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
         unreachable cannot make a long-running planner grow without end.
 
-        Last resort (``query_wide_k`` > 0): each end tries its ``query_wide_k`` nearest roadmap nodes, however far
-        (long connections, checked and scored like any other), for ends whose few free motions lead beyond the
-        repair's neighbours (a robot across a shelf aisle); like the repair, not once ``query_repair_failures`` is
-        reached.
+        When the repair fails (and, like it, not once ``query_repair_failures`` is reached), two last resorts:
 
-        In the repaired and the wide queries (``query_untracked_fallback``), a connection edge whose re-aimed knots
+        - escape (``query_escape_s`` > 0): a bounded RRT-like search of differential-drive motions with the arm
+          moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the roadmap's
+          largest component (:meth:`_escape`, ``query_escape_*``); its configurations and densely checked edges join
+          the query as query nodes and edges, scored (Eq. 1) like any other edge, and the query is searched once
+          more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed in: no
+          collision-free motion out of it was found ..." when not one short motion out of it is free);
+        - wide (``query_wide_k`` > 0), when the escape did not succeed: each end tries its ``query_wide_k`` nearest
+          roadmap nodes, however far (long connections, checked and scored like any other), for ends whose few free
+          motions lead beyond the repair's neighbours (a robot across a shelf aisle).
+
+        In the escape's and the wide query (``query_untracked_fallback``), a connection edge whose re-aimed knots
         collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
-        interpolated plainly) when those are collision-free; the first query is unchanged.
-
-        Escape (``query_escape_s`` > 0, after the above failed and within ``query_repair_failures``): a bounded
-        RRT-like search of differential-drive motions with the arm moving (turn in place, drive or back up, joints
-        interpolated) from each end to the roadmap's largest component (:meth:`_escape`, ``query_escape_*``); its
-        configurations and densely checked edges join the query as query nodes and edges, scored (Eq. 1) like any
-        other edge, and the query is searched once more. An end it cannot get out of makes the query fail with a
-        reason naming that end ("start is boxed in: no collision-free motion out of it was found ..." when not one
-        motion out of it is free)."""
+        interpolated plainly) when those are collision-free; the first query and the repaired ones are unchanged."""
         res = self._plan_once(start, goals, timing, goal_costs)
         if res.success or "reachable" not in res.reason or self.graph is None:
             return res
@@ -898,7 +897,13 @@ class PSPRM:
         s = self.settings
         k = s.query_wide_k
         # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
-        # and again): no wide attempt either
+        # and again): no escape or wide attempt either
+        escaped = None
+        if (not out.success and "reachable" in out.reason and s.query_escape_s > 0
+                and self._repair_failed < s.query_repair_failures):
+            escaped = self._escape_query(start, goals, timing, goal_costs)
+            if escaped.success:
+                out = escaped
         if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
                 and self._repair_failed < s.query_repair_failures):
             wide = self._plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
@@ -907,9 +912,8 @@ class PSPRM:
                 out = wide
                 if wide.success:
                     out.reason = f"ok after connecting to the {k} nearest roadmap nodes"
-        if (not out.success and "reachable" in out.reason and s.query_escape_s > 0
-                and self._repair_failed < s.query_repair_failures):
-            out = self._escape_query(start, goals, timing, goal_costs)
+        if not out.success and escaped is not None:  # the escape search says which end could not get out
+            out = escaped
         out.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         return out
 
@@ -1200,8 +1204,7 @@ class PSPRM:
             # valid edges beyond the connect_k nearest nodes; the nodes grown on its heading line are reachable by
             # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
             again = self._plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
-                                    connect_k=max(s.connect_k, s.query_repair_connect_k),
-                                    untracked=s.query_untracked_fallback)
+                                    connect_k=max(s.connect_k, s.query_repair_connect_k))
             if again.success or "reachable" not in again.reason:
                 break
         if again is None:
