@@ -48,6 +48,8 @@ SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces to
 ESCAPE_BATCH = 32  # random extensions per round of the escape search (PSPRM._escape)
 ESCAPE_CONNECT = 32  # connections to the roadmap an escape round checks at most (the shortest)
 ESCAPE_LONG = 4  # the escape search's long extensions, in steps
+ESCAPE_STUCK_ROUNDS = 16  # escape rounds after which an end with no free motion out of it is given up
+ESCAPE_MANOEUVRES = 8  # of the ESCAPE_BATCH extensions per round: drive/back-up/turn manoeuvres from tree nodes
 ESCAPE_KEEP = 4  # connections to the roadmap (and their tree branches) an escape search keeps
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
@@ -241,6 +243,7 @@ class EscapeResult:
     explored: int = 1  # configurations in the tree (the end included)
     tried: int = 0  # motions tried from the tree (extensions)
     seconds: float = 0.0
+    base_reach: float = 0.0  # m: farthest base position of the tree from the end's
 
     @property
     def success(self) -> bool:
@@ -947,10 +950,11 @@ class PSPRM:
                 name = "start" if k == 0 else (f"goal {k - 1}" if len(ends) > 2 else "goal")
                 if esc.explored <= 1:
                     why.append(f"{name} is boxed in: no collision-free motion out of it was found "
-                               f"({esc.tried} short motions tried in {esc.seconds:.1f} s)")
+                               f"({esc.tried} short motions tried in {esc.seconds:.2f} s)")
                 else:
+                    where = f", bases within {esc.base_reach:.2f} m of it" if self.robot.mobile else ""
                     why.append(f"{name}: the escape search found no way to the roadmap's largest component "
-                               f"({esc.explored} configurations reached in {esc.seconds:.1f} s)")
+                               f"({esc.explored} configurations reached in {esc.seconds:.1f} s{where})")
         res = self._plan_once(start, goals, timing, goal_costs, untracked=s.query_untracked_fallback,
                               escapes={k: e for k, e in escapes.items() if e.success})
         if res.success:
@@ -978,10 +982,14 @@ class PSPRM:
         ``ESCAPE_BATCH`` random configurations (the base within ``query_escape_radius`` of the end for half of them,
         within twice that for the others, so that the tree can follow a long aisle out; any heading; the
         other joints uniform within their limits or those of a nearby target node; some are target nodes
-        themselves), extends the nearest tree node towards each by at most ``query_escape_step`` along the local
-        motion (differential drive: turn in place, drive straight forwards or backwards, turn; the joints move at the
-        same time, untracked) and keeps the extensions whose end configuration and motion are collision-free (the
-        motion checked densely, as every edge). Every new configuration tries a direct connection to its
+        themselves) and extends the nearest tree node towards each along the local motion (differential drive: turn
+        in place, drive straight forwards or backwards, turn; the joints move at the same time, untracked), by
+        ``query_escape_step`` and by ``ESCAPE_LONG`` times that (kept when free). ``ESCAPE_MANOEUVRES`` of them are
+        manoeuvres from random tree nodes instead: drive or back up along the heading, or turn in place by 90 degrees,
+        the other joints kept or moving towards the template pose, so that a robot in a dead end backs out and then
+        turns. Extensions are kept when their end configuration and their motion are collision-free (the motion
+        checked densely, as every edge). An end from which not one extension is free after ``ESCAPE_STUCK_ROUNDS``
+        rounds is given up early (boxed in). Every new configuration tries a direct connection to its
         ``query_escape_connect_k`` nearest target nodes. The search stops at the first round with a free connection,
         at ``query_escape_nodes`` tree nodes or at ``deadline``; the branches leading to the found connections are
         kept, shortened greedily (:meth:`_shortcut`)."""
@@ -1037,7 +1045,11 @@ class PSPRM:
         if r.mobile:
             near_t = np.nonzero(np.linalg.norm(self.graph.configs[targets, :2] - q0[:2].cpu().numpy(), axis=1)
                                 <= s.query_escape_radius)[0]
+        rounds = 0
         while not found and len(parent) < s.query_escape_nodes and time.perf_counter() < deadline:
+            if len(parent) == 1 and rounds >= ESCAPE_STUCK_ROUNDS:  # not one motion out of the end is free
+                break
+            rounds += 1
             B = ESCAPE_BATCH
             q = lo + rng.random((B, dof)) * (hi - lo)
             pick = near_t if len(near_t) else np.arange(len(targets))
@@ -1051,8 +1063,23 @@ class PSPRM:
                 q[:, 2] = rng.uniform(-np.pi, np.pi, B)
             goal_bias = u < 0.15
             q[goal_bias] = self.graph.configs[targets[like[goal_bias]]]
+            nn = self._nearest_ids(self._t(np.clip(q, lo, hi)), T, 1)[:, 0].cpu().numpy()
+            if r.mobile:  # manoeuvres from random tree nodes: drive / back up along the heading, or turn in place,
+                # the other joints kept or moving towards the template (a tucked, camera-ready pose)
+                m = ESCAPE_MANOEUVRES
+                src = rng.integers(0, len(parent), m)
+                qm = T[torch.as_tensor(src, device=self.device)].cpu().numpy().astype(float)
+                sign = rng.choice([-1.0, 1.0], m)
+                drive = rng.random(m) < 0.5
+                L = ESCAPE_LONG * s.query_escape_step
+                qm[drive, 0] += sign[drive] * L * np.cos(qm[drive, 2])
+                qm[drive, 1] += sign[drive] * L * np.sin(qm[drive, 2])
+                qm[~drive, 2] = np.angle(np.exp(1j * (qm[~drive, 2] + sign[~drive] * np.pi / 2)))
+                tuck = rng.random(m) < 0.5
+                qm[tuck, r.base_dof:] = self.template[r.base_dof:]
+                q[-m:], nn[-m:] = qm, src
             q_rand = self._t(np.clip(q, lo, hi))
-            nn = self._nearest_ids(q_rand, T, 1)[:, 0].to(self.device)
+            nn = torch.as_tensor(nn, device=self.device)
             q_near = T[nn]
             d = self.motion.distance(q_near, q_rand).clamp_min(1e-9)
             # a short and a long extension of each (the long one, ESCAPE_LONG steps, is kept where it is free: the
@@ -1084,9 +1111,10 @@ class PSPRM:
             found = connect(np.arange(first, len(parent)))
         seconds = time.perf_counter() - t0
         dof_zero = _no_knots(self)
+        reach = float((T[:, :2] - q0[:2]).norm(dim=-1).max()) if r.mobile else 0.0
         if not found:
             return EscapeResult(self._t(np.zeros((0, dof))), [], dof_zero, [], dof_zero, explored=len(parent),
-                                tried=tried, seconds=seconds)
+                                tried=tried, seconds=seconds, base_reach=reach)
         # keep the branches to the (at most ESCAPE_KEEP) found connections, shortened
         found = found[:ESCAPE_KEEP]
         keep_nodes, tree_edges = {}, {}
@@ -1113,7 +1141,7 @@ class PSPRM:
 
         return EscapeResult(configs, tree, stack(list(tree_edges.values())), conn,
                             stack([(kn, ki) for _, _, kn, ki in found]), explored=len(parent), tried=tried,
-                            seconds=time.perf_counter() - t0)
+                            seconds=time.perf_counter() - t0, base_reach=reach)
 
     def _escape_free(self, knots: torch.Tensor) -> torch.Tensor:
         """Collision-free flags (E,) of the escape search's candidate edges, densely checked like
