@@ -421,7 +421,7 @@ class PSPRM:
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
         self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
-        self._untracked_fallback = False  # set during repaired queries (query_untracked_fallback)
+        self._untracked_fallback = False  # set during the escape and wide queries (query_untracked_fallback)
         self._escapes = 0  # escape searches run (their random streams)
         self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
         self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
