@@ -46,11 +46,18 @@ COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (eac
 QUERY_KNOT_CACHE = 512  # start/goal query edges whose knots are kept (by end configurations)
 QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 max_edge_length is still tried with
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
+ESCAPE_BATCH = 32  # random extensions per round of the escape search (PSPRM._escape)
+ESCAPE_CONNECT = 32  # connections to the roadmap an escape round checks at most (the shortest)
+ESCAPE_LONG = 4  # the escape search's long extensions, in steps
+ESCAPE_STUCK_ROUNDS = 16  # escape rounds after which an end with no free motion out of it is given up
+ESCAPE_MANOEUVRES = 8  # of the ESCAPE_BATCH extensions per round: drive/back-up/turn manoeuvres from tree nodes
+ESCAPE_KEEP = 4  # connections to the roadmap (and their tree branches) an escape search keeps
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
                   "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
-                  "query_wide_k",
+                  "query_wide_k", "query_untracked_fallback", "query_escape_s", "query_escape_nodes",
+                  "query_escape_radius", "query_escape_step", "query_escape_connect_k",
                   "smooth_timing")
 
 VARIANTS = {
@@ -86,7 +93,15 @@ class PSPRMSettings:
     query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
     query_repair_rounds: int = 3  # repair rounds of a failing query (radius x 1.5 each round), within the budget
     query_repair_failures: int = 25  # failed (rolled back) repairs per built/loaded roadmap; then no more repairs
-    query_wide_k: int = 0  # last resort of a failing query: each end tries its k nearest nodes, however far (0: off)
+    query_wide_k: int = 0  # last resort (after the escape): each end tries its k nearest nodes, however far (0: off)
+    query_untracked_fallback: bool = True  # escape/wide queries keep a connection with untracked camera joints
+    # when its re-aimed version collides
+    query_escape_s: float = 0.0  # > 0: time (s) of the escape search of a query whose repair failed (0: off)
+    query_escape_nodes: int = 1500  # at most this many configurations in an end's escape tree
+    query_escape_radius: float = 2.5  # m: half the escape samples put the base within this distance of the end,
+    # the others within twice that
+    query_escape_step: float = 0.4  # motion-cost units: the escape tree's short extensions (long ones: ESCAPE_LONG x)
+    query_escape_connect_k: int = 6  # nearest roadmap nodes each new escape configuration tries to connect to
     edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
@@ -149,6 +164,16 @@ class PSPRMSettings:
             raise ConfigError(source, "alpha", f"must lie in [0, 1], got {self.alpha}")
         if self.n_nodes < 2 or self.k_neighbors < 1:
             raise ConfigError(source, "n_nodes", "need at least 2 nodes and 1 neighbour")
+        if not (self.query_escape_s >= 0 and np.isfinite(self.query_escape_s)):
+            raise ConfigError(source, "query_escape_s", f"must be a finite time >= 0, got {self.query_escape_s}")
+        if self.query_escape_s > 0:
+            for name in ("query_escape_radius", "query_escape_step"):
+                v = getattr(self, name)
+                if not (v > 0 and np.isfinite(v)):
+                    raise ConfigError(source, name, f"must be > 0 when query_escape_s > 0, got {v}")
+            for name in ("query_escape_nodes", "query_escape_connect_k"):
+                if getattr(self, name) < 1:
+                    raise ConfigError(source, name, f"must be >= 1 when query_escape_s > 0, got {getattr(self, name)}")
 
 
 @dataclass
@@ -223,6 +248,38 @@ def _large_batches(method: Callable) -> Callable:
             return method(self, *args, **kwargs)
 
     return run
+
+
+@dataclass
+class EscapeResult:
+    """Outcome of the escape search from one query end (:meth:`PSPRM._escape`).
+
+    ``configs`` (n, dof) are the configurations of the kept tree branches (the end itself excluded). ``tree`` lists
+    their edges as (a, b) indices into ``configs`` (-1: the end), ``conn`` the connections (a, roadmap node id); the
+    untracked knots (E, M, dof) and Eq. 1 sample positions (E, N) of both, in the a -> b direction, are the ones
+    that were collision-checked (densely) and are the ones executed.
+    """
+
+    configs: torch.Tensor
+    tree: list
+    tree_knots: tuple
+    conn: list
+    conn_knots: tuple
+    explored: int = 1  # configurations in the tree (the end included)
+    tried: int = 0  # motions tried from the tree (extensions)
+    seconds: float = 0.0
+    base_reach: float = 0.0  # m: farthest base position of the tree from the end's
+
+    @property
+    def success(self) -> bool:
+        return len(self.conn) > 0
+
+
+def _no_knots(planner) -> tuple:
+    """Empty (knots (0, M, dof), Eq. 1 positions (0, N)) of a planner's edges."""
+    n = planner.settings.n_interp
+    return (torch.zeros(0, n + 4, planner.robot.dof, dtype=planner.dtype, device=planner.device),
+            torch.zeros(0, n, dtype=torch.long, device=planner.device))
 
 
 def _flags(have: np.ndarray, ids) -> np.ndarray:
@@ -389,6 +446,8 @@ class PSPRM:
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
         self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
+        self._untracked_fallback = False  # set during the escape and wide queries (query_untracked_fallback)
+        self._escapes = 0  # escape searches run (their random streams)
         self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
         self._index = None  # spatial index of roadmap nodes/edges (obstacle updates), built on first use
         self._blocked_nodes: set = set()  # roadmap nodes / edges removed because a moved obstacle blocked them
@@ -641,7 +700,7 @@ class PSPRM:
         return u, v, dist
 
     # ---- edges: knots on the manifold ---------------------------------------------------------------------------
-    def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
+    def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor, track: bool = True) -> tuple:
         """Knots of the local motions qa -> qb (E, dof): (knots (E, M, dof), interior index (E, N)).
 
         The base follows its differential-drive path (rotate, translate, rotate); the knots are the endpoints, the
@@ -649,12 +708,16 @@ class PSPRM:
         knot the non-base camera joints are re-projected onto the visibility manifold (a few Newton steps from the
         interpolated value), so the camera keeps tracking the target along the edge. Consecutive knots always lie in
         the same drive phase, so joint-space interpolation between them is a motion the base can execute.
+
+        ``track=False``: the *untracked* knots: the non-base joints are interpolated plainly (no re-aiming), i.e. the
+        knots lie on the local motion itself (the fallback of connection edges whose re-aimed version collides, and
+        the edges of the escape search).
         """
         E, n = qa.shape[0], self.settings.n_interp
         dt, dev = qa.dtype, qa.device
         if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # a query's few edges (or bulk): compiled
             knots, interior_idx = fastpath.edge_knot_seeds(self.motion, qa, qb, n)
-            return self._track_knots(knots), interior_idx
+            return (self._track_knots(knots) if track else knots), interior_idx
         if self.robot.mobile:
             _, r1, d, r2 = self.motion._base_plan(qa, qb)
             l1, l2, l3 = self.motion.w_rot * r1.abs(), d, self.motion.w_rot * r2.abs()
@@ -671,7 +734,8 @@ class PSPRM:
         interior_idx = inv[:, 1:1 + n]
         M = s_all.shape[1]
         knots = self.motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0), s_sorted.reshape(-1))
-        return self._track_knots(knots.reshape(E, M, -1)), interior_idx
+        knots = knots.reshape(E, M, -1)
+        return (self._track_knots(knots) if track else knots), interior_idx
 
     def _track_knots(self, knots: torch.Tensor) -> torch.Tensor:
         """Knots (E, M, dof) with the non-base camera joints of the interior ones re-projected onto the visibility
@@ -858,10 +922,21 @@ class PSPRM:
         repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
         unreachable cannot make a long-running planner grow without end.
 
-        Last resort (``query_wide_k`` > 0): each end tries its ``query_wide_k`` nearest roadmap nodes, however far
-        (long connections, checked and scored like any other), for ends whose few free motions lead beyond the
-        repair's neighbours (a robot across a shelf aisle); like the repair, not once ``query_repair_failures`` is
-        reached."""
+        When the repair fails (and, like it, not once ``query_repair_failures`` is reached), two last resorts:
+
+        - escape (``query_escape_s`` > 0): a bounded RRT-like search of differential-drive motions with the arm
+          moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the roadmap's
+          largest component (:meth:`_escape`, ``query_escape_*``); its configurations and densely checked edges join
+          the query as query nodes and edges, scored (Eq. 1) like any other edge, and the query is searched once
+          more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed in: no
+          collision-free motion out of it was found ..." when not one short motion out of it is free);
+        - wide (``query_wide_k`` > 0), when the escape did not succeed: each end tries its ``query_wide_k`` nearest
+          roadmap nodes, however far (long connections, checked and scored like any other), for ends whose few free
+          motions lead beyond the repair's neighbours (a robot across a shelf aisle).
+
+        In the escape's and the wide query (``query_untracked_fallback``), a connection edge whose re-aimed knots
+        collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
+        interpolated plainly) when those are collision-free; the first query and the repaired ones are unchanged."""
         res = self._plan_once(start, goals, timing, goal_costs)
         if res.success or "reachable" not in res.reason or self.graph is None:
             return res
@@ -870,16 +945,312 @@ class PSPRM:
         s = self.settings
         k = s.query_wide_k
         # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
-        # and again): no wide attempt either
+        # and again): no escape or wide attempt either
+        escaped = None
+        if (not out.success and "reachable" in out.reason and s.query_escape_s > 0
+                and self._repair_failed < s.query_repair_failures):
+            escaped = self._escape_query(start, goals, timing, goal_costs)
+            if escaped.success:
+                out = escaped
         if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
                 and self._repair_failed < s.query_repair_failures):
-            wide = self._plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k)
+            wide = self._plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
+                                   untracked=s.query_untracked_fallback)
             if wide.success or "reachable" not in wide.reason:
                 out = wide
                 if wide.success:
                     out.reason = f"ok after connecting to the {k} nearest roadmap nodes"
+        if not out.success and escaped is not None:  # the escape search says which end could not get out
+            out = escaped
         out.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
         return out
+
+    def _escape_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
+                      goal_costs: Optional[np.ndarray]) -> PlanResult:
+        """The escape stage of :meth:`plan`: an :meth:`_escape` search from each end (start, up to 4 goals) to the
+        roadmap's largest component within ``query_escape_s`` in total, then the query with the found
+        configurations and edges added. Ends with a direct connection need no tree (their connections are added)."""
+        s = self.settings
+        t0 = time.perf_counter()
+        ends = [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, self.robot.dof))[:4]
+        self._compact()
+        ids, lab = self.components()
+        if len(ids) == 0:
+            return PlanResult(False, "goal not reachable on the roadmap (empty roadmap)")
+        targets = ids[lab == int(np.argmax(np.bincount(lab)))]
+        q_end = self._t(np.stack(ends))
+        bad = self.checker.check(q_end).cpu().numpy()
+        self._escapes += 1
+        rng = np.random.default_rng([s.seed, self._escapes, 7])
+        # first the direct connections of every end (no tree), then the time is shared by the ends that need one
+        escapes = {k: self._escape(q_end[k], targets, rng, 0.0) for k in range(len(ends)) if not bad[k]}
+        order = [k for k, e in escapes.items() if not e.success]
+        why = []
+        for j, k in enumerate(order):
+            left = s.query_escape_s - (time.perf_counter() - t0)
+            deadline = time.perf_counter() + max(left, 0.0) / (len(order) - j)  # unused time goes to later ends
+            esc = self._escape(q_end[k], targets, rng, deadline)
+            escapes[k] = esc
+            if not esc.success:
+                name = "start" if k == 0 else (f"goal {k - 1}" if len(ends) > 2 else "goal")
+                if esc.explored <= 1:
+                    why.append(f"{name} is boxed in: no collision-free motion out of it was found "
+                               f"({esc.tried} short motions tried in {esc.seconds:.2f} s)")
+                else:
+                    where = f", bases within {esc.base_reach:.2f} m of it" if self.robot.mobile else ""
+                    why.append(f"{name}: the escape search found no way to the roadmap's largest component "
+                               f"({esc.explored} configurations reached in {esc.seconds:.1f} s{where})")
+        res = self._plan_once(start, goals, timing, goal_costs, untracked=s.query_untracked_fallback,
+                              escapes={k: e for k, e in escapes.items() if e.success})
+        if res.success:
+            n = sum(len(e.configs) for e in escapes.values())
+            res.reason = f"ok after an escape search ({n} intermediate configurations)"
+        elif why:  # the ends that could not get out say why the query fails
+            res.reason = "; ".join(why)
+        log.debug("escape search: %s", res.reason)
+        return res
+
+    def _nearest_ids(self, qq: torch.Tensor, pool: torch.Tensor, k: int) -> torch.Tensor:
+        """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
+        k = min(k, pool.shape[0])
+        if fastpath.motion_applies(qq, qq) and pool.device.type == "cpu":  # compiled, as in _plan_once
+            return fastpath.nearest(self.motion, qq, pool, k)
+        d = self.motion.distance(qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
+        return d.reshape(len(qq), -1).topk(k, largest=False).indices
+
+    @_large_batches
+    def _escape(self, q0: torch.Tensor, targets: np.ndarray, rng: np.random.Generator,
+                deadline: float) -> EscapeResult:
+        """Bounded RRT-like escape search from a query end ``q0`` (dof,) to the roadmap nodes ``targets``.
+
+        For ends the repaired queries could not connect (a mobile manipulator boxed in between shelves, facing a wall,
+        its arm over a shelf): a tree of collision-free local motions grows from the end. Each round draws
+        ``ESCAPE_BATCH`` random configurations (the base within ``query_escape_radius`` of the end for half of them,
+        within twice that for the others, so that the tree can follow a long aisle out; any heading; the
+        other joints uniform within their limits or those of a nearby target node; some are target nodes
+        themselves) and extends the nearest tree node towards each along the local motion (differential drive: turn
+        in place, drive straight forwards or backwards, turn; the joints move at the same time, untracked), by
+        ``query_escape_step`` and by ``ESCAPE_LONG`` times that (kept when free). ``ESCAPE_MANOEUVRES`` of them are
+        manoeuvres from random tree nodes instead: drive or back up along the heading, or turn in place by 90 degrees,
+        the other joints kept or moving towards the template pose, so that a robot in a dead end backs out and then
+        turns. Extensions are kept when their end configuration and their motion are collision-free (the motion
+        checked densely, as every edge). An end from which not one extension is free after ``ESCAPE_STUCK_ROUNDS``
+        rounds is given up early (boxed in). Every new configuration tries a direct connection to its
+        ``query_escape_connect_k`` nearest target nodes. The search stops at the first round with a free connection,
+        at ``query_escape_nodes`` tree nodes or at ``deadline``; the branches leading to the found connections are
+        kept, shortened greedily (:meth:`_shortcut`)."""
+        s, r = self.settings, self.robot
+        t0 = time.perf_counter()
+        dof = r.dof
+        if r.mobile:  # every tree configuration lies within the radius: farther nodes are beyond a connection
+            xy = np.linalg.norm(self.graph.configs[targets, :2] - q0[:2].cpu().numpy(), axis=1)
+            targets = targets[xy <= 2 * s.query_escape_radius + 2 * s.max_edge_length]
+            if len(targets) == 0:
+                return EscapeResult(q0[None][:0], [], _no_knots(self), [], _no_knots(self),
+                                    seconds=time.perf_counter() - t0)
+        rm = self._t(self.graph.configs[targets])
+        lo = np.where(np.isfinite(r.lower), r.lower, -np.pi)
+        hi = np.where(np.isfinite(r.upper), r.upper, np.pi)
+        if r.mobile:
+            lo[:2], hi[:2] = self.scene.workspace[:, 0], self.scene.workspace[:, 1]
+        parent = [-1]
+        knots_of: list = [None]  # (knots, interior) of the edge parent -> node
+        T = q0[None]
+        tried = 0
+
+        def connect(new_idx: np.ndarray) -> list:
+            """Free connections (tree index, target index, knots, interior) of tree nodes ``new_idx``."""
+            qn = T[torch.as_tensor(new_idx, device=self.device)]
+            pool = torch.arange(len(rm), device=self.device)
+            if r.mobile:  # the motion cost is at least the base's xy distance: farther nodes are no candidates
+                pool = torch.nonzero((torch.cdist(qn[:, :2], rm[:, :2]) <= 2 * s.max_edge_length).any(0),
+                                     as_tuple=True)[0]
+                if len(pool) == 0:
+                    return []
+            cand = pool[self._nearest_ids(qn, rm[pool], s.query_escape_connect_k).to(self.device)]
+            kk = cand.shape[1]
+            src = torch.arange(len(qn), device=self.device).repeat_interleave(kk)
+            dst = cand.reshape(-1)
+            qa, qb = qn[src], rm[dst]
+            d = self.motion.distance(qa, qb)
+            near = torch.nonzero(d <= 2 * s.max_edge_length, as_tuple=True)[0]
+            if len(near) == 0:
+                return []
+            if len(near) > ESCAPE_CONNECT:  # the shortest candidates of the round (the likeliest to be free)
+                near = near[d[near].topk(ESCAPE_CONNECT, largest=False).indices]
+            kn, ki = self.edge_knots(qa[near], qb[near], track=False)
+            ok = self._escape_free(kn)
+            out = []
+            for j in torch.nonzero(ok, as_tuple=True)[0].tolist():
+                i = int(near[j])
+                out.append((int(new_idx[int(src[i])]), int(dst[i]), kn[j], ki[j]))
+            return out
+
+        found = connect(np.array([0]))
+        near_t = np.zeros(0, dtype=np.int64)
+        if r.mobile:
+            near_t = np.nonzero(np.linalg.norm(self.graph.configs[targets, :2] - q0[:2].cpu().numpy(), axis=1)
+                                <= s.query_escape_radius)[0]
+        rounds = 0
+        while not found and len(parent) < s.query_escape_nodes and time.perf_counter() < deadline:
+            if len(parent) == 1 and rounds >= ESCAPE_STUCK_ROUNDS:  # not one motion out of the end is free
+                break
+            rounds += 1
+            B = ESCAPE_BATCH
+            q = lo + rng.random((B, dof)) * (hi - lo)
+            pick = near_t if len(near_t) else np.arange(len(targets))
+            like = rng.choice(pick, B)  # configurations of nearby target nodes
+            u = rng.random(B)
+            q[u < 0.5, r.base_dof:] = self.graph.configs[targets[like[u < 0.5]], r.base_dof:]
+            if r.mobile:
+                ang = rng.uniform(-np.pi, np.pi, B)
+                rad = s.query_escape_radius * np.sqrt(rng.random(B)) * np.where(np.arange(B) % 2, 2.0, 1.0)
+                q[:, :2] = q0[:2].cpu().numpy() + np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1)
+                q[:, 2] = rng.uniform(-np.pi, np.pi, B)
+            goal_bias = u < 0.15
+            q[goal_bias] = self.graph.configs[targets[like[goal_bias]]]
+            nn = self._nearest_ids(self._t(np.clip(q, lo, hi)), T, 1)[:, 0].cpu().numpy()
+            if r.mobile:  # manoeuvres from random tree nodes: drive / back up along the heading, or turn in place,
+                # the other joints kept or moving towards the template (a tucked, camera-ready pose)
+                m = ESCAPE_MANOEUVRES
+                src = rng.integers(0, len(parent), m)
+                qm = T[torch.as_tensor(src, device=self.device)].cpu().numpy().astype(float)
+                sign = rng.choice([-1.0, 1.0], m)
+                drive = rng.random(m) < 0.5
+                L = ESCAPE_LONG * s.query_escape_step
+                qm[drive, 0] += sign[drive] * L * np.cos(qm[drive, 2])
+                qm[drive, 1] += sign[drive] * L * np.sin(qm[drive, 2])
+                qm[~drive, 2] = np.angle(np.exp(1j * (qm[~drive, 2] + sign[~drive] * np.pi / 2)))
+                tuck = rng.random(m) < 0.5
+                qm[tuck, r.base_dof:] = self.template[r.base_dof:]
+                q[-m:], nn[-m:] = qm, src
+            q_rand = self._t(np.clip(q, lo, hi))
+            nn = torch.as_tensor(nn, device=self.device)
+            q_near = T[nn]
+            d = self.motion.distance(q_near, q_rand).clamp_min(1e-9)
+            # a short and a long extension of each (the long one, ESCAPE_LONG steps, is kept where it is free: the
+            # tree follows an open aisle in few steps)
+            frac = torch.cat([(s.query_escape_step / d).clamp(max=1.0),
+                              (ESCAPE_LONG * s.query_escape_step / d).clamp(max=1.0)])
+            q_from = torch.cat([q_near, q_near])
+            q_new = self.motion.interpolate(q_from, torch.cat([q_rand, q_rand]), frac)
+            tried += B
+            ok = self.checker.valid(q_new)
+            if not ok.any():
+                continue
+            sel = torch.nonzero(ok, as_tuple=True)[0]
+            kn, ki = self.edge_knots(q_from[sel], q_new[sel], track=False)
+            free = self._escape_free(kn)
+            okf = torch.zeros(2 * B, dtype=torch.bool, device=self.device)
+            okf[sel[free]] = True
+            use_long = okf[B:] & (frac[B:] > frac[:B])
+            pick = torch.nonzero(use_long | okf[:B], as_tuple=True)[0]
+            pick = torch.where(use_long[pick], pick + B, pick)
+            if len(pick) == 0:
+                continue
+            row = {int(j): n for n, j in enumerate(sel.tolist())}
+            first = len(parent)
+            for j in pick.tolist():
+                parent.append(int(nn[j % B]))
+                knots_of.append((kn[row[j]], ki[row[j]]))
+            T = torch.cat([T, q_new[pick]])
+            found = connect(np.arange(first, len(parent)))
+        seconds = time.perf_counter() - t0
+        dof_zero = _no_knots(self)
+        reach = float((T[:, :2] - q0[:2]).norm(dim=-1).max()) if r.mobile else 0.0
+        if not found:
+            return EscapeResult(self._t(np.zeros((0, dof))), [], dof_zero, [], dof_zero, explored=len(parent),
+                                tried=tried, seconds=seconds, base_reach=reach)
+        # keep the branches to the (at most ESCAPE_KEEP) found connections, shortened
+        found = found[:ESCAPE_KEEP]
+        keep_nodes, tree_edges = {}, {}
+        for a, _, _, _ in found:
+            chain = [a]
+            while parent[chain[-1]] >= 0:
+                chain.append(parent[chain[-1]])
+            chain = chain[::-1]  # root ... a
+            for i, j, kn, ki in self._shortcut(T, chain, knots_of):
+                tree_edges[(i, j)] = (kn, ki)
+                keep_nodes.update({i: None, j: None})
+        keep_nodes.pop(0, None)
+        remap = {old: n for n, old in enumerate(sorted(keep_nodes))}
+        remap[0] = -1
+        configs = T[torch.as_tensor(sorted(keep_nodes), dtype=torch.long, device=self.device)] if keep_nodes \
+            else T[:0]
+        tree = [(remap[i], remap[j]) for i, j in tree_edges]
+        conn = [(remap[a], int(targets[b])) for a, b, _, _ in found]
+
+        def stack(items):
+            if not items:
+                return dof_zero
+            return torch.stack([k for k, _ in items]), torch.stack([i for _, i in items])
+
+        return EscapeResult(configs, tree, stack(list(tree_edges.values())), conn,
+                            stack([(kn, ki) for _, _, kn, ki in found]), explored=len(parent), tried=tried,
+                            seconds=time.perf_counter() - t0, base_reach=reach)
+
+    def _escape_free(self, knots: torch.Tensor) -> torch.Tensor:
+        """Collision-free flags (E,) of the escape search's candidate edges, densely checked like
+        :meth:`_knots_valid`, but always the knots first: most candidates collide, and their few knots are cheap."""
+        ok = self._knots_valid(knots, dense=False)
+        if ok.any():
+            idx = torch.nonzero(ok, as_tuple=True)[0]
+            ok[idx] = self._dense_valid(knots[idx])
+        return ok
+
+    def _shortcut(self, T: torch.Tensor, chain: list, knots_of: list) -> list:
+        """Greedy shortcut of a tree branch ``chain`` (tree indices, root first): from each kept node, the farthest
+        later node of the branch reachable by one collision-free untracked local motion (checked densely; all
+        candidates of a node in one batch). Returns the kept edges (i, j, knots, interior), i -> j along the branch."""
+        out, i = [], 0
+        while i < len(chain) - 1:
+            later = list(range(i + 2, len(chain)))
+            j = i + 1
+            if later:
+                qa = T[chain[i]][None].expand(len(later), -1)
+                qb = T[torch.as_tensor([chain[x] for x in later], device=self.device)]
+                kn, ki = self.edge_knots(qa, qb, track=False)
+                ok = torch.nonzero(self._escape_free(kn), as_tuple=True)[0]
+                if len(ok):
+                    m = int(ok.max())
+                    j = later[m]
+                    out.append((chain[i], chain[j], kn[m], ki[m]))
+                    i = j
+                    continue
+            kn, ki = knots_of[chain[j]]
+            out.append((chain[i], chain[j], kn, ki))
+            i = j
+        return out
+
+    def _add_escapes(self, escapes: dict, end_node: dict, added_nodes: list) -> list:
+        """Add the escape searches' configurations (as query nodes, appended to ``added_nodes``) and their checked
+        edges (scored with Eq. 1 on their stored untracked knots) to the graph; returns the new edge ids."""
+        g = self.graph
+        eids = []
+        for k, esc in escapes.items():
+            if k not in end_node or not esc.success:
+                continue
+            nid = np.zeros(0, dtype=np.int64)
+            if len(esc.configs):
+                nid = np.asarray(g.add_nodes(esc.configs.double().cpu().numpy()), dtype=np.int64)
+                added_nodes.extend(int(n) for n in nid)
+                scores = self._node_score_slots()
+                scores[nid] = self.score_configs(esc.configs).double().cpu().numpy()
+
+            def node(i):
+                return end_node[k] if i < 0 else int(nid[i])
+
+            for pairs, (kn, ki), rm_end in ((esc.tree, esc.tree_knots, False), (esc.conn, esc.conn_knots, True)):
+                if not pairs:
+                    continue
+                ua = np.asarray([node(a) for a, _ in pairs])
+                vb = np.asarray([b if rm_end else node(b) for _, b in pairs])
+                qa, qb = kn[:, 0], kn[:, -1]
+                p = self._knots_perception(kn, ki)
+                new = self._add_query_edges(qa, qb, ua, vb, p, verified=True)
+                self._put_knots(np.asarray(new), ua, kn, ki)
+                eids.extend(new)
+        return eids
 
     def _repair_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
                       goal_costs: Optional[np.ndarray], res: PlanResult) -> PlanResult:
@@ -927,11 +1298,15 @@ class PSPRM:
 
     def _plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
                    goal_costs: Optional[np.ndarray] = None, extra_candidates: Optional[dict] = None,
-                   connect_k: Optional[int] = None) -> PlanResult:
+                   connect_k: Optional[int] = None, untracked: bool = False,
+                   escapes: Optional[dict] = None) -> PlanResult:
         """One query: connect start and goals to the roadmap and search (no repair).
 
         ``connect_k`` (default: the setting): nearest roadmap nodes each end tries. ``extra_candidates``: roadmap
-        node ids tried in addition, per end (key 0: the start, 1 + k: goal k).
+        node ids tried in addition, per end (key 0: the start, 1 + k: goal k). ``untracked``: a connection edge whose
+        re-aimed knots collide is kept with its untracked knots when those are free
+        (:meth:`_untracked_query_edges`). ``escapes``: per end (same keys), the :class:`EscapeResult` of the escape
+        search, whose configurations and checked edges are added as query nodes and edges.
 
         ``goal_costs`` (G,), optional: a non-negative terminal cost added to the path cost (Eq. 2 units) of reaching
         each goal, so one search picks the goal minimising path cost + terminal cost (the replanner's goal hysteresis).
@@ -1030,7 +1405,7 @@ class PSPRM:
                 # verifies it (usually one or two at each end): stored_knots() takes them from here
                 self._pending_query_knots = (np.asarray(eids, dtype=np.int64), np.asarray(ua), qa[near], qb[near])
             elif len(near):
-                ok, pe, kn, ki = self._query_edges(qa[near], qb[near])
+                ok, pe, kn, ki = self._query_edges(qa[near], qb[near], untracked=untracked)
                 keep = near[ok]
                 if len(keep):
                     ua = np.asarray(u_ids)[keep.cpu().numpy()]
@@ -1038,6 +1413,8 @@ class PSPRM:
                                                  pe[ok])
                     self._put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
+            if escapes:
+                added_edges.extend(self._add_escapes(escapes, dict(queries), added_nodes))
             search_goals, sink_w = goal_ids, None
             if goal_costs is not None and len(goal_ids) > 1:
                 tc = np.asarray(goal_costs, float).reshape(-1)
@@ -1052,6 +1429,7 @@ class PSPRM:
                                  c_m=0.0, c_p=np.nan, verified=1.0, checked=1.0)  # nothing to verify: no motion
                 added_edges.extend(int(e) for e in se)
                 search_goals = [sink]
+            self._untracked_fallback = bool(untracked)
             if not goal_ids:
                 res = None
             elif self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
@@ -1072,6 +1450,7 @@ class PSPRM:
             return result
         finally:
             self._pending_query_knots = None
+            self._untracked_fallback = False
             # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
             # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
             if added_edges:
@@ -1102,6 +1481,8 @@ class PSPRM:
         need = torch.as_tensor(chk[todo] < 0.5, device=self.device)
         if need.any():  # interior knots and the dense pieces between them (obstacles may have moved since build)
             ok[need] = self._knots_valid(knots[need], dense=True)
+        if self._untracked_fallback and not bool(ok.all()):
+            ok |= self._untracked_query_edges(todo, ok)
         chk[todo] = 1.0
         invalid = todo[~ok.cpu().numpy()]
         if len(invalid):
@@ -1118,6 +1499,30 @@ class PSPRM:
             w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
             weights = {int(e): float(x) for e, x in zip(sel, w)}
         return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
+
+    def _untracked_query_edges(self, edge_ids: np.ndarray, ok: torch.Tensor) -> torch.Tensor:
+        """Fallback of a repaired query: its connection edges (an end is a start/goal node) whose re-aimed knots
+        collide get their untracked knots (camera joints interpolated plainly, :meth:`edge_knots` with
+        ``track=False``), which replace the stored ones when they are collision-free (densely checked like every
+        edge). Returns (E,) bool: the edges rescued this way (their Eq. 1 score is then recomputed from those knots).
+        """
+        g = self.graph
+        out = torch.zeros(len(edge_ids), dtype=torch.bool, device=self.device)
+        mask = self.roadmap_mask()
+        ids = np.asarray(edge_ids, dtype=np.int64)
+        query = ~(mask[g.edge_u[ids]] & mask[g.edge_v[ids]])
+        cand = np.nonzero(~ok.cpu().numpy() & query)[0]
+        if len(cand) == 0:
+            return out
+        e = ids[cand]
+        knots, interior = self.edge_knots(self._t(g.configs[g.edge_u[e]]), self._t(g.configs[g.edge_v[e]]), track=False)
+        free = self._knots_valid(knots, dense=True)
+        if free.any():
+            fi = free.cpu().numpy()
+            self.knots.put(e[fi], knots[free], interior[free])  # stored u -> v direction; camera poses reset
+            g.edge_attribute("verified")[e[fi]] = 0.0  # score the new knots (Eq. 1) below
+            out[torch.as_tensor(cand[fi], device=self.device)] = True
+        return out
 
     @property
     def n_roadmap_nodes(self) -> int:
@@ -1162,10 +1567,19 @@ class PSPRM:
                                          verified=np.full(len(ua), float(verified)),
                                          checked=np.full(len(ua), float(verified))))
 
-    def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
-        """Validity and Eq. 1 perception of query edges (always scored in full, never lazily)."""
+    def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor, untracked: bool = False) -> tuple:
+        """Validity and Eq. 1 perception of query edges (always scored in full, never lazily); with ``untracked``,
+        edges whose re-aimed knots collide are tried with their untracked knots."""
         knots, interior = self._query_knots(qa, qb)
         ok = self._knots_valid(knots)
+        if untracked and not bool(ok.all()):
+            bad = torch.nonzero(~ok, as_tuple=True)[0]
+            kp, ip = self.edge_knots(qa[bad], qb[bad], track=False)
+            free = self._knots_valid(kp)
+            if free.any():
+                knots, interior = knots.clone(), interior.clone()
+                knots[bad[free]], interior[bad[free]] = kp[free], ip[free]
+                ok[bad[free]] = True
         p = torch.zeros(qa.shape[0], dtype=self.dtype, device=self.device)
         if ok.any():
             p[ok] = self._knots_perception(knots[ok], interior[ok])
