@@ -447,6 +447,18 @@ def _curve_limit_ratio(run: _Run, v: np.ndarray, a: np.ndarray, per_interval: in
 
 
 @functools.lru_cache(maxsize=1)
+def _memoize_solver_lookup() -> None:
+    """toppra's TOPP-RA constructor asks importlib for its optional solver packages (qpOASES, cvxpy) on every call,
+    whichever solver it is given: about 3 ms per replan of 10 phases. Their presence does not change while the
+    process runs, so the answer is looked up once and ``toppra.solverwrapper.available_solvers`` returns it from then
+    on (a process-wide change of toppra's module; the same answer)."""
+    import toppra.solverwrapper as sw
+
+    found = sw.available_solvers(output_msg=False)
+    sw.available_solvers = lambda output_msg=True: found
+
+
+@functools.lru_cache(maxsize=1)
 def _quiet_constraints() -> tuple[type, type]:
     """toppra's joint velocity / acceleration constraints without the log string their constructors build from
     the limit arrays (numpy array printing, ~1 ms per pair: as long as the TOPP-RA solve of a short phase).
@@ -480,6 +492,7 @@ def _profile_curve(run: _Run, v: np.ndarray, a: np.ndarray, n_grid: int,
     vector (their constructors format the limits into log strings: ~2 ms each)."""
     import toppra.algorithm as ta_algo
 
+    _memoize_solver_lookup()
     sb = run.s_breaks  # uniform points, the waypoints and 2 points inside every PCHIP piece
     inner = (sb[:-1, None] + np.diff(sb)[:, None] * np.array([1.0 / 3.0, 2.0 / 3.0])[None, :]).reshape(-1)
     grid = np.unique(np.concatenate([np.linspace(0.0, run.length, n_grid), sb, inner]))
@@ -508,6 +521,7 @@ def _profile_toppra(run: _Run, v: np.ndarray, a: np.ndarray, n_grid: int) -> tup
     import toppra.algorithm as ta_algo
     import toppra.constraint as ta_con
 
+    _memoize_solver_lookup()
     moving = np.any(np.abs(run.dirs) > 0, axis=0)
     v = np.where(moving, v, np.maximum(v, 1.0))  # joints that do not move: any finite limit
     a = np.where(moving, a, np.maximum(a, 1.0))
