@@ -71,9 +71,9 @@ def _free(robot, scene, q) -> bool:
 
 
 def test_dead_end_is_left_by_backing_out_then_turning(pocket, monkeypatch):
-    """The first query and the local repair cannot leave the dead end: the base cannot turn inside it and no roadmap
-    node lies on its heading line. The escape search runs only after the repair failed; it backs the robot out
-    along its heading, and the base turns only once outside. The path is
+    """The first query cannot leave the dead end: the base cannot turn inside it and no roadmap node lies on its
+    heading line. The escape search runs first after that failure (the slower local repair is not needed); it backs
+    the robot out along its heading, and the base turns only once outside. The path is
     collision-free (pybullet's exact check), drivable and starts and ends at the query's ends."""
     scene, robot, p = pocket
     start, goal = _ends(robot)
@@ -84,7 +84,7 @@ def test_dead_end_is_left_by_backing_out_then_turning(pocket, monkeypatch):
     assert not p._plan_once(start, goal, timing=False).success  # what the old planner had
     res = p.plan(start, goal)
     assert res.success, res.reason
-    assert order == ["_repair_query", "_escape_query"] and "escape search" in res.reason
+    assert order == ["_escape_query"] and "escape search" in res.reason
     W = res.waypoints
     assert np.allclose(W[0], start, atol=1e-5) and np.allclose(W[-1], goal, atol=1e-5)
     assert check_base_segments(W, (0, 1, 2), 1e-5) == []

@@ -96,7 +96,7 @@ class PSPRMSettings:
     query_wide_k: int = 0  # last resort (after the escape): each end tries its k nearest nodes, however far (0: off)
     query_untracked_fallback: bool = True  # escape/wide queries keep a connection with untracked camera joints
     # when its re-aimed version collides
-    query_escape_s: float = 0.0  # > 0: time (s) of the escape search of a query whose repair failed (0: off)
+    query_escape_s: float = 0.0  # > 0: time (s) of the escape search of a failed query, before the repair (0: off)
     query_escape_nodes: int = 1500  # at most this many configurations in an end's escape tree
     query_escape_radius: float = 2.5  # m: half the escape samples put the base within this distance of the end,
     # the others within twice that
@@ -913,7 +913,8 @@ class PSPRM:
         :meth:`_plan_once`.
 
         When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next to a wall where the
-        base cannot turn), the roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
+        base cannot turn), an escape search runs first (``query_escape_s`` > 0, below); if it does not succeed, the
+        roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
         start and each goal (up to 4), half of them along its heading (reachable by driving straight), and the query
         is repeated, connecting each end to every node grown for it and to its ``query_repair_connect_k`` nearest
         nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The nodes of a repair
@@ -922,15 +923,15 @@ class PSPRM:
         repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
         unreachable cannot make a long-running planner grow without end.
 
-        When the repair fails (and, like it, not once ``query_repair_failures`` is reached), two last resorts:
+        The two other stages (not once ``query_repair_failures`` is reached, like the repair):
 
-        - escape (``query_escape_s`` > 0): a bounded RRT-like search of differential-drive motions with the arm
+        - escape (``query_escape_s`` > 0), before the repair: a bounded RRT-like search of differential-drive motions with the arm
           moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the roadmap's
           largest component (:meth:`_escape`, ``query_escape_*``); its configurations and densely checked edges join
           the query as query nodes and edges, scored (Eq. 1) like any other edge, and the query is searched once
           more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed in: no
           collision-free motion out of it was found ..." when not one short motion out of it is free);
-        - wide (``query_wide_k`` > 0), when the escape did not succeed: each end tries its ``query_wide_k`` nearest
+        - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its ``query_wide_k`` nearest
           roadmap nodes, however far (long connections, checked and scored like any other), for ends whose few free
           motions lead beyond the repair's neighbours (a robot across a shelf aisle).
 
@@ -941,17 +942,18 @@ class PSPRM:
         if res.success or "reachable" not in res.reason or self.graph is None:
             return res
         t0 = time.perf_counter()
-        out = self._repair_query(start, goals, timing, goal_costs, res)
         s = self.settings
         k = s.query_wide_k
         # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
-        # and again): no escape or wide attempt either
+        # and again): no escape, repair or wide attempt
         escaped = None
-        if (not out.success and "reachable" in out.reason and s.query_escape_s > 0
-                and self._repair_failed < s.query_repair_failures):
+        out = res
+        if s.query_escape_s > 0 and self._repair_failed < s.query_repair_failures:
             escaped = self._escape_query(start, goals, timing, goal_costs)
             if escaped.success:
                 out = escaped
+        if not out.success:
+            out = self._repair_query(start, goals, timing, goal_costs, res)
         if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
                 and self._repair_failed < s.query_repair_failures):
             wide = self._plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
