@@ -511,3 +511,23 @@ def test_goal_hysteresis_keeps_the_current_goal(replanner, world):
     rp.set_goals(np.stack([other, current]))
     res = rp.replan()
     assert res.success and np.allclose(rp.goals[res.goal_index], current)
+
+
+def test_replan_runs_with_one_intra_op_thread(replanner, world, monkeypatch):
+    """A replan (re-scoring, invalidation, query) runs with torch's intra-op parallelism off and restores the thread
+    count afterwards."""
+    scene, _ = world
+    rp = replanner
+    seen = []
+    real = rp.planner.scorer.score
+    monkeypatch.setattr(rp.planner.scorer, "score", lambda cams: seen.append(torch.get_num_threads()) or real(cams))
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        pp = person_pose(scene, PersonMotion(target="person_face", body="person_body"), 2.8 - 0.8)
+        assert rp.update_target("person_face", *pp["target"])
+        assert rp.replan().success
+        assert seen and set(seen) == {1}
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(old)

@@ -34,6 +34,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from .. import fastpath
 from ..errors import PsprmError
 from ..yamlio import Fields, load_yaml
 from .psprm import PSPRM, PlanResult
@@ -302,7 +303,13 @@ class Replanner:
 
     def replan(self, now: Optional[float] = None) -> PlanResult:
         """Plan from the robot's state to the best goal under the latest poses (never a colliding path).
-        ``now``: the caller's clock for the replanning interval (default: monotonic)."""
+        ``now``: the caller's clock for the replanning interval (default: monotonic). Runs with torch's intra-op
+        parallelism off, like a query (:func:`~psprm_core.fastpath.one_thread`): its re-scoring batches are a few
+        thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
+        with fastpath.one_thread(self.planner.device):
+            return self._replan(now)
+
+    def _replan(self, now: Optional[float]) -> PlanResult:
         t0 = time.perf_counter()
         self._last_plan_time = time.monotonic() if now is None else now
         reasons = sorted(self._pending) if self.result is not None else ["no_plan"]
