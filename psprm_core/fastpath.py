@@ -251,10 +251,10 @@ def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
     (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
      pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
     lower, upper = _const64(checker.lower), _const64(checker.upper)
-    return _rows(kernels().check, 1, _f64(q.to(checker.dtype)), bool(detailed), all_bodies, parent, jtype, R_off, t_off, axis,
-                           D, off, mobile, lower, upper, bodies, body_c, body_r, box_c_b,
-                           box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els,
-                           box_c, box_R, box_h, box_aabb, 1e-6)
+    return _rows(kernels().check, 1, _f64(q.to(checker.dtype)), bool(detailed), all_bodies, parent, jtype, R_off,
+                 t_off, axis, D, off, mobile, lower, upper, bodies, body_c, body_r, box_c_b, box_h_b, el_start,
+                 el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb,
+                 1e-6)
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
@@ -365,7 +365,8 @@ def motion_distance(motion, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
 
 def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """:meth:`DiffDriveMotion.interpolate` of same-shape CPU batches."""
-    out = _rows(kernels().interpolate, 3, _f64(qa), _f64(qb), _f64(s).reshape(-1), float(motion.w_rot), bool(motion.mobile))
+    out = _rows(kernels().interpolate, 3, _f64(qa), _f64(qb), _f64(s).reshape(-1), float(motion.w_rot),
+                bool(motion.mobile))
     return torch.from_numpy(out).to(qa.dtype)
 
 
@@ -387,5 +388,6 @@ def nearest(motion, qq: torch.Tensor, rm: torch.Tensor, k: int) -> torch.Tensor:
 def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -> tuple:
     """Knots (E, M, dof) of the local motions qa -> qb before the camera joints re-aim, and the positions (E, N) of
     the Eq. 1 samples among them (the first half of ``PSPRM.edge_knots``)."""
-    kn, ki = _rows(kernels().edge_knot_seeds, 2, _f64(qa), _f64(qb), int(n_interp), float(motion.w_rot), bool(motion.mobile))
+    kn, ki = _rows(kernels().edge_knot_seeds, 2, _f64(qa), _f64(qb), int(n_interp), float(motion.w_rot),
+                   bool(motion.mobile))
     return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)

@@ -227,7 +227,8 @@ class PlanResult:
 
 
 def _one_thread(method: Callable) -> Callable:
-    """Run a planner method (a query: small batches) with torch's intra-op parallelism off (:func:`fastpath.one_thread`)."""
+    """Run a planner method (a query: small batches) with torch's intra-op parallelism off
+    (:func:`fastpath.one_thread`)."""
 
     @functools.wraps(method)
     def run(self, *args, **kwargs):
@@ -925,15 +926,15 @@ class PSPRM:
 
         The two other stages (not once ``query_repair_failures`` is reached, like the repair):
 
-        - escape (``query_escape_s`` > 0), before the repair: a bounded RRT-like search of differential-drive motions with the arm
-          moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the roadmap's
-          largest component (:meth:`_escape`, ``query_escape_*``); its configurations and densely checked edges join
-          the query as query nodes and edges, scored (Eq. 1) like any other edge, and the query is searched once
-          more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed in: no
+        - escape (``query_escape_s`` > 0), before the repair: a bounded RRT-like search of differential-drive motions
+          with the arm moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the
+          roadmap's largest component (:meth:`_escape`, ``query_escape_*``); its configurations and densely checked
+          edges join the query as query nodes and edges, scored (Eq. 1) like any other edge, and the query is
+          searched once more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed in: no
           collision-free motion out of it was found ..." when not one short motion out of it is free);
-        - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its ``query_wide_k`` nearest
-          roadmap nodes, however far (long connections, checked and scored like any other), for ends whose few free
-          motions lead beyond the repair's neighbours (a robot across a shelf aisle).
+        - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its
+          ``query_wide_k`` nearest roadmap nodes, however far (long connections, checked and scored like any other),
+          for ends whose few free motions lead beyond the repair's neighbours (a robot across a shelf aisle).
 
         In the escape's and the wide query (``query_untracked_fallback``), a connection edge whose re-aimed knots
         collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
