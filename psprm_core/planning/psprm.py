@@ -930,8 +930,8 @@ class PSPRM:
           with the arm moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the
           roadmap's largest component (:meth:`_escape`, ``query_escape_*``); its configurations and densely checked
           edges join the query as query nodes and edges, scored (Eq. 1) like any other edge, and the query is
-          searched once more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed in: no
-          collision-free motion out of it was found ..." when not one short motion out of it is free);
+          searched once more. An end it cannot get out of is named in the reason of a query that fails ("start is boxed
+          in: no collision-free motion out of it was found ..." when not one short motion out of it is free);
         - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its
           ``query_wide_k`` nearest roadmap nodes, however far (long connections, checked and scored like any other),
           for ends whose few free motions lead beyond the repair's neighbours (a robot across a shelf aisle).
