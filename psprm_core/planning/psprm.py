@@ -1026,7 +1026,7 @@ class PSPRM:
                 deadline: float) -> EscapeResult:
         """Bounded RRT-like escape search from a query end ``q0`` (dof,) to the roadmap nodes ``targets``.
 
-        For ends the repaired queries could not connect (a mobile manipulator boxed in between shelves, facing a wall,
+        For ends the first query could not connect (a mobile manipulator boxed in between shelves, facing a wall,
         its arm over a shelf): a tree of collision-free local motions grows from the end. Each round draws
         ``ESCAPE_BATCH`` random configurations (the base within ``query_escape_radius`` of the end for half of them,
         within twice that for the others, so that the tree can follow a long aisle out; any heading; the
