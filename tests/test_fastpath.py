@@ -4,7 +4,6 @@ off, and without numba (or for large batches, gradients) every call takes the to
 
 from __future__ import annotations
 
-import sys
 from unittest import mock
 
 import numpy as np
@@ -339,7 +338,13 @@ def test_warm_up_loads_the_query_kernels(load_robot):
         with mock.patch.object(search_kernels, "available", lambda: False), \
                 mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
             planner.warm_up()  # nothing compiled without numba
-    assert "toppra" in sys.modules  # the first plan's trajectory timing is loaded too
+    # the first plan's trajectory timing (TOPP-RA) is loaded too: a three-knot drive is timed, within the limits
+    with mock.patch.object(planner, "_timed", wraps=planner._timed) as timed:
+        planner.warm_up()
+    (W,), _ = timed.call_args
+    assert timed.call_count == 1 and W.shape == (3, robot.dof)
+    traj = planner._timed(W)
+    assert traj.times[-1] > 0 and np.allclose(traj.positions[-1], W[-1], atol=1e-6)
 
 
 def test_constant_inputs_follow_in_place_changes(load_robot):
