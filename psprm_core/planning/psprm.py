@@ -1016,8 +1016,8 @@ class PSPRM:
     def _nearest_ids(self, qq: torch.Tensor, pool: torch.Tensor, k: int) -> torch.Tensor:
         """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
         k = min(k, pool.shape[0])
-        if fastpath.motion_applies(qq, qq) and pool.device.type == "cpu":  # compiled, as in _plan_once
-            return fastpath.nearest(self.motion, qq, pool, k)
+        if fastpath.motion_applies(qq, qq) and pool.device.type == "cpu" and k > 0:
+            return fastpath.nearest(self.motion, qq, pool, k)  # one compiled pass that skips far nodes early
         d = self.motion.distance(qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
         return d.reshape(len(qq), -1).topk(k, largest=False).indices
 
@@ -1346,12 +1346,7 @@ class PSPRM:
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
             kk = min(connect_k or self.settings.connect_k, rm.shape[0])
-            if fastpath.motion_applies(qq, qq) and kk > 0:  # CPU: one compiled pass that skips far nodes early
-                cand = fastpath.nearest(self.motion, qq, rm, kk)
-            else:
-                d = self.motion.distance(qq.repeat_interleave(rm.shape[0], 0),
-                                         rm.repeat(len(qq), 1)).reshape(len(qq), -1)
-                cand = d.topk(kk, largest=False).indices  # (Q, kk)
+            cand = self._nearest_ids(qq, rm, kk)  # (Q, kk)
             src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
             qa, qb = qq[src], rm[dst]
