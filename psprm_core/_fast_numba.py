@@ -760,3 +760,145 @@ def mlp(x, w1, b1, ws, bs, wo, bo):  # pragma: no cover - compiled
             s += h[r, k] * wo[k]
         out[r] = 1.0 / (1.0 + math.exp(-s))
     return out
+
+
+# ---------------------------------------------------------------------------------------------- a query's edges
+@jit
+def _round32(a):  # pragma: no cover - compiled
+    """Round a C-contiguous float64 array to float32 values in place: the torch paths hold the planner's float32
+    tensors between the kernels, so the fused kernels below round where those paths cast."""
+    flat = a.reshape(-1)
+    for i in range(flat.shape[0]):
+        flat[i] = np.float64(np.float32(flat[i]))
+
+
+@jit
+def query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtype, R_off, t_off, axis, D, off,
+                rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance, far, th, tv, margin, lo, hi, tol,
+                max_iters, damping, max_step):  # pragma: no cover - compiled
+    """PSPRM.edge_knots of a few edges in one call: :func:`edge_knot_seeds`, then (``track``) the interior knots'
+    non-base camera joints re-aimed by :func:`project` (``max_iters`` = track_iters); with ``r32`` rounded to float32
+    after each stage, as the float32 torch path is. Returns (knots (E, M, dof), interior (E, N))."""
+    knots, interior = edge_knot_seeds(qa, qb, n_interp, w_rot, mobile)
+    if r32:
+        _round32(knots)
+    E, M, dof = knots.shape
+    if track and M > 2 and cols.shape[0] > 0:
+        inner = np.empty((E * (M - 2), dof))
+        for e in range(E):
+            for m in range(M - 2):
+                inner[e * (M - 2) + m] = knots[e, m + 1]
+        qn, _ = project(inner, order, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t,
+                        target, cols, line, min_distance, far, th, tv, margin, lo, hi, tol, max_iters, damping,
+                        max_step)
+        if r32:
+            _round32(qn)
+        for e in range(E):
+            for m in range(M - 2):
+                knots[e, m + 1] = qn[e * (M - 2) + m]
+    return knots, interior
+
+
+@jit
+def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
+                      all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies, body_c,
+                      body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+                      pairs, pair_els, box_c, box_R, box_h, box_aabb, eps,
+                      chain, cam_body, cam_R, cam_t, tgt, derived, w1, b1, ws, bs, wo, bo,
+                      has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir,
+                      tau, mlp_rows):  # pragma: no cover - compiled
+    """The lazy verification of a few edges from their knots (E, M, dof), in one call (PSPRM._verify_edges):
+
+    - ``do_check`` (E,): collision flags of the interior knots and of the points every ``resolution`` on the
+      pieces between consecutive knots (PSPRM._knots_valid, dense);
+    - ``do_score`` (E,), for edges found free: the camera poses of the Eq. 1 points (both ends and the N interior
+      samples, PSPRM._eq1_cameras) and their raw surrogate scores (pose features, :func:`mlp`), zeroed where the
+      ray-cast occlusion score exceeds ``tau`` (Alg. 2, lines 4-7; NeuralScorer.score); the MLP runs on chunks of
+      ``mlp_rows`` views, edge-aligned (the rows the compiled scorer takes per call).
+
+    With ``r32``, rounded to float32 where the float32 torch path casts. Returns (free (E,), cameras
+    (E, N + 2, 4, 4), raw scores (E, N + 2) float32; rows not scored are zero)."""
+    E, M, dof = knots.shape
+    N = interior.shape[1]
+    free = np.ones(E, np.bool_)
+    # collision: every interior knot and dense piece point of the edges to check, in one batch
+    n_rows = 0
+    nck = 0
+    for e in range(E):
+        if do_check[e]:
+            nck += 1
+    if nck > 0:
+        a = np.empty((nck * (M - 1), dof))
+        b = np.empty((nck * (M - 1), dof))
+        edge_of = np.empty(nck, np.int64)
+        j = 0
+        for e in range(E):
+            if do_check[e]:
+                edge_of[j] = e
+                for m in range(M - 1):
+                    a[j * (M - 1) + m] = knots[e, m]
+                    b[j * (M - 1) + m] = knots[e, m + 1]
+                j += 1
+        seg, pts = pieces(a, b, resolution, max_steps, False, w_rot, mobile)
+        if r32:
+            _round32(pts)
+        n_inner = nck * (M - 2)
+        q = np.empty((n_inner + pts.shape[0], dof))
+        for j in range(nck):
+            for m in range(M - 2):
+                q[j * (M - 2) + m] = knots[edge_of[j], m + 1]
+        q[n_inner:] = pts
+        n_rows = q.shape[0]
+        flags = check(q, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
+                      body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h,
+                      el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
+        for r in range(n_rows):
+            if flags[r, 0] or flags[r, 1] or flags[r, 2]:
+                if r < n_inner:
+                    free[edge_of[r // (M - 2)]] = False
+                else:
+                    free[edge_of[seg[r - n_inner] // (M - 1)]] = False
+    cams = np.zeros((E, N + 2, 4, 4))
+    raw = np.zeros((E, N + 2), np.float32)
+    ns = 0
+    for e in range(E):
+        if do_score[e] and free[e]:
+            ns += 1
+    if ns == 0:
+        return free, cams, raw
+    pts_q = np.empty((ns * (N + 2), dof))
+    edge_s = np.empty(ns, np.int64)
+    j = 0
+    for e in range(E):
+        if do_score[e] and free[e]:
+            edge_s[j] = e
+            base = j * (N + 2)
+            pts_q[base] = knots[e, 0]
+            for i in range(N):
+                pts_q[base + 1 + i] = knots[e, interior[e, i]]
+            pts_q[base + N + 1] = knots[e, M - 1]
+            j += 1
+    cp = camera_poses(pts_q, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t)
+    if r32:
+        _round32(cp)
+    feats = pose_features(cp, tgt, derived)
+    f32 = feats.astype(np.float32)
+    sc = np.empty(f32.shape[0], np.float32)
+    for c0 in range(0, f32.shape[0], mlp_rows):  # the scorer's calls: one per edge batch of at most mlp_rows views
+        c1 = min(c0 + mlp_rows, f32.shape[0])
+        sc[c0:c1] = mlp(f32[c0:c1], w1, b1, ws, bs, wo, bo)
+    if has_occ:
+        pos = np.empty((cp.shape[0], 3))
+        for r in range(cp.shape[0]):
+            for i in range(3):
+                pos[r, i] = cp[r, i, 3]
+        occ = occlusion(pos, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir)
+        for r in range(cp.shape[0]):
+            if (np.float32(occ[r]) > np.float32(tau)) if r32 else (occ[r] > tau):
+                sc[r] = np.float32(0.0)
+    for j in range(ns):
+        e = edge_s[j]
+        for p in range(N + 2):
+            cams[e, p] = cp[j * (N + 2) + p]
+            raw[e, p] = sc[j * (N + 2) + p]
+    return free, cams, raw

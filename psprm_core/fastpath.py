@@ -275,6 +275,18 @@ def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
     """Occlusion scores (B,) of camera positions (B, 3), as :meth:`OcclusionChecker.score` (Alg. 2, line 5)."""
     from .perception.occlusion import _EPS_DIR
 
+    _, pts_local, centre_local, fat_half, c, R, h = _occlusion_arrays(occ)
+    if len(c) == 0 or pts_local.shape[0] == 0:
+        return torch.zeros(pos.shape[0], dtype=pos.dtype)
+    out = _rows(kernels().occlusion, 1, _f64(pos), pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside),
+                              float(_EPS_DIR))
+    return torch.from_numpy(out).to(pos.dtype)
+
+
+def _occlusion_arrays(occ) -> tuple:
+    """(key, target points and centre in every box frame, boxes inflated by the points' radius, box centres,
+    rotations, half extents) of an :class:`~psprm_core.perception.occlusion.OcclusionChecker` (cached on it until its
+    boxes or points are replaced)."""
     key = (id(occ.boxes), id(occ.target_points))
     arr = getattr(occ, "_fast_arrays", None)
     if arr is None or arr[0] != key:
@@ -286,12 +298,7 @@ def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
         local = lambda p: np.einsum("...kj,kji->...ki", p[..., None, :] - c, R)  # noqa: E731 - R_k^T (p - c_k)
         arr = (key, np.ascontiguousarray(local(pts)), np.ascontiguousarray(local(centre)), h + r, c, R, h)
         occ._fast_arrays = arr
-    _, pts_local, centre_local, fat_half, c, R, h = arr
-    if len(c) == 0 or pts_local.shape[0] == 0:
-        return torch.zeros(pos.shape[0], dtype=pos.dtype)
-    out = _rows(kernels().occlusion, 1, _f64(pos), pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside),
-                              float(_EPS_DIR))
-    return torch.from_numpy(out).to(pos.dtype)
+    return arr
 
 
 def _mlp(model, cls: int) -> list:
@@ -391,3 +398,77 @@ def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -
     kn, ki = _rows(kernels().edge_knot_seeds, 2, _f64(qa), _f64(qb), int(n_interp), float(motion.w_rot),
                    bool(motion.mobile))
     return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)
+
+
+# ---------------------------------------------------------------------------------------------- a query's edges
+def _project_args(constraint, dtype: torch.dtype, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
+                  max_iters: int) -> tuple:
+    """The arguments of :func:`project` after ``q``, for ``max_iters`` steps."""
+    intr = constraint.intr
+    return (*_camera_args(constraint.robot), _const64(constraint.target, dtype), _i64(cols), constraint.kind == "line",
+            float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
+            float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(max_iters),
+            float(settings.damping), float(settings.max_step))
+
+
+def query_knots(motion, constraint, qa: torch.Tensor, qb: torch.Tensor, n_interp: int, track: bool, settings,
+                lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray, max_iters: int) -> tuple:
+    """``PSPRM.edge_knots`` of a few edges (E, dof) in one compiled call: knots (E, M, dof) in the dtype of ``qa``
+    and the Eq. 1 sample positions (E, N) (same values as :func:`edge_knot_seeds` followed by :func:`project` of
+    the interior knots over ``cols``)."""
+    kn, ki = kernels().query_knots(_f64(qa), _f64(qb), int(n_interp), float(motion.w_rot), bool(motion.mobile),
+                                   bool(track and len(cols)), qa.dtype == torch.float32,
+                                   *_project_args(constraint, qa.dtype, settings, lo, hi, cols, max_iters))
+    return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)
+
+
+def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
+    """The surrogate and occlusion arrays of a single-target neural scorer (``NeuralScorer``: ``model``,
+    ``target_pose``, ``class_name``, ``occ``, ``tau``) for :func:`check_score_knots` of cameras in ``dtype``, or None
+    when the compiled scoring does not apply (another scorer, a model off the CPU or not float32)."""
+    from .perception.occlusion import _EPS_DIR
+
+    model = getattr(scorer, "model", None)
+    if getattr(scorer, "name", None) != "neural" or model is None or getattr(model, "device", None) is None or \
+            model.device.type != "cpu" or not isinstance(getattr(scorer, "class_name", None), str):
+        return None
+    _, compiled = _mlp(model, int(model.class_index(scorer.class_name)))
+    if compiled is None:
+        return None
+    tgt = _const64(scorer.target_pose, dtype)  # the scorer casts the target pose to the cameras' dtype
+    occ = scorer.occ
+    if occ is not None:
+        _, pts_local, centre_local, fat_half, c, R, h = _occlusion_arrays(occ)
+        has_occ = len(c) > 0 and pts_local.shape[0] > 0
+        count_inside = bool(occ.count_inside)
+    else:
+        has_occ, count_inside = False, False
+    if not has_occ:  # typed placeholders: the kernel skips the rays
+        pts_local, centre_local = np.zeros((1, 0, 3)), np.zeros((0, 3))
+        fat_half = c = h = np.zeros((0, 3))
+        R = np.zeros((0, 3, 3))
+    return (tgt, bool(model.derived), *compiled, bool(has_occ), pts_local, centre_local, fat_half, c, R, h,
+            count_inside, float(_EPS_DIR), float(getattr(scorer, "tau", 0.5)))
+
+
+def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.Tensor, interior: torch.Tensor,
+                      do_check: np.ndarray, do_score: np.ndarray, resolution: float, max_steps: int) -> tuple:
+    """The lazy verification of a few edges in one compiled call (``PSPRM._verify_edges``): collision-free flags
+    (E,) of their knots (E, M, dof) and dense pieces (where ``do_check``), and for the free ones (where
+    ``do_score``) the camera poses (E, N + 2, 4, 4) of their Eq. 1 points and the raw scores (E, N + 2) of the
+    neural scorer (``scorer_args`` from :func:`neural_args`; the MLP in chunks of whole edges within
+    :data:`MLP_MAX_ROWS` views). Free flags are True for rows not checked."""
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
+    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
+    chain, _, _, _, _, _, _, _, _, cam_body, cam_R, cam_t = _camera_args(robot)
+    free, cams, raw = kernels().check_score_knots(
+        _f64(knots), _i64(interior), np.ascontiguousarray(do_check, dtype=np.bool_),
+        np.ascontiguousarray(do_score, dtype=np.bool_), knots.dtype == torch.float32, float(resolution), int(max_steps),
+        float(motion.w_rot),
+        bool(motion.mobile), all_bodies, parent, jtype, R_off, t_off, axis, D, off, mobile,
+        _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b, box_h_b, el_start,
+        el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, 1e-6,
+        chain, cam_body, cam_R, cam_t, *scorer_args,
+        max(1, MLP_MAX_ROWS // (interior.shape[1] + 2)) * (interior.shape[1] + 2))
+    return free, torch.from_numpy(cams).to(knots.dtype), torch.from_numpy(raw)

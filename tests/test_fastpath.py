@@ -326,8 +326,7 @@ def test_warm_up_loads_the_query_kernels(load_robot):
                     scene.target(target).center, PSPRMSettings())
     assert planner.warm_up() > 0
     K = fastpath.kernels()
-    for name in ("check", "camera_poses", "project", "occlusion", "edge_knot_seeds", "pieces", "distance",
-                 "nearest"):
+    for name in ("check", "camera_poses", "project", "occlusion", "query_knots", "pieces", "distance", "nearest"):
         assert getattr(K, name).signatures, name
     S = search_kernels.kernels()
     for name in ("astar", "bfs_hops", "hops_decrease"):  # the roadmap searches' kernels too
@@ -398,3 +397,90 @@ def test_queries_run_with_one_intra_op_thread(load_robot):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(old)
+
+
+def _neural_scorer(scene, target: str, seed: int = 0):
+    """A NeuralScorer (with ray-cast occlusion) on a random surrogate whose scores spread over (0, 1)."""
+    from psprm_core.perception.scoring import NeuralScorer
+    from psprm_core.perception.surrogate import PerceptionSurrogate
+
+    torch.manual_seed(seed)
+    m = PerceptionSurrogate(sorted({scene.target(target).detector_class, "face", "tv"}))
+    m.fit_normalization(torch.randn(500, m.n_pose_features, dtype=torch.float64) * 2 + 0.5)
+    with torch.no_grad():
+        for p in m.net.parameters():
+            p *= 2.5
+        m.net[-1].bias.zero_()
+    return NeuralScorer(m, scene, target)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot):
+    """A lazy search's edges in one compiled call each: the knots (seeds, then the camera joints re-aimed) and the
+    verification (dense collision check, Eq. 1 camera poses, surrogate scores zeroed where occluded) are exactly
+    those of the kernels called one by one through the torch glue, in float32 (rounded between stages) and float64."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.target_names[0]
+    scorer = _neural_scorer(scene, target)
+    planner = PSPRM(robot, scene, scorer, scene.target(target).center, PSPRMSettings())
+    planner.dtype = dtype
+    rng = np.random.default_rng(21)
+    qa = torch.as_tensor(_configs(robot, scene, 1500, 20), dtype=dtype)
+    qa = qa[planner.checker.valid(qa)][:90]
+    qb = qa + torch.as_tensor(rng.normal(0, 0.15, qa.shape), dtype=dtype)  # short edges, some colliding
+    kn, ki = planner.edge_knots(qa, qb)
+    seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.n_interp)
+    assert torch.equal(kn, planner._track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
+    args = fastpath.neural_args(scorer, dtype)
+    n_free = n_zero = 0
+    for s0 in range(0, len(qa), 3):  # batches of three edges, as a lazy search verifies its path
+        k, i = kn[s0:s0 + 3], ki[s0:s0 + 3]
+        free, cams, raw = fastpath.check_score_knots(planner.motion, planner.checker, robot, args, k, i,
+                                                     np.ones(len(k), bool), np.ones(len(k), bool),
+                                                     planner.settings.edge_resolution, 200)
+        assert np.array_equal(free, planner._knots_valid(k, dense=True).numpy())
+        if free.any():
+            ref_cams = planner._eq1_cameras(k[free], i[free])
+            assert torch.equal(cams[free], ref_cams)
+            ref = scorer.score(ref_cams.reshape(-1, 4, 4)).reshape(int(free.sum()), -1)
+            assert torch.equal(raw[free].to(ref.dtype), ref)
+            n_free += int(free.sum())
+            n_zero += int((ref == 0).sum())
+        assert (raw[~free] == 0).all()
+    assert 5 <= n_free < len(qa) and n_zero > 0  # colliding and free edges, occluded (zeroed) views among them
+
+
+def test_planner_same_paths_with_the_fused_verification_on_and_off(load_robot, tmp_path):
+    """A neural planner's lazy searches verify their paths with the fused kernel; without it (the step-by-step
+    path) every query gives the same path, knots and cost (the step-by-step path scores more than four edges' views
+    with torch's GEMM, the fused one with the compiled MLP four edges at a time: float32 rounding apart)."""
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.problems[0].target
+    focus = scene.target(target).center
+    settings = PSPRMSettings(n_nodes=400, seed=5, query_repair_nodes=0)
+    a = PSPRM(robot, scene, _neural_scorer(scene, target), focus, settings)
+    assert a.build()["success"]
+    b = PSPRM(robot, scene, _neural_scorer(scene, target), focus, settings)
+    b.load(a.save(tmp_path / "roadmap.npz"))
+    probs = random_problems(robot, scene, a.checker, 8, np.random.default_rng(6), robot.default_configuration(),
+                            focus, aimed_only=True, aim_restarts=4)
+    fused = []
+    real = PSPRM._verify_compiled
+
+    def spy(self, *args):
+        out = real(self, *args)
+        fused.append(out is not None)
+        return out
+
+    solved = 0
+    for start, goal in probs:
+        with mock.patch.object(PSPRM, "_verify_compiled", spy):
+            ra = a.plan(start, goal, timing=False)
+        with mock.patch.object(PSPRM, "_verify_compiled", return_value=None):
+            rb = b.plan(start, goal, timing=False)
+        assert ra.success == rb.success
+        if ra.success:
+            solved += 1
+            assert ra.path_nodes == rb.path_nodes and ra.cost == pytest.approx(rb.cost, rel=1e-6)
+            assert np.array_equal(ra.waypoints, rb.waypoints)
+    assert solved >= len(probs) // 2 and fused and all(fused)

@@ -16,12 +16,9 @@ def _less(ka, na, kb, nb):  # pragma: no cover - compiled
 
 @jit
 def _push(keys, nodes, size, key, node):  # pragma: no cover - compiled
-    if size == keys.shape[0]:
-        nk = np.empty(2 * size, np.float64)
-        nn = np.empty(2 * size, np.int64)
-        nk[:size] = keys
-        nn[:size] = nodes
-        keys, nodes = nk, nn
+    """Binary-heap push into the preallocated ``keys``/``nodes`` (room for it guaranteed by the caller); returns the
+    new size. The buffers are filled in place, never reallocated: an array variable reassigned inside the search
+    loop costs numba a reference-count update per push (the kernels ran 2-3x slower that way)."""
     i = size
     while i > 0:
         p = (i - 1) >> 1
@@ -33,7 +30,7 @@ def _push(keys, nodes, size, key, node):  # pragma: no cover - compiled
             break
     keys[i] = key
     nodes[i] = node
-    return keys, nodes, size + 1
+    return size + 1
 
 
 @jit
@@ -66,6 +63,8 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
 
     Returns ``(goal or -1, cost, expanded, hit_limit, parent, parent_edge)``; with a consistent ``h`` a closed
     node is final (Eqs. 5-6), so closed neighbours are skipped; ``h = inf`` prunes a node (no goal reachable).
+    The heap holds at most one entry per directed edge (a node is expanded once, and pushes a neighbour only
+    when it improves its g) plus the start, so it is allocated once with that capacity.
     """
     n = deg.shape[0]
     inf = np.inf
@@ -73,11 +72,13 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
     parent = np.full(n, -1, np.int64)
     pedge = np.full(n, -1, np.int64)
     closed = np.zeros(n, np.bool_)
-    keys = np.empty(256, np.float64)
-    nodes = np.empty(256, np.int64)
-    size = 0
+    cap = 1
+    for u in range(n):
+        cap += deg[u]
+    keys = np.empty(cap, np.float64)
+    nodes = np.empty(cap, np.int64)
     g[start] = 0.0
-    keys, nodes, size = _push(keys, nodes, size, h[start] if use_h else 0.0, start)
+    size = _push(keys, nodes, 0, h[start] if use_h else 0.0, start)
     expanded = 0
     while size > 0:
         u, size = _pop(keys, nodes, size)
@@ -105,7 +106,7 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
                 g[v] = nd
                 parent[v] = u
                 pedge[v] = e
-                keys, nodes, size = _push(keys, nodes, size, key, v)
+                size = _push(keys, nodes, size, key, v)
     return -1, inf, expanded, False, parent, pedge
 
 
@@ -136,16 +137,30 @@ def _relax_fifo(nbr, deg, hops, queue, tail):  # pragma: no cover - compiled
 
 @jit
 def bfs_hops(nbr, deg, goals, n):  # pragma: no cover - compiled
-    """Multi-source BFS: hop distance of the first ``n`` nodes to the nearest goal (``inf`` if unreachable)."""
+    """Multi-source BFS: hop distance of the first ``n`` nodes to the nearest goal (``inf`` if unreachable).
+
+    Every node enters the queue at most once (its label is final when first set), so the queue is one array of
+    ``n`` slots, never grown (see :func:`_push` on why that matters)."""
     hops = np.full(n, np.inf)
-    queue = np.empty(max(n, 16), np.int64)
+    queue = np.empty(max(n, 1), np.int64)
     tail = 0
     for q in goals:
         if hops[q] == np.inf:
             hops[q] = 0.0
             queue[tail] = q
             tail += 1
-    return _relax_fifo(nbr, deg, hops, queue, tail)
+    head = 0
+    while head < tail:
+        u = queue[head]
+        head += 1
+        hu = hops[u] + 1.0
+        for j in range(deg[u]):
+            v = nbr[u, j]
+            if v < n and hu < hops[v]:
+                hops[v] = hu
+                queue[tail] = v
+                tail += 1
+    return hops
 
 
 @jit

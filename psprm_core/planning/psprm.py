@@ -600,7 +600,11 @@ class PSPRM:
         self.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
         if score:
             self.score_configs(q)
-        self.edge_knots(q, qb)
+        kn, ki = self.edge_knots(q, qb)
+        args = fastpath.neural_args(self.scorer, self.dtype)
+        if args is not None:  # the lazy verification's compiled check and Eq. 1 scoring (the surrogate, not a view)
+            fastpath.check_score_knots(self.motion, self.checker, self.robot, args, kn, ki, np.ones(2, bool),
+                                       np.ones(2, bool), self.settings.edge_resolution, 200)
         self._pieces(q, qb, max_steps=200, include_start=False)
         self.motion.distance(q, qb)
         fastpath.nearest(self.motion, q, qb, 1)
@@ -716,7 +720,11 @@ class PSPRM:
         """
         E, n = qa.shape[0], self.settings.n_interp
         dt, dev = qa.dtype, qa.device
-        if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # a query's few edges (or bulk): compiled
+        if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: one call
+            ps = self.settings.projection
+            return fastpath.query_knots(self.motion, self.constraint, qa, qb, n, track, ps, self._lo, self._hi,
+                                        self.track_cols, self.settings.track_iters)
+        if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # bulk: compiled, in row chunks
             knots, interior_idx = fastpath.edge_knot_seeds(self.motion, qa, qb, n)
             return (self._track_knots(knots) if track else knots), interior_idx
         if self.robot.mobile:
@@ -1475,6 +1483,9 @@ class PSPRM:
         if len(todo) == 0:
             return EdgeCheck()
         knots, interior = self.stored_knots(todo)
+        fused = self._verify_compiled(todo, knots, interior)
+        if fused is not None:
+            return fused
         ok = torch.ones(len(todo), dtype=torch.bool, device=self.device)
         need = torch.as_tensor(chk[todo] < 0.5, device=self.device)
         if need.any():  # interior knots and the dense pieces between them (obstacles may have moved since build)
@@ -1492,6 +1503,40 @@ class PSPRM:
         if score.any():
             sel = todo[score.cpu().numpy()]
             p = self._stored_perception(sel).double().cpu().numpy()
+            g.edge_attribute("c_p")[sel] = p
+            ver[sel] = 1.0
+            w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
+            weights = {int(e): float(x) for e, x in zip(sel, w)}
+        return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
+
+    def _verify_compiled(self, todo: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> Optional[EdgeCheck]:
+        """:meth:`_verify_edges` of a search's few edges in one compiled call (dense collision check, Eq. 1 camera
+        poses and surrogate scores with occlusion: :func:`~psprm_core.fastpath.check_score_knots`), with the same
+        results; None when it does not apply (another scorer, a GPU, a large batch, the untracked fallback)."""
+        g = self.graph
+        ver, chk = g.edge_attribute("verified"), g.edge_attribute("checked")
+        if (self._untracked_fallback or len(todo) > SMALL_BATCH or knots.shape[1] <= 2
+                or not fastpath.applies(knots)):
+            return None
+        args = fastpath.neural_args(self.scorer, self.dtype)
+        if args is None:
+            return None
+        do_check, do_score = chk[todo] < 0.5, ver[todo] < 0.5
+        ok, cams, raw = fastpath.check_score_knots(self.motion, self.checker, self.robot, args, knots, interior,
+                                                   do_check, do_score, self.settings.edge_resolution, 200)
+        chk[todo] = 1.0
+        invalid = todo[~ok]
+        if len(invalid):
+            g.remove_edges(invalid)
+            rc = invalid[invalid < len(self._recheck)]
+            self._blocked_edges.update(rc[self._recheck[rc]].tolist())
+        weights = {}
+        score = do_score & ok
+        if score.any():
+            sel = todo[score]
+            self.knots.put_cams(sel, cams[torch.from_numpy(score)])
+            sc = self._normalized(raw[torch.from_numpy(score)].to(self.dtype))
+            p = edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).double().numpy()
             g.edge_attribute("c_p")[sel] = p
             ver[sel] = 1.0
             w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
