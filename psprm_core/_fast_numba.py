@@ -800,6 +800,34 @@ def query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtyp
 
 
 @jit
+def neural_scores(q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t, tgt,
+                  derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside,
+                  eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
+    """Camera poses (B, 4, 4) of configurations q (B, dof) and their raw neural scores (B,) float32 (NeuralScorer.score
+    of RobotModel.camera_poses: pose features, :func:`mlp` on chunks of ``mlp_rows`` views, zero where the ray-cast
+    occlusion score exceeds ``tau``; Alg. 2, lines 4-7), rounded to float32 after the poses with ``r32``."""
+    cp = camera_poses(q, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t)
+    if r32:
+        _round32(cp)
+    feats = pose_features(cp, tgt, derived)
+    f32 = feats.astype(np.float32)
+    sc = np.empty(f32.shape[0], np.float32)
+    for c0 in range(0, f32.shape[0], mlp_rows):  # the scorer's calls: one per batch of at most mlp_rows views
+        c1 = min(c0 + mlp_rows, f32.shape[0])
+        sc[c0:c1] = mlp(f32[c0:c1], w1, b1, ws, bs, wo, bo)
+    if has_occ:
+        pos = np.empty((cp.shape[0], 3))
+        for r in range(cp.shape[0]):
+            for i in range(3):
+                pos[r, i] = cp[r, i, 3]
+        occ = occlusion(pos, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir)
+        for r in range(cp.shape[0]):
+            if (np.float32(occ[r]) > np.float32(tau)) if r32 else (occ[r] > tau):
+                sc[r] = np.float32(0.0)
+    return cp, sc
+
+
+@jit
 def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
                       all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies, body_c,
                       body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
@@ -878,27 +906,59 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
                 pts_q[base + 1 + i] = knots[e, interior[e, i]]
             pts_q[base + N + 1] = knots[e, M - 1]
             j += 1
-    cp = camera_poses(pts_q, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t)
-    if r32:
-        _round32(cp)
-    feats = pose_features(cp, tgt, derived)
-    f32 = feats.astype(np.float32)
-    sc = np.empty(f32.shape[0], np.float32)
-    for c0 in range(0, f32.shape[0], mlp_rows):  # the scorer's calls: one per edge batch of at most mlp_rows views
-        c1 = min(c0 + mlp_rows, f32.shape[0])
-        sc[c0:c1] = mlp(f32[c0:c1], w1, b1, ws, bs, wo, bo)
-    if has_occ:
-        pos = np.empty((cp.shape[0], 3))
-        for r in range(cp.shape[0]):
-            for i in range(3):
-                pos[r, i] = cp[r, i, 3]
-        occ = occlusion(pos, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir)
-        for r in range(cp.shape[0]):
-            if (np.float32(occ[r]) > np.float32(tau)) if r32 else (occ[r] > tau):
-                sc[r] = np.float32(0.0)
+    cp, sc = neural_scores(pts_q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R,
+                           cam_t, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc,
+                           oR, oh, count_inside, eps_dir, tau, mlp_rows)
     for j in range(ns):
         e = edge_s[j]
         for p in range(N + 2):
             cams[e, p] = cp[j * (N + 2) + p]
             raw[e, p] = sc[j * (N + 2) + p]
     return free, cams, raw
+
+
+@jit
+def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, n_interp, w_rot, mobile, track, r32, order, parent,
+                 jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance,
+                 far, th, tv, margin, lo, hi, tol, max_iters, damping, max_step, do_check, do_score, resolution,
+                 max_steps, all_bodies, lower, upper, bodies, body_c, body_r, body_box_c, body_box_h, el_start,
+                 el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb,
+                 eps, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh,
+                 count_inside, eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
+    """A lazy search's verification of edges ``ids`` (E,) in one call (PSPRM._verify_edges): first the knots of the
+    ``compute`` ones (the query's connection edges, from their ends qa -> qb (C, dof), :func:`query_knots`) are
+    written into the knot store (``store_k`` (cap, M, dof), ``store_i`` (cap, N): the planner's tensors), reversed
+    where ``flip`` (C,) (the store keeps an edge's knots in its u -> v direction), then every edge is checked and
+    scored from the store by :func:`check_score_knots` (the camera chain is ``order``; ``all_bodies`` the collision
+    bodies' FK order). Returns (free (E,), cameras (E, N + 2, 4, 4), raw scores (E, N + 2))."""
+    E = ids.shape[0]
+    M, dof, N = store_k.shape[1], store_k.shape[2], store_i.shape[1]
+    if qa.shape[0] > 0:
+        kn, ki = query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtype, R_off, t_off, axis,
+                             D, off, rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance, far, th, tv,
+                             margin, lo, hi, tol, max_iters, damping, max_step)
+        j = 0
+        for e in range(E):
+            if compute[e]:
+                row = ids[e]
+                for m in range(M):
+                    src = M - 1 - m if flip[j] else m
+                    for d in range(dof):
+                        store_k[row, m, d] = kn[j, src, d]
+                for i in range(N):
+                    store_i[row, i] = M - 1 - ki[j, N - 1 - i] if flip[j] else ki[j, i]
+                j += 1
+    knots = np.empty((E, M, dof))
+    interior = np.empty((E, N), np.int64)
+    for e in range(E):
+        for m in range(M):
+            for d in range(dof):
+                knots[e, m, d] = store_k[ids[e], m, d]
+        for i in range(N):
+            interior[e, i] = store_i[ids[e], i]
+    return check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
+                             all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
+                             body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R,
+                             el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps, order, cam_body, cam_R,
+                             cam_t, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half,
+                             oc, oR, oh, count_inside, eps_dir, tau, mlp_rows)

@@ -115,6 +115,11 @@ def one_thread(device: torch.device | str = "cpu") -> Iterator[None]:
         torch.set_num_threads(n)
 
 
+def enabled() -> bool:
+    """Whether the compiled paths are on (numba importable, not switched off with :func:`disabled`)."""
+    return _state["enabled"] and available()
+
+
 def fits(rows: int, max_batch: int = MAX_BATCH) -> bool:
     """Whether a call over ``rows`` rows is small enough for the compiled path (any size inside :func:`bulk`)."""
     return 0 < rows and (rows <= max_batch or _state["bulk"] > 0)
@@ -472,3 +477,39 @@ def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.T
         chain, cam_body, cam_R, cam_t, *scorer_args,
         max(1, MLP_MAX_ROWS // (interior.shape[1] + 2)) * (interior.shape[1] + 2))
     return free, torch.from_numpy(cams).to(knots.dtype), torch.from_numpy(raw)
+
+
+def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor) -> torch.Tensor:
+    """Raw neural scores (B,) of configurations q (B, dof), in one compiled call (``scorer.score(robot.camera_poses(q))``
+    of a single-target neural scorer, ``scorer_args`` from :func:`neural_args`), in the dtype of ``q``; at most
+    :data:`MLP_MAX_ROWS` rows (the compiled MLP's, as the step-by-step path)."""
+    chain, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t = _camera_args(robot)
+    _, sc = kernels().neural_scores(_f64(q), q.dtype == torch.float32, chain, parent, jtype, R_off, t_off, axis, D, off,
+                                    mobile, cam_body, cam_R, cam_t, *scorer_args, MLP_MAX_ROWS)
+    return torch.from_numpy(sc).to(q.dtype)
+
+
+def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.ndarray, store_i: np.ndarray,
+                 ids: np.ndarray, compute: np.ndarray, qa: np.ndarray, qb: np.ndarray, flip: np.ndarray,
+                 n_interp: int, track: bool, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
+                 max_iters: int, do_check: np.ndarray, do_score: np.ndarray, resolution: float,
+                 max_steps: int) -> tuple:
+    """A lazy search's verification of edges ``ids`` in one compiled call (``PSPRM._verify_edges``): the knots of
+    the ``compute`` ones from their ends ``qa``, ``qb`` (C, dof) float64 of the planner's values, written into the
+    knot store's arrays ``store_k`` (cap, M, dof) / ``store_i`` (cap, N) (numpy views of its tensors; reversed where
+    ``flip``), then :func:`check_score_knots` of all of them from the store. Returns (free (E,), cameras
+    (E, N + 2, 4, 4) in the store's dtype, raw scores (E, N + 2) float32)."""
+    robot = checker.robot
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
+    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
+    dtype = torch.float32 if store_k.dtype == np.float32 else torch.float64
+    n_eq1 = n_interp + 2
+    free, cams, raw = kernels().verify_edges(
+        store_k, store_i, ids, compute, qa, qb, flip, int(n_interp), float(motion.w_rot), bool(motion.mobile),
+        bool(track and len(cols)), dtype == torch.float32,
+        *_project_args(constraint, dtype, settings, lo, hi, cols, max_iters), do_check, do_score, float(resolution),
+        int(max_steps), all_bodies, _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b,
+        box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h,
+        box_aabb, 1e-6, *scorer_args, max(1, MLP_MAX_ROWS // n_eq1) * n_eq1)
+    return free, torch.from_numpy(cams).to(dtype), torch.from_numpy(raw)

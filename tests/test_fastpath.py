@@ -418,7 +418,8 @@ def _neural_scorer(scene, target: str, seed: int = 0):
 def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot):
     """A lazy search's edges in one compiled call each: the knots (seeds, then the camera joints re-aimed) and the
     verification (dense collision check, Eq. 1 camera poses, surrogate scores zeroed where occluded) are exactly
-    those of the kernels called one by one through the torch glue, in float32 (rounded between stages) and float64."""
+    those of the kernels called one by one through the torch glue, in float32 (rounded between stages) and float64;
+    so are the start and goal scores (one call)."""
     robot, scene = _robot_scene("stretch2", load_robot)
     target = scene.target_names[0]
     scorer = _neural_scorer(scene, target)
@@ -432,6 +433,9 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.n_interp)
     assert torch.equal(kn, planner._track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
     args = fastpath.neural_args(scorer, dtype)
+    # a query's start and goal scores: one compiled call, the scorer's values
+    assert torch.equal(planner.score_configs(qa[:fastpath.MLP_MAX_ROWS]),
+                       scorer.score(robot.camera_poses(qa[:fastpath.MLP_MAX_ROWS])).to(dtype))
     n_free = n_zero = 0
     for s0 in range(0, len(qa), 3):  # batches of three edges, as a lazy search verifies its path
         k, i = kn[s0:s0 + 3], ki[s0:s0 + 3]

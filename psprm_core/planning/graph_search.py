@@ -221,11 +221,9 @@ def min_edge_cost(graph: Roadmap, weights: ArrayLike | None = None) -> float:
     """Minimum finite edge weight over the valid edges, Eq. 4 (0 when the roadmap has no finite edge)."""
     w = _weights_array(graph, weights)
     valid = np.asarray(graph.edge_valid)
-    vals = w[valid]
-    vals = vals[np.isfinite(vals)]
-    if vals.size == 0:
+    c = float(np.min(w, where=valid, initial=np.inf)) if w.size else np.inf  # no copy of the weights
+    if not np.isfinite(c):  # no finite edge (NaN weights are rejected when set)
         return 0.0
-    c = float(vals.min())
     if c < 0:
         raise ValueError("edge weights must be non-negative for the hop heuristic (Eqs. 5-6)")
     return c
@@ -389,6 +387,8 @@ def hop_heuristic(
     hops = hop_distances(graph, goals)
     c = min_edge_cost(graph, weights) if c_min is None else float(c_min)
     c *= _CMIN_SAFETY
+    if c > 0:
+        return hops * c  # inf stays inf
     with np.errstate(invalid="ignore"):
         h = hops * c
     h[~np.isfinite(hops)] = np.inf
@@ -693,10 +693,14 @@ def lazy_astar(
     total_expanded = 0
     result = _fail("max_iterations is 0")
     h_arr = None
+    h_cmin = None  # the c_min the hop heuristic was scaled with: hop distances found once stay lower bounds (the
+    # structure only loses edges while the search runs), so the heuristic is only rescaled when c_min drops
     stale = True  # exact heuristic: recompute after a weight decreased (increases keep it a consistent lower bound)
     for it in range(1, max_iterations + 1):
         if use_hop and goal_ids.size:
-            h_arr = hop_heuristic(graph, goal_ids, c_min=c_min)
+            if h_cmin != c_min:
+                h_arr = hop_heuristic(graph, goal_ids, c_min=c_min)
+                h_cmin = c_min
         elif use_exact and goal_ids.size and stale:
             h_arr = dijkstra(graph, goal_ids, w_arr)[0]
             stale = False

@@ -341,6 +341,22 @@ class KnotStore:
             inside = ids[ids < self.aabb.shape[0]]
             self.aabb[torch.as_tensor(inside, device=self.aabb.device)] = float("nan")
 
+    def reserve(self, n: int) -> None:
+        """Room for edge ids below ``n`` (the arrays must exist: after a first :meth:`put`)."""
+        if n > self.data.shape[0]:
+            self.put(np.asarray([n - 1]), self.data[:1].clone(), self.interior[:1].clone())
+            self.have[n - 1] = False
+
+    def written(self, ids: np.ndarray) -> None:
+        """Mark the knots of edges ``ids`` as stored after they were written into :attr:`data` / :attr:`interior`
+        directly (as :meth:`put` does: their camera poses and robot bounds are reset)."""
+        self.have[ids] = True
+        if len(self.cams_have):
+            self.cams_have[ids[ids < len(self.cams_have)]] = False
+        if self.aabb is not None:
+            inside = ids[ids < self.aabb.shape[0]]
+            self.aabb[torch.as_tensor(inside, device=self.aabb.device)] = float("nan")
+
     def knot_aabb(self, ids: np.ndarray) -> torch.Tensor:
         """(E, M, 6) cached robot bounds at the knots of edges ``ids`` (NaN where not computed yet)."""
         ids = np.asarray(ids, dtype=np.int64)
@@ -447,6 +463,8 @@ class PSPRM:
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
         self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
+        self._pending_rows: dict = {}  # their rows by edge id
+        self._pending_np = None  # ((qa, qb) in the planner's dtype, start ends, qa, qb float64) as numpy
         self._untracked_fallback = False  # set during the escape and wide queries (query_untracked_fallback)
         self._escapes = 0  # escape searches run (their random streams)
         self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
@@ -460,7 +478,12 @@ class PSPRM:
         return torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)
 
     def score_configs(self, q: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
-        """Perception scores (B,) of configurations: FK -> camera poses -> scorer."""
+        """Perception scores (B,) of configurations: FK -> camera poses -> scorer (a query's few configurations with
+        a neural scorer: one compiled call, the same values)."""
+        if q.shape[0] <= fastpath.MLP_MAX_ROWS and fastpath.applies(q):
+            args = fastpath.neural_args(self.scorer, q.dtype)
+            if args is not None:
+                return fastpath.neural_config_scores(self.robot, args, q).to(self.dtype)
         out = []
         for s in range(0, q.shape[0], chunk):
             qc = q[s:s + chunk]
@@ -1405,11 +1428,16 @@ class PSPRM:
                 ua, vb = np.asarray(u_ids)[nn], np.asarray(v_ids)[nn]
                 scale = getattr(self, "score_scale", 1.0)
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
-                eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False)
+                eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False,
+                                             dist=dist[near])
                 added_edges.extend(eids)
                 # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
                 # verifies it (usually one or two at each end): stored_knots() takes them from here
                 self._pending_query_knots = (np.asarray(eids, dtype=np.int64), np.asarray(ua), qa[near], qb[near])
+                self._pending_rows = {int(e): i for i, e in enumerate(eids)}
+                pa, pb = qa[near].detach().cpu(), qb[near].detach().cpu()
+                self._pending_np = ((pa.numpy(), pb.numpy()), np.asarray(ua), pa.double().numpy(),
+                                    pb.double().numpy())
             elif len(near):
                 ok, pe, kn, ki = self._query_edges(qa[near], qb[near], untracked=untracked)
                 keep = near[ok]
@@ -1456,6 +1484,7 @@ class PSPRM:
             return result
         finally:
             self._pending_query_knots = None
+            self._pending_rows, self._pending_np = {}, None
             self._untracked_fallback = False
             # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
             # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
@@ -1482,10 +1511,10 @@ class PSPRM:
         todo = np.asarray([e for e in edge_ids if ver[e] < 0.5 or chk[e] < 0.5], dtype=np.int64)
         if len(todo) == 0:
             return EdgeCheck()
-        knots, interior = self.stored_knots(todo)
-        fused = self._verify_compiled(todo, knots, interior)
+        fused = self._verify_compiled(todo)
         if fused is not None:
             return fused
+        knots, interior = self.stored_knots(todo)
         ok = torch.ones(len(todo), dtype=torch.bool, device=self.device)
         need = torch.as_tensor(chk[todo] < 0.5, device=self.device)
         if need.any():  # interior knots and the dense pieces between them (obstacles may have moved since build)
@@ -1509,21 +1538,47 @@ class PSPRM:
             weights = {int(e): float(x) for e, x in zip(sel, w)}
         return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
 
-    def _verify_compiled(self, todo: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> Optional[EdgeCheck]:
-        """:meth:`_verify_edges` of a search's few edges in one compiled call (dense collision check, Eq. 1 camera
-        poses and surrogate scores with occlusion: :func:`~psprm_core.fastpath.check_score_knots`), with the same
-        results; None when it does not apply (another scorer, a GPU, a large batch, the untracked fallback)."""
+    def _verify_compiled(self, todo: np.ndarray) -> Optional[EdgeCheck]:
+        """:meth:`_verify_edges` of a search's few edges in one compiled call: the knots of the query's connection
+        edges not computed yet, then the dense collision check, Eq. 1 camera poses and surrogate scores with occlusion
+        (:func:`~psprm_core.fastpath.verify_edges`), with the same results; None when it does not apply (another
+        scorer, a GPU, a large batch, the untracked fallback)."""
         g = self.graph
-        ver, chk = g.edge_attribute("verified"), g.edge_attribute("checked")
-        if (self._untracked_fallback or len(todo) > SMALL_BATCH or knots.shape[1] <= 2
-                or not fastpath.applies(knots)):
+        store = self.knots
+        if (self._untracked_fallback or len(todo) > SMALL_BATCH or self.device.type != "cpu" or store.data is None
+                or store.data.shape[1] <= 2 or not fastpath.applies(store.data[:1])):
             return None
         args = fastpath.neural_args(self.scorer, self.dtype)
         if args is None:
             return None
+        ver, chk = g.edge_attribute("verified"), g.edge_attribute("checked")
+        compute = ~store.known(todo)
+        rows = np.zeros(0, dtype=np.int64)
+        if compute.any():
+            pend = self._pending_rows
+            rows = np.asarray([pend.get(int(e), -1) for e in todo[compute]], dtype=np.int64)
+            if (rows < 0).any():  # not a connection edge of this query: computed the step-by-step way first
+                self.stored_knots(todo[compute][rows < 0])
+                compute = ~store.known(todo)
+                rows = np.asarray([pend[int(e)] for e in todo[compute]], dtype=np.int64)
+            hit = self._cached_query_knots(todo[compute], rows)
+            if hit.any():
+                compute = ~store.known(todo)
+                rows = rows[~hit]
+        store.reserve(int(todo.max()) + 1)
+        _, ua, qa, qb = self._pending_np if len(rows) else (None, rows, np.zeros((0, self.robot.dof)),
+                                                            np.zeros((0, self.robot.dof)))
+        cid = todo[compute]
+        flip = g.edge_u[cid] != ua[rows]
         do_check, do_score = chk[todo] < 0.5, ver[todo] < 0.5
-        ok, cams, raw = fastpath.check_score_knots(self.motion, self.checker, self.robot, args, knots, interior,
-                                                   do_check, do_score, self.settings.edge_resolution, 200)
+        ok, cams, raw = fastpath.verify_edges(
+            self.motion, self.constraint, self.checker, args, store.data.numpy(), store.interior.numpy(), todo,
+            compute, np.ascontiguousarray(qa[rows]), np.ascontiguousarray(qb[rows]), flip, self.settings.n_interp,
+            True, self.settings.projection, self._lo, self._hi, self.track_cols, self.settings.track_iters, do_check,
+            do_score, self.settings.edge_resolution, 200)
+        if len(cid):
+            store.written(cid)
+            self._cache_query_knots(cid, rows, flip)
         chk[todo] = 1.0
         invalid = todo[~ok]
         if len(invalid):
@@ -1542,6 +1597,37 @@ class PSPRM:
             w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
             weights = {int(e): float(x) for e, x in zip(sel, w)}
         return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
+
+    def _cached_query_knots(self, eids: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Store the knots of the query's connection edges ``eids`` (rows ``rows`` of the pending ends) found in the
+        query-knot cache (:meth:`_query_knots`); returns the (E,) hit flags."""
+        cache = self.knots.query
+        keys = self._pending_keys(rows)
+        hit = np.asarray([k in cache for k in keys], dtype=bool)
+        if hit.any():
+            _, ua, _, _ = self._pending_np
+            kn = torch.stack([cache[k][0] for k, h in zip(keys, hit) if h])
+            ki = torch.stack([cache[k][1] for k, h in zip(keys, hit) if h])
+            self._put_knots(eids[hit], ua[rows[hit]], kn, ki)
+        return hit
+
+    def _cache_query_knots(self, eids: np.ndarray, rows: np.ndarray, flip: np.ndarray) -> None:
+        """Keep the knots just computed for connection edges in the query-knot cache (in their ends' direction)."""
+        cache = self.knots.query
+        M = self.knots.data.shape[1]
+        kn, ki = self.knots.get(eids)
+        for j, key in enumerate(self._pending_keys(rows)):
+            if flip[j]:
+                cache[key] = (kn[j].flip(0), (M - 1 - ki[j]).flip(0))
+            else:
+                cache[key] = (kn[j], ki[j])
+        while len(cache) > QUERY_KNOT_CACHE:  # oldest first (dicts keep insertion order)
+            cache.pop(next(iter(cache)))
+
+    def _pending_keys(self, rows: np.ndarray) -> list:
+        """Query-knot cache keys (:meth:`_query_knots`) of pending connection edges (rows of the pending ends)."""
+        A, _, qa, qb = self._pending_np
+        return [A[0][i].tobytes() + A[1][i].tobytes() for i in rows]
 
     def _untracked_query_edges(self, edge_ids: np.ndarray, ok: torch.Tensor) -> torch.Tensor:
         """Fallback of a repaired query: its connection edges (an end is a start/goal node) whose re-aimed knots
@@ -1599,16 +1685,16 @@ class PSPRM:
             self._rm_cache_key = key
         return self._rm_cache
 
-    def _add_query_edges(self, qa, qb, ua, vb, p, verified: bool = True) -> list:
+    def _add_query_edges(self, qa, qb, ua, vb, p, verified: bool = True, dist: Optional[torch.Tensor] = None) -> list:
         """Add query edges with their Eq. 1 perception ``p`` (E,): validated and fully scored (``verified``), or
-        unchecked with an endpoint estimate (verified lazily by the search)."""
-        dist = self.motion.distance(qa, qb)
+        unchecked with an endpoint estimate (verified lazily by the search). ``dist``: their motion cost when known."""
+        if dist is None:
+            dist = self.motion.distance(qa, qb)
         c_m = (dist / self.max_motion).clamp(0, 1)
         w = combined_weight(p, c_m, self.settings.alpha)
         return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.double().cpu().numpy(),
                                          c_m=c_m.double().cpu().numpy(), c_p=p.double().cpu().numpy(),
-                                         verified=np.full(len(ua), float(verified)),
-                                         checked=np.full(len(ua), float(verified))))
+                                         verified=float(verified), checked=float(verified)))
 
     def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor, untracked: bool = False) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily); with ``untracked``,
@@ -1629,6 +1715,8 @@ class PSPRM:
         return ok, p, knots, interior
 
     def _finish(self, path: list, cost: float, timing: bool) -> PlanResult:
+        if self.device.type == "cpu" and fastpath.enabled() and self.knots.data is not None:
+            return self._finish_numpy(path, cost, timing)
         g = self.graph
         Q = self._t(g.configs[path])
         if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
@@ -1649,6 +1737,35 @@ class PSPRM:
             traj = self._timed(W.numpy())
         return PlanResult(True, "ok", path_nodes=list(path), waypoints=W.numpy(), dense=dense.numpy(),
                           trajectory=traj, cost=float(cost), path_length=length, score_fn=self._score_numpy)
+
+    def _finish_numpy(self, path: list, cost: float, timing: bool) -> PlanResult:
+        """:meth:`_finish` on the CPU with numpy and the compiled metric (a query's result: no torch calls)."""
+        g = self.graph
+        Q = g.configs[path].astype(np.float32 if self.dtype == torch.float32 else np.float64)
+        if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
+            eids = g.edge_ids_of_path(path)
+            if not self.knots.known(eids).all():
+                self.stored_knots(eids)
+            knots = self.knots.data.numpy()[eids]
+            flip = g.edge_u[eids] != np.asarray(path[:-1])
+            knots[flip] = knots[flip, ::-1]
+            W = np.concatenate([Q[:1], knots[:, 1:].reshape(-1, Q.shape[1])]).astype(np.float64)
+        else:
+            W = Q.astype(np.float64)
+        keep = np.ones(len(W), dtype=bool)
+        keep[1:] = np.abs(W[1:] - W[:-1]).max(-1) > 1e-7
+        W = np.ascontiguousarray(W[keep])
+        m, K = self.motion, fastpath.kernels()
+        if len(W) > 1:
+            _, pts = K.pieces(W[:-1], W[1:], float(self.settings.edge_resolution), 1000, True, float(m.w_rot),
+                              bool(m.mobile))
+            dense = np.concatenate([pts, W[-1:]])
+            length = float(K.distance(W[:-1], W[1:], float(m.w_rot), bool(m.mobile)).sum())
+        else:
+            dense, length = W, 0.0
+        traj = self._timed(W) if timing and len(W) > 1 else None
+        return PlanResult(True, "ok", path_nodes=list(path), waypoints=W, dense=dense, trajectory=traj,
+                          cost=float(cost), path_length=length, score_fn=self._score_numpy)
 
     def _timed(self, W: np.ndarray):
         """Time-parameterised trajectory through the knots ``W`` (K, dof) within the joint limits
