@@ -1429,7 +1429,7 @@ class PSPRM:
                 scale = getattr(self, "score_scale", 1.0)
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
                 eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False,
-                                             dist=dist[near])
+                                             dist=dist[near] if len(dist) == len(qa) else None)  # extras: unknown
                 added_edges.extend(eids)
                 # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
                 # verifies it (usually one or two at each end): stored_knots() takes them from here
