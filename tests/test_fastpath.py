@@ -329,7 +329,7 @@ def test_warm_up_loads_the_query_kernels(load_robot):
     for name in ("check", "camera_poses", "project", "occlusion", "query_knots", "pieces", "distance", "nearest"):
         assert getattr(K, name).signatures, name
     S = search_kernels.kernels()
-    for name in ("astar", "bfs_hops", "hops_decrease"):  # the roadmap searches' kernels too
+    for name in ("astar", "bfs_hops", "hops_decrease", "hop_columns"):  # the roadmap searches' kernels too
         assert getattr(S, name).signatures, name
     assert K.env_hits.signatures  # obstacle moves' re-checks
     with mock.patch.object(fastpath, "available", lambda: False):

@@ -179,3 +179,63 @@ def hops_decrease(nbr, deg, hops, eu, ev):  # pragma: no cover - compiled
             queue[tail] = a
             tail += 1
     return _relax_fifo(nbr, deg, hops, queue, tail)
+
+
+_DEBRUIJN_MUL = np.uint64(0x03F79D71B4CB0A89)
+# bit index of 2^i, looked up by (2^i * _DEBRUIJN_MUL) >> 58 (a de Bruijn sequence)
+_DEBRUIJN = np.array([
+    0, 1, 48, 2, 57, 49, 28, 3, 61, 58, 50, 42, 38, 29, 17, 4,
+    62, 55, 59, 36, 53, 51, 43, 22, 45, 39, 33, 30, 24, 18, 12, 5,
+    63, 47, 56, 27, 60, 41, 37, 16, 54, 35, 52, 21, 44, 32, 23, 11,
+    46, 26, 40, 15, 34, 20, 31, 10, 25, 14, 19, 9, 13, 8, 7, 6], np.int64)
+
+
+@jit
+def hop_columns(nbr, deg, n, lo, hi, out):  # pragma: no cover - compiled
+    """Hop distances between nodes below ``n`` from the sources ``lo <= s < hi`` into columns ``s`` of ``out``
+    (n, n) (uint8: saturated at 254, 255 = unreachable; the distances are symmetric, so the columns are the rows
+    too, and a node's 64 sources are written side by side); only nodes below ``n`` are traversed. Multi-source BFS
+    with bit masks (Then et al., "The More the Merrier: Efficient Multi-Source Graph Traversal", VLDB 2014): 64
+    sources share one pass over the edges per BFS level."""
+    one = np.uint64(1)
+    zero = np.uint64(0)
+    seen = np.empty(n, np.uint64)
+    front = np.empty(n, np.uint64)
+    nxt = np.empty(n, np.uint64)
+    for v in range(n):
+        for s in range(lo, hi):
+            out[v, s] = 255
+    for b0 in range(lo, hi, 64):
+        b1 = min(b0 + 64, hi)
+        seen[:] = zero
+        front[:] = zero
+        for s in range(b0, b1):
+            bit = one << np.uint64(s - b0)
+            seen[s] |= bit
+            front[s] |= bit
+            out[s, s] = 0
+        level = 0
+        active = True
+        while active:
+            level += 1
+            nxt[:] = zero
+            for u in range(n):
+                f = front[u]
+                if f != zero:
+                    for j in range(deg[u]):
+                        v = nbr[u, j]
+                        if v < n:
+                            nxt[v] |= f
+            active = False
+            lv = min(level, 254)
+            for v in range(n):
+                new = nxt[v] & ~seen[v]
+                front[v] = new
+                if new != zero:
+                    active = True
+                    seen[v] |= new
+                    while new != zero:  # each set bit: its index by a de Bruijn multiplication
+                        low = new & (~new + one)
+                        i = _DEBRUIJN[(low * _DEBRUIJN_MUL) >> np.uint64(58)]
+                        out[v, b0 + i] = lv
+                        new ^= low

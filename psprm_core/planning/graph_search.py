@@ -560,6 +560,8 @@ def warm_up() -> bool:
     astar(g, 0, [2], heuristic="hop")  # bfs_hops + astar
     g.add_edges(np.array([2]), np.array([3]), np.array([1.0]))
     astar(g, 0, [2], heuristic="hop")  # cached hops updated after the addition: hops_decrease
+    nbr, _, deg = g.array_adjacency()
+    search_kernels.kernels().hop_columns(nbr, deg, 4, 0, 4, np.empty((4, 4), dtype=np.uint8))  # a planner's hop table
     return True
 
 
@@ -631,6 +633,7 @@ def lazy_astar(
     max_expansions: int | None = None,
     apply_to_graph: bool = False,
     backend: Backend = "auto",
+    hops: np.ndarray | None = None,
 ) -> SearchResult:
     """Lazy A*: search, verify the unverified edges of the path, update, re-search until the path is verified.
 
@@ -666,6 +669,10 @@ def lazy_astar(
         If True, remove the invalid edges from the roadmap and write the updated weights into it.
     backend : {"auto", "python"}
         As in :func:`astar`.
+    hops : np.ndarray, optional
+        ``(n_nodes,)`` hop counts to the goals to scale by :math:`c^{\min}` (Eq. 3) instead of the BFS of
+        :func:`hop_distances`: any labelling that is 0 at the goals and changes by at most 1 along every edge of finite
+        weight (a lower bound of the hop distance over those edges) keeps the heuristic consistent.
 
     Returns
     -------
@@ -699,7 +706,10 @@ def lazy_astar(
     for it in range(1, max_iterations + 1):
         if use_hop and goal_ids.size:
             if h_cmin != c_min:
-                h_arr = hop_heuristic(graph, goal_ids, c_min=c_min)
+                if hops is None:
+                    h_arr = hop_heuristic(graph, goal_ids, c_min=c_min)
+                else:
+                    h_arr = hops * (c_min * _CMIN_SAFETY) if c_min > 0 else np.where(np.isfinite(hops), 0.0, np.inf)
                 h_cmin = c_min
         elif use_exact and goal_ids.size and stale:
             h_arr = dijkstra(graph, goal_ids, w_arr)[0]

@@ -37,6 +37,7 @@ from ..robot import RobotModel
 from ..scene import Scene
 from ..yamlio import Fields, load_yaml
 from .constraints import ProjectionSettings, VisibilityConstraint
+from . import search_kernels
 from .graph import Roadmap
 from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, lazy_astar, min_edge_cost
 
@@ -45,6 +46,7 @@ log = logging.getLogger(__name__)
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
 QUERY_KNOT_CACHE = 512  # start/goal query edges whose knots are kept (by end configurations)
 QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 max_edge_length is still tried with
+HOP_TABLE_MAX_NODES = 5000  # roadmaps up to this many nodes keep all their hop distances (uint8, 25 MB at most)
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 ESCAPE_BATCH = 32  # random extensions per round of the escape search (PSPRM._escape)
 ESCAPE_CONNECT = 32  # connections to the roadmap an escape round checks at most (the shortest)
@@ -462,6 +464,7 @@ class PSPRM:
         self.max_motion = 1.0
         self._unverified = False  # some roadmap edges carry endpoint-only perception estimates (after rescore)
         self.knots = KnotStore()
+        self._hop_table: Optional[tuple] = None  # (roadmap node slots, (R, R) uint8 hop distances), see _build_hop_table
         self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
         self._pending_rows: dict = {}  # their rows by edge id
         self._pending_np = None  # ((qa, qb) in the planner's dtype, start ends, qa, qb float64) as numpy
@@ -583,15 +586,87 @@ class PSPRM:
         self._roadmap_mask = np.ones(len(Q), dtype=bool)
         t3 = time.perf_counter()
         expand = self._expand(rng) if s.expand_rounds > 0 else {}
+        t4 = time.perf_counter()
+        self._build_hop_table()
         build_s = time.perf_counter() - t0
         self.stats = {
             "success": True, "n_nodes": int(self.n_roadmap_nodes), "n_edges": int(len(self.roadmap_edge_ids())),
             "samples_tried": int(tried), "sample_s": t_sample, "edges_s": t_edges, "score_s": t_score,
-            "build_s": build_s, "mean_node_score": float(node_scores.mean()),
+            "hop_table_s": time.perf_counter() - t4, "build_s": build_s, "mean_node_score": float(node_scores.mean()),
             **({"expand_s": time.perf_counter() - t3, **expand} if expand else {}),
         }
         log.info("PS-PRM built: %s", self.stats)
         return self.stats
+
+    def _build_hop_table(self) -> None:
+        """Hop distances between all roadmap nodes (uint8, :data:`HOP_TABLE_MAX_NODES` nodes at most), one BFS per
+        node on the bulk worker threads, so that a query gets the hop counts of Eq. 3 from the table rows of its
+        goals' neighbours (:meth:`_query_hops`) instead of a BFS over the whole roadmap. Kept while the roadmap only
+        loses edges (the table's counts are then lower bounds, and the heuristic stays consistent); roadmap nodes
+        added later (:meth:`grow`) drop it, and queries go back to the BFS."""
+        self._hop_table = None
+        R = len(self._roadmap_mask)
+        if (self.graph is None or not 2 <= R <= HOP_TABLE_MAX_NODES or self.settings.heuristic != "hop"
+                or not search_kernels.available()):
+            return
+        nbr, _, deg = self.graph.array_adjacency()
+        T = np.empty((R, R), dtype=np.uint8)
+        K = search_kernels.kernels()
+        workers = max(1, min(torch.get_num_threads(), 8))
+        step = 64 * max(1, -(-R // (64 * 2 * workers)))  # whole 64-source batches, two chunks per worker
+        chunks = [(lo, min(lo + step, R)) for lo in range(0, R, step)]
+        list(fastpath._pool(workers).map(lambda c: K.hop_columns(nbr, deg, R, c[0], c[1], T), chunks))
+        self._hop_table = (R, T)
+
+    def _query_hops(self, search_goals: Sequence[int], added_edges: Sequence[int]) -> Optional[np.ndarray]:
+        """Hop counts (n_nodes,) to ``search_goals`` for Eq. 3 from the hop table: 0 at the goals, for a roadmap node
+        1 + its table distance to the nearest roadmap neighbour of a goal-side query node (plus that node's own count),
+        then lowered along the query's edges ``added_edges`` (FIFO label correcting, which the start's edges need).
+        Over every edge of finite weight the counts change by at most 1 (table edges: the table's own distances,
+        lower bounds once edges are removed; query edges: the correction), so the hop heuristic stays consistent; a
+        retired query's edges (weight inf) are never relaxed by the search and may be ignored. None without a valid
+        table (then the search runs the BFS)."""
+        tab = getattr(self, "_hop_table", None)
+        if tab is None or tab[0] != len(self._roadmap_mask) or not added_edges:
+            return None
+        R, T = tab
+        g = self.graph
+        e = np.asarray(added_edges, dtype=np.int64)
+        e = e[g.edge_valid[e] & np.isfinite(g.weights[e])]
+        eu, ev = g.edge_u[e], g.edge_v[e]
+        # the query nodes' counts among themselves (goal -> sink, start -> goal): a BFS over the query's own edges
+        adj: dict = {}
+        for a, b in zip(eu.tolist(), ev.tolist()):
+            if a >= R and b >= R:
+                adj.setdefault(a, []).append(b)
+                adj.setdefault(b, []).append(a)
+        lab = {int(x): 0 for x in search_goals}
+        frontier = list(lab)
+        while frontier:
+            nxt = []
+            for a in frontier:
+                for b in adj.get(a, ()):
+                    if b not in lab:
+                        lab[b] = lab[a] + 1
+                        nxt.append(b)
+            frontier = nxt
+        # roadmap nodes: through the table from the roadmap neighbours of the labelled query nodes
+        seeds: dict = {}
+        for a, b in zip(eu.tolist(), ev.tolist()):
+            for q, r in ((a, b), (b, a)):
+                if q >= R and r < R and q in lab:
+                    seeds.setdefault(lab[q] + 1, []).append(r)
+        nbr, _, deg = g.array_adjacency()
+        hops = np.full(deg.shape[0], np.inf)
+        for off, rows in seeds.items():
+            m = T[np.unique(rows)].min(0).astype(np.float64)
+            m[m == 255] = np.inf
+            np.minimum(hops[:R], m + off, out=hops[:R])
+        for q, c in lab.items():
+            hops[q] = c
+        hops = search_kernels.kernels().hops_decrease(nbr, deg, hops, np.ascontiguousarray(eu),
+                                                      np.ascontiguousarray(ev))
+        return hops[: g.n_nodes]
 
     def warm_up(self, score: bool = True) -> float:
         """Compile (first run after an install or a change of the kernels' source) or load from numba's disk cache
@@ -1467,8 +1542,9 @@ class PSPRM:
             if not goal_ids:
                 res = None
             elif self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
+                hops = self._query_hops(search_goals, added_edges) if self.settings.heuristic == "hop" else None
                 res = lazy_astar(g, s_id, search_goals, self._verify_edges, heuristic=self.settings.heuristic,
-                                 apply_to_graph=True)
+                                 apply_to_graph=True, hops=hops)
             else:
                 res = astar(g, s_id, search_goals, heuristic=self.settings.heuristic)
             if res is None or not res.success:
@@ -2191,3 +2267,4 @@ class PSPRM:
         self.max_motion = float(data["max_motion"])
         self.score_scale = float(data["score_scale"])
         self.stats = json.loads(str(data["stats"]))
+        self._build_hop_table()
