@@ -326,10 +326,11 @@ def test_warm_up_loads_the_query_kernels(load_robot):
                     scene.target(target).center, PSPRMSettings())
     assert planner.warm_up() > 0
     K = fastpath.kernels()
-    for name in ("check", "camera_poses", "project", "occlusion", "query_knots", "pieces", "distance", "nearest"):
+    for name in ("check", "camera_poses", "project", "occlusion", "query_knots", "edge_knot_seeds", "pieces", "distance",
+                 "nearest"):
         assert getattr(K, name).signatures, name
     S = search_kernels.kernels()
-    for name in ("astar", "bfs_hops", "hops_decrease", "hop_columns"):  # the roadmap searches' kernels too
+    for name in ("astar", "bfs_hops", "hops_decrease", "hop_columns", "query_hops"):  # the roadmap searches' kernels too
         assert getattr(S, name).signatures, name
     assert K.env_hits.signatures  # obstacle moves' re-checks
     with mock.patch.object(fastpath, "available", lambda: False):

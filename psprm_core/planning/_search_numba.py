@@ -239,3 +239,40 @@ def hop_columns(nbr, deg, n, lo, hi, out):  # pragma: no cover - compiled
                         i = _DEBRUIJN[(low * _DEBRUIJN_MUL) >> np.uint64(58)]
                         out[v, b0 + i] = lv
                         new ^= low
+
+
+@jit
+def query_hops(table, R, nbr, deg, eu, ev, goals):  # pragma: no cover - compiled
+    """A query's hop counts (rows of ``deg``,) to ``goals`` from a hop table (R, R) (PSPRM._query_hops): 0 at the
+    goals, the other query nodes (ids >= R) by a BFS over the query's own edges ``(eu, ev)`` among them, each roadmap
+    node 1 + the smallest table distance to a roadmap neighbour of a labelled query node plus that node's count, then
+    lowered along the query's edges by FIFO label correcting (:func:`hops_decrease`)."""
+    rows = deg.shape[0]
+    inf = np.inf
+    hops = np.full(rows, inf)
+    for q in goals:
+        hops[q] = 0.0
+    m = eu.shape[0]
+    changed = True
+    while changed:  # Bellman-Ford over the few query-query edges
+        changed = False
+        for i in range(m):
+            a, b = eu[i], ev[i]
+            if a >= R and b >= R:
+                if hops[a] + 1.0 < hops[b]:
+                    hops[b] = hops[a] + 1.0
+                    changed = True
+                elif hops[b] + 1.0 < hops[a]:
+                    hops[a] = hops[b] + 1.0
+                    changed = True
+    for i in range(m):
+        for k in range(2):
+            q, r = (eu[i], ev[i]) if k == 0 else (ev[i], eu[i])
+            if q >= R and r < R and hops[q] < inf:
+                off = hops[q] + 1.0
+                row = table[r]
+                for x in range(R):
+                    t = row[x]
+                    if t != 255 and t + off < hops[x]:
+                        hops[x] = t + off
+    return hops_decrease(nbr, deg, hops, eu, ev)

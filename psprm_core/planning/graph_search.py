@@ -561,7 +561,9 @@ def warm_up() -> bool:
     g.add_edges(np.array([2]), np.array([3]), np.array([1.0]))
     astar(g, 0, [2], heuristic="hop")  # cached hops updated after the addition: hops_decrease
     nbr, _, deg = g.array_adjacency()
-    search_kernels.kernels().hop_columns(nbr, deg, 4, 0, 4, np.empty((4, 4), dtype=np.uint8))  # a planner's hop table
+    table = np.empty((4, 4), dtype=np.uint8)
+    search_kernels.kernels().hop_columns(nbr, deg, 4, 0, 4, table)  # a planner's hop table, and a query's counts
+    search_kernels.kernels().query_hops(table, 3, nbr, deg, np.array([2]), np.array([3]), np.array([3]))
     return True
 
 

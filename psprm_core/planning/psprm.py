@@ -633,39 +633,10 @@ class PSPRM:
         g = self.graph
         e = np.asarray(added_edges, dtype=np.int64)
         e = e[g.edge_valid[e] & np.isfinite(g.weights[e])]
-        eu, ev = g.edge_u[e], g.edge_v[e]
-        # the query nodes' counts among themselves (goal -> sink, start -> goal): a BFS over the query's own edges
-        adj: dict = {}
-        for a, b in zip(eu.tolist(), ev.tolist()):
-            if a >= R and b >= R:
-                adj.setdefault(a, []).append(b)
-                adj.setdefault(b, []).append(a)
-        lab = {int(x): 0 for x in search_goals}
-        frontier = list(lab)
-        while frontier:
-            nxt = []
-            for a in frontier:
-                for b in adj.get(a, ()):
-                    if b not in lab:
-                        lab[b] = lab[a] + 1
-                        nxt.append(b)
-            frontier = nxt
-        # roadmap nodes: through the table from the roadmap neighbours of the labelled query nodes
-        seeds: dict = {}
-        for a, b in zip(eu.tolist(), ev.tolist()):
-            for q, r in ((a, b), (b, a)):
-                if q >= R and r < R and q in lab:
-                    seeds.setdefault(lab[q] + 1, []).append(r)
         nbr, _, deg = g.array_adjacency()
-        hops = np.full(deg.shape[0], np.inf)
-        for off, rows in seeds.items():
-            m = T[np.unique(rows)].min(0).astype(np.float64)
-            m[m == 255] = np.inf
-            np.minimum(hops[:R], m + off, out=hops[:R])
-        for q, c in lab.items():
-            hops[q] = c
-        hops = search_kernels.kernels().hops_decrease(nbr, deg, hops, np.ascontiguousarray(eu),
-                                                      np.ascontiguousarray(ev))
+        hops = search_kernels.kernels().query_hops(T, R, nbr, deg, np.ascontiguousarray(g.edge_u[e]),
+                                                   np.ascontiguousarray(g.edge_v[e]),
+                                                   np.asarray(search_goals, dtype=np.int64))
         return hops[: g.n_nodes]
 
     def warm_up(self, score: bool = True) -> float:
@@ -698,11 +669,21 @@ class PSPRM:
         self.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
         if score:
             self.score_configs(q)
-        kn, ki = self.edge_knots(q, qb)
+        kn, ki = self.edge_knots(q, qb)  # a query's connection edges (one compiled call)
+        self._track_knots(fastpath.edge_knot_seeds(self.motion, q, qb, self.settings.n_interp)[0])  # step by step
         args = fastpath.neural_args(self.scorer, self.dtype)
-        if args is not None:  # the lazy verification's compiled check and Eq. 1 scoring (the surrogate, not a view)
+        if args is not None:  # the lazy verification's compiled calls (the surrogate, not a rendered view)
             fastpath.check_score_knots(self.motion, self.checker, self.robot, args, kn, ki, np.ones(2, bool),
                                        np.ones(2, bool), self.settings.edge_resolution, 200)
+            self.score_configs(q)
+            # a two-edge knot store of its own: edge 1's knots computed into it, both checked and scored
+            one = np.ones(1, bool)
+            fastpath.verify_edges(self.motion, self.constraint, self.checker, args, kn.numpy().copy(),
+                                  ki.numpy().copy(), np.arange(2), np.array([False, True]),
+                                  q.double().numpy()[1:], qb.double().numpy()[1:], one, self.settings.n_interp, True,
+                                  self.settings.projection, self._lo, self._hi, self.track_cols,
+                                  self.settings.track_iters, np.ones(2, bool), np.ones(2, bool),
+                                  self.settings.edge_resolution, 200)
         self._pieces(q, qb, max_steps=200, include_start=False)
         self.motion.distance(q, qb)
         fastpath.nearest(self.motion, q, qb, 1)
