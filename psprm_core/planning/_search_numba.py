@@ -112,26 +112,34 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
 
 @jit
 def _relax_fifo(nbr, deg, hops, queue, tail):  # pragma: no cover - compiled
-    """FIFO label correcting of unit-weight hop distances from the ``tail`` queued nodes (plain BFS when the queue
-    holds the sources of an otherwise infinite labelling). The queue is compacted / grown when full."""
-    head = 0
-    while head < tail:
-        u = queue[head]
-        head += 1
+    """FIFO label correcting of unit-weight hop distances from the ``tail`` nodes queued in ``queue[:tail]``. A node
+    is queued at most once at a time (a ring buffer of one slot per node, allocated once: an array reassigned in the
+    loop would cost numba a reference-count update per step)."""
+    n = hops.shape[0]
+    ring = np.empty(n + 1, np.int64)
+    queued = np.zeros(n, np.bool_)
+    cap = n + 1
+    head, size = 0, 0
+    for i in range(tail):
+        u = queue[i]
+        if not queued[u]:
+            queued[u] = True
+            ring[(head + size) % cap] = u
+            size += 1
+    while size > 0:
+        u = ring[head]
+        head = (head + 1) % cap
+        size -= 1
+        queued[u] = False
         hu = hops[u] + 1.0
         for j in range(deg[u]):
             v = nbr[u, j]
             if hu < hops[v]:
                 hops[v] = hu
-                if tail == queue.shape[0]:
-                    live = tail - head
-                    nq = np.empty(max(2 * live, 16) + 1, np.int64)
-                    nq[:live] = queue[head:tail]
-                    queue = nq
-                    head = 0
-                    tail = live
-                queue[tail] = v
-                tail += 1
+                if not queued[v]:
+                    queued[v] = True
+                    ring[(head + size) % cap] = v
+                    size += 1
     return hops
 
 
