@@ -849,43 +849,56 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
     E, M, dof = knots.shape
     N = interior.shape[1]
     free = np.ones(E, np.bool_)
-    # collision: every interior knot and dense piece point of the edges to check, in one batch
-    n_rows = 0
+    # collision (PSPRM._knots_valid): the edges to check, their interior knots and then their dense pieces
     nck = 0
     for e in range(E):
         if do_check[e]:
             nck += 1
     if nck > 0:
-        a = np.empty((nck * (M - 1), dof))
-        b = np.empty((nck * (M - 1), dof))
+        # first the interior knots of every edge to check, then the dense pieces of the edges whose knots are free
+        # (an obstacle that moved onto a path blocks most of its edges at a knot already)
         edge_of = np.empty(nck, np.int64)
         j = 0
         for e in range(E):
             if do_check[e]:
                 edge_of[j] = e
-                for m in range(M - 1):
-                    a[j * (M - 1) + m] = knots[e, m]
-                    b[j * (M - 1) + m] = knots[e, m + 1]
                 j += 1
-        seg, pts = pieces(a, b, resolution, max_steps, False, w_rot, mobile)
-        if r32:
-            _round32(pts)
-        n_inner = nck * (M - 2)
-        q = np.empty((n_inner + pts.shape[0], dof))
+        q = np.empty((nck * (M - 2), dof))
         for j in range(nck):
             for m in range(M - 2):
                 q[j * (M - 2) + m] = knots[edge_of[j], m + 1]
-        q[n_inner:] = pts
-        n_rows = q.shape[0]
         flags = check(q, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
                       body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h,
                       el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
-        for r in range(n_rows):
+        for r in range(q.shape[0]):
             if flags[r, 0] or flags[r, 1] or flags[r, 2]:
-                if r < n_inner:
-                    free[edge_of[r // (M - 2)]] = False
-                else:
-                    free[edge_of[seg[r - n_inner] // (M - 1)]] = False
+                free[edge_of[r // (M - 2)]] = False
+        nd = 0
+        for j in range(nck):
+            if free[edge_of[j]]:
+                nd += 1
+        if nd > 0:
+            a = np.empty((nd * (M - 1), dof))
+            b = np.empty((nd * (M - 1), dof))
+            dense_of = np.empty(nd, np.int64)
+            i = 0
+            for j in range(nck):
+                e = edge_of[j]
+                if free[e]:
+                    dense_of[i] = e
+                    for m in range(M - 1):
+                        a[i * (M - 1) + m] = knots[e, m]
+                        b[i * (M - 1) + m] = knots[e, m + 1]
+                    i += 1
+            seg, pts = pieces(a, b, resolution, max_steps, False, w_rot, mobile)
+            if r32:
+                _round32(pts)
+            flags = check(pts, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper,
+                          bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c,
+                          el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
+            for r in range(pts.shape[0]):
+                if flags[r, 0] or flags[r, 1] or flags[r, 2]:
+                    free[dense_of[seg[r] // (M - 1)]] = False
     cams = np.zeros((E, N + 2, 4, 4))
     raw = np.zeros((E, N + 2), np.float32)
     ns = 0
