@@ -336,12 +336,7 @@ class KnotStore:
         idx = torch.as_tensor(ids, device=knots.device)
         self.data[idx] = knots
         self.interior[idx] = interior
-        self.have[ids] = True
-        if len(self.cams_have):
-            self.cams_have[ids[ids < len(self.cams_have)]] = False
-        if self.aabb is not None:
-            inside = ids[ids < self.aabb.shape[0]]
-            self.aabb[torch.as_tensor(inside, device=self.aabb.device)] = float("nan")
+        self.written(ids)
 
     def reserve(self, n: int) -> None:
         """Room for edge ids below ``n`` (the arrays must exist: after a first :meth:`put`)."""
