@@ -508,3 +508,37 @@ def benchmark_query_time(n: int = 3000, k: int = 15, dim: int = 7, n_queries: in
 if __name__ == "__main__":
     for key, val in benchmark_query_time().items():
         print(f"{key:>22s}: {val:.3f}")
+
+
+def test_lazy_astar_searches_again_backwards_with_the_first_costs() -> None:
+    """After a verification that only raised weights (and rejected edges), the re-search runs from the goal back to
+    the start with the first search's costs as its heuristic: the same optimal path as a fresh search, for a fraction
+    of the expansions (a 30 x 30 grid with unit weights: the hop heuristic is weak there)."""
+    if not search_kernels.available():
+        pytest.skip("numba not installed")
+    n = 30
+    ids = np.arange(n * n).reshape(n, n)
+    e = np.concatenate([np.stack([ids[:, :-1].ravel(), ids[:, 1:].ravel()], 1),
+                        np.stack([ids[:-1, :].ravel(), ids[1:, :].ravel()], 1)])
+    rng = np.random.default_rng(0)
+    g = Roadmap.from_edges(n * n, e, 1.0 + 0.5 * rng.random(len(e)))
+    start, goal = int(ids[0, 0]), int(ids[-1, -1])
+    fresh = astar(g, start, goal, heuristic="hop")
+    first_edge = fresh.edges[0]
+    blocked = fresh.edges[len(fresh.edges) // 2]
+
+    def verify(edge_ids: np.ndarray, path: list[int]) -> EdgeCheck:  # the first edge costs more, one edge collides
+        return EdgeCheck(invalid=[int(x) for x in edge_ids if x == blocked],
+                         weights={int(x): float(g.weights[x]) + (0.3 if x == first_edge else 0.0)
+                                  for x in edge_ids if x != blocked})
+
+    res = lazy_astar(g, start, goal, verify, heuristic="hop")
+    work = np.asarray(g.weights).copy()
+    for k, v in res.updated_edges.items():
+        work[k] = v
+    work[res.invalidated_edges] = np.inf
+    ref = reference_dijkstra(g.n_nodes, valid_edge_list(g, work), [goal])[start]
+    assert res.success and res.iterations >= 2 and res.path[0] == start and res.path[-1] == goal
+    assert abs(res.cost - ref) <= 1e-9 * ref and blocked not in res.edges
+    assert abs(res.cost - sum(work[k] for k in res.edges)) <= 1e-9 * ref
+    assert res.expanded - fresh.expanded < fresh.expanded / 2  # the later searches together: under half the first

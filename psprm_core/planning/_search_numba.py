@@ -61,8 +61,8 @@ def _pop(keys, nodes, size):  # pragma: no cover - compiled
 def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # pragma: no cover - compiled
     """A* (``use_h``) or Dijkstra from ``start`` to the first node of ``goal_mask`` closed.
 
-    Returns ``(goal or -1, cost, expanded, hit_limit, parent, parent_edge)``; with a consistent ``h`` a closed
-    node is final (Eqs. 5-6), so closed neighbours are skipped; ``h = inf`` prunes a node (no goal reachable).
+    Returns ``(goal or -1, cost, expanded, hit_limit, parent, parent_edge, g, closed)``; with a consistent ``h`` a
+    closed node is final (Eqs. 5-6), so closed neighbours are skipped; ``h = inf`` prunes a node (no goal reachable).
     The heap holds at most one entry per directed edge (a node is expanded once, and pushes a neighbour only
     when it improves its g) plus the start, so it is allocated once with that capacity.
     """
@@ -87,9 +87,9 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
         closed[u] = True
         expanded += 1
         if goal_mask[u]:
-            return u, g[u], expanded, False, parent, pedge
+            return u, g[u], expanded, False, parent, pedge, g, closed
         if expanded == max_expansions:
-            return -1, inf, expanded, True, parent, pedge
+            return -1, inf, expanded, True, parent, pedge, g, closed
         gu = g[u]
         for j in range(deg[u]):
             v = nbr[u, j]
@@ -107,7 +107,7 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
                 parent[v] = u
                 pedge[v] = e
                 size = _push(keys, nodes, size, key, v)
-    return -1, inf, expanded, False, parent, pedge
+    return -1, inf, expanded, False, parent, pedge, g, closed
 
 
 @jit

@@ -149,6 +149,8 @@ class SearchResult:
     invalidated_edges: list[int] = field(default_factory=list)
     updated_edges: dict[int, float] = field(default_factory=dict)
     verified_edges: list[int] = field(default_factory=list)
+    g: np.ndarray | None = field(default=None, repr=False)  # compiled search: cost from the start of every node
+    closed: np.ndarray | None = field(default=None, repr=False)  # and which nodes it closed (g exact there)
 
 
 @dataclass
@@ -524,7 +526,7 @@ def _run_astar(
         h_k = np.zeros(1) if h_arr is None else h_arr
         if h_arr is not None and h_k.shape[0] < rows:  # spare adjacency rows have no edges: never reached
             h_k = np.concatenate([h_k, np.full(rows - h_k.shape[0], np.inf)])
-        goal, cost, expanded, hit_limit, par, pe = search_kernels.kernels().astar(
+        goal, cost, expanded, hit_limit, par, pe, g_arr, closed = search_kernels.kernels().astar(
             nbr, eid, deg, np.ascontiguousarray(w_arr, dtype=np.float64), np.ascontiguousarray(h_k, dtype=np.float64),
             h_arr is not None, start, goal_mask, -1 if max_expansions is None else int(max_expansions))
         goal = None if goal < 0 else int(goal)
@@ -547,8 +549,11 @@ def _run_astar(
         path.append(int(parent[path[-1]]))
     path.reverse()
     edges.reverse()
-    return SearchResult(path=path, cost=float(cost), expanded=int(expanded), success=True, reason="ok", edges=edges,
-                        goal=goal)
+    out = SearchResult(path=path, cost=float(cost), expanded=int(expanded), success=True, reason="ok", edges=edges,
+                       goal=goal)
+    if w_list is None:
+        out.g, out.closed = g_arr, closed
+    return out
 
 
 def warm_up() -> bool:
@@ -614,6 +619,33 @@ def astar(
     w_list = None if _compiled(backend) else _weights_list(graph, weights)
     h_arr = _resolve_heuristic(graph, goal_ids, w_arr, heuristic) if goal_ids.size else None
     return _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
+
+
+def _backward_search(graph: Roadmap, start: int, goal: int, w_arr: np.ndarray, first: tuple,
+                     max_expansions: int | None) -> SearchResult:
+    """A lazy search's re-search after its verification only raised weights (or rejected edges): A* from the goal back
+    to the start, with the first (forward) search's costs as the heuristic.
+
+    With weights that only went up, the first search's cost g1(x) of a closed node x is a lower bound of the cost from
+    the start to x, and so is C1 - h1(x) for the others (C1: the first path's cost; a node the first search did not
+    close has g1(x) + h1(x) >= C1, with its consistent heuristic h1). Mixed that way the bound is consistent (each part
+    is, and across a closed-open edge it holds by the same two inequalities), so this search is exact, and it expands
+    little more than the nodes whose detour costs less than the verified path (g1(x) + cost to the goal < C'), where
+    a forward re-search expands again the whole region the first one did."""
+    g1, closed1, c1, h1 = first
+    rows = g1.shape[0]
+    h = np.zeros(rows) if h1 is None else h1
+    if h.shape[0] < rows:
+        h = np.concatenate([h, np.full(rows - h.shape[0], np.inf)])
+    with np.errstate(invalid="ignore"):
+        hb = np.where(closed1, g1, np.maximum(c1 - h[:rows], 0.0))
+    back = _run_astar(graph, goal, np.asarray([start], dtype=np.int64), w_arr, None, hb, max_expansions)
+    if back.success:
+        back.path.reverse()
+        back.edges.reverse()
+        back.goal = goal
+    back.g = back.closed = None
+    return back
 
 
 def _normalise_check(answer: EdgeCheck | Iterable[int] | None) -> EdgeCheck:
@@ -705,6 +737,8 @@ def lazy_astar(
     h_cmin = None  # the c_min the hop heuristic was scaled with: hop distances found once stay lower bounds (the
     # structure only loses edges while the search runs), so the heuristic is only rescaled when c_min drops
     stale = True  # exact heuristic: recompute after a weight decreased (increases keep it a consistent lower bound)
+    first = None  # the first search's (g, closed, cost, heuristic): the later ones run backwards, see _backward_search
+    decreased = False  # a verified weight went down (the first search's costs are then no lower bounds)
     for it in range(1, max_iterations + 1):
         if use_hop and goal_ids.size:
             if h_cmin != c_min:
@@ -716,7 +750,12 @@ def lazy_astar(
         elif use_exact and goal_ids.size and stale:
             h_arr = dijkstra(graph, goal_ids, w_arr)[0]
             stale = False
-        result = _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
+        if first is not None and not decreased:
+            result = _backward_search(graph, start, int(goal_ids[0]), w_arr, first, max_expansions)
+        else:
+            result = _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
+            if it == 1 and result.success and result.g is not None and goal_ids.size == 1:
+                first = (result.g, result.closed, result.cost, h_arr)
         total_expanded += result.expanded
         result.expanded = total_expanded
         result.iterations = it
@@ -740,7 +779,7 @@ def lazy_astar(
             if not (val >= 0):
                 raise ValueError(f"verified weight of edge {e} must be non-negative, got {val}")
             if val < w_arr[e]:
-                stale = True
+                stale = decreased = True
             if val > w_arr[e] or e not in on_path:
                 kept = False
             w_arr[e] = val
