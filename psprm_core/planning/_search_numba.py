@@ -61,10 +61,13 @@ def _pop(keys, nodes, size):  # pragma: no cover - compiled
 def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # pragma: no cover - compiled
     """A* (``use_h``) or Dijkstra from ``start`` to the first node of ``goal_mask`` closed.
 
-    Returns ``(goal or -1, cost, expanded, hit_limit, parent, parent_edge, g, closed)``; with a consistent ``h`` a
-    closed node is final (Eqs. 5-6), so closed neighbours are skipped; ``h = inf`` prunes a node (no goal reachable).
-    The heap holds at most one entry per directed edge (a node is expanded once, and pushes a neighbour only
-    when it improves its g) plus the start, so it is allocated once with that capacity.
+    Returns ``(goal or -1, cost, expanded, hit_limit, parent, parent_edge, g, closed)``. With a consistent ``h`` a
+    closed node is final (Eqs. 5-6) and never improves again; an admissible ``h`` that is not consistent reopens the
+    closed nodes it improves, so the result is still optimal. ``h = inf`` prunes a node (no goal reachable). With a
+    consistent ``h`` the heap holds at most one entry per directed edge (a node is expanded once, and pushes a
+    neighbour only when it improves its g) plus the start; it is allocated once with twice that capacity (never
+    reallocated: an array reassigned in the loop costs numba a reference-count update per step), and a search whose
+    reopenings would need more returns goal -2.
     """
     n = deg.shape[0]
     inf = np.inf
@@ -72,9 +75,9 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
     parent = np.full(n, -1, np.int64)
     pedge = np.full(n, -1, np.int64)
     closed = np.zeros(n, np.bool_)
-    cap = 1
+    cap = 2
     for u in range(n):
-        cap += deg[u]
+        cap += 2 * deg[u]
     keys = np.empty(cap, np.float64)
     nodes = np.empty(cap, np.int64)
     g[start] = 0.0
@@ -93,19 +96,20 @@ def astar(nbr, eid, deg, w, h, use_h, start, goal_mask, max_expansions):  # prag
         gu = g[u]
         for j in range(deg[u]):
             v = nbr[u, j]
-            if closed[v]:
-                continue
             e = eid[u, j]
             nd = gu + w[e]
-            if nd < g[v]:
+            if nd < g[v]:  # a closed node is reopened (only an inconsistent heuristic lets that happen)
                 key = nd
                 if use_h:
                     if h[v] == inf:
                         continue
                     key = nd + h[v]
+                closed[v] = False
                 g[v] = nd
                 parent[v] = u
                 pedge[v] = e
+                if size == cap:  # only many reopenings get here: give up (goal -2), the caller searches again
+                    return -2, inf, expanded, False, parent, pedge, g, closed
                 size = _push(keys, nodes, size, key, v)
     return -1, inf, expanded, False, parent, pedge, g, closed
 

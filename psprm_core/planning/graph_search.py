@@ -529,6 +529,8 @@ def _run_astar(
         goal, cost, expanded, hit_limit, par, pe, g_arr, closed = search_kernels.kernels().astar(
             nbr, eid, deg, np.ascontiguousarray(w_arr, dtype=np.float64), np.ascontiguousarray(h_k, dtype=np.float64),
             h_arr is not None, start, goal_mask, -1 if max_expansions is None else int(max_expansions))
+        if goal == -2:
+            return _fail("heap capacity exceeded by reopened nodes (inconsistent heuristic)", int(expanded))
         goal = None if goal < 0 else int(goal)
         parent, pedge = par, pe
     else:
@@ -621,24 +623,26 @@ def astar(
     return _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
 
 
-def _backward_search(graph: Roadmap, start: int, goal: int, w_arr: np.ndarray, first: tuple,
+def _backward_search(graph: Roadmap, start: int, goal: int, w_arr: np.ndarray, first: tuple, decreased: float,
                      max_expansions: int | None) -> SearchResult:
-    """A lazy search's re-search after its verification only raised weights (or rejected edges): A* from the goal back
-    to the start, with the first (forward) search's costs as the heuristic.
+    """A lazy search's re-search after a verification: A* from the goal back to the start, with the first (forward)
+    search's costs as the heuristic.
 
-    With weights that only went up, the first search's cost g1(x) of a closed node x is a lower bound of the cost from
-    the start to x, and so is C1 - h1(x) for the others (C1: the first path's cost; a node the first search did not
-    close has g1(x) + h1(x) >= C1, with its consistent heuristic h1). Mixed that way the bound is consistent (each part
-    is, and across a closed-open edge it holds by the same two inequalities), so this search is exact, and it expands
-    little more than the nodes whose detour costs less than the verified path (g1(x) + cost to the goal < C'), where
-    a forward re-search expands again the whole region the first one did."""
+    Under the first search's weights, its cost g1(x) of a closed node x is the cost from the start to x, and
+    C1 - h1(x) a lower bound of it for the others (C1: the first path's cost; a node the first search did not close
+    has g1(x) + h1(x) >= C1, with its consistent heuristic h1). Verification raises weights, rejects edges (inf) and
+    may lower some, by ``decreased`` in total, which no path's cost can drop by more: the bound less ``decreased``
+    (at least 0) stays admissible. While nothing went down it is also consistent (each part is, and across a
+    closed-open edge it holds by the same two inequalities); otherwise the kernel reopens the nodes it improves.
+    Either way the search is exact, and it expands little more than the nodes whose detour costs less than the
+    verified path, where a forward re-search expands again the whole region the first one did."""
     g1, closed1, c1, h1 = first
     rows = g1.shape[0]
     h = np.zeros(rows) if h1 is None else h1
     if h.shape[0] < rows:
         h = np.concatenate([h, np.full(rows - h.shape[0], np.inf)])
     with np.errstate(invalid="ignore"):
-        hb = np.where(closed1, g1, np.maximum(c1 - h[:rows], 0.0))
+        hb = np.maximum(np.where(closed1, g1, c1 - h[:rows]) - decreased, 0.0)
     back = _run_astar(graph, goal, np.asarray([start], dtype=np.int64), w_arr, None, hb, max_expansions)
     if back.success:
         back.path.reverse()
@@ -738,7 +742,7 @@ def lazy_astar(
     # structure only loses edges while the search runs), so the heuristic is only rescaled when c_min drops
     stale = True  # exact heuristic: recompute after a weight decreased (increases keep it a consistent lower bound)
     first = None  # the first search's (g, closed, cost, heuristic): the later ones run backwards, see _backward_search
-    decreased = False  # a verified weight went down (the first search's costs are then no lower bounds)
+    decreased = 0.0  # the verified weights' decreases since, summed (path costs dropped by at most that much)
     for it in range(1, max_iterations + 1):
         if use_hop and goal_ids.size:
             if h_cmin != c_min:
@@ -750,8 +754,10 @@ def lazy_astar(
         elif use_exact and goal_ids.size and stale:
             h_arr = dijkstra(graph, goal_ids, w_arr)[0]
             stale = False
-        if first is not None and not decreased:
-            result = _backward_search(graph, start, int(goal_ids[0]), w_arr, first, max_expansions)
+        if first is not None:
+            result = _backward_search(graph, start, int(goal_ids[0]), w_arr, first, decreased, max_expansions)
+            if not result.success:  # the forward search is authoritative (and says why)
+                result = _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
         else:
             result = _run_astar(graph, start, goal_ids, w_arr, w_list, h_arr, max_expansions)
             if it == 1 and result.success and result.g is not None and goal_ids.size == 1:
@@ -779,7 +785,8 @@ def lazy_astar(
             if not (val >= 0):
                 raise ValueError(f"verified weight of edge {e} must be non-negative, got {val}")
             if val < w_arr[e]:
-                stale = decreased = True
+                stale = True
+                decreased += float(w_arr[e]) - val
             if val > w_arr[e] or e not in on_path:
                 kept = False
             w_arr[e] = val
