@@ -510,6 +510,16 @@ if __name__ == "__main__":
         print(f"{key:>22s}: {val:.3f}")
 
 
+def _working_optimum(g: Roadmap, res, start: int, goal: int) -> tuple:
+    """The working weights a lazy search ended with (verified where verified, rejected edges removed) and Dijkstra's
+    optimal cost from ``start`` to ``goal`` under them."""
+    work = np.asarray(g.weights).copy()
+    for k, v in res.updated_edges.items():
+        work[k] = v
+    work[res.invalidated_edges] = np.inf
+    return work, reference_dijkstra(g.n_nodes, valid_edge_list(g, work), [goal])[start]
+
+
 def test_lazy_astar_searches_again_backwards_with_the_first_costs() -> None:
     """After a verification, the re-search runs from the goal back to the start with the first search's costs as its
     heuristic: the same optimal path as a fresh search, for a fraction of the expansions (a 30 x 30 grid with weights
@@ -533,11 +543,7 @@ def test_lazy_astar_searches_again_backwards_with_the_first_costs() -> None:
                                   for x in edge_ids if x != blocked})
 
     res = lazy_astar(g, start, goal, verify, heuristic="hop")
-    work = np.asarray(g.weights).copy()
-    for k, v in res.updated_edges.items():
-        work[k] = v
-    work[res.invalidated_edges] = np.inf
-    ref = reference_dijkstra(g.n_nodes, valid_edge_list(g, work), [goal])[start]
+    work, ref = _working_optimum(g, res, start, goal)
     assert res.success and res.iterations >= 2 and res.path[0] == start and res.path[-1] == goal
     assert abs(res.cost - ref) <= 1e-9 * ref and blocked not in res.edges
     assert abs(res.cost - sum(work[k] for k in res.edges)) <= 1e-9 * ref
@@ -552,10 +558,6 @@ def test_lazy_astar_searches_again_backwards_with_the_first_costs() -> None:
                                       if x != blocked})
 
         res = lazy_astar(g, start, goal, verify2, heuristic="hop")
-        work = np.asarray(g.weights).copy()
-        for k, v in res.updated_edges.items():
-            work[k] = v
-        work[res.invalidated_edges] = np.inf
-        ref = reference_dijkstra(g.n_nodes, valid_edge_list(g, work), [goal])[start]
+        work, ref = _working_optimum(g, res, start, goal)
         assert res.success and abs(res.cost - ref) <= 1e-9 * ref
         assert abs(res.cost - sum(work[k] for k in res.edges)) <= 1e-9 * ref

@@ -1678,8 +1678,8 @@ class PSPRM:
 
     def _pending_keys(self, rows: np.ndarray) -> list:
         """Query-knot cache keys (:meth:`_query_knots`) of pending connection edges (rows of the pending ends)."""
-        A, _, qa, qb = self._pending_np
-        return [A[0][i].tobytes() + A[1][i].tobytes() for i in rows]
+        (qa, qb), _, _, _ = self._pending_np  # in the planner's dtype, as _query_knots keys them
+        return [qa[i].tobytes() + qb[i].tobytes() for i in rows]
 
     def _untracked_query_edges(self, edge_ids: np.ndarray, ok: torch.Tensor) -> torch.Tensor:
         """Fallback of a repaired query: its connection edges (an end is a start/goal node) whose re-aimed knots
