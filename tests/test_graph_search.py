@@ -561,3 +561,21 @@ def test_lazy_astar_searches_again_backwards_with_the_first_costs() -> None:
         work, ref = _working_optimum(g, res, start, goal)
         assert res.success and abs(res.cost - ref) <= 1e-9 * ref
         assert abs(res.cost - sum(work[k] for k in res.edges)) <= 1e-9 * ref
+
+
+def test_warm_up_compiles_what_searches_call() -> None:
+    """After the search warm-up, an A* on a roadmap's own weights and a lazy search that re-searches (its private,
+    writable weights: another numba signature) compile nothing more (a first plan would otherwise pay ~1 s)."""
+    if not search_kernels.available():
+        pytest.skip("numba not installed")
+    from psprm_core.planning.graph_search import warm_up
+
+    warm_up()
+    S = search_kernels.kernels()
+    names = ("astar", "bfs_hops", "hops_decrease", "hop_columns", "query_hops")
+    before = {n: len(getattr(S, n).signatures) for n in names}
+    g = Roadmap.from_edges(6, np.array([[0, 1], [1, 2], [2, 5], [0, 3], [3, 4], [4, 5]]), np.ones(6))
+    assert astar(g, 0, 5).success
+    res = lazy_astar(g, 0, 5, lambda e, path: EdgeCheck(weights={int(x): 3.0 for x in e}))
+    assert res.success and res.iterations >= 2
+    assert {n: len(getattr(S, n).signatures) for n in names} == before

@@ -567,6 +567,9 @@ def warm_up() -> bool:
     astar(g, 0, [2], heuristic="hop")  # bfs_hops + astar
     g.add_edges(np.array([2]), np.array([3]), np.array([1.0]))
     astar(g, 0, [2], heuristic="hop")  # cached hops updated after the addition: hops_decrease
+    # a lazy search (its own writable copy of the weights: another signature than the roadmap's read-only view) whose
+    # verification raises a weight: the forward search and the backward re-search
+    lazy_astar(g, 0, [3], lambda e, path: EdgeCheck(weights={int(x): 2.0 for x in e}))
     nbr, _, deg = g.array_adjacency()
     table = np.empty((4, 4), dtype=np.uint8)
     search_kernels.kernels().hop_columns(nbr, deg, 4, 0, 4, table)  # a planner's hop table, and a query's counts
