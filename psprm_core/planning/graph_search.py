@@ -680,6 +680,9 @@ def lazy_astar(
 
     No re-search follows a verification that rejected no edge and changed only weights of the path itself, none of
     them upwards: the path is still optimal (any other path gains at most the decreases on the edges it shares).
+    With the compiled kernels and one goal, the re-searches run from the goal back to the start with the first
+    search's costs as their heuristic (:func:`_backward_search`): the same optimum, a few nodes expanded instead of
+    the first search's region again.
 
     The replanner uses it to evaluate the edge perception score (Eq. 1, expensive: N interpolated configurations)
     and hence the final Eq. 2 weight only for edges on candidate paths; the unverified edges keep their current
