@@ -249,17 +249,19 @@ def _checker_arrays(checker) -> tuple:
     return cache["model"], cache["boxes"]
 
 
+def _check_args(checker) -> tuple:
+    """The arguments of the ``check`` kernel after ``q`` and ``detailed``: the robot's body tree, the joint limits,
+    the collision model and the obstacle boxes of a :class:`~psprm_core.collision.CollisionChecker`, and eps."""
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
+    model, boxes = _checker_arrays(checker)
+    return (all_bodies, parent, jtype, R_off, t_off, axis, D, off, mobile, _const64(checker.lower),
+            _const64(checker.upper), *model, *boxes, 1e-6)
+
+
 def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
     """Collision flags (B, 3) of ``q`` (B, dof): limits, environment, self (:meth:`CollisionChecker.check_detailed`).
     Without ``detailed`` a row stops at its first violation: only the OR over a row is meaningful."""
-    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
-    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
-     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
-    lower, upper = _const64(checker.lower), _const64(checker.upper)
-    return _rows(kernels().check, 1, _f64(q.to(checker.dtype)), bool(detailed), all_bodies, parent, jtype, R_off,
-                 t_off, axis, D, off, mobile, lower, upper, bodies, body_c, body_r, box_c_b, box_h_b, el_start,
-                 el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb,
-                 1e-6)
+    return _rows(kernels().check, 1, _f64(q.to(checker.dtype)), bool(detailed), *_check_args(checker))
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
@@ -463,20 +465,19 @@ def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.T
     ``do_score``) the camera poses (E, N + 2, 4, 4) of their Eq. 1 points and the raw scores (E, N + 2) of the
     neural scorer (``scorer_args`` from :func:`neural_args`; the MLP in chunks of whole edges within
     :data:`MLP_MAX_ROWS` views). Free flags are True for rows not checked."""
-    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
-    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
-     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
     chain, _, _, _, _, _, _, _, _, cam_body, cam_R, cam_t = _camera_args(robot)
     free, cams, raw = kernels().check_score_knots(
         _f64(knots), _i64(interior), np.ascontiguousarray(do_check, dtype=np.bool_),
         np.ascontiguousarray(do_score, dtype=np.bool_), knots.dtype == torch.float32, float(resolution), int(max_steps),
-        float(motion.w_rot),
-        bool(motion.mobile), all_bodies, parent, jtype, R_off, t_off, axis, D, off, mobile,
-        _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b, box_h_b, el_start,
-        el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, 1e-6,
-        chain, cam_body, cam_R, cam_t, *scorer_args,
-        max(1, MLP_MAX_ROWS // (interior.shape[1] + 2)) * (interior.shape[1] + 2))
+        float(motion.w_rot), bool(motion.mobile), *_check_args(checker), chain, cam_body, cam_R, cam_t, *scorer_args,
+        _mlp_rows(interior.shape[1] + 2))
     return free, torch.from_numpy(cams).to(knots.dtype), torch.from_numpy(raw)
+
+
+def _mlp_rows(n_eq1: int) -> int:
+    """Views per compiled MLP call when scoring edges: whole edges of ``n_eq1`` Eq. 1 points, within
+    :data:`MLP_MAX_ROWS` (the rows the compiled scorer takes per call)."""
+    return max(1, MLP_MAX_ROWS // n_eq1) * n_eq1
 
 
 def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor) -> torch.Tensor:
@@ -504,12 +505,11 @@ def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.nd
     (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
      pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
     dtype = torch.float32 if store_k.dtype == np.float32 else torch.float64
-    n_eq1 = n_interp + 2
     free, cams, raw = kernels().verify_edges(
         store_k, store_i, ids, compute, qa, qb, flip, int(n_interp), float(motion.w_rot), bool(motion.mobile),
         bool(track and len(cols)), dtype == torch.float32,
         *_project_args(constraint, dtype, settings, lo, hi, cols, max_iters), do_check, do_score, float(resolution),
         int(max_steps), all_bodies, _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b,
         box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h,
-        box_aabb, 1e-6, *scorer_args, max(1, MLP_MAX_ROWS // n_eq1) * n_eq1)
+        box_aabb, 1e-6, *scorer_args, _mlp_rows(n_interp + 2))
     return free, torch.from_numpy(cams).to(dtype), torch.from_numpy(raw)

@@ -338,6 +338,11 @@ class KnotStore:
         self.interior[idx] = interior
         self.written(ids)
 
+    def trim_query_cache(self) -> None:
+        """Keep the :data:`QUERY_KNOT_CACHE` newest entries of :attr:`query` (dicts keep insertion order)."""
+        while len(self.query) > QUERY_KNOT_CACHE:
+            self.query.pop(next(iter(self.query)))
+
     def reserve(self, n: int) -> None:
         """Room for edge ids below ``n`` (the arrays must exist: after a first :meth:`put`)."""
         if n > self.data.shape[0]:
@@ -662,15 +667,14 @@ class PSPRM:
         self.checker.check(q)
         self.checker.check_detailed(q)
         self.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
-        if score:
+        args = fastpath.neural_args(self.scorer, self.dtype)
+        if score or args is not None:  # a neural scorer is the surrogate (one compiled call), not a rendered view
             self.score_configs(q)
         kn, ki = self.edge_knots(q, qb)  # a query's connection edges (one compiled call)
         self._track_knots(fastpath.edge_knot_seeds(self.motion, q, qb, self.settings.n_interp)[0])  # step by step
-        args = fastpath.neural_args(self.scorer, self.dtype)
-        if args is not None:  # the lazy verification's compiled calls (the surrogate, not a rendered view)
+        if args is not None:  # the lazy verification's compiled calls
             fastpath.check_score_knots(self.motion, self.checker, self.robot, args, kn, ki, np.ones(2, bool),
                                        np.ones(2, bool), self.settings.edge_resolution, 200)
-            self.score_configs(q)
             # a two-edge knot store of its own: edge 1's knots computed into it, both checked and scored
             one = np.ones(1, bool)
             fastpath.verify_edges(self.motion, self.constraint, self.checker, args, kn.numpy().copy(),
@@ -843,8 +847,7 @@ class PSPRM:
             for j, i in enumerate(miss):
                 cache[keys[i]] = (kn[j], ki[j])
         out = (torch.stack([cache[k][0] for k in keys]), torch.stack([cache[k][1] for k in keys]))
-        while len(cache) > QUERY_KNOT_CACHE:  # oldest first (dicts keep insertion order)
-            cache.pop(next(iter(cache)))
+        self.knots.trim_query_cache()
         return out
 
     def _put_knots(self, edge_ids: np.ndarray, u_given: np.ndarray, knots: torch.Tensor,
@@ -1573,17 +1576,26 @@ class PSPRM:
             ok[need] = self._knots_valid(knots[need], dense=True)
         if self._untracked_fallback and not bool(ok.all()):
             ok |= self._untracked_query_edges(todo, ok)
-        chk[todo] = 1.0
-        invalid = todo[~ok.cpu().numpy()]
+        return self._record_verification(todo, ok.cpu().numpy(),
+                                         lambda m: self._stored_perception(todo[m]).double().cpu().numpy())
+
+    def _record_verification(self, todo: np.ndarray, ok: np.ndarray, perception: Callable) -> EdgeCheck:
+        """Write a verification of edges ``todo`` into the roadmap: all are checked now, the colliding ones (``ok``
+        (E,) false) are removed, and those still to be scored get their Eq. 1 perception ``perception(mask)`` (of
+        ``todo[mask]``) and Eq. 2 weight, which the search is told."""
+        g = self.graph
+        ver = g.edge_attribute("verified")
+        g.edge_attribute("checked")[todo] = 1.0
+        invalid = todo[~ok]
         if len(invalid):
             g.remove_edges(invalid)
             rc = invalid[invalid < len(self._recheck)]
             self._blocked_edges.update(rc[self._recheck[rc]].tolist())
         weights = {}
-        score = torch.as_tensor(ver[todo] < 0.5, device=self.device) & ok
+        score = (ver[todo] < 0.5) & ok
         if score.any():
-            sel = todo[score.cpu().numpy()]
-            p = self._stored_perception(sel).double().cpu().numpy()
+            sel = todo[score]
+            p = perception(score)
             g.edge_attribute("c_p")[sel] = p
             ver[sel] = 1.0
             w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
@@ -1631,24 +1643,14 @@ class PSPRM:
         if len(cid):
             store.written(cid)
             self._cache_query_knots(cid, rows, flip)
-        chk[todo] = 1.0
-        invalid = todo[~ok]
-        if len(invalid):
-            g.remove_edges(invalid)
-            rc = invalid[invalid < len(self._recheck)]
-            self._blocked_edges.update(rc[self._recheck[rc]].tolist())
-        weights = {}
-        score = do_score & ok
-        if score.any():
-            sel = todo[score]
-            self.knots.put_cams(sel, cams[torch.from_numpy(score)])
-            sc = self._normalized(raw[torch.from_numpy(score)].to(self.dtype))
-            p = edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).double().numpy()
-            g.edge_attribute("c_p")[sel] = p
-            ver[sel] = 1.0
-            w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
-            weights = {int(e): float(x) for e, x in zip(sel, w)}
-        return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
+
+        def perception(mask: np.ndarray) -> np.ndarray:  # Eq. 1 from the kernel's raw scores; camera poses kept
+            m = torch.from_numpy(mask)
+            self.knots.put_cams(todo[mask], cams[m])
+            sc = self._normalized(raw[m].to(self.dtype))
+            return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).double().numpy()
+
+        return self._record_verification(todo, ok, perception)
 
     def _cached_query_knots(self, eids: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Store the knots of the query's connection edges ``eids`` (rows ``rows`` of the pending ends) found in the
@@ -1673,8 +1675,7 @@ class PSPRM:
                 cache[key] = (kn[j].flip(0), (M - 1 - ki[j]).flip(0))
             else:
                 cache[key] = (kn[j], ki[j])
-        while len(cache) > QUERY_KNOT_CACHE:  # oldest first (dicts keep insertion order)
-            cache.pop(next(iter(cache)))
+        self.knots.trim_query_cache()
 
     def _pending_keys(self, rows: np.ndarray) -> list:
         """Query-knot cache keys (:meth:`_query_knots`) of pending connection edges (rows of the pending ends)."""
