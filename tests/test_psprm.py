@@ -167,3 +167,29 @@ def test_retired_query_edges_never_change_results(home):
     compacted = [planner.plan(a, b, timing=False).cost for a, b in probs]
     assert np.allclose(first, again) and np.allclose(first, compacted)
     assert planner.graph.node_valid[planner.n_roadmap_nodes:].sum() == 2 * len(probs)  # only the last queries'
+
+
+def test_eager_collision_checking_plans_free_paths(load_robot):
+    """``lazy_collision: false``: every roadmap edge is checked densely at build and the query's connections are
+    checked and scored in full before the search (no lazy verification); the paths are free and end where asked."""
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    prob = scene.problem("tv_west_to_southeast")
+    scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
+    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center,
+                    PSPRMSettings(n_nodes=300, seed=2, lazy_collision=False))
+    planner.build(template=problem_configurations(robot, scene, prob)[0])
+    assert (planner.graph.edge_attribute("checked")[planner.graph.valid_edge_ids()] == 1.0).all()
+    solved = 0
+    for p in scene.problems:
+        start, goals = problem_configurations(robot, scene, p)
+        res = planner.plan(start, goals, timing=False)
+        if not res.success:
+            continue
+        solved += 1
+        assert np.allclose(res.waypoints[0], start, atol=1e-5)
+        off = res.waypoints[-1] - np.asarray(goals)
+        off[:, 2] = (off[:, 2] + np.pi) % (2 * np.pi) - np.pi  # the base heading, modulo a turn
+        assert (np.abs(off).max(1) < 1e-4).any()
+        assert bool(planner.checker.valid(torch.as_tensor(res.dense, dtype=planner.dtype)).all())
+    assert solved >= len(scene.problems) // 2

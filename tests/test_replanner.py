@@ -421,9 +421,9 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     real_once, real_add = p._plan_once, p._add_query_edges
     seen, calls = [], []
 
-    def record(qa, qb, ua, vb, *a, **k):
+    def record(ua, vb, *a, **k):
         seen.append((np.asarray(ua).copy(), np.asarray(vb).copy()))
-        return real_add(qa, qb, ua, vb, *a, **k)
+        return real_add(ua, vb, *a, **k)
 
     def first_fails(*a, **k):
         calls.append((k.get("extra_candidates"), k.get("connect_k") or p.settings.connect_k))

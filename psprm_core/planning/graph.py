@@ -363,16 +363,24 @@ class Roadmap:
         new_pos: list[int] = []
         pair_to_edge = self._pair_to_edge
         next_id = self._n_edges
-        for i, key in enumerate(zip(lo.tolist(), hi.tolist())):
-            eid = pair_to_edge.get(key)
-            if eid is None:
-                eid = next_id
-                next_id += 1
-                pair_to_edge[key] = eid
-                new_lo.append(key[0])
-                new_hi.append(key[1])
-                new_pos.append(i)
-            out[i] = eid
+        keys = list(zip(lo.tolist(), hi.tolist()))
+        found = [pair_to_edge.get(key, -1) for key in keys]
+        if max(found) < 0 and len(set(keys)) == k:  # all new and distinct (a query's edges): no per-pair loop
+            out[:] = np.arange(next_id, next_id + k)
+            pair_to_edge.update(zip(keys, range(next_id, next_id + k)))
+            new_lo, new_hi, new_pos = lo, hi, list(range(k))
+            next_id += k
+        else:
+            for i, key in enumerate(keys):
+                eid = found[i] if found[i] >= 0 else pair_to_edge.get(key)  # a duplicate inside the batch
+                if eid is None:
+                    eid = next_id
+                    next_id += 1
+                    pair_to_edge[key] = eid
+                    new_lo.append(key[0])
+                    new_hi.append(key[1])
+                    new_pos.append(i)
+                out[i] = eid
         n_new = next_id - self._n_edges
         if n_new:
             start, end = self._n_edges, next_id

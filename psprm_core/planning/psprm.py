@@ -53,6 +53,7 @@ ESCAPE_CONNECT = 32  # connections to the roadmap an escape round checks at most
 ESCAPE_LONG = 4  # the escape search's long extensions, in steps
 ESCAPE_STUCK_ROUNDS = 16  # escape rounds after which an end with no free motion out of it is given up
 ESCAPE_MANOEUVRES = 8  # of the ESCAPE_BATCH extensions per round: drive/back-up/turn manoeuvres from tree nodes
+_NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}
 ESCAPE_KEEP = 4  # connections to the roadmap (and their tree branches) an escape search keeps
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
@@ -468,6 +469,7 @@ class PSPRM:
         self._pending_query_knots = None  # (edge ids, start ends, qa, qb) of a query's not yet needed edge knots
         self._pending_rows: dict = {}  # their rows by edge id
         self._pending_np = None  # ((qa, qb) in the planner's dtype, start ends, qa, qb float64) as numpy
+        self._query_args: Optional[dict] = None  # during a query: its compiled-scorer arguments by dtype
         self._untracked_fallback = False  # set during the escape and wide queries (query_untracked_fallback)
         self._escapes = 0  # escape searches run (their random streams)
         self.template = robot.default_configuration()  # joints that are not sampled (build() may override)
@@ -480,11 +482,20 @@ class PSPRM:
     def _t(self, a) -> torch.Tensor:
         return torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)
 
+    def _neural_args(self, dtype: torch.dtype) -> Optional[tuple]:
+        """:func:`fastpath.neural_args` of the scorer, kept for the rest of a query (:meth:`_plan_once` clears them:
+        the scorer does not change during a query, but may between queries)."""
+        if self._query_args is None:
+            return fastpath.neural_args(self.scorer, dtype)
+        if dtype not in self._query_args:
+            self._query_args[dtype] = fastpath.neural_args(self.scorer, dtype)
+        return self._query_args[dtype]
+
     def score_configs(self, q: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """Perception scores (B,) of configurations: FK -> camera poses -> scorer (a query's few configurations with
         a neural scorer: one compiled call, the same values)."""
         if q.shape[0] <= fastpath.MLP_MAX_ROWS and fastpath.applies(q):
-            args = fastpath.neural_args(self.scorer, q.dtype)
+            args = self._neural_args(q.dtype)
             if args is not None:
                 return fastpath.neural_config_scores(self.robot, args, q).to(self.dtype)
         out = []
@@ -1333,9 +1344,9 @@ class PSPRM:
                     continue
                 ua = np.asarray([node(a) for a, _ in pairs])
                 vb = np.asarray([b if rm_end else node(b) for _, b in pairs])
-                qa, qb = kn[:, 0], kn[:, -1]
-                p = self._knots_perception(kn, ki)
-                new = self._add_query_edges(qa, qb, ua, vb, p, verified=True)
+                p = self._knots_perception(kn, ki).cpu().numpy()
+                d = self._motion_distance(kn[:, 0].cpu().numpy(), kn[:, -1].cpu().numpy())
+                new = self._add_query_edges(ua, vb, p, d, verified=True)
                 self._put_knots(np.asarray(new), ua, kn, ki)
                 eids.extend(new)
         return eids
@@ -1407,42 +1418,45 @@ class PSPRM:
             return PlanResult(False, "roadmap not built")
         start = np.asarray(start, float).reshape(-1)
         goals = np.asarray(goals, float).reshape(-1, self.robot.dof)
-        qs = self._t(np.vstack([start, goals]))
-        if not torch.isfinite(qs).all():
+        # the query's small arrays stay numpy (rounded to the planner's dtype as torch would); only the batched
+        # work (metric, collision, scores) goes through the tensor paths
+        Q = np.vstack([start, goals]).astype(_NP_DTYPE[self.dtype])
+        if not np.isfinite(Q).all():
             return PlanResult(False, "start or goal contains NaN/inf")
+        qs = torch.from_numpy(Q).to(self.device)
         det = self.checker.check_detailed(qs)
+        det = {k: v.cpu().numpy() for k, v in det.items()}
         bad = det["limits"] | det["environment"] | det["self"]
-        if bool(bad[0]):
-            why = ", ".join(k for k in ("limits", "environment", "self") if bool(det[k][0]))
+        if bad[0]:
+            why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
             return PlanResult(False, f"start configuration invalid ({why})")
-        if bool(bad[1:].all()):
+        if bad[1:].all():
             return PlanResult(False, "every goal configuration is in collision or outside the limits")
         g = self.graph
         added_nodes, added_edges = [], []
         try:
-            ids = g.add_nodes(qs.double().cpu().numpy())
+            self._query_args = {}
+            ids = g.add_nodes(Q.astype(np.float64))
             added_nodes = list(ids)
             s_id, goal_ids = int(ids[0]), [int(i) for i, b in zip(ids[1:], bad[1:].tolist()) if not b]
             rm_ids = self.roadmap_node_ids()
-            rm = self._roadmap_tensor(rm_ids)
+            rm, rm_np = self._roadmap_tensor(rm_ids), self._rm_numpy
             # candidate edges of the start and every goal, plus start-goal, checked in one batch
             queries = [(0, s_id)] + [(1 + k, int(gid)) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]
-            qq = qs[[i for i, _ in queries]]
+            qq = Q[[i for i, _ in queries]]
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
             kk = min(connect_k or self.settings.connect_k, rm.shape[0])
-            cand = self._nearest_ids(qq, rm, kk)  # (Q, kk)
-            src = torch.arange(len(queries), device=self.device).repeat_interleave(kk)
+            cand = self._nearest_ids(torch.from_numpy(qq).to(self.device), rm, kk).cpu().numpy()  # (Q, kk)
+            src = np.repeat(np.arange(len(queries)), kk)
             dst = cand.reshape(-1)
-            qa, qb = qq[src], rm[dst]
-            u_ids = [queries[i][1] for i in src.tolist()]
-            v_ids = rm_ids[dst.cpu().numpy()].tolist()
-            for j, gid in enumerate(goal_ids):  # direct start -> goal motions
-                qa = torch.cat([qa, qs[0:1]])
-                qb = torch.cat([qb, self._t(g.configs[gid])[None]])
-                u_ids.append(s_id)
-                v_ids.append(gid)
-            dist = self.motion.distance(qa, qb)
+            qend = np.asarray([q for _, q in queries], dtype=np.int64)
+            # direct start -> goal motions last
+            qa = np.concatenate([qq[src], np.repeat(Q[:1], len(goal_ids), 0)])
+            qb = np.concatenate([rm_np[dst], g.configs[goal_ids].astype(Q.dtype).reshape(-1, Q.shape[1])])
+            u_ids = np.concatenate([qend[src], np.full(len(goal_ids), s_id, dtype=np.int64)])
+            v_ids = np.concatenate([rm_ids[dst], np.asarray(goal_ids, dtype=np.int64)])
+            dist = self._motion_distance(qa, qb)
             within = dist <= 2 * self.settings.max_edge_length
             # a start or goal far from the manifold (e.g. the arm folded away) has no roadmap node within 2 delta:
             # it still gets its QUERY_FALLBACK_K nearest candidates (longer edges, checked like any other)
@@ -1454,11 +1468,11 @@ class PSPRM:
                 within[:] = True
             elif lonely.any():
                 nk = min(QUERY_FALLBACK_K, kk)
-                pick = cand_d[lonely].topk(nk, largest=False).indices + torch.nonzero(lonely)[:, :1] * kk
+                pick = np.argsort(cand_d[lonely], axis=1, kind="stable")[:, :nk] + np.nonzero(lonely)[0][:, None] * kk
                 within[pick.reshape(-1)] = True
             if extra_candidates:
                 pos = {int(nid): i for i, nid in enumerate(rm_ids)}
-                taken = {(queries[i][1], v_ids[j]) for j, i in enumerate(src.tolist())}
+                taken = set(zip(u_ids[: len(src)].tolist(), v_ids[: len(src)].tolist()))
                 ex_q, ex_r = [], []
                 for qi, (k, qid) in enumerate(queries):
                     for nid in np.asarray(extra_candidates.get(k, ()), dtype=np.int64).tolist():
@@ -1467,38 +1481,38 @@ class PSPRM:
                             ex_r.append(pos[nid])
                             taken.add((qid, nid))
                 if ex_q:
-                    ea, eb = qq[ex_q], rm[ex_r]
-                    qa, qb = torch.cat([qa, ea]), torch.cat([qb, eb])
-                    u_ids += [queries[i][1] for i in ex_q]
-                    v_ids += rm_ids[np.asarray(ex_r)].tolist()
-                    within = torch.cat([within, torch.ones(len(ex_q), dtype=torch.bool, device=within.device)])
-            near = torch.nonzero(within, as_tuple=True)[0]
+                    qa, qb = np.concatenate([qa, qq[ex_q]]), np.concatenate([qb, rm_np[ex_r]])
+                    u_ids = np.concatenate([u_ids, qend[ex_q]])
+                    v_ids = np.concatenate([v_ids, rm_ids[np.asarray(ex_r)]])
+                    within = np.concatenate([within, np.ones(len(ex_q), dtype=bool)])
+            near = np.nonzero(within)[0]
+            ta, tb = torch.from_numpy(qa[near]).to(self.device), torch.from_numpy(qb[near]).to(self.device)
             if len(near) and self.settings.lazy_collision:
                 # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
                 # interior scores only for the edges the search wants to use (usually one at each end)
                 scores = self._node_score_slots()
                 scores[ids] = self.score_configs(qs).double().cpu().numpy()
-                nn = near.cpu().numpy()
-                ua, vb = np.asarray(u_ids)[nn], np.asarray(v_ids)[nn]
+                ua, vb = u_ids[near], v_ids[near]
                 scale = getattr(self, "score_scale", 1.0)
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
-                eids = self._add_query_edges(qa[near], qb[near], ua, vb, self._t(pe), verified=False,
-                                             dist=dist[near] if len(dist) == len(qa) else None)  # extras: unknown
+                eids = self._add_query_edges(ua, vb, pe.astype(Q.dtype), verified=False,
+                                             dist=dist[near] if len(dist) == len(qa) else self._motion_distance(
+                                                 qa[near], qb[near]))  # extras: unknown
                 added_edges.extend(eids)
                 # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
                 # verifies it (usually one or two at each end): stored_knots() takes them from here
-                self._pending_query_knots = (np.asarray(eids, dtype=np.int64), np.asarray(ua), qa[near], qb[near])
+                self._pending_query_knots = (np.asarray(eids, dtype=np.int64), ua, ta, tb)
                 self._pending_rows = {int(e): i for i, e in enumerate(eids)}
-                pa, pb = qa[near].detach().cpu(), qb[near].detach().cpu()
-                self._pending_np = ((pa.numpy(), pb.numpy()), np.asarray(ua), pa.double().numpy(),
-                                    pb.double().numpy())
+                pa, pb = qa[near], qb[near]
+                self._pending_np = ((pa, pb), ua, pa.astype(np.float64), pb.astype(np.float64))
             elif len(near):
-                ok, pe, kn, ki = self._query_edges(qa[near], qb[near], untracked=untracked)
-                keep = near[ok]
-                if len(keep):
-                    ua = np.asarray(u_ids)[keep.cpu().numpy()]
-                    eids = self._add_query_edges(qa[keep], qb[keep], ua, np.asarray(v_ids)[keep.cpu().numpy()],
-                                                 pe[ok])
+                ok, pe, kn, ki = self._query_edges(ta, tb, untracked=untracked)
+                okn = ok.cpu().numpy()
+                if okn.any():
+                    keep = near[okn]
+                    ua = u_ids[keep]
+                    eids = self._add_query_edges(ua, v_ids[keep], pe[ok].cpu().numpy(),
+                                                 dist=self._motion_distance(qa[keep], qb[keep]))
                     self._put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
             if escapes:
@@ -1541,6 +1555,7 @@ class PSPRM:
             self._pending_query_knots = None
             self._pending_rows, self._pending_np = {}, None
             self._untracked_fallback = False
+            self._query_args = None
             # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
             # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
             if added_edges:
@@ -1612,7 +1627,7 @@ class PSPRM:
         if (self._untracked_fallback or len(todo) > SMALL_BATCH or self.device.type != "cpu" or store.data is None
                 or store.data.shape[1] <= 2 or not fastpath.applies(store.data[:1])):
             return None
-        args = fastpath.neural_args(self.scorer, self.dtype)
+        args = self._neural_args(self.dtype)
         if args is None:
             return None
         ver, chk = g.edge_attribute("verified"), g.edge_attribute("checked")
@@ -1645,9 +1660,11 @@ class PSPRM:
             self._cache_query_knots(cid, rows, flip)
 
         def perception(mask: np.ndarray) -> np.ndarray:  # Eq. 1 from the kernel's raw scores; camera poses kept
-            m = torch.from_numpy(mask)
-            self.knots.put_cams(todo[mask], cams[m])
-            sc = self._normalized(raw[m].to(self.dtype))
+            self.knots.put_cams(todo[mask], cams[torch.from_numpy(mask)])
+            # _normalized in the planner's dtype (numpy rounds like torch: a float32 array times a Python float stays
+            # float32); the Eq. 1 sum in torch, whose summation order the other paths use
+            sc = raw.numpy()[mask].astype(_NP_DTYPE[self.dtype], copy=False) * getattr(self, "score_scale", 1.0)
+            sc = torch.from_numpy(np.clip(sc, 0.0, 1.0))
             return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).double().numpy()
 
         return self._record_verification(todo, ok, perception)
@@ -1669,12 +1686,12 @@ class PSPRM:
         """Keep the knots just computed for connection edges in the query-knot cache (in their ends' direction)."""
         cache = self.knots.query
         M = self.knots.data.shape[1]
-        kn, ki = self.knots.get(eids)
+        kn, ki = self.knots.data.numpy()[eids], self.knots.interior.numpy()[eids]  # copies (CPU store)
+        if flip.any():
+            kn[flip], ki[flip] = kn[flip, ::-1], (M - 1 - ki[flip])[:, ::-1]
+        kn, ki = torch.from_numpy(kn), torch.from_numpy(ki)
         for j, key in enumerate(self._pending_keys(rows)):
-            if flip[j]:
-                cache[key] = (kn[j].flip(0), (M - 1 - ki[j]).flip(0))
-            else:
-                cache[key] = (kn[j], ki[j])
+            cache[key] = (kn[j], ki[j])
         self.knots.trim_query_cache()
 
     def _pending_keys(self, rows: np.ndarray) -> list:
@@ -1734,20 +1751,28 @@ class PSPRM:
         """Roadmap node configurations as a tensor on the planner's device (cached until the node set changes)."""
         key = hash(ids.tobytes())
         if getattr(self, "_rm_cache_key", None) != key:
-            self._rm_cache = torch.as_tensor(self.graph.configs[ids], dtype=self.dtype, device=self.device)
+            self._rm_numpy = self.graph.configs[ids].astype(_NP_DTYPE[self.dtype])  # the same values, host copy
+            self._rm_cache = torch.from_numpy(self._rm_numpy).to(self.device)
             self._rm_cache_key = key
         return self._rm_cache
 
-    def _add_query_edges(self, qa, qb, ua, vb, p, verified: bool = True, dist: Optional[torch.Tensor] = None) -> list:
-        """Add query edges with their Eq. 1 perception ``p`` (E,): validated and fully scored (``verified``), or
-        unchecked with an endpoint estimate (verified lazily by the search). ``dist``: their motion cost when known."""
-        if dist is None:
-            dist = self.motion.distance(qa, qb)
-        c_m = (dist / self.max_motion).clamp(0, 1)
+    def _add_query_edges(self, ua: np.ndarray, vb: np.ndarray, p: np.ndarray, dist: np.ndarray,
+                         verified: bool = True) -> list:
+        """Add query edges ``ua`` -> ``vb`` with their Eq. 1 perception ``p`` (E,) and motion cost ``dist`` (E,), both
+        numpy in the planner's dtype: validated and fully scored (``verified``), or unchecked with an endpoint
+        estimate (verified lazily by the search). The Eq. 2 weight is computed in that dtype, as on the roadmap."""
+        c_m = np.clip(dist / np.asarray(self.max_motion, dist.dtype), 0, 1)
         w = combined_weight(p, c_m, self.settings.alpha)
-        return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.double().cpu().numpy(),
-                                         c_m=c_m.double().cpu().numpy(), c_p=p.double().cpu().numpy(),
+        return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),
+                                         c_m=c_m.astype(np.float64), c_p=p.astype(np.float64),
                                          verified=float(verified), checked=float(verified)))
+
+    def _motion_distance(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+        """:meth:`DiffDriveMotion.distance` of numpy batches (E, dof) in the planner's dtype, same dtype out."""
+        if len(qa) == 0:
+            return np.zeros(0, dtype=qa.dtype)
+        d = self.motion.distance(torch.from_numpy(qa).to(self.device), torch.from_numpy(qb).to(self.device))
+        return d.cpu().numpy()
 
     def _query_edges(self, qa: torch.Tensor, qb: torch.Tensor, untracked: bool = False) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily); with ``untracked``,
