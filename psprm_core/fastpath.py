@@ -392,9 +392,10 @@ def pieces(motion, a: torch.Tensor, b: torch.Tensor, resolution: float, max_step
     return torch.from_numpy(seg), torch.from_numpy(pts).to(a.dtype)
 
 
-def nearest(motion, qq: torch.Tensor, rm: torch.Tensor, k: int) -> torch.Tensor:
+def nearest(motion, qq: torch.Tensor, rm: torch.Tensor | np.ndarray, k: int) -> torch.Tensor:
     """Indices (Q, k) of the k configurations of ``rm`` (N, dof) nearest to each of ``qq`` (Q, dof) under the
-    motion metric, sorted by distance (``motion.distance`` of every pair, then ``topk``)."""
+    motion metric, sorted by distance (``motion.distance`` of every pair, then ``topk``). ``rm`` may be a
+    contiguous float64 array (no conversion per call)."""
     out = kernels().nearest(_f64(qq), _f64(rm), int(k), float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(out)
 
@@ -498,8 +499,8 @@ def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.nd
     """A lazy search's verification of edges ``ids`` in one compiled call (``PSPRM._verify_edges``): the knots of
     the ``compute`` ones from their ends ``qa``, ``qb`` (C, dof) float64 of the planner's values, written into the
     knot store's arrays ``store_k`` (cap, M, dof) / ``store_i`` (cap, N) (numpy views of its tensors; reversed where
-    ``flip``), then :func:`check_score_knots` of all of them from the store. Returns (free (E,), cameras
-    (E, N + 2, 4, 4) in the store's dtype, raw scores (E, N + 2) float32)."""
+    ``flip``), then :func:`check_score_knots` of all of them from the store. Returns numpy arrays (free (E,),
+    cameras (E, N + 2, 4, 4) in the store's dtype, raw scores (E, N + 2) float32)."""
     robot = checker.robot
     all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
     (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
@@ -512,4 +513,4 @@ def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.nd
         int(max_steps), all_bodies, _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b,
         box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h,
         box_aabb, 1e-6, *scorer_args, _mlp_rows(n_interp + 2))
-    return free, torch.from_numpy(cams).to(dtype), torch.from_numpy(raw)
+    return free, cams.astype(store_k.dtype, copy=False), raw

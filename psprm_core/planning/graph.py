@@ -66,6 +66,16 @@ class CSRAdjacency:
         return int(self.indices.shape[0])
 
 
+def _per_edge(values, k: int) -> np.ndarray:
+    """(k,) float64 view or copy of a scalar or k values (``np.broadcast_to`` without its overhead)."""
+    a = np.asarray(values, dtype=np.float64)
+    if a.ndim == 0:
+        return np.full(k, float(a))
+    if a.shape != (k,):
+        return np.broadcast_to(a, (k,))  # raises for an incompatible shape
+    return a
+
+
 def _grow(arr: np.ndarray, needed: int, fill: Any) -> np.ndarray:
     """Return ``arr`` (first axis) enlarged to at least ``needed`` rows by doubling, new rows set to ``fill``."""
     cap = arr.shape[0]
@@ -340,18 +350,17 @@ class Roadmap:
         if u.shape != v.shape:
             raise ValueError("u and v must have the same length")
         k = u.shape[0]
-        w = np.broadcast_to(np.asarray(0.0 if weights is None else weights, dtype=np.float64), (k,))
+        w = _per_edge(0.0 if weights is None else weights, k)
         self._check_weights(w)
         if k == 0:
             return np.zeros(0, dtype=np.int64)
-        for arr in (u, v):
-            if arr.min() < 0 or arr.max() >= self._n_nodes:
-                raise ValueError("edge endpoint out of range")
-        if np.any(u == v):
+        if min(u.min(), v.min()) < 0 or max(u.max(), v.max()) >= self._n_nodes:
+            raise ValueError("edge endpoint out of range")
+        if (u == v).any():
             raise ValueError("self loops are not allowed in the roadmap")
         if not (self._node_valid[u].all() and self._node_valid[v].all()):
             raise ValueError("cannot connect a removed node")
-        attr_vals = {n: np.broadcast_to(np.asarray(a, dtype=np.float64), (k,)) for n, a in attrs.items()}
+        attr_vals = {n: _per_edge(a, k) for n, a in attrs.items()}
         for name in attr_vals:
             self.add_edge_attribute(name)
 
@@ -465,7 +474,10 @@ class Roadmap:
         else:
             ids = self._as_ids(edge_ids, self._n_edges, "edge")
             self._weights[ids] = vals
-            self._weights_written(ids, np.broadcast_to(vals, ids.shape))
+            if self._py_weights is not None:  # only the cached Python list needs the values per edge
+                self._weights_written(ids, _per_edge(vals, ids.size))
+            else:
+                self.weights_version += 1
 
     def edge_id(self, u: int, v: int) -> int | None:
         """Id of the valid edge between ``u`` and ``v`` or ``None``."""
@@ -701,7 +713,7 @@ class Roadmap:
 
     @staticmethod
     def _check_weights(w: np.ndarray) -> None:
-        if w.size and (np.isnan(w).any() or (w < 0).any()):
+        if w.size and not (w >= 0).all():  # NaN compares false
             raise ValueError("edge weights must be non-negative (Eq. 2 gives c in [0, 2])")
 
     @staticmethod
@@ -709,7 +721,7 @@ class Roadmap:
         if isinstance(ids, slice):
             return np.arange(n, dtype=np.int64)[ids]
         arr = np.asarray(list(ids) if not isinstance(ids, np.ndarray) else ids, dtype=np.int64).reshape(-1)
-        if arr.size and (arr.min() < 0 or arr.max() >= n):
+        if arr.size and not (0 <= arr.min() and arr.max() < n):
             raise ValueError(f"{what} id out of range")
         return arr
 

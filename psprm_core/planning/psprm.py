@@ -358,7 +358,10 @@ class KnotStore:
             self.cams_have[ids[ids < len(self.cams_have)]] = False
         if self.aabb is not None:
             inside = ids[ids < self.aabb.shape[0]]
-            self.aabb[torch.as_tensor(inside, device=self.aabb.device)] = float("nan")
+            if self.aabb.device.type == "cpu":
+                self.aabb.numpy()[inside] = np.nan
+            else:
+                self.aabb[torch.as_tensor(inside, device=self.aabb.device)] = float("nan")
 
     def knot_aabb(self, ids: np.ndarray) -> torch.Tensor:
         """(E, M, 6) cached robot bounds at the knots of edges ``ids`` (NaN where not computed yet)."""
@@ -377,13 +380,22 @@ class KnotStore:
         dev = self.aabb.device
         self.aabb[torch.as_tensor(ids, device=dev), torch.as_tensor(knot, device=dev)] = bounds.to(self.aabb.dtype)
 
-    def put_cams(self, ids: np.ndarray, cams: torch.Tensor) -> None:
+    def put_cams(self, ids: np.ndarray, cams: torch.Tensor | np.ndarray) -> None:
         """Camera poses (E, N + 2, 4, 4) of the Eq. 1 points of edges whose knots are stored (fixed while the
-        roadmap's geometry is: a target move re-scores them without forward kinematics)."""
+        roadmap's geometry is: a target move re-scores them without forward kinematics); a numpy array is written
+        straight into a CPU store."""
         ids = np.asarray(ids, dtype=np.int64)
         if len(ids) == 0:
             return
         cap = self.data.shape[0]
+        if isinstance(cams, np.ndarray):
+            c = self.cams
+            if (c is not None and c.device.type == "cpu" and c.shape[0] >= cap and c.shape[1:] == cams.shape[1:]
+                    and c.numpy().dtype == cams.dtype):
+                c.numpy()[ids] = cams
+                self.cams_have[ids] = True
+                return
+            cams = torch.from_numpy(cams).to(self.data.device)
         if self.cams is None or self.cams.shape[0] < cap or self.cams.shape[1:] != cams.shape[1:]:
             grown = cams.new_zeros((cap,) + tuple(cams.shape[1:]))
             keep = np.zeros(cap, dtype=bool)
@@ -1113,6 +1125,10 @@ class PSPRM:
         """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
         k = min(k, pool.shape[0])
         if fastpath.motion_applies(qq, qq) and pool.device.type == "cpu" and k > 0:
+            if pool is getattr(self, "_rm_cache", None):  # the roadmap: its float64 copy is kept with it
+                if getattr(self, "_rm_f64", None) is None:
+                    self._rm_f64 = self._rm_numpy.astype(np.float64)
+                pool = self._rm_f64
             return fastpath.nearest(self.motion, qq, pool, k)  # one compiled pass that skips far nodes early
         d = self.motion.distance(qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
         return d.reshape(len(qq), -1).topk(k, largest=False).indices
@@ -1660,12 +1676,12 @@ class PSPRM:
             self._cache_query_knots(cid, rows, flip)
 
         def perception(mask: np.ndarray) -> np.ndarray:  # Eq. 1 from the kernel's raw scores; camera poses kept
-            self.knots.put_cams(todo[mask], cams[torch.from_numpy(mask)])
+            self.knots.put_cams(todo[mask], cams[mask])
             # _normalized in the planner's dtype (numpy rounds like torch: a float32 array times a Python float stays
-            # float32); the Eq. 1 sum in torch, whose summation order the other paths use
-            sc = raw.numpy()[mask].astype(_NP_DTYPE[self.dtype], copy=False) * getattr(self, "score_scale", 1.0)
-            sc = torch.from_numpy(np.clip(sc, 0.0, 1.0))
-            return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).double().numpy()
+            # float32), Eq. 1 in numpy (its sum may round differently from torch's in the last bit)
+            sc = raw[mask].astype(_NP_DTYPE[self.dtype], copy=False) * getattr(self, "score_scale", 1.0)
+            sc = np.clip(sc, 0.0, 1.0)
+            return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).astype(np.float64)
 
         return self._record_verification(todo, ok, perception)
 
@@ -1753,6 +1769,7 @@ class PSPRM:
         if getattr(self, "_rm_cache_key", None) != key:
             self._rm_numpy = self.graph.configs[ids].astype(_NP_DTYPE[self.dtype])  # the same values, host copy
             self._rm_cache = torch.from_numpy(self._rm_numpy).to(self.device)
+            self._rm_f64 = None  # float64 of the same values, made when first needed (_nearest_ids)
             self._rm_cache_key = key
         return self._rm_cache
 
@@ -1771,6 +1788,11 @@ class PSPRM:
         """:meth:`DiffDriveMotion.distance` of numpy batches (E, dof) in the planner's dtype, same dtype out."""
         if len(qa) == 0:
             return np.zeros(0, dtype=qa.dtype)
+        if self.device.type == "cpu" and fastpath.enabled() and len(qa) <= fastpath.MOTION_MAX_BATCH:
+            m = self.motion  # the compiled metric of DiffDriveMotion.distance, without the tensor round trip
+            d = fastpath.kernels().distance(qa.astype(np.float64), qb.astype(np.float64), float(m.w_rot),
+                                            bool(m.mobile))
+            return d.astype(qa.dtype)
         d = self.motion.distance(torch.from_numpy(qa).to(self.device), torch.from_numpy(qb).to(self.device))
         return d.cpu().numpy()
 
