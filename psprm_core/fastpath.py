@@ -258,10 +258,15 @@ def _check_args(checker) -> tuple:
             _const64(checker.upper), *model, *boxes, 1e-6)
 
 
-def check(checker, q: torch.Tensor, detailed: bool = False) -> np.ndarray:
-    """Collision flags (B, 3) of ``q`` (B, dof): limits, environment, self (:meth:`CollisionChecker.check_detailed`).
-    Without ``detailed`` a row stops at its first violation: only the OR over a row is meaningful."""
-    return _rows(kernels().check, 1, _f64(q.to(checker.dtype)), bool(detailed), *_check_args(checker))
+def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.ndarray:
+    """Collision flags (B, 3) of ``q`` (B, dof, a tensor or a numpy array): limits, environment, self
+    (:meth:`CollisionChecker.check_detailed`). Without ``detailed`` a row stops at its first violation: only the OR
+    over a row is meaningful."""
+    if isinstance(q, np.ndarray):
+        q64 = _f64(q.astype(np.float32) if checker.dtype == torch.float32 else q)  # rounded as the checker's dtype
+    else:
+        q64 = _f64(q.to(checker.dtype))
+    return _rows(kernels().check, 1, q64, bool(detailed), *_check_args(checker))
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
@@ -481,14 +486,17 @@ def _mlp_rows(n_eq1: int) -> int:
     return max(1, MLP_MAX_ROWS // n_eq1) * n_eq1
 
 
-def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor) -> torch.Tensor:
+def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Raw neural scores (B,) of configurations q (B, dof), in one compiled call (``scorer.score(robot.camera_poses(q))``
-    of a single-target neural scorer, ``scorer_args`` from :func:`neural_args`), in the dtype of ``q``; at most
-    :data:`MLP_MAX_ROWS` rows (the compiled MLP's, as the step-by-step path)."""
+    of a single-target neural scorer, ``scorer_args`` from :func:`neural_args`), in the dtype of ``q`` (a tensor, or
+    a numpy array for numpy input); at most :data:`MLP_MAX_ROWS` rows (the compiled MLP's, as the step-by-step
+    path)."""
     chain, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t = _camera_args(robot)
-    _, sc = kernels().neural_scores(_f64(q), q.dtype == torch.float32, chain, parent, jtype, R_off, t_off, axis, D, off,
+    is_np = isinstance(q, np.ndarray)
+    f32 = q.dtype == np.float32 if is_np else q.dtype == torch.float32
+    _, sc = kernels().neural_scores(_f64(q), f32, chain, parent, jtype, R_off, t_off, axis, D, off,
                                     mobile, cam_body, cam_R, cam_t, *scorer_args, MLP_MAX_ROWS)
-    return torch.from_numpy(sc).to(q.dtype)
+    return sc.astype(q.dtype, copy=False) if is_np else torch.from_numpy(sc).to(q.dtype)
 
 
 def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.ndarray, store_i: np.ndarray,

@@ -503,6 +503,14 @@ class PSPRM:
             self._query_args[dtype] = fastpath.neural_args(self.scorer, dtype)
         return self._query_args[dtype]
 
+    def _query_scores(self, Q: np.ndarray) -> np.ndarray:
+        """:meth:`score_configs` (float64 out) of a query's few configurations ``Q`` (numpy, planner's dtype)."""
+        if self.device.type == "cpu" and len(Q) <= fastpath.MLP_MAX_ROWS and fastpath.enabled():
+            args = self._neural_args(self.dtype)
+            if args is not None:
+                return fastpath.neural_config_scores(self.robot, args, Q).astype(np.float64)
+        return self.score_configs(torch.from_numpy(Q).to(self.device)).double().cpu().numpy()
+
     def score_configs(self, q: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """Perception scores (B,) of configurations: FK -> camera poses -> scorer (a query's few configurations with
         a neural scorer: one compiled call, the same values)."""
@@ -1440,8 +1448,11 @@ class PSPRM:
         if not np.isfinite(Q).all():
             return PlanResult(False, "start or goal contains NaN/inf")
         qs = torch.from_numpy(Q).to(self.device)
-        det = self.checker.check_detailed(qs)
-        det = {k: v.cpu().numpy() for k, v in det.items()}
+        if self.device.type == "cpu" and fastpath.enabled() and len(Q) <= fastpath.MAX_BATCH:
+            f = fastpath.check(self.checker, Q, detailed=True)  # CollisionChecker.check_detailed, compiled
+            det = {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
+        else:
+            det = {k: v.cpu().numpy() for k, v in self.checker.check_detailed(qs).items()}
         bad = det["limits"] | det["environment"] | det["self"]
         if bad[0]:
             why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
@@ -1507,7 +1518,7 @@ class PSPRM:
                 # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
                 # interior scores only for the edges the search wants to use (usually one at each end)
                 scores = self._node_score_slots()
-                scores[ids] = self.score_configs(qs).double().cpu().numpy()
+                scores[ids] = self._query_scores(Q)
                 ua, vb = u_ids[near], v_ids[near]
                 scale = getattr(self, "score_scale", 1.0)
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
