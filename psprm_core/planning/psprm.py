@@ -53,8 +53,9 @@ ESCAPE_CONNECT = 32  # connections to the roadmap an escape round checks at most
 ESCAPE_LONG = 4  # the escape search's long extensions, in steps
 ESCAPE_STUCK_ROUNDS = 16  # escape rounds after which an end with no free motion out of it is given up
 ESCAPE_MANOEUVRES = 8  # of the ESCAPE_BATCH extensions per round: drive/back-up/turn manoeuvres from tree nodes
-_NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}
 ESCAPE_KEEP = 4  # connections to the roadmap (and their tree branches) an escape search keeps
+
+_NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}  # the planner's dtype on the host
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
