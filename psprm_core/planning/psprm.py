@@ -398,7 +398,9 @@ class KnotStore:
                 return
             cams = torch.from_numpy(cams).to(self.data.device)
         if self.cams is None or self.cams.shape[0] < cap or self.cams.shape[1:] != cams.shape[1:]:
-            grown = cams.new_zeros((cap,) + tuple(cams.shape[1:]))
+            # uninitialised (rows are read only where cams_have says so): a roadmap's first query does not zero
+            # tens of MB
+            grown = cams.new_empty((cap,) + tuple(cams.shape[1:]))
             keep = np.zeros(cap, dtype=bool)
             if self.cams is not None and self.cams.shape[1:] == cams.shape[1:]:
                 grown[: self.cams.shape[0]] = self.cams
@@ -620,6 +622,8 @@ class PSPRM:
         expand = self._expand(rng) if s.expand_rounds > 0 else {}
         t4 = time.perf_counter()
         self._build_hop_table()
+        if self.knots.data is not None:  # room for the queries' edges now: the first query does not copy the store
+            self.knots.reserve(self.graph.n_edges + 1)
         build_s = time.perf_counter() - t0
         self.stats = {
             "success": True, "n_nodes": int(self.n_roadmap_nodes), "n_edges": int(len(self.roadmap_edge_ids())),
