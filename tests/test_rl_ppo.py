@@ -135,3 +135,30 @@ def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatc
     bad[:2] = [3.0, 3.0]
     assert not again.plan(start, bad).success
     assert "not trained" in PPOPlanner("rl-ppo", planner.scene, ["cup"], robot=planner.robot).plan(start, goal).reason
+
+
+def test_compiled_step_matches_the_torch_path(planner, env):
+    """The step's compiled work (motion points, collision check, motion cost, geometric score with occlusion) gives
+    the values of the torch path (PlanningContext.densify, CollisionChecker, DiffDriveMotion, GeometricScorer)."""
+    from psprm_core import fastpath
+
+    if not fastpath.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(5)
+    seen = {"valid": 0, "rejected": 0, "scored": 0}
+    for i in range(120):
+        a, _ = env.problems[i % len(env.problems)]
+        q = a.copy()
+        q[:2] += rng.normal(0.0, 0.3, 2)
+        qn = env.propose(q, rng.uniform(-1.0, 1.0, env.action_space.shape))
+        fast = (env.motion_points(q, qn), env.motion_valid(q, qn), env.step_cost(q, qn), env.score(qn))
+        env._cam_key = None
+        with fastpath.disabled():
+            slow = (env.motion_points(q, qn), env.motion_valid(q, qn), env.step_cost(q, qn), env.score(qn))
+        env._cam_key = None
+        assert fast[0].shape == slow[0].shape and np.allclose(fast[0], slow[0], atol=1e-9)
+        assert fast[1] == slow[1]
+        assert fast[2] == pytest.approx(slow[2], abs=1e-9) and fast[3] == pytest.approx(slow[3], abs=1e-6)
+        seen["valid" if fast[1] else "rejected"] += 1
+        seen["scored"] += fast[3] > 0
+    assert min(seen.values()) > 0, seen  # both outcomes and non-zero scores were compared

@@ -43,7 +43,13 @@ import gymnasium as gym
 import numpy as np
 import torch
 
+from .. import fastpath
+
 log = logging.getLogger(__name__)
+
+#: Version of the environment's dynamics, observation and reward; part of the policy cache key (a policy trained on
+#: an older environment is not reused).
+ENV_VERSION = 2
 
 
 def _wrap(a):
@@ -117,6 +123,9 @@ class ActivePerceptionEnv(gym.Env):
         self.t = 0
         self.path: list = []
         self.last_rejected = False
+        self._cam_key, self._cam = None, None
+        self._score_center = self.scorer.center.numpy().astype(float)
+        self._score_facing = self.scorer.facing.numpy().astype(float)
 
     # ---- problems ----------------------------------------------------------------------------------------------------
     @property
@@ -144,7 +153,7 @@ class ActivePerceptionEnv(gym.Env):
         d = g[:2] - q[:2]
         rel = np.array([c * d[0] + s_ * d[1], -s_ * d[0] + c * d[1]]) / self._scale * 4.0
         dth = g[2] - q[2]
-        cam = self.robot.camera_poses(torch.as_tensor(q[None], dtype=torch.float64))[0].numpy()
+        cam = self.camera(q)
         pc = cam[:3, :3].T @ (self.focus - cam[:3, 3])
         dist = float(np.linalg.norm(pc))
         tgt = np.concatenate([(self.focus[:2] - self._ws_c) / self._ws_h, [self.focus[2]]])
@@ -192,22 +201,66 @@ class ActivePerceptionEnv(gym.Env):
 
     def step_cost(self, qa: np.ndarray, qb: np.ndarray) -> float:
         """Differential-drive motion cost of one step (:class:`~psprm_core.motion.DiffDriveMotion`)."""
+        if fastpath.enabled():
+            return float(fastpath.kernels().distance(qa[None], qb[None], self.w_rot, True)[0])
         t = torch.as_tensor(np.vstack([qa, qb]), dtype=torch.float64)
         return float(self.ctx.motion.distance(t[:1], t[1:])[0])
 
+    def motion_points(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+        """The configurations checked along the differential-drive motion qa -> qb: every ``resolution`` after
+        ``qa``, ``qb`` included (as :meth:`PlanningContext.densify` without its first row)."""
+        if not fastpath.enabled():
+            return self.ctx.densify(np.vstack([qa, qb]))[1:]
+        k = fastpath.kernels()
+        a, b = np.ascontiguousarray(qa, float)[None], np.ascontiguousarray(qb, float)[None]
+        n = min(max(int(math.ceil(k.distance(a, b, self.w_rot, True)[0] / self.ctx.resolution)), 1), 2000)
+        if n == 1:
+            return b.copy()
+        pts = k.interpolate(np.repeat(a, n - 1, 0), np.repeat(b, n - 1, 0), np.arange(1, n) / n, self.w_rot, True)
+        return np.vstack([pts, b])
+
     def motion_valid(self, qa: np.ndarray, qb: np.ndarray) -> bool:
-        """Is the differential-drive motion qa -> qb (end included) collision-free and within the limits?"""
-        pts = self.ctx.densify(np.vstack([qa, qb]))[1:]
-        return bool(self.ctx.valid(pts).all())
+        """Is the differential-drive motion qa -> qb (end included) collision-free and within the limits?
+
+        Checked every ``resolution`` along the motion with the scene's
+        :class:`~psprm_core.collision.CollisionChecker` (its compiled small-batch check when numba is available)."""
+        return bool(self.ctx.valid(self.motion_points(qa, qb)).all())
 
     def goal_distance(self, q: np.ndarray) -> float:
         return float(np.linalg.norm(q[:2] - self.goal[:2]))
 
+    def camera(self, q: np.ndarray) -> np.ndarray:
+        """Camera optical-frame pose (4, 4) of configuration ``q`` (the last one is cached: a step scores the new
+        configuration and then observes it)."""
+        key = q.tobytes()
+        if self._cam_key != key:
+            qt = torch.as_tensor(q[None], dtype=torch.float64)
+            self._cam = self.robot.camera_poses(qt)[0].numpy()
+            self._cam_key = key
+        return self._cam
+
     def score(self, q: np.ndarray) -> float:
-        """Geometric perception proxy of configuration ``q`` in [0, 1]."""
-        cam = self.robot.camera_poses(torch.as_tensor(q[None], dtype=torch.float32))
-        with torch.no_grad():
-            return float(self.scorer.score(cam)[0])
+        """Geometric perception proxy of configuration ``q`` in [0, 1] (:class:`GeometricScorer`: distance and
+        viewing-angle terms inside the camera frustum, 0 when the target is occluded)."""
+        cam = self.camera(q)
+        if not fastpath.enabled():
+            with torch.no_grad():
+                return float(self.scorer.score(torch.as_tensor(cam[None]))[0])
+        sc, intr = self.scorer, self.scorer.intr
+        p, f = self._score_center, self._score_facing
+        pc = cam[:3, :3].T @ (p - cam[:3, 3])
+        z = pc[2]
+        if not (intr.near < z < intr.far and abs(pc[0]) <= intr.tan_half_h * z and abs(pc[1]) <= intr.tan_half_v * z):
+            return 0.0
+        to_cam = cam[:3, 3] - p
+        d = max(float(np.linalg.norm(to_cam)), 1e-9)
+        cos = float(to_cam @ f) / d
+        v = math.exp(-((d - sc.d_best) / sc.d_width) ** 2) * min(max((cos - sc.cos_min) / (1 - sc.cos_min), 0.0), 1.0)
+        if v > 0.0 and sc.occ is not None:
+            occ = fastpath.occlusion_scores(sc.occ, torch.from_numpy(np.ascontiguousarray(cam[None, :3, 3])))
+            if float(occ[0]) > sc.occ.tau:
+                return 0.0
+        return v
 
     # ---- gymnasium API ----------------------------------------------------------------------------------------------
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):

@@ -167,10 +167,14 @@ class PPOPlanner:
                                    seed=self.settings.seed, context=self.ctx)
 
     def fingerprint(self) -> str:
-        """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions."""
+        """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions and the
+        environment version (:data:`~psprm_core.baselines.rl_env.ENV_VERSION`)."""
         import stable_baselines3
 
+        from .rl_env import ENV_VERSION
+
         h = hashlib.sha256(self.robot.hash().encode())
+        h.update(f"env{ENV_VERSION}".encode())
         for b in self.scene.collision_boxes():
             h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
         h.update(np.asarray(self.scene.workspace, float).tobytes())
