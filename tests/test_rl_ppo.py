@@ -162,3 +162,65 @@ def test_compiled_step_matches_the_torch_path(planner, env):
         seen["valid" if fast[1] else "rejected"] += 1
         seen["scored"] += fast[3] > 0
     assert min(seen.values()) > 0, seen  # both outcomes and non-zero scores were compared
+
+
+def test_geodesic_progress_goes_around_the_furniture(planner):
+    """The geodesic goal distance is 0 at the goal, never shorter than the straight line, and longer than it
+    when the table stands between the robot and the goal."""
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    settings = dataclasses.replace(planner.settings, progress_metric="geodesic")
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    goal = _config(planner, 3.0, 4.0, 0.0)  # north of the table (x 2.3-3.7, y 2.6-3.4)
+    env.reset(options={"start": _config(planner, 3.0, 1.2, 0.0), "goal": goal})
+    assert env.progress_distance(goal) == pytest.approx(0.0)
+    behind = env.q.copy()
+    behind[:2] = [3.5, 2.0]  # south of the table, next to the chair (x 2.75-3.25, y 1.8-2.3)
+    assert env.progress_distance(behind) > env.goal_distance(behind) + 0.5
+    rng = np.random.default_rng(0)
+    for xy in rng.uniform([0.3, 0.3], [7.7, 5.7], (50, 2)):
+        q = env.q.copy()
+        q[:2] = xy
+        assert env.progress_distance(q) >= env.goal_distance(q) - 1e-9
+    # the progress term uses it: a step towards the table (straight at the goal) earns less than the straight metric
+    env.reset(options={"start": _config(planner, 3.0, 1.4, np.pi / 2), "goal": goal})  # the chair ahead
+    q0 = env.q.copy()
+    _, _, _, _, info = env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))
+    straight = env.goal_distance(q0) - env.goal_distance(env.q)
+    assert not info["rejected"] and straight > 0.09 and info["terms"]["progress"] < straight - 0.02
+
+
+def test_curriculum_starts_near_the_goal_first(planner):
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    settings = dataclasses.replace(planner.settings, curriculum_steps=1000, curriculum_start=1.2)
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    env.reset(seed=0)
+    first = [env.reset()[1]["goal_distance"] for _ in range(40)]
+    assert max(first) <= 1.2 and np.mean(first) > 0.3
+    assert all(env.ctx.valid(env.q[None]))
+    env.total_steps = 500  # half way: the cap grows towards the workspace diagonal
+    assert env.curriculum_distance() == pytest.approx(1.2 + 0.5 * (10.0 - 1.2))
+    env.total_steps = 1000  # after the curriculum: the pool's problems as they are
+    later = [env.reset()[1]["goal_distance"] for _ in range(40)]
+    assert min(later) >= settings.min_problem_distance - 1e-9 and max(later) > 3.0
+
+
+def test_observation_normalisation_is_saved_with_the_policy(planner, tmp_path, monkeypatch):
+    monkeypatch.setattr(rl_ppo, "rl_cache_dir", lambda: tmp_path)
+    kw = dict(TINY, normalize_obs=True)
+    p = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **kw)
+    assert p.fingerprint() != planner.fingerprint()
+    assert not p.prepare()["cached"]
+    st = p.obs_stats
+    assert st["mean"].shape == p.make_env().observation_space.shape and (st["var"] > 0).all()
+    obs = p.make_env().reset(seed=2)[0]
+    z = p.normalize(obs)
+    assert np.allclose(z, np.clip((obs - st["mean"]) / np.sqrt(st["var"] + st["epsilon"]), -10, 10), atol=1e-5)
+    assert not np.allclose(z, obs)
+    again = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **kw)
+    assert again.prepare()["cached"]
+    assert np.allclose(again.obs_stats["mean"], st["mean"]) and np.allclose(again.obs_stats["var"], st["var"])
+    assert np.allclose(again.model.predict(again.normalize(obs), deterministic=True)[0],
+                       p.model.predict(z, deterministic=True)[0])
+    assert planner.normalize(obs) is obs  # without the setting the observation goes in unchanged

@@ -21,12 +21,19 @@ Reward (per step)
     :class:`~psprm_core.perception.scoring.GeometricScorer` with ray-cast occlusion; offset 0 by default, 1 turns it
     into the paper's perception cost ``-(1 - p)``, which also stops rewarding long episodes)
     ``- w_motion * c_m(q, q')`` (differential-drive motion cost of the step, :mod:`psprm_core.motion`)
-    ``+ w_progress * (d(q) - d(q'))`` (goal progress; d = base distance to the goal)
+    ``+ w_progress * (d(q) - d(q'))`` (goal progress; d = base distance to the goal: straight-line with
+    ``progress_metric: euclidean``, or with ``geodesic`` the shortest 8-connected path on a ``geodesic_cell`` grid
+    of the base positions where the robot fits at some heading, which does not reward driving into the furniture
+    between start and goal)
     ``- collision_penalty`` when the step is rejected, ``+ goal_bonus`` when the goal is reached.
 Invalid actions
     a step whose motion collides (environment, self, limits or workspace; checked every ``resolution`` along the
     motion with :class:`~psprm_core.collision.CollisionChecker`) is rejected: the state does not change and the step
     earns the collision penalty.
+Curriculum (optional, ``curriculum_steps > 0``)
+    during the first ``curriculum_steps`` environment steps a random training episode whose start is farther from
+    its goal than ``curriculum_start`` + (workspace diagonal - ``curriculum_start``) x steps / ``curriculum_steps``
+    starts instead from a pool configuration within that distance (short problems first).
 Termination
     the goal counts as reached when the base is within ``goal_tolerance`` of the goal position and the final
     differential-drive motion to the exact goal configuration is collision-free (it is then executed); episodes are
@@ -124,8 +131,103 @@ class ActivePerceptionEnv(gym.Env):
         self.path: list = []
         self.last_rejected = False
         self._cam_key, self._cam = None, None
+        self._grid_cache: Optional[tuple] = None
+        self._pool: Optional[np.ndarray] = None  # every start and goal of the problem pool (curriculum)
+        self.total_steps = 0  # environment steps over all episodes (curriculum)
+        self._fields: dict = {}
         self._score_center = self.scorer.center.numpy().astype(float)
         self._score_facing = self.scorer.facing.numpy().astype(float)
+
+    # ---- goal distance for the progress reward -------------------------------------------------------------------
+    def _grid(self) -> tuple:
+        """Base-position grid of the workspace (cell centres (nx, ny, 2), free (nx, ny): the robot in its default
+        joint configuration fits at one of 8 headings) and the 8-connected edges (rows, cols, lengths) between free cells
+        (built once)."""
+        if self._grid_cache is None:
+            h = self.settings.geodesic_cell
+            ws = np.asarray(self.scene.workspace, float)
+            xs = np.arange(ws[0, 0] + 0.5 * h, ws[0, 1], h)
+            ys = np.arange(ws[1, 0] + 0.5 * h, ws[1, 1], h)
+            X, Y = np.meshgrid(xs, ys, indexing="ij")
+            heads = np.linspace(-np.pi, np.pi, 8, endpoint=False)
+            q = np.tile(self.robot.default_configuration(), (X.size * len(heads), 1))
+            q[:, 0] = np.repeat(X.ravel(), len(heads))
+            q[:, 1] = np.repeat(Y.ravel(), len(heads))
+            q[:, 2] = np.tile(heads, X.size)
+            with fastpath.bulk(1):
+                free = self.ctx.valid(q).reshape(X.shape + (len(heads),)).any(-1)
+            nx, ny = X.shape
+            idx = np.arange(nx * ny).reshape(nx, ny)
+            rows, cols, w = [], [], []
+            for dx, dy in ((1, 0), (0, 1), (1, 1), (1, -1)):
+                a = idx[max(0, -dx):nx - max(0, dx), max(0, -dy):ny - max(0, dy)]
+                b = idx[max(0, dx):nx - max(0, -dx) or None, max(0, dy):ny - max(0, -dy) or None]
+                a, b = a.ravel(), b.ravel()
+                ok = free.ravel()[a] & free.ravel()[b]
+                rows.append(a[ok])
+                cols.append(b[ok])
+                w.append(np.full(int(ok.sum()), h * math.hypot(dx, dy)))
+            r, c, w = np.concatenate(rows), np.concatenate(cols), np.concatenate(w)
+            graph = (np.concatenate([r, c]), np.concatenate([c, r]), np.concatenate([w, w]))  # both directions
+            self._grid_cache = (np.stack([X, Y], -1), free, graph)
+        return self._grid_cache
+
+    def _near_cells(self, xy: np.ndarray, k: int = 2) -> tuple:
+        """Indices (i, j) of the grid cells within ``k`` cells of position ``xy``."""
+        centres = self._grid()[0]
+        h = self.settings.geodesic_cell
+        nx, ny = centres.shape[:2]
+        ws = np.asarray(self.scene.workspace, float)
+        i0 = int(np.clip((xy[0] - ws[0, 0]) // h, 0, nx - 1))
+        j0 = int(np.clip((xy[1] - ws[1, 0]) // h, 0, ny - 1))
+        ii, jj = np.meshgrid(np.arange(max(0, i0 - k), min(nx, i0 + k + 1)),
+                             np.arange(max(0, j0 - k), min(ny, j0 + k + 1)), indexing="ij")
+        return ii.ravel(), jj.ravel()
+
+    def _distance_field(self) -> Optional[np.ndarray]:
+        """Geodesic distances (nx, ny) of the grid cells to the current goal (inf: unreachable), or None when no
+        free cell is near the goal (the progress then uses the straight-line distance)."""
+        key = self.goal[:2].tobytes()
+        if key in self._fields:
+            return self._fields[key]
+        from scipy.sparse.csgraph import dijkstra
+
+        centres, free, graph = self._grid()
+        ii, jj = self._near_cells(self.goal[:2])
+        ok = free[ii, jj]
+        field = None
+        if ok.any():  # a virtual source node linked to the free cells near the goal by their straight distance
+            from scipy.sparse import coo_matrix
+
+            ii, jj = ii[ok], jj[ok]
+            off = np.linalg.norm(centres[ii, jj] - self.goal[:2], axis=-1)
+            r, c, w = graph
+            n = free.size
+            g = coo_matrix((np.concatenate([w, off]),
+                            (np.concatenate([r, np.full(len(off), n)]),
+                             np.concatenate([c, np.ravel_multi_index((ii, jj), free.shape)]))),
+                           shape=(n + 1, n + 1)).tocsr()
+            field = dijkstra(g, indices=n)[:n].reshape(free.shape)
+        if len(self._fields) > 1024:
+            self._fields.clear()
+        self._fields[key] = field
+        return field
+
+    def progress_distance(self, q: np.ndarray) -> float:
+        """The goal distance d of the progress reward (``progress_metric``): straight-line, or geodesic on the
+        grid (the shortest field value plus straight-line offset over the free cells within 2 cells of ``q``; the
+        straight-line distance within 2 cells of the goal or where no free cell is near)."""
+        if self.settings.progress_metric != "geodesic":
+            return self.goal_distance(q)
+        field = self._distance_field()
+        if field is None:
+            return self.goal_distance(q)
+        ii, jj = self._near_cells(q[:2])
+        v = field[ii, jj] + np.linalg.norm(self._grid()[0][ii, jj] - q[:2], axis=-1)
+        m, e = float(v.min()), self.goal_distance(q)
+        if e <= 2.0 * self.settings.geodesic_cell:  # next to the goal: straight to it (0 at the goal)
+            m = min(m, e)
+        return m if math.isfinite(m) else e
 
     # ---- problems ----------------------------------------------------------------------------------------------------
     @property
@@ -262,6 +364,26 @@ class ActivePerceptionEnv(gym.Env):
                 return 0.0
         return v
 
+    def curriculum_distance(self) -> float:
+        """The largest start-goal distance (m) of a training episode now: ``curriculum_start`` at the first step,
+        growing linearly with the environment steps taken to no limit (inf) after ``curriculum_steps``."""
+        s = self.settings
+        if s.curriculum_steps <= 0 or self.total_steps >= s.curriculum_steps:
+            return math.inf
+        return s.curriculum_start + (self._scale - s.curriculum_start) * self.total_steps / s.curriculum_steps
+
+    def _curriculum_start(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """The start for goal ``b``: ``a``, or during the curriculum, when ``a`` is too far from ``b``, a random
+        pool configuration within the current :meth:`curriculum_distance` of ``b`` (``a`` if there is none)."""
+        dmax = self.curriculum_distance()
+        if np.linalg.norm(a[:2] - b[:2]) <= dmax:
+            return a
+        if self._pool is None:
+            self._pool = np.array([q for pair in self.problems for q in pair], float)
+        d = np.linalg.norm(self._pool[:, :2] - b[:2], axis=1)
+        near = np.nonzero((d <= dmax) & (d >= self.settings.goal_tolerance + 0.1))[0]
+        return self._pool[self._rng.choice(near)] if len(near) else a
+
     # ---- gymnasium API ----------------------------------------------------------------------------------------------
     def reset(self, *, seed: Optional[int] = None, options: Optional[dict] = None):
         """Start an episode: ``options={"start": q, "goal": q}`` for a given problem, else a random pool problem."""
@@ -275,6 +397,7 @@ class ActivePerceptionEnv(gym.Env):
             a, b = self.problems[int(self._rng.integers(len(self.problems)))]
             if self._rng.random() < 0.5:
                 a, b = b, a
+            a = self._curriculum_start(a, b)
             self.q, self.goal = np.asarray(a, float).copy(), np.asarray(b, float).copy()
         self.q[2] = _wrap(self.q[2])
         self.t = 0
@@ -286,6 +409,7 @@ class ActivePerceptionEnv(gym.Env):
     def step(self, action):
         s = self.settings
         self.t += 1
+        self.total_steps += 1
         q = self.q
         qn = self.propose(q, action)
         info = {"rejected": False, "success": False}
@@ -296,14 +420,14 @@ class ActivePerceptionEnv(gym.Env):
                      "collision": -s.collision_penalty}
             reward = float(sum(terms.values()))
         else:
-            d0, d1 = self.goal_distance(q), self.goal_distance(qn)
+            d0, d1 = self.progress_distance(q), self.progress_distance(qn)
             p = self.score(qn)
             terms = {"perception": s.w_perception * (p - s.perception_offset),
                      "motion": -s.w_motion * self.step_cost(q, qn),
                      "progress": s.w_progress * (d0 - d1)}
             self.q = qn
             self.path.append(qn.copy())
-            if d1 <= s.goal_tolerance and self.motion_valid(qn, self.goal):
+            if self.goal_distance(qn) <= s.goal_tolerance and self.motion_valid(qn, self.goal):
                 self.q = self.goal.copy()
                 self.path.append(self.q.copy())
                 self.reached = True

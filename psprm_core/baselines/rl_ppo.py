@@ -48,6 +48,8 @@ class PPOSettings:
     threads: int = 1  # torch threads while training
     cache: bool = True  # save / load the trained policy under ~/.cache/psprm/rl
     checkpoint_every: int = 0  # > 0: also save the policy so far every this many steps (``<cache>.partial.zip``)
+    normalize_obs: bool = False  # running mean/std observation normalisation (sb3 VecNormalize), saved with the policy
+    normalize_reward: bool = False  # VecNormalize's return-based reward scaling while training
     # environment
     max_steps: int = 200  # episode length in training and the rollout limit of plan()
     step_forward: float = 0.1  # metres of base travel per step at |action| = 1
@@ -61,9 +63,13 @@ class PPOSettings:
     perception_offset: float = 0.0  # subtracted from the score (1.0: the paper's perception cost -(1 - p) per step)
     w_motion: float = 0.05  # x motion cost of the step
     w_progress: float = 1.0  # x decrease of the base's distance to the goal (m)
+    progress_metric: str = "euclidean"  # that distance: "euclidean" (straight line) or "geodesic" (around furniture)
+    geodesic_cell: float = 0.1  # m, grid cell of the geodesic distance
     collision_penalty: float = 0.5  # rejected (invalid) action
     goal_bonus: float = 10.0
     problems: int = 256  # random (start, goal) pairs episodes are drawn from
+    curriculum_steps: int = 0  # > 0: start-goal distance of training episodes capped, the cap growing over these steps
+    curriculum_start: float = 1.0  # m, the cap at the first step
     min_problem_distance: float = 1.0
     resolution: float = 0.05  # collision-check spacing along a step (motion-cost units)
     timeout_s: float = 60.0
@@ -87,6 +93,13 @@ class PPOSettings:
         self.layers()
         if self.n_steps < 2 or self.batch_size < 2 or self.total_timesteps < 1 or self.max_steps < 1:
             raise ConfigError(source, "n_steps", "n_steps, batch_size >= 2, total_timesteps, max_steps >= 1")
+        if self.progress_metric not in ("euclidean", "geodesic"):
+            raise ConfigError(source, "progress_metric",
+                              f"expected 'euclidean' or 'geodesic', got '{self.progress_metric}'")
+        if self.curriculum_steps < 0 or not self.curriculum_start > 0:
+            raise ConfigError(source, "curriculum_steps", "curriculum_steps >= 0 and curriculum_start > 0")
+        if not self.geodesic_cell > 0:
+            raise ConfigError(source, "geodesic_cell", f"must be > 0, got {self.geodesic_cell}")
 
 
 _NOT_TRAINING = ("timeout_s", "cache", "threads", "checkpoint_every")  # settings that do not change the trained policy
@@ -123,6 +136,17 @@ def _ProgressLog(total: int, checkpoint_every: int = 0, checkpoint_path: Optiona
     return ProgressLog()
 
 
+def _obs_stats_path(path: Path) -> Path:
+    return path.with_name(path.stem + ".obs_stats.npz")
+
+
+def _load_obs_stats(path: Path) -> dict:
+    """The observation statistics saved next to a cached policy (``normalize_obs``); raises OSError if missing."""
+    with np.load(_obs_stats_path(path)) as z:
+        return {"mean": z["mean"].copy(), "var": z["var"].copy(), "clip": float(z["clip"]),
+                "epsilon": float(z["epsilon"])}
+
+
 def rl_cache_dir() -> Path:
     from ..paths import cache_dir
 
@@ -155,6 +179,7 @@ class PPOPlanner:
         self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)
         self.scene, self.targets, self.robot = scene, list(targets), self.ctx.robot
         self.model = None
+        self.obs_stats: Optional[dict] = None  # observation mean / var of VecNormalize (``normalize_obs``)
         self.info: dict = {}
         self._env = None
 
@@ -190,6 +215,15 @@ class PPOPlanner:
     def cache_path(self) -> Path:
         return rl_cache_dir() / f"ppo_{self.scene.name}_{self.fingerprint()}.zip"
 
+    def normalize(self, obs: np.ndarray) -> np.ndarray:
+        """The policy's input for an environment observation: with ``normalize_obs``, standardised by the running
+        statistics of training (as ``VecNormalize.normalize_obs``), else unchanged."""
+        st = self.obs_stats
+        if st is None:
+            return obs
+        z = (obs - st["mean"]) / np.sqrt(st["var"] + st["epsilon"])
+        return np.clip(z, -st["clip"], st["clip"]).astype(np.float32)
+
     # ---- interface ------------------------------------------------------------------------------------------------
     def prepare(self) -> dict:
         """Train the policy (or load the cached one). Returns ``preprocess_s`` (the training wall time, also when
@@ -204,6 +238,7 @@ class PPOPlanner:
             try:
                 self.model = PPO.load(str(path), device="cpu")
                 meta = json.loads(meta_path.read_text())
+                self.obs_stats = _load_obs_stats(path) if s.normalize_obs else None
                 self.info = {"preprocess_s": float(meta["train_s"]), "cached": True,
                              "load_s": time.perf_counter() - t0, "timesteps": int(meta["timesteps"]),
                              "path": str(path)}
@@ -219,7 +254,13 @@ class PPOPlanner:
             env = self.make_env()
             env.problems  # generate the training problems (part of the preprocessing)
             layers = s.layers()
-            self.model = PPO("MlpPolicy", env, learning_rate=s.learning_rate, n_steps=s.n_steps,
+            venv = env
+            if s.normalize_obs or s.normalize_reward:
+                from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+                venv = VecNormalize(DummyVecEnv([lambda: env]), norm_obs=s.normalize_obs,
+                                    norm_reward=s.normalize_reward, clip_obs=10.0, gamma=s.gamma)
+            self.model = PPO("MlpPolicy", venv, learning_rate=s.learning_rate, n_steps=s.n_steps,
                              batch_size=s.batch_size, n_epochs=s.n_epochs, gamma=s.gamma, gae_lambda=s.gae_lambda,
                              ent_coef=s.ent_coef, policy_kwargs={"net_arch": {"pi": layers, "vf": layers}},
                              seed=s.seed, device="cpu", verbose=0)
@@ -227,12 +268,19 @@ class PPOPlanner:
             self.model.learn(total_timesteps=s.total_timesteps,
                              callback=_ProgressLog(s.total_timesteps, s.checkpoint_every, partial))
             train_s = time.perf_counter() - t0
+            self.obs_stats = None
+            if s.normalize_obs:
+                self.obs_stats = {"mean": np.asarray(venv.obs_rms.mean, float).copy(),
+                                  "var": np.asarray(venv.obs_rms.var, float).copy(),
+                                  "clip": float(venv.clip_obs), "epsilon": float(venv.epsilon)}
         finally:
             torch.set_num_threads(threads)
         self.info = {"preprocess_s": train_s, "cached": False, "load_s": 0.0,
                      "timesteps": int(self.model.num_timesteps), "path": str(path) if s.cache else None}
         if s.cache:
             self.model.save(str(path))
+            if self.obs_stats is not None:
+                np.savez(_obs_stats_path(path), **self.obs_stats)
             meta_path.write_text(json.dumps({"train_s": train_s, "timesteps": int(self.model.num_timesteps),
                                              "settings": dataclasses.asdict(s), "scene": self.scene.name,
                                              "targets": self.targets, "robot": self.robot.name}, indent=1))
@@ -266,7 +314,7 @@ class PPOPlanner:
         for _ in range(self.settings.max_steps):
             if time.perf_counter() - t0 > timeout_s:
                 return failure(f"timeout after {steps} policy steps", t0)
-            action, _ = self.model.predict(obs, deterministic=True)
+            action, _ = self.model.predict(self.normalize(obs), deterministic=True)
             obs, _, terminated, truncated, info = env.step(action)
             steps += 1
             rejected += info["rejected"]
