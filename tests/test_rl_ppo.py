@@ -207,11 +207,17 @@ def test_curriculum_starts_near_the_goal_first(planner):
 
 
 def test_observation_normalisation_is_saved_with_the_policy(planner, tmp_path, monkeypatch):
+    """Also: with n_envs the rollout of n_steps transitions is split over that many environments."""
+    from psprm_core.errors import ConfigError
+
     monkeypatch.setattr(rl_ppo, "rl_cache_dir", lambda: tmp_path)
-    kw = dict(TINY, normalize_obs=True)
+    kw = dict(TINY, normalize_obs=True, n_envs=2)
     p = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **kw)
     assert p.fingerprint() != planner.fingerprint()
     assert not p.prepare()["cached"]
+    assert (p.model.n_envs, p.model.n_steps, p.model.rollout_buffer.buffer_size) == (2, 256, 256)
+    with pytest.raises(ConfigError):
+        dataclasses.replace(p.settings, n_envs=3).validate()
     st = p.obs_stats
     assert st["mean"].shape == p.make_env().observation_space.shape and (st["var"] > 0).all()
     obs = p.make_env().reset(seed=2)[0]
@@ -224,3 +230,23 @@ def test_observation_normalisation_is_saved_with_the_policy(planner, tmp_path, m
     assert np.allclose(again.model.predict(again.normalize(obs), deterministic=True)[0],
                        p.model.predict(z, deterministic=True)[0])
     assert planner.normalize(obs) is obs  # without the setting the observation goes in unchanged
+
+
+def test_goal_bearing_and_heading_progress(planner):
+    """goal_bearing adds (sin, cos) of the goal's bearing and its distance; with w_heading a turn towards the goal
+    earns progress and a turn away from it costs."""
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    settings = dataclasses.replace(planner.settings, goal_bearing=True, w_heading=0.25)
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    assert env.observation_space.shape[0] == planner.make_env().observation_space.shape[0] + 3
+    start, goal = _config(planner, 4.5, 4.0, 0.0), _config(planner, 4.5, 2.0, 0.0)  # the goal 2 m to the right
+    obs, _ = env.reset(options={"start": start, "goal": goal})
+    n = planner.make_env().observation_space.shape[0]
+    assert obs[n:n + 2] == pytest.approx([-1.0, 0.0], abs=1e-5) and obs[n + 2] > 0
+    assert env.progress_distance(start) == pytest.approx(2.0 + 0.25 * np.pi / 2)
+    _, _, _, _, info = env.step(np.array([0.0, -1.0, 0.0, 0.0], dtype=np.float32))  # turn right, on the spot
+    assert not info["rejected"] and info["terms"]["progress"] == pytest.approx(0.25 * 0.3, abs=1e-6)
+    env.reset(options={"start": start, "goal": goal})
+    _, _, _, _, info = env.step(np.array([0.0, 1.0, 0.0, 0.0], dtype=np.float32))  # turn left, away
+    assert info["terms"]["progress"] == pytest.approx(-0.25 * 0.3, abs=1e-6)

@@ -13,6 +13,9 @@ Observation (float32, clipped to +-10)
     the configuration (base x, y normalised to the workspace, sin/cos of the heading, joints normalised to their
     limits), the goal in the same form plus its position and heading relative to the base frame, the target position
     (world, normalised) and its direction and distance in the camera frame, and the episode progress ``t / max_steps``.
+    Optional (``goal_bearing``): the goal position relative to the base again in polar form, the sine and cosine
+    of its bearing from the base heading and its (scaled) distance, so that "turn towards the goal" is a linear
+    function of the observation.
     Optional (``scan_beams > 0``; not part of the issue's observation, off by default): a horizontal range scan of
     the scene boxes from the base (``scan_beams`` rays, ranges / ``scan_range``) and whether the last action was
     rejected.
@@ -24,7 +27,8 @@ Reward (per step)
     ``+ w_progress * (d(q) - d(q'))`` (goal progress; d = base distance to the goal: straight-line with
     ``progress_metric: euclidean``, or with ``geodesic`` the shortest 8-connected path on a ``geodesic_cell`` grid
     of the base positions where the robot fits at some heading, which does not reward driving into the furniture
-    between start and goal)
+    between start and goal), plus with ``w_heading > 0`` that many metres per radian between the base heading and
+    the direction to the goal position (faded out within 0.5 m of it), so that turning towards the goal pays at once
     ``- collision_penalty`` when the step is rejected, ``+ goal_bonus`` when the goal is reached.
 Invalid actions
     a step whose motion collides (environment, self, limits or workspace; checked every ``resolution`` along the
@@ -114,6 +118,8 @@ class ActivePerceptionEnv(gym.Env):
         self.action_space = gym.spaces.Box(-1.0, 1.0, shape=(n_act,), dtype=np.float32)
         n_q = 4 + (r.dof - 3)
         n_obs = 2 * n_q + 4 + 3 + 4 + 1
+        if s.goal_bearing:  # optional: the goal's direction and distance from the base in polar form
+            n_obs += 3
         if s.scan_beams > 0:  # optional obstacle awareness: range scan + "last action rejected"
             n_obs += s.scan_beams + 1
             boxes = scene.collision_boxes()
@@ -217,17 +223,20 @@ class ActivePerceptionEnv(gym.Env):
         """The goal distance d of the progress reward (``progress_metric``): straight-line, or geodesic on the
         grid (the shortest field value plus straight-line offset over the free cells within 2 cells of ``q``; the
         straight-line distance within 2 cells of the goal or where no free cell is near)."""
-        if self.settings.progress_metric != "geodesic":
-            return self.goal_distance(q)
-        field = self._distance_field()
-        if field is None:
-            return self.goal_distance(q)
-        ii, jj = self._near_cells(q[:2])
-        v = field[ii, jj] + np.linalg.norm(self._grid()[0][ii, jj] - q[:2], axis=-1)
-        m, e = float(v.min()), self.goal_distance(q)
-        if e <= 2.0 * self.settings.geodesic_cell:  # next to the goal: straight to it (0 at the goal)
-            m = min(m, e)
-        return m if math.isfinite(m) else e
+        s = self.settings
+        e = self.goal_distance(q)
+        m = e
+        field = self._distance_field() if s.progress_metric == "geodesic" else None
+        if field is not None:
+            ii, jj = self._near_cells(q[:2])
+            v = float((field[ii, jj] + np.linalg.norm(self._grid()[0][ii, jj] - q[:2], axis=-1)).min())
+            if e <= 2.0 * s.geodesic_cell:  # next to the goal: straight to it (0 at the goal)
+                v = min(v, e)
+            m = v if math.isfinite(v) else e
+        if s.w_heading > 0.0 and e > 1e-9:  # turning towards the goal counts as progress (faded out near it)
+            d = self.goal[:2] - q[:2]
+            m += s.w_heading * abs(_wrap(math.atan2(d[1], d[0]) - q[2])) * min(1.0, e / 0.5)
+        return m
 
     # ---- problems ----------------------------------------------------------------------------------------------------
     @property
@@ -261,6 +270,9 @@ class ActivePerceptionEnv(gym.Env):
         tgt = np.concatenate([(self.focus[:2] - self._ws_c) / self._ws_h, [self.focus[2]]])
         o = np.concatenate([self._qfeat(q), self._qfeat(g), rel, [math.sin(dth), math.cos(dth)], tgt,
                             pc / max(dist, 1e-6), [dist / self._scale * 4.0], [self.t / self.settings.max_steps]])
+        if self.settings.goal_bearing:
+            r = float(np.hypot(rel[0], rel[1]))
+            o = np.concatenate([o, [rel[1] / r, rel[0] / r] if r > 1e-9 else [0.0, 1.0], [min(r, 4.0)]])
         if self.settings.scan_beams > 0:
             o = np.concatenate([o, self.scan(q) / self.settings.scan_range, [float(self.last_rejected)]])
         return np.clip(o, -10.0, 10.0).astype(np.float32)

@@ -38,13 +38,15 @@ class PPOSettings:
     # PPO (stable-baselines3)
     total_timesteps: int = 100_000
     learning_rate: float = 3e-4
-    n_steps: int = 512  # rollout length per update
+    n_steps: int = 512  # rollout length per update (transitions, over all n_envs environments)
+    n_envs: int = 1  # environments stepped in turn (one process); each contributes n_steps / n_envs per rollout
     batch_size: int = 64
     n_epochs: int = 10
     gamma: float = 0.99
     gae_lambda: float = 0.95
     ent_coef: float = 0.0
     net_arch: str = "256-256-128"  # hidden layers of both the actor and the critic
+    log_std_init: float = 0.0  # initial log standard deviation of the Gaussian actions (sb3 default 0: std 1)
     threads: int = 1  # torch threads while training
     cache: bool = True  # save / load the trained policy under ~/.cache/psprm/rl
     checkpoint_every: int = 0  # > 0: also save the policy so far every this many steps (``<cache>.partial.zip``)
@@ -56,6 +58,7 @@ class PPOSettings:
     step_turn: float = 0.3  # radians of base rotation per step at |action| = 1
     step_joint: float = 0.15  # camera joint change per step at |action| = 1
     goal_tolerance: float = 0.2  # base distance (m) from which the final motion to the goal is attempted
+    goal_bearing: bool = False  # extend the observation by the goal's bearing (sin, cos) and distance from the base
     scan_beams: int = 0  # > 0: extend the observation by a range scan with this many beams + "last action rejected"
     scan_range: float = 3.0  # m
     scan_height: float = 0.2  # m above the floor
@@ -65,6 +68,7 @@ class PPOSettings:
     w_progress: float = 1.0  # x decrease of the base's distance to the goal (m)
     progress_metric: str = "euclidean"  # that distance: "euclidean" (straight line) or "geodesic" (around furniture)
     geodesic_cell: float = 0.1  # m, grid cell of the geodesic distance
+    w_heading: float = 0.0  # m per rad of heading error towards the goal added to that distance (0: off)
     collision_penalty: float = 0.5  # rejected (invalid) action
     goal_bonus: float = 10.0
     problems: int = 256  # random (start, goal) pairs episodes are drawn from
@@ -93,6 +97,8 @@ class PPOSettings:
         self.layers()
         if self.n_steps < 2 or self.batch_size < 2 or self.total_timesteps < 1 or self.max_steps < 1:
             raise ConfigError(source, "n_steps", "n_steps, batch_size >= 2, total_timesteps, max_steps >= 1")
+        if self.n_envs < 1 or self.n_steps % self.n_envs or self.n_steps // self.n_envs < 2:
+            raise ConfigError(source, "n_envs", f"n_envs >= 1 must divide n_steps ({self.n_steps}) into rollouts of >= 2")
         if self.progress_metric not in ("euclidean", "geodesic"):
             raise ConfigError(source, "progress_metric",
                               f"expected 'euclidean' or 'geodesic', got '{self.progress_metric}'")
@@ -184,12 +190,30 @@ class PPOPlanner:
         self._env = None
 
     # ---- environment and cache ----------------------------------------------------------------------------------
-    def make_env(self, problems: Optional[list] = None):
-        """A fresh :class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` for this planner."""
+    def make_env(self, problems: Optional[list] = None, seed_offset: int = 0):
+        """A fresh :class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` for this planner (episode seed
+        ``settings.seed + seed_offset``)."""
         from .rl_env import ActivePerceptionEnv
 
         return ActivePerceptionEnv(self.scene, self.targets, settings=self.settings, problems=problems,
-                                   seed=self.settings.seed, context=self.ctx)
+                                   seed=self.settings.seed + seed_offset, context=self.ctx)
+
+    def training_env(self):
+        """The (vectorised) training environment: ``n_envs`` environments on one problem pool (generated here,
+        part of the preprocessing), wrapped in ``VecNormalize`` with ``normalize_obs`` / ``normalize_reward``."""
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+        s = self.settings
+        first = self.make_env()
+        envs = [first] + [self.make_env(problems=first.problems, seed_offset=1000 * i) for i in range(1, s.n_envs)]
+        if s.progress_metric == "geodesic":
+            for e in envs[1:]:
+                e._grid_cache = first._grid()  # one free-space grid for all
+        venv = DummyVecEnv([lambda e=e: e for e in envs])
+        if s.normalize_obs or s.normalize_reward:
+            venv = VecNormalize(venv, norm_obs=s.normalize_obs, norm_reward=s.normalize_reward, clip_obs=10.0,
+                                gamma=s.gamma)
+        return venv
 
     def fingerprint(self) -> str:
         """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions and the
@@ -251,18 +275,12 @@ class PPOPlanner:
         torch.set_num_threads(max(1, s.threads))
         try:
             t0 = time.perf_counter()
-            env = self.make_env()
-            env.problems  # generate the training problems (part of the preprocessing)
+            venv = self.training_env()
             layers = s.layers()
-            venv = env
-            if s.normalize_obs or s.normalize_reward:
-                from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
-
-                venv = VecNormalize(DummyVecEnv([lambda: env]), norm_obs=s.normalize_obs,
-                                    norm_reward=s.normalize_reward, clip_obs=10.0, gamma=s.gamma)
-            self.model = PPO("MlpPolicy", venv, learning_rate=s.learning_rate, n_steps=s.n_steps,
+            self.model = PPO("MlpPolicy", venv, learning_rate=s.learning_rate, n_steps=s.n_steps // s.n_envs,
                              batch_size=s.batch_size, n_epochs=s.n_epochs, gamma=s.gamma, gae_lambda=s.gae_lambda,
-                             ent_coef=s.ent_coef, policy_kwargs={"net_arch": {"pi": layers, "vf": layers}},
+                             ent_coef=s.ent_coef, policy_kwargs={"net_arch": {"pi": layers, "vf": layers},
+                                                             "log_std_init": s.log_std_init},
                              seed=s.seed, device="cpu", verbose=0)
             partial = path.with_name(path.stem + ".partial.zip")
             self.model.learn(total_timesteps=s.total_timesteps,
