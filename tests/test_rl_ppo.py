@@ -50,13 +50,15 @@ def test_optional_range_scan(planner):
 
     settings = dataclasses.replace(planner.settings, scan_beams=8)
     env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    no_scan = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                  settings=dataclasses.replace(planner.settings, scan_beams=0))
     q = planner.robot.configuration({"base_x": 1.0, "base_y": 1.0, "base_theta": 0.0})
     r = env.scan(q)  # beams every 45 deg from the heading (east)
     assert r[4] == pytest.approx(1.0) and r[6] == pytest.approx(1.0)  # west and south walls
     assert r[2] == pytest.approx(3.625 - 1.0)  # the shelf to the north
     assert r[0] == settings.scan_range  # nothing within range to the east
     check_env(env)
-    assert env.observation_space.shape[0] == planner.make_env().observation_space.shape[0] + 9
+    assert env.observation_space.shape[0] == no_scan.observation_space.shape[0] + 9
 
 
 def test_invalid_action_is_rejected_and_leaves_the_state_unchanged(planner, env):
@@ -73,6 +75,30 @@ def test_invalid_action_is_rejected_and_leaves_the_state_unchanged(planner, env)
     assert np.array_equal(env.q, before) and len(env.path) == n
     assert info["terms"]["collision"] < 0 and reward < 0 and not terminated
     assert env.observation_space.contains(obs)
+
+
+
+def test_rejection_streak_in_the_observation(planner):
+    """With streak_cap the scan's last feature counts consecutive rejected actions (a bool without it)."""
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    start, goal = _config(planner, 0.6, 3.0, np.pi), _config(planner, 2.0, 1.0, 0.0)
+    forward = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+    seen = {}
+    for cap in (0, 4):
+        env = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                  settings=dataclasses.replace(planner.settings, scan_beams=8, streak_cap=cap))
+        env.reset(options={"start": start, "goal": goal})
+        flags = []
+        for _ in range(20):
+            obs, _, _, _, info = env.step(forward)
+            if info["rejected"]:
+                flags.append(float(obs[-1]))
+        seen[cap] = flags
+    assert len(seen[0]) >= 6 and set(seen[0]) == {1.0}
+    assert seen[4][:5] == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0])
+    env.step(np.array([-1.0, 0.0, 0.0, 0.0], dtype=np.float32))  # backing off is accepted: the count restarts
+    assert env.rejected_streak == 0 and env._obs()[-1] == 0.0
 
 
 def test_reward_terms_have_the_right_signs(planner, env):
@@ -112,7 +138,7 @@ def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatc
     assert not info["cached"] and info["timesteps"] >= TINY["total_timesteps"] and info["preprocess_s"] > 0
     assert planner.cache_path().is_file()
     m = planner.model
-    assert (m.n_steps, m.batch_size, m.learning_rate) == (512, 64, 3e-4)
+    assert (m.n_steps * m.n_envs, m.batch_size, m.learning_rate) == (512, 64, 3e-4)  # rollout 512 in all
     assert [l.out_features for l in m.policy.mlp_extractor.policy_net if hasattr(l, "out_features")] == [256, 256, 128]
     again = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **TINY)
     info2 = again.prepare()
@@ -169,7 +195,7 @@ def test_geodesic_progress_goes_around_the_furniture(planner):
     when the table stands between the robot and the goal."""
     from psprm_core.baselines.rl_env import ActivePerceptionEnv
 
-    settings = dataclasses.replace(planner.settings, progress_metric="geodesic")
+    settings = dataclasses.replace(planner.settings, progress_metric="geodesic", w_heading=0.0)
     env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
     goal = _config(planner, 3.0, 4.0, 0.0)  # north of the table (x 2.3-3.7, y 2.6-3.4)
     env.reset(options={"start": _config(planner, 3.0, 1.2, 0.0), "goal": goal})
@@ -237,12 +263,14 @@ def test_goal_bearing_and_heading_progress(planner):
     earns progress and a turn away from it costs."""
     from psprm_core.baselines.rl_env import ActivePerceptionEnv
 
-    settings = dataclasses.replace(planner.settings, goal_bearing=True, w_heading=0.25)
+    settings = dataclasses.replace(planner.settings, goal_bearing=True, w_heading=0.25, progress_metric="euclidean")
     env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
-    assert env.observation_space.shape[0] == planner.make_env().observation_space.shape[0] + 3
+    plain = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                settings=dataclasses.replace(settings, goal_bearing=False))
+    assert env.observation_space.shape[0] == plain.observation_space.shape[0] + 3
     start, goal = _config(planner, 4.5, 4.0, 0.0), _config(planner, 4.5, 2.0, 0.0)  # the goal 2 m to the right
     obs, _ = env.reset(options={"start": start, "goal": goal})
-    n = planner.make_env().observation_space.shape[0]
+    n = plain.observation_space.shape[0] - (settings.scan_beams + 1 if settings.scan_beams > 0 else 0)
     assert obs[n:n + 2] == pytest.approx([-1.0, 0.0], abs=1e-5) and obs[n + 2] > 0
     assert env.progress_distance(start) == pytest.approx(2.0 + 0.25 * np.pi / 2)
     _, _, _, _, info = env.step(np.array([0.0, -1.0, 0.0, 0.0], dtype=np.float32))  # turn right, on the spot

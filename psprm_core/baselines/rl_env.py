@@ -18,7 +18,8 @@ Observation (float32, clipped to +-10)
     function of the observation.
     Optional (``scan_beams > 0``; not part of the issue's observation, off by default): a horizontal range scan of
     the scene boxes from the base (``scan_beams`` rays, ranges / ``scan_range``) and whether the last action was
-    rejected.
+    rejected (with ``streak_cap > 0``: the number of consecutive rejected actions / ``streak_cap``, at most 1, so
+    that a deterministic policy that keeps driving into an obstacle sees a changing observation).
 Reward (per step)
     ``w_perception * (p(q') - perception_offset)`` (geometric perception proxy of the new camera pose in [0, 1],
     :class:`~psprm_core.perception.scoring.GeometricScorer` with ray-cast occlusion; offset 0 by default, 1 turns it
@@ -136,6 +137,7 @@ class ActivePerceptionEnv(gym.Env):
         self.t = 0
         self.path: list = []
         self.last_rejected = False
+        self.rejected_streak = 0  # consecutive rejected actions
         self._cam_key, self._cam = None, None
         self._grid_cache: Optional[tuple] = None
         self._pool: Optional[np.ndarray] = None  # every start and goal of the problem pool (curriculum)
@@ -274,7 +276,9 @@ class ActivePerceptionEnv(gym.Env):
             r = float(np.hypot(rel[0], rel[1]))
             o = np.concatenate([o, [rel[1] / r, rel[0] / r] if r > 1e-9 else [0.0, 1.0], [min(r, 4.0)]])
         if self.settings.scan_beams > 0:
-            o = np.concatenate([o, self.scan(q) / self.settings.scan_range, [float(self.last_rejected)]])
+            flag = min(self.rejected_streak, self.settings.streak_cap) / self.settings.streak_cap \
+                if self.settings.streak_cap > 0 else float(self.last_rejected)
+            o = np.concatenate([o, self.scan(q) / self.settings.scan_range, [flag]])
         return np.clip(o, -10.0, 10.0).astype(np.float32)
 
     def scan(self, q: np.ndarray) -> np.ndarray:
@@ -416,6 +420,7 @@ class ActivePerceptionEnv(gym.Env):
         self.path = [self.q.copy()]
         self.reached = False
         self.last_rejected = False
+        self.rejected_streak = 0
         return self._obs(), {"goal_distance": self.goal_distance(self.q)}
 
     def step(self, action):
@@ -426,6 +431,7 @@ class ActivePerceptionEnv(gym.Env):
         qn = self.propose(q, action)
         info = {"rejected": False, "success": False}
         self.last_rejected = not self.motion_valid(q, qn)
+        self.rejected_streak = self.rejected_streak + 1 if self.last_rejected else 0
         if self.last_rejected:
             info["rejected"] = True
             terms = {"perception": s.w_perception * (self.score(q) - s.perception_offset),

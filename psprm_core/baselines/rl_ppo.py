@@ -61,6 +61,7 @@ class PPOSettings:
     goal_bearing: bool = False  # extend the observation by the goal's bearing (sin, cos) and distance from the base
     scan_beams: int = 0  # > 0: extend the observation by a range scan with this many beams + "last action rejected"
     scan_range: float = 3.0  # m
+    streak_cap: int = 0  # > 0: the scan's last feature counts consecutive rejected actions (/ streak_cap, <= 1)
     scan_height: float = 0.2  # m above the floor
     w_perception: float = 0.05  # x geometric perception score in [0, 1], per step
     perception_offset: float = 0.0  # subtracted from the score (1.0: the paper's perception cost -(1 - p) per step)
