@@ -50,13 +50,15 @@ def test_optional_range_scan(planner):
 
     settings = dataclasses.replace(planner.settings, scan_beams=8)
     env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    no_scan = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                  settings=dataclasses.replace(planner.settings, scan_beams=0))
     q = planner.robot.configuration({"base_x": 1.0, "base_y": 1.0, "base_theta": 0.0})
     r = env.scan(q)  # beams every 45 deg from the heading (east)
     assert r[4] == pytest.approx(1.0) and r[6] == pytest.approx(1.0)  # west and south walls
     assert r[2] == pytest.approx(3.625 - 1.0)  # the shelf to the north
     assert r[0] == settings.scan_range  # nothing within range to the east
     check_env(env)
-    assert env.observation_space.shape[0] == planner.make_env().observation_space.shape[0] + 9
+    assert env.observation_space.shape[0] == no_scan.observation_space.shape[0] + 9
 
 
 def test_invalid_action_is_rejected_and_leaves_the_state_unchanged(planner, env):
@@ -73,6 +75,30 @@ def test_invalid_action_is_rejected_and_leaves_the_state_unchanged(planner, env)
     assert np.array_equal(env.q, before) and len(env.path) == n
     assert info["terms"]["collision"] < 0 and reward < 0 and not terminated
     assert env.observation_space.contains(obs)
+
+
+
+def test_rejection_streak_in_the_observation(planner):
+    """With streak_cap the scan's last feature counts consecutive rejected actions (a bool without it)."""
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    start, goal = _config(planner, 0.6, 3.0, np.pi), _config(planner, 2.0, 1.0, 0.0)
+    forward = np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32)
+    seen = {}
+    for cap in (0, 4):
+        env = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                  settings=dataclasses.replace(planner.settings, scan_beams=8, streak_cap=cap))
+        env.reset(options={"start": start, "goal": goal})
+        flags = []
+        for _ in range(20):
+            obs, _, _, _, info = env.step(forward)
+            if info["rejected"]:
+                flags.append(float(obs[-1]))
+        seen[cap] = flags
+    assert len(seen[0]) >= 6 and set(seen[0]) == {1.0}
+    assert seen[4][:5] == pytest.approx([0.25, 0.5, 0.75, 1.0, 1.0])
+    env.step(np.array([-1.0, 0.0, 0.0, 0.0], dtype=np.float32))  # backing off is accepted: the count restarts
+    assert env.rejected_streak == 0 and env._obs()[-1] == 0.0
 
 
 def test_reward_terms_have_the_right_signs(planner, env):
@@ -112,7 +138,7 @@ def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatc
     assert not info["cached"] and info["timesteps"] >= TINY["total_timesteps"] and info["preprocess_s"] > 0
     assert planner.cache_path().is_file()
     m = planner.model
-    assert (m.n_steps, m.batch_size, m.learning_rate) == (512, 64, 3e-4)
+    assert (m.n_steps * m.n_envs, m.batch_size, m.learning_rate) == (512, 64, 3e-4)  # rollout 512 in all
     assert [l.out_features for l in m.policy.mlp_extractor.policy_net if hasattr(l, "out_features")] == [256, 256, 128]
     again = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **TINY)
     info2 = again.prepare()
@@ -135,3 +161,120 @@ def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatc
     bad[:2] = [3.0, 3.0]
     assert not again.plan(start, bad).success
     assert "not trained" in PPOPlanner("rl-ppo", planner.scene, ["cup"], robot=planner.robot).plan(start, goal).reason
+
+
+def test_compiled_step_matches_the_torch_path(planner, env):
+    """The step's compiled work (motion points, collision check, motion cost, geometric score with occlusion) gives
+    the values of the torch path (PlanningContext.densify, CollisionChecker, DiffDriveMotion, GeometricScorer)."""
+    from psprm_core import fastpath
+
+    if not fastpath.available():
+        pytest.skip("numba not importable")
+    rng = np.random.default_rng(5)
+    seen = {"valid": 0, "rejected": 0, "scored": 0}
+    for i in range(120):
+        a, _ = env.problems[i % len(env.problems)]
+        q = a.copy()
+        q[:2] += rng.normal(0.0, 0.3, 2)
+        qn = env.propose(q, rng.uniform(-1.0, 1.0, env.action_space.shape))
+        fast = (env.motion_points(q, qn), env.motion_valid(q, qn), env.step_cost(q, qn), env.score(qn))
+        env._cam_key = None
+        with fastpath.disabled():
+            slow = (env.motion_points(q, qn), env.motion_valid(q, qn), env.step_cost(q, qn), env.score(qn))
+        env._cam_key = None
+        assert fast[0].shape == slow[0].shape and np.allclose(fast[0], slow[0], atol=1e-9)
+        assert fast[1] == slow[1]
+        assert fast[2] == pytest.approx(slow[2], abs=1e-9) and fast[3] == pytest.approx(slow[3], abs=1e-6)
+        seen["valid" if fast[1] else "rejected"] += 1
+        seen["scored"] += fast[3] > 0
+    assert min(seen.values()) > 0, seen  # both outcomes and non-zero scores were compared
+
+
+def test_geodesic_progress_goes_around_the_furniture(planner):
+    """The geodesic goal distance is 0 at the goal, never shorter than the straight line, and longer than it
+    when the table stands between the robot and the goal."""
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    settings = dataclasses.replace(planner.settings, progress_metric="geodesic", w_heading=0.0)
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    goal = _config(planner, 3.0, 4.0, 0.0)  # north of the table (x 2.3-3.7, y 2.6-3.4)
+    env.reset(options={"start": _config(planner, 3.0, 1.2, 0.0), "goal": goal})
+    assert env.progress_distance(goal) == pytest.approx(0.0)
+    behind = env.q.copy()
+    behind[:2] = [3.5, 2.0]  # south of the table, next to the chair (x 2.75-3.25, y 1.8-2.3)
+    assert env.progress_distance(behind) > env.goal_distance(behind) + 0.5
+    rng = np.random.default_rng(0)
+    for xy in rng.uniform([0.3, 0.3], [7.7, 5.7], (50, 2)):
+        q = env.q.copy()
+        q[:2] = xy
+        assert env.progress_distance(q) >= env.goal_distance(q) - 1e-9
+    # the progress term uses it: a step towards the table (straight at the goal) earns less than the straight metric
+    env.reset(options={"start": _config(planner, 3.0, 1.4, np.pi / 2), "goal": goal})  # the chair ahead
+    q0 = env.q.copy()
+    _, _, _, _, info = env.step(np.array([1.0, 0.0, 0.0, 0.0], dtype=np.float32))
+    straight = env.goal_distance(q0) - env.goal_distance(env.q)
+    assert not info["rejected"] and straight > 0.09 and info["terms"]["progress"] < straight - 0.02
+
+
+def test_curriculum_starts_near_the_goal_first(planner):
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    settings = dataclasses.replace(planner.settings, curriculum_steps=1000, curriculum_start=1.2)
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    env.reset(seed=0)
+    first = [env.reset()[1]["goal_distance"] for _ in range(40)]
+    assert max(first) <= 1.2 and np.mean(first) > 0.3
+    assert all(env.ctx.valid(env.q[None]))
+    env.total_steps = 500  # half way: the cap grows towards the workspace diagonal
+    assert env.curriculum_distance() == pytest.approx(1.2 + 0.5 * (10.0 - 1.2))
+    env.total_steps = 1000  # after the curriculum: the pool's problems as they are
+    later = [env.reset()[1]["goal_distance"] for _ in range(40)]
+    assert min(later) >= settings.min_problem_distance - 1e-9 and max(later) > 3.0
+
+
+def test_observation_normalisation_is_saved_with_the_policy(planner, tmp_path, monkeypatch):
+    """Also: with n_envs the rollout of n_steps transitions is split over that many environments."""
+    from psprm_core.errors import ConfigError
+
+    monkeypatch.setattr(rl_ppo, "rl_cache_dir", lambda: tmp_path)
+    kw = dict(TINY, normalize_obs=True, n_envs=2)
+    p = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **kw)
+    assert p.fingerprint() != planner.fingerprint()
+    assert not p.prepare()["cached"]
+    assert (p.model.n_envs, p.model.n_steps, p.model.rollout_buffer.buffer_size) == (2, 256, 256)
+    with pytest.raises(ConfigError):
+        dataclasses.replace(p.settings, n_envs=3).validate()
+    st = p.obs_stats
+    assert st["mean"].shape == p.make_env().observation_space.shape and (st["var"] > 0).all()
+    obs = p.make_env().reset(seed=2)[0]
+    z = p.normalize(obs)
+    assert np.allclose(z, np.clip((obs - st["mean"]) / np.sqrt(st["var"] + st["epsilon"]), -10, 10), atol=1e-5)
+    assert not np.allclose(z, obs)
+    again = PPOPlanner("rl-ppo", planner.scene, planner.targets, robot=planner.robot, **kw)
+    assert again.prepare()["cached"]
+    assert np.allclose(again.obs_stats["mean"], st["mean"]) and np.allclose(again.obs_stats["var"], st["var"])
+    assert np.allclose(again.model.predict(again.normalize(obs), deterministic=True)[0],
+                       p.model.predict(z, deterministic=True)[0])
+    assert planner.normalize(obs) is obs  # without the setting the observation goes in unchanged
+
+
+def test_goal_bearing_and_heading_progress(planner):
+    """goal_bearing adds (sin, cos) of the goal's bearing and its distance; with w_heading a turn towards the goal
+    earns progress and a turn away from it costs."""
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    settings = dataclasses.replace(planner.settings, goal_bearing=True, w_heading=0.25, progress_metric="euclidean")
+    env = ActivePerceptionEnv(planner.scene, planner.targets, settings=settings, context=planner.ctx)
+    plain = ActivePerceptionEnv(planner.scene, planner.targets, context=planner.ctx,
+                                settings=dataclasses.replace(settings, goal_bearing=False))
+    assert env.observation_space.shape[0] == plain.observation_space.shape[0] + 3
+    start, goal = _config(planner, 4.5, 4.0, 0.0), _config(planner, 4.5, 2.0, 0.0)  # the goal 2 m to the right
+    obs, _ = env.reset(options={"start": start, "goal": goal})
+    n = plain.observation_space.shape[0] - (settings.scan_beams + 1 if settings.scan_beams > 0 else 0)
+    assert obs[n:n + 2] == pytest.approx([-1.0, 0.0], abs=1e-5) and obs[n + 2] > 0
+    assert env.progress_distance(start) == pytest.approx(2.0 + 0.25 * np.pi / 2)
+    _, _, _, _, info = env.step(np.array([0.0, -1.0, 0.0, 0.0], dtype=np.float32))  # turn right, on the spot
+    assert not info["rejected"] and info["terms"]["progress"] == pytest.approx(0.25 * 0.3, abs=1e-6)
+    env.reset(options={"start": start, "goal": goal})
+    _, _, _, _, info = env.step(np.array([0.0, 1.0, 0.0, 0.0], dtype=np.float32))  # turn left, away
+    assert info["terms"]["progress"] == pytest.approx(-0.25 * 0.3, abs=1e-6)

@@ -7,6 +7,15 @@ steps (:class:`PPOSettings`). The observation holds the configuration, the goal,
 progress; the reward is the geometric perception proxy, the motion cost, the goal progress, a collision penalty
 for rejected (invalid) actions and a goal bonus (see :mod:`.rl_env`).
 
+The shipped settings (``config/planners/baselines.yaml``) go beyond those issue values where that was measured to
+help (home, ``tv``, 50 bench problems, 1e5 steps: 42 % of the goals reached against 2-3 % with the issue values;
+docs/benchmarks.md): the 512-step rollout is split over 8 environments stepped in turn (64 steps each, more episodes
+per update), the initial action standard deviation is 0.37, the observation carries a 16-beam range scan, whether the
+last action was rejected and the goal's bearing, the goal progress counts 0.25 m per radian of heading error towards
+the goal, a rejected action costs 0.1 and the final motion to the goal is tried from 0.4 m. Optional, off, and
+without a measured gain: observation/reward normalisation (``VecNormalize``) and a distance curriculum (2-3e4-step
+runs), the geodesic progress and a rejection counter (``streak_cap``) (1e5-step runs).
+
 ``prepare()`` trains the policy (its wall time is the planner's preprocessing time) or loads it from
 ``~/.cache/psprm/rl/`` (keyed by a hash of the scene geometry, targets, robot, settings and seed; the recorded
 training time is reported again). ``plan()`` rolls the policy out deterministically for at most ``max_steps`` (200)
@@ -38,32 +47,43 @@ class PPOSettings:
     # PPO (stable-baselines3)
     total_timesteps: int = 100_000
     learning_rate: float = 3e-4
-    n_steps: int = 512  # rollout length per update
+    n_steps: int = 512  # rollout length per update (transitions, over all n_envs environments)
+    n_envs: int = 1  # environments stepped in turn (one process); each contributes n_steps / n_envs per rollout
     batch_size: int = 64
     n_epochs: int = 10
     gamma: float = 0.99
     gae_lambda: float = 0.95
     ent_coef: float = 0.0
     net_arch: str = "256-256-128"  # hidden layers of both the actor and the critic
+    log_std_init: float = 0.0  # initial log standard deviation of the Gaussian actions (sb3 default 0: std 1)
     threads: int = 1  # torch threads while training
     cache: bool = True  # save / load the trained policy under ~/.cache/psprm/rl
     checkpoint_every: int = 0  # > 0: also save the policy so far every this many steps (``<cache>.partial.zip``)
+    normalize_obs: bool = False  # running mean/std observation normalisation (sb3 VecNormalize), saved with the policy
+    normalize_reward: bool = False  # VecNormalize's return-based reward scaling while training
     # environment
     max_steps: int = 200  # episode length in training and the rollout limit of plan()
     step_forward: float = 0.1  # metres of base travel per step at |action| = 1
     step_turn: float = 0.3  # radians of base rotation per step at |action| = 1
     step_joint: float = 0.15  # camera joint change per step at |action| = 1
     goal_tolerance: float = 0.2  # base distance (m) from which the final motion to the goal is attempted
+    goal_bearing: bool = False  # extend the observation by the goal's bearing (sin, cos) and distance from the base
     scan_beams: int = 0  # > 0: extend the observation by a range scan with this many beams + "last action rejected"
     scan_range: float = 3.0  # m
+    streak_cap: int = 0  # > 0: the scan's last feature counts consecutive rejected actions (/ streak_cap, <= 1)
     scan_height: float = 0.2  # m above the floor
     w_perception: float = 0.05  # x geometric perception score in [0, 1], per step
     perception_offset: float = 0.0  # subtracted from the score (1.0: the paper's perception cost -(1 - p) per step)
     w_motion: float = 0.05  # x motion cost of the step
     w_progress: float = 1.0  # x decrease of the base's distance to the goal (m)
+    progress_metric: str = "euclidean"  # that distance: "euclidean" (straight line) or "geodesic" (around furniture)
+    geodesic_cell: float = 0.1  # m, grid cell of the geodesic distance
+    w_heading: float = 0.0  # m per rad of heading error towards the goal added to that distance (0: off)
     collision_penalty: float = 0.5  # rejected (invalid) action
     goal_bonus: float = 10.0
     problems: int = 256  # random (start, goal) pairs episodes are drawn from
+    curriculum_steps: int = 0  # > 0: start-goal distance of training episodes capped, the cap growing over these steps
+    curriculum_start: float = 1.0  # m, the cap at the first step
     min_problem_distance: float = 1.0
     resolution: float = 0.05  # collision-check spacing along a step (motion-cost units)
     timeout_s: float = 60.0
@@ -87,6 +107,15 @@ class PPOSettings:
         self.layers()
         if self.n_steps < 2 or self.batch_size < 2 or self.total_timesteps < 1 or self.max_steps < 1:
             raise ConfigError(source, "n_steps", "n_steps, batch_size >= 2, total_timesteps, max_steps >= 1")
+        if self.n_envs < 1 or self.n_steps % self.n_envs or self.n_steps // self.n_envs < 2:
+            raise ConfigError(source, "n_envs", f"n_envs >= 1 must divide n_steps ({self.n_steps}) into rollouts of >= 2")
+        if self.progress_metric not in ("euclidean", "geodesic"):
+            raise ConfigError(source, "progress_metric",
+                              f"expected 'euclidean' or 'geodesic', got '{self.progress_metric}'")
+        if self.curriculum_steps < 0 or not self.curriculum_start > 0:
+            raise ConfigError(source, "curriculum_steps", "curriculum_steps >= 0 and curriculum_start > 0")
+        if not self.geodesic_cell > 0:
+            raise ConfigError(source, "geodesic_cell", f"must be > 0, got {self.geodesic_cell}")
 
 
 _NOT_TRAINING = ("timeout_s", "cache", "threads", "checkpoint_every")  # settings that do not change the trained policy
@@ -123,6 +152,17 @@ def _ProgressLog(total: int, checkpoint_every: int = 0, checkpoint_path: Optiona
     return ProgressLog()
 
 
+def _obs_stats_path(path: Path) -> Path:
+    return path.with_name(path.stem + ".obs_stats.npz")
+
+
+def _load_obs_stats(path: Path) -> dict:
+    """The observation statistics saved next to a cached policy (``normalize_obs``); raises OSError if missing."""
+    with np.load(_obs_stats_path(path)) as z:
+        return {"mean": z["mean"].copy(), "var": z["var"].copy(), "clip": float(z["clip"]),
+                "epsilon": float(z["epsilon"])}
+
+
 def rl_cache_dir() -> Path:
     from ..paths import cache_dir
 
@@ -155,22 +195,45 @@ class PPOPlanner:
         self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)
         self.scene, self.targets, self.robot = scene, list(targets), self.ctx.robot
         self.model = None
+        self.obs_stats: Optional[dict] = None  # observation mean / var of VecNormalize (``normalize_obs``)
         self.info: dict = {}
         self._env = None
 
     # ---- environment and cache ----------------------------------------------------------------------------------
-    def make_env(self, problems: Optional[list] = None):
-        """A fresh :class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` for this planner."""
+    def make_env(self, problems: Optional[list] = None, seed_offset: int = 0):
+        """A fresh :class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` for this planner (episode seed
+        ``settings.seed + seed_offset``)."""
         from .rl_env import ActivePerceptionEnv
 
         return ActivePerceptionEnv(self.scene, self.targets, settings=self.settings, problems=problems,
-                                   seed=self.settings.seed, context=self.ctx)
+                                   seed=self.settings.seed + seed_offset, context=self.ctx)
+
+    def training_env(self):
+        """The (vectorised) training environment: ``n_envs`` environments on one problem pool (generated here,
+        part of the preprocessing), wrapped in ``VecNormalize`` with ``normalize_obs`` / ``normalize_reward``."""
+        from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+
+        s = self.settings
+        first = self.make_env()
+        envs = [first] + [self.make_env(problems=first.problems, seed_offset=1000 * i) for i in range(1, s.n_envs)]
+        if s.progress_metric == "geodesic":
+            for e in envs[1:]:
+                e._grid_cache = first._grid()  # one free-space grid for all
+        venv = DummyVecEnv([lambda e=e: e for e in envs])
+        if s.normalize_obs or s.normalize_reward:
+            venv = VecNormalize(venv, norm_obs=s.normalize_obs, norm_reward=s.normalize_reward, clip_obs=10.0,
+                                gamma=s.gamma)
+        return venv
 
     def fingerprint(self) -> str:
-        """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions."""
+        """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions and the
+        environment version (:data:`~psprm_core.baselines.rl_env.ENV_VERSION`)."""
         import stable_baselines3
 
+        from .rl_env import ENV_VERSION
+
         h = hashlib.sha256(self.robot.hash().encode())
+        h.update(f"env{ENV_VERSION}".encode())
         for b in self.scene.collision_boxes():
             h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
         h.update(np.asarray(self.scene.workspace, float).tobytes())
@@ -186,6 +249,15 @@ class PPOPlanner:
     def cache_path(self) -> Path:
         return rl_cache_dir() / f"ppo_{self.scene.name}_{self.fingerprint()}.zip"
 
+    def normalize(self, obs: np.ndarray) -> np.ndarray:
+        """The policy's input for an environment observation: with ``normalize_obs``, standardised by the running
+        statistics of training (as ``VecNormalize.normalize_obs``), else unchanged."""
+        st = self.obs_stats
+        if st is None:
+            return obs
+        z = (obs - st["mean"]) / np.sqrt(st["var"] + st["epsilon"])
+        return np.clip(z, -st["clip"], st["clip"]).astype(np.float32)
+
     # ---- interface ------------------------------------------------------------------------------------------------
     def prepare(self) -> dict:
         """Train the policy (or load the cached one). Returns ``preprocess_s`` (the training wall time, also when
@@ -200,6 +272,7 @@ class PPOPlanner:
             try:
                 self.model = PPO.load(str(path), device="cpu")
                 meta = json.loads(meta_path.read_text())
+                self.obs_stats = _load_obs_stats(path) if s.normalize_obs else None
                 self.info = {"preprocess_s": float(meta["train_s"]), "cached": True,
                              "load_s": time.perf_counter() - t0, "timesteps": int(meta["timesteps"]),
                              "path": str(path)}
@@ -212,23 +285,30 @@ class PPOPlanner:
         torch.set_num_threads(max(1, s.threads))
         try:
             t0 = time.perf_counter()
-            env = self.make_env()
-            env.problems  # generate the training problems (part of the preprocessing)
+            venv = self.training_env()
             layers = s.layers()
-            self.model = PPO("MlpPolicy", env, learning_rate=s.learning_rate, n_steps=s.n_steps,
+            self.model = PPO("MlpPolicy", venv, learning_rate=s.learning_rate, n_steps=s.n_steps // s.n_envs,
                              batch_size=s.batch_size, n_epochs=s.n_epochs, gamma=s.gamma, gae_lambda=s.gae_lambda,
-                             ent_coef=s.ent_coef, policy_kwargs={"net_arch": {"pi": layers, "vf": layers}},
+                             ent_coef=s.ent_coef, policy_kwargs={"net_arch": {"pi": layers, "vf": layers},
+                                                             "log_std_init": s.log_std_init},
                              seed=s.seed, device="cpu", verbose=0)
             partial = path.with_name(path.stem + ".partial.zip")
             self.model.learn(total_timesteps=s.total_timesteps,
                              callback=_ProgressLog(s.total_timesteps, s.checkpoint_every, partial))
             train_s = time.perf_counter() - t0
+            self.obs_stats = None
+            if s.normalize_obs:
+                self.obs_stats = {"mean": np.asarray(venv.obs_rms.mean, float).copy(),
+                                  "var": np.asarray(venv.obs_rms.var, float).copy(),
+                                  "clip": float(venv.clip_obs), "epsilon": float(venv.epsilon)}
         finally:
             torch.set_num_threads(threads)
         self.info = {"preprocess_s": train_s, "cached": False, "load_s": 0.0,
                      "timesteps": int(self.model.num_timesteps), "path": str(path) if s.cache else None}
         if s.cache:
             self.model.save(str(path))
+            if self.obs_stats is not None:
+                np.savez(_obs_stats_path(path), **self.obs_stats)
             meta_path.write_text(json.dumps({"train_s": train_s, "timesteps": int(self.model.num_timesteps),
                                              "settings": dataclasses.asdict(s), "scene": self.scene.name,
                                              "targets": self.targets, "robot": self.robot.name}, indent=1))
@@ -262,7 +342,7 @@ class PPOPlanner:
         for _ in range(self.settings.max_steps):
             if time.perf_counter() - t0 > timeout_s:
                 return failure(f"timeout after {steps} policy steps", t0)
-            action, _ = self.model.predict(obs, deterministic=True)
+            action, _ = self.model.predict(self.normalize(obs), deterministic=True)
             obs, _, terminated, truncated, info = env.step(action)
             steps += 1
             rejected += info["rejected"]
