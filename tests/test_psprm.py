@@ -193,3 +193,26 @@ def test_eager_collision_checking_plans_free_paths(load_robot):
         assert (np.abs(off).max(1) < 1e-4).any()
         assert bool(planner.checker.valid(torch.as_tensor(res.dense, dtype=planner.dtype)).all())
     assert solved >= len(scene.problems) // 2
+
+
+def test_rebuilt_roadmap_connects_queries_to_its_own_nodes(load_robot):
+    """A second build (same node count, so the same node ids) must not connect queries to the first roadmap's
+    configurations: the executed path passes through every node of the new roadmap that it visits."""
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    prob = scene.problem("tv_west_to_southeast")
+    scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
+    start, goals = problem_configurations(robot, scene, prob)
+    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings(n_nodes=300, seed=3))
+    planner.build(template=start)
+    assert planner.plan(start, goals, timing=False).success
+    planner.settings = planner.settings.__class__(**{**planner.settings.__dict__, "seed": 4})
+    planner.build(template=start)
+    res = planner.plan(start, goals, timing=False)
+    assert res.success, res.reason
+    W = res.waypoints
+    for node in res.path_nodes[1:-1]:
+        q = planner.graph.configs[node]
+        off = np.abs(W - q)
+        off[:, 2] = np.abs((W[:, 2] - q[2] + np.pi) % (2 * np.pi) - np.pi)
+        assert (off.max(1) < 1e-4).any(), f"the path does not pass through its node {node}"

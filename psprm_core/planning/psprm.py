@@ -611,6 +611,7 @@ class PSPRM:
                     verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
                     checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
         self.graph = g
+        self._rm_cache_key = None  # a new roadmap: the same node ids may hold other configurations
         self._put_knots(edge_ids, eu.cpu().numpy(), *knots)
         self._dead_edges, self._dead_nodes = [], []
         self._repairs, self._repair_added, self._repair_failed = 0, 0, 0
@@ -1780,7 +1781,8 @@ class PSPRM:
         return e[m[g.edge_u[e]] & m[g.edge_v[e]]]
 
     def _roadmap_tensor(self, ids: np.ndarray) -> torch.Tensor:
-        """Roadmap node configurations as a tensor on the planner's device (cached until the node set changes)."""
+        """Roadmap node configurations as a tensor on the planner's device (cached until the node set changes or a
+        new roadmap is built or loaded)."""
         key = hash(ids.tobytes())
         if getattr(self, "_rm_cache_key", None) != key:
             self._rm_numpy = self.graph.configs[ids].astype(_NP_DTYPE[self.dtype])  # the same values, host copy
@@ -2297,6 +2299,7 @@ class PSPRM:
         if len(bad):
             g.remove_nodes(bad)
         self.graph, self.node_scores = g, data["node_scores"]
+        self._rm_cache_key = None  # (see build)
         self._dead_edges, self._dead_nodes = [], []
         self._repairs, self._repair_added, self._repair_failed = 0, 0, 0
         self._blocked_nodes, self._blocked_edges, self._recheck = set(), set(), np.zeros(0, dtype=bool)
