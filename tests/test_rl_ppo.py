@@ -278,3 +278,20 @@ def test_goal_bearing_and_heading_progress(planner):
     env.reset(options={"start": start, "goal": goal})
     _, _, _, _, info = env.step(np.array([0.0, 1.0, 0.0, 0.0], dtype=np.float32))  # turn left, away
     assert info["terms"]["progress"] == pytest.approx(-0.25 * 0.3, abs=1e-6)
+
+
+def test_environment_scores_views_of_several_targets():
+    """With several targets (nursing: both faces) the environment's perception proxy is the multi-target scorer's,
+    one view at a time, the same as its batched score."""
+    import torch
+
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
+
+    scene = load_scene(resolve_named("scene", "nursing"))
+    targets = scene.target_names[:2]
+    env = ActivePerceptionEnv(scene, targets, settings=rl_ppo.PPOSettings(problems=4, scan_beams=0))
+    env.reset(seed=0)
+    q = env.q.copy()
+    cam = env.camera(q)
+    batch = float(env.scorer.score(torch.as_tensor(cam[None]))[0])
+    assert env.score(q) == pytest.approx(batch, abs=1e-9)

@@ -35,6 +35,7 @@ from typing import Optional, Protocol, Sequence, Type, TypeVar, runtime_checkabl
 import numpy as np
 import torch
 
+from .. import fastpath
 from ..collision import CollisionChecker
 from ..errors import ConfigError
 from ..motion import DiffDriveMotion
@@ -391,6 +392,16 @@ class PlanningContext:
         if len(W) < 2:
             return W.copy()
         res = self.resolution if resolution is None else resolution
+        m = self.motion
+        if fastpath.enabled():  # the compiled metric and interpolation on arrays (the same values)
+            K = fastpath.kernels()
+            a, b = np.ascontiguousarray(W[:-1]), np.ascontiguousarray(W[1:])
+            n = np.clip(np.ceil(K.distance(a, b, float(m.w_rot), bool(m.mobile)) / res).astype(np.int64), 1,
+                        max_steps)
+            seg = np.repeat(np.arange(len(a)), n)
+            s = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
+            pts = K.interpolate(a[seg], b[seg], s, float(m.w_rot), bool(m.mobile))
+            return np.vstack([pts, W[-1:]])
         a = torch.as_tensor(W[:-1], dtype=torch.float64)
         b = torch.as_tensor(W[1:], dtype=torch.float64)
         n = torch.ceil(self.motion.distance(a, b) / res).long().clamp(1, max_steps)

@@ -143,8 +143,6 @@ class ActivePerceptionEnv(gym.Env):
         self._pool: Optional[np.ndarray] = None  # every start and goal of the problem pool (curriculum)
         self.total_steps = 0  # environment steps over all episodes (curriculum)
         self._fields: dict = {}
-        self._score_center = self.scorer.center.numpy().astype(float)
-        self._score_facing = self.scorer.facing.numpy().astype(float)
 
     # ---- goal distance for the progress reward -------------------------------------------------------------------
     def _grid(self) -> tuple:
@@ -326,16 +324,8 @@ class ActivePerceptionEnv(gym.Env):
 
     def motion_points(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
         """The configurations checked along the differential-drive motion qa -> qb: every ``resolution`` after
-        ``qa``, ``qb`` included (as :meth:`PlanningContext.densify` without its first row)."""
-        if not fastpath.enabled():
-            return self.ctx.densify(np.vstack([qa, qb]))[1:]
-        k = fastpath.kernels()
-        a, b = np.ascontiguousarray(qa, float)[None], np.ascontiguousarray(qb, float)[None]
-        n = min(max(int(math.ceil(k.distance(a, b, self.w_rot, True)[0] / self.ctx.resolution)), 1), 2000)
-        if n == 1:
-            return b.copy()
-        pts = k.interpolate(np.repeat(a, n - 1, 0), np.repeat(b, n - 1, 0), np.arange(1, n) / n, self.w_rot, True)
-        return np.vstack([pts, b])
+        ``qa``, ``qb`` included (:meth:`PlanningContext.densify` without its first row)."""
+        return self.ctx.densify(np.vstack([qa, qb]))[1:]
 
     def motion_valid(self, qa: np.ndarray, qb: np.ndarray) -> bool:
         """Is the differential-drive motion qa -> qb (end included) collision-free and within the limits?
@@ -359,26 +349,8 @@ class ActivePerceptionEnv(gym.Env):
 
     def score(self, q: np.ndarray) -> float:
         """Geometric perception proxy of configuration ``q`` in [0, 1] (:class:`GeometricScorer`: distance and
-        viewing-angle terms inside the camera frustum, 0 when the target is occluded)."""
-        cam = self.camera(q)
-        if not fastpath.enabled():
-            with torch.no_grad():
-                return float(self.scorer.score(torch.as_tensor(cam[None]))[0])
-        sc, intr = self.scorer, self.scorer.intr
-        p, f = self._score_center, self._score_facing
-        pc = cam[:3, :3].T @ (p - cam[:3, 3])
-        z = pc[2]
-        if not (intr.near < z < intr.far and abs(pc[0]) <= intr.tan_half_h * z and abs(pc[1]) <= intr.tan_half_v * z):
-            return 0.0
-        to_cam = cam[:3, 3] - p
-        d = max(float(np.linalg.norm(to_cam)), 1e-9)
-        cos = float(to_cam @ f) / d
-        v = math.exp(-((d - sc.d_best) / sc.d_width) ** 2) * min(max((cos - sc.cos_min) / (1 - sc.cos_min), 0.0), 1.0)
-        if v > 0.0 and sc.occ is not None:
-            occ = fastpath.occlusion_scores(sc.occ, torch.from_numpy(np.ascontiguousarray(cam[None, :3, 3])))
-            if float(occ[0]) > sc.occ.tau:
-                return 0.0
-        return v
+        viewing-angle terms inside the camera frustum, 0 when the target is occluded), of one pose with numpy."""
+        return self.scorer.score_pose(self.camera(q))
 
     def curriculum_distance(self) -> float:
         """The largest start-goal distance (m) of a training episode now: ``curriculum_start`` at the first step,

@@ -14,6 +14,7 @@ planner obtains camera poses from batched FK.
 from __future__ import annotations
 
 import logging
+import math
 from typing import Sequence
 
 import numpy as np
@@ -33,6 +34,12 @@ class Scorer:
 
     def score(self, cameras: torch.Tensor) -> torch.Tensor:  # pragma: no cover - interface
         raise NotImplementedError
+
+    def score_pose(self, camera: np.ndarray) -> float:
+        """The score of one camera pose (4, 4) (default: :meth:`score` of a batch of one; scorers may do it
+        without a tensor batch)."""
+        with torch.no_grad():
+            return float(self.score(torch.as_tensor(np.asarray(camera, dtype=np.float64)[None]))[0])
 
     def set_scene(self, scene: Scene) -> None:
         """Update target/obstacle poses (default: rebuild nothing)."""
@@ -92,6 +99,31 @@ class GeometricScorer(Scorer):
         if self.occ is not None:
             s = self.occ.apply(s, cameras)
         return s
+
+    def score_pose(self, camera: np.ndarray) -> float:
+        """:meth:`score` of one camera pose (4, 4) float64 with numpy and the compiled ray casting (an RL
+        environment's step scores one view: no tensor batch). The same formula; the occlusion rays only for a view
+        that scores above 0."""
+        from .. import fastpath
+
+        p, f = self.center.numpy(), self.facing.numpy()
+        pc = camera[:3, :3].T @ (p - camera[:3, 3])
+        z = pc[2]
+        if not (self.intr.near < z < self.intr.far and abs(pc[0]) <= self.intr.tan_half_h * z
+                and abs(pc[1]) <= self.intr.tan_half_v * z):
+            return 0.0
+        to_cam = camera[:3, 3] - p
+        d = max(float(np.linalg.norm(to_cam)), 1e-9)
+        cos = float(to_cam @ f) / d
+        v = math.exp(-((d - self.d_best) / self.d_width) ** 2) * min(max((cos - self.cos_min) / (1 - self.cos_min),
+                                                                         0.0), 1.0)
+        if v > 0.0 and self.occ is not None:
+            pos = torch.from_numpy(np.ascontiguousarray(camera[None, :3, 3], dtype=np.float64))
+            occ = fastpath.occlusion_scores(self.occ, pos) if fastpath.enabled() else self.occ.score(
+                torch.as_tensor(camera[None]))
+            if float(occ[0]) > self.occ.tau:
+                return 0.0
+        return v
 
 
 class NeuralScorer(Scorer):
