@@ -17,7 +17,7 @@ import torch
 
 from .geometry import matrix_to_quat
 from .paths import cache_dir
-from .robot import RobotModel
+from .robot import RobotModel, image_roll
 from .urdf import resolve_mesh
 from .yamlio import load_yaml
 
@@ -161,14 +161,14 @@ class PybulletWorld:
         return out
 
     def camera_pose(self, q: np.ndarray) -> np.ndarray:
-        """4x4 pose of the camera link (URDF link frame) from pybullet's own FK."""
+        """4x4 camera pose from pybullet's own FK: the camera link's frame turned by the configured image roll."""
         self.set_configuration(q)
         li = self.link_index[self.robot.config.camera_link]
         st = self.p.getLinkState(self.body, li, computeForwardKinematics=True, physicsClientId=self.cid)
         T = np.eye(4)
         T[:3, :3] = np.array(self.p.getMatrixFromQuaternion(st[5])).reshape(3, 3)
         T[:3, 3] = st[4]
-        return T
+        return T @ image_roll(self.robot.config.camera_roll_deg)
 
 
 def compute_acm(robot: RobotModel, samples: int, seed: int = 0, always_fraction: float = 0.95) -> dict:

@@ -84,6 +84,26 @@ class RobotConfig:
     intrinsics: CameraIntrinsics
     collision: CollisionConfig
     default: dict = field(default_factory=dict)
+    camera_roll_deg: float = 0.0  # image rotation about the optical axis, applied after the camera link
+
+
+def image_roll(roll_deg: float) -> np.ndarray:
+    """Homogeneous rotation (4, 4) by ``roll_deg`` about the optical (z) axis.
+
+    The camera frame the planner, the renderer and the scorers use is ``T_link @ image_roll(roll_deg)``: a camera
+    mounted on its side (Stretch's head D435i is in portrait) is given the roll that turns its image upright, as the
+    robot's own software rotates the image before running a detector. With ``roll_deg = -90`` the new image x axis is
+    the link's -y axis (the old image's "up") and the new y axis the link's x axis.
+    """
+    a = np.radians(roll_deg)
+    c, s = np.cos(a), np.sin(a)
+    if abs(c) < 1e-12:
+        c = 0.0
+    if abs(s) < 1e-12:
+        s = 0.0
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    return T
 
 
 def load_robot_config(name_or_path: str) -> RobotConfig:
@@ -126,7 +146,7 @@ def load_robot_config(name_or_path: str) -> RobotConfig:
     fixed = f.raw("fixed_joints", {}) or {}
     fj = Fields(fixed, str(path), "fixed_joints")
     cam = f.sub("camera")
-    cam.check_keys(["link", "intrinsics"])
+    cam.check_keys(["link", "intrinsics", "roll_deg"])
     intr = cam.sub("intrinsics") if cam.has("intrinsics") else Fields({}, str(path), "camera.intrinsics")
     intr.check_keys(["width", "height", "vfov_deg", "near", "far"])
     intrinsics = CameraIntrinsics(width=intr.int("width", 640, lo=1), height=intr.int("height", 480, lo=1),
@@ -148,7 +168,8 @@ def load_robot_config(name_or_path: str) -> RobotConfig:
             raise df.error(k, f"unknown planning joint '{k}'")
     return RobotConfig(name=f.str("name"), source=str(path), urdf=urdf, base=base, joints=tuple(joints),
                        fixed_joints={k: fj.float(k) for k in fixed}, camera_link=cam.str("link"),
-                       intrinsics=intrinsics, collision=collision, default={k: df.float(k) for k in default})
+                       intrinsics=intrinsics, collision=collision, default={k: df.float(k) for k in default},
+                       camera_roll_deg=cam.float("roll_deg", 0.0, lo=-360.0, hi=360.0))
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -360,7 +381,7 @@ class RobotModel:
             raise RobotModelError(
                 f"{config.source}: field 'camera.link': URDF {urdf.path.name} has no link '{config.camera_link}'")
         self.camera_body = self.link_body[config.camera_link]
-        self.camera_offset = self.link_in_body[config.camera_link]
+        self.camera_offset = self.link_in_body[config.camera_link] @ image_roll(config.camera_roll_deg)
         self._tensor_cache: dict = {}
 
     # ---- construction ------------------------------------------------------------------------------------------

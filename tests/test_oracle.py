@@ -163,3 +163,32 @@ def test_score_command_prints_json_and_saves_image(tmp_path, capsys):
     assert rc == 0 and out["detected"] and out["score"] > 0.5 and out["detector"] == "centerface"
     assert png.is_file() and png.stat().st_size > 1000
     assert main(["score", "--scene", str(scene), "--target", "nobody", "--camera", *cam]) == 2
+
+
+def test_stretch_head_camera_sees_the_home_tv_upright(load_robot):
+    """The oracle judges the robot's own camera frames. Stretch's portrait D435i is turned upright by its configured
+    roll; the same view left sideways (the URDF optical frame as it is) hides the tv from the detector."""
+    import torch
+
+    from psprm_core.paths import resolve_named
+    from psprm_core.robot import image_roll
+    from psprm_core.scene import load_scene
+
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    tv = scene.target("tv").center
+    q = robot.default_configuration().copy()
+    q[:3] = [2.0, 1.0, math.atan2(tv[1] - 1.0, tv[0] - 2.0)]
+    q[robot.index("joint_head_tilt")] = math.atan2(tv[2] - 1.31, math.hypot(tv[0] - 2.0, tv[1] - 1.0))
+    cam = robot.camera_poses(torch.as_tensor(q[None], dtype=torch.float64)).numpy()[0]
+    o = Oracle(scene, intrinsics=robot.config.intrinsics)
+    try:
+        upright = o.score(cam, "tv", keep_image=True)
+        sideways = o.score(cam @ image_roll(-robot.config.camera_roll_deg), "tv", keep_image=False)
+    except DetectorUnavailableError as exc:  # pragma: no cover - set-up problem, reported plainly
+        pytest.skip(f"detector models missing ({exc}); run scripts/install_detectors.sh")
+    finally:
+        o.close()
+    assert upright.image.shape[:2] == (640, 480)  # portrait
+    assert upright.detected and upright.score > 0.5
+    assert not sideways.detected and sideways.score < 0.5 * upright.score

@@ -56,6 +56,46 @@ def test_base_pose_moves_camera_rigidly(load_robot):
     assert torch.allclose(T[1, :3, 3], Rz @ T[0, :3, 3] + torch.tensor([1.0, -2.0, 0], dtype=torch.float64))
 
 
+@pytest.mark.parametrize("name", ["fetchlike", "stretch2"])
+def test_head_camera_images_are_upright(name, load_robot):
+    """Renders and detectors see gravity-upright images: image x horizontal, image "up" (-y) towards the sky, for
+    any base pose and the head's pan/tilt. Stretch's portrait-mounted D435i needs its configured roll for this."""
+    r = load_robot(name)
+    rng = np.random.default_rng(3)
+    q = np.stack([r.default_configuration()] * 32)
+    q[:, :3] = rng.uniform([-2, -2, -np.pi], [2, 2, np.pi], size=(32, 3))
+    for joint, lim in (("joint_head_pan", 1.2), ("joint_head_tilt", 0.5), ("head_1_joint", 1.2),
+                       ("head_2_joint", 0.5)):
+        if joint in r.joint_names:
+            q[:, r.index(joint)] = rng.uniform(-lim, lim, 32)
+    T = r.camera_poses(torch.as_tensor(q, dtype=torch.float64)).numpy()
+    assert np.all(np.abs(T[:, 2, 0]) < 0.01)  # image x axis horizontal (URDF mounts are level within 0.05 deg)
+    assert np.all(-T[:, 2, 1] > 0.3)  # image up points upwards
+
+
+def test_camera_roll_turns_the_image_about_the_optical_axis(tmp_path, load_robot):
+    """``camera.roll_deg`` turns the image frame about the optical axis and nothing else."""
+    from psprm_core.robot import image_roll
+    from psprm_core.urdf import parse_urdf
+
+    r = load_robot("stretch2")
+    text = Path(r.config.source).read_text()
+    assert "roll_deg: -90.0" in text
+    p = tmp_path / "stretch_sideways.yaml"
+    p.write_text(text.replace("roll_deg: -90.0", "roll_deg: 0.0"))
+    cfg = load_robot_config(str(p))
+    raw = RobotModel(cfg, parse_urdf(urdf_path_for(cfg)))
+    q = torch.as_tensor(np.stack([r.default_configuration()] * 3), dtype=torch.float64)
+    q[1, 3:] = torch.tensor([0.9, 0.3, 1.0, -1.0, -0.6], dtype=torch.float64)
+    a, b = r.camera_poses(q).numpy(), raw.camera_poses(q).numpy()
+    assert np.allclose(a[:, :3, 3], b[:, :3, 3]) and np.allclose(a[:, :3, 2], b[:, :3, 2])  # same eye, same axis
+    assert np.allclose(a, b @ image_roll(-90.0), atol=1e-12)
+    assert np.allclose(a[:, :3, 0], -b[:, :3, 1], atol=1e-12)  # the sideways image's "up" is now its x axis
+    with pytest.raises(ConfigError, match=r"field 'camera\.roll_deg'"):
+        p.write_text(text.replace("roll_deg: -90.0", "roll_deg: sideways"))
+        load_robot_config(str(p))
+
+
 def test_ur5_mobile_urdf_is_generated_with_camera(load_robot):
     r = load_robot("ur5_mobile")
     root = ET.parse(r.urdf.path).getroot()
