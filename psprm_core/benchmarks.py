@@ -316,6 +316,67 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
     return out
 
 
+def detection_map(scene_name: str = "home", target: str | None = None, spacing: float = 0.5,
+                  extra_roll_deg: float = 0.0, clearance: float = 0.2) -> dict:
+    """Where in the scene the real detector sees a target: the robot's camera aimed at it from a grid of base positions.
+
+    At every grid point of the scene's workspace (``spacing`` apart, skipping points within ``clearance`` of an
+    obstacle's footprint) the camera is put at the robot's default camera height and aimed at the target's centre
+    with a level, upright image (``look_at_pose``), optionally rolled by ``extra_roll_deg`` about the line of sight
+    (90 shows what a sideways-mounted camera's image gives the detector). The oracle renders each view with the
+    robot's intrinsics and runs the detector. Returns the share of points where the target counts as detected, the
+    mean confidence, and the grid (rows from the workspace's high y to its low y) for printing.
+
+    It is the ceiling of what any route can show the detector from that height: no occluder moved, no pan/tilt
+    limit, every frame aimed.
+    """
+    import torch
+
+    from .paths import resolve_named
+    from .perception.oracle import Oracle
+    from .perception.render import look_at_pose
+    from .robot import RobotModel, image_roll
+    from .scene import load_scene
+
+    scene = load_scene(resolve_named("scene", scene_name))
+    robot = RobotModel.load(scene.robot)
+    target = target or scene.target_names()[0]
+    centre = np.asarray(scene.target(target).center, float)
+    q0 = robot.default_configuration()
+    height = float(robot.camera_poses(torch.as_tensor(q0[None], dtype=torch.float64))[0, 2, 3])
+    (x0, x1), (y0, y1) = scene.workspace
+    xs = np.arange(x0 + spacing / 2, x1, spacing)
+    ys = np.arange(y0 + spacing / 2, y1, spacing)[::-1]
+    boxes = [b for b in scene.collision_boxes()]
+
+    def blocked(x: float, y: float) -> bool:
+        for b in boxes:
+            lo = b.center[:2] - 0.5 * np.abs(b.rotation[:2, :2]) @ b.size[:2] - clearance
+            hi = b.center[:2] + 0.5 * np.abs(b.rotation[:2, :2]) @ b.size[:2] + clearance
+            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and b.center[2] - 0.5 * b.size[2] < height:
+                return True
+        return False
+
+    roll = image_roll(extra_roll_deg)
+    grid = np.full((len(ys), len(xs)), np.nan)
+    t0 = time.perf_counter()
+    with Oracle(scene, intrinsics=robot.config.intrinsics) as oracle:
+        thr = oracle.threshold(oracle.detector_for(scene.target(target).detector_class),
+                               scene.target(target).detector_class)
+        for i, y in enumerate(ys):
+            for j, x in enumerate(xs):
+                if not blocked(x, y):
+                    grid[i, j] = oracle.score(look_at_pose([x, y, height], centre) @ roll, target,
+                                              keep_image=False).score
+    ok = np.isfinite(grid)
+    return {"scene": scene.name, "target": target, "camera_height_m": height, "extra_roll_deg": extra_roll_deg,
+            "intrinsics": [robot.config.intrinsics.width, robot.config.intrinsics.height],
+            "points": int(ok.sum()), "threshold": thr, "detected_share": float((grid[ok] >= thr).mean()),
+            "mean_confidence": float(grid[ok].mean()), "oracle_s": time.perf_counter() - t0,
+            "x": xs.tolist(), "y": ys.tolist(), "grid": [[None if not np.isfinite(v) else round(float(v), 3)
+                                                          for v in row] for row in grid]}
+
+
 def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames: int = 12) -> dict:
     """Judge an executed path with the real detector: ``frames`` camera frames evenly spaced along ``dense``.
 

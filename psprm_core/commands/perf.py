@@ -65,6 +65,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                       "the same views against the same oracle labels")
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_transfer)
+    vm = ps.add_parser("viewmap", help="where the real detector sees a target: the robot's camera aimed at it from a "
+                                       "grid of base positions (share detected, mean confidence, the grid)")
+    vm.add_argument("--scene", default="home")
+    vm.add_argument("--target", default=None)
+    vm.add_argument("--spacing", type=float, default=0.5, help="grid spacing in metres")
+    vm.add_argument("--extra-roll-deg", type=float, default=0.0,
+                    help="roll the image about the line of sight (90: what a sideways camera shows the detector)")
+    vm.add_argument("--json", action="store_true")
+    vm.set_defaults(func=_viewmap)
     rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
                                       "until a verified path), and the cost of a full re-score")
     rp.add_argument("--scene", default="dynamic_person")
@@ -120,6 +129,24 @@ def _compare(args) -> int:
                                      frames=args.frames, seed=args.seed, threads=args.threads, target=args.target,
                                      oracle_problems=args.oracle_problems, aimed=not args.unaimed)
     print(json.dumps(res) if args.json else json.dumps(res, indent=2))
+    return 0
+
+
+def _viewmap(args) -> int:
+    from ..benchmarks import detection_map
+
+    res = detection_map(args.scene, args.target, spacing=args.spacing, extra_roll_deg=args.extra_roll_deg)
+    if args.json:
+        print(json.dumps(res))
+        return 0
+    print(f"{res['scene']} / {res['target']}: camera at {res['camera_height_m']:.2f} m, image "
+          f"{res['intrinsics'][0]}x{res['intrinsics'][1]}, extra roll {res['extra_roll_deg']:g} deg; "
+          f"detected (>= {res['threshold']:.2f}) from {100 * res['detected_share']:.1f} % of {res['points']} "
+          f"points, mean confidence {res['mean_confidence']:.3f} ('#' detected, '+' seen below threshold, "
+          f"'.' not seen, blank: obstacle)")
+    for y, row in zip(res["y"], res["grid"]):
+        print(f"y {y:5.2f} " + "".join(" " if v is None else "#" if v >= res["threshold"] else "+" if v > 0 else "."
+                                      for v in row))
     return 0
 
 
