@@ -347,7 +347,7 @@ def detection_map(scene_name: str = "home", target: str | None = None, spacing: 
     (x0, x1), (y0, y1) = scene.workspace
     xs = np.arange(x0 + spacing / 2, x1, spacing)
     ys = np.arange(y0 + spacing / 2, y1, spacing)[::-1]
-    boxes = [b for b in scene.collision_boxes()]
+    boxes = scene.collision_boxes()
 
     def blocked(x: float, y: float) -> bool:
         for b in boxes:
