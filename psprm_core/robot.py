@@ -27,7 +27,7 @@ import torch
 from . import fastpath
 from .camera import CameraIntrinsics
 from .errors import ConfigError, RobotModelError
-from .geometry import axis_angle_matrix_torch
+from .geometry import axis_angle_matrix_torch, make_transform, rpy_to_matrix
 from .paths import cache_dir, resolve_named
 from .urdf import Urdf, parse_urdf
 from .yamlio import Fields, load_yaml
@@ -95,15 +95,7 @@ def image_roll(roll_deg: float) -> np.ndarray:
     robot's own software rotates the image before running a detector. With ``roll_deg = -90`` the new image x axis is
     the link's -y axis (the old image's "up") and the new y axis the link's x axis.
     """
-    a = np.radians(roll_deg)
-    c, s = np.cos(a), np.sin(a)
-    if abs(c) < 1e-12:
-        c = 0.0
-    if abs(s) < 1e-12:
-        s = 0.0
-    T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
-    return T
+    return make_transform(rpy_to_matrix((0.0, 0.0, np.radians(roll_deg))), np.zeros(3))
 
 
 def load_robot_config(name_or_path: str) -> RobotConfig:
