@@ -11,6 +11,11 @@ on each frame (detection rate: frames at or above the detector's calibrated thre
 maintained multi-object tracker `norfair` over the frames' detections (track rate: frames in which a confirmed track
 covers the target). A planner that raises (or a worker that dies) becomes failure rows, never a crashed benchmark.
 
+Scenario mode (``--scenario NAME``, :func:`scenario_problems`): the scene's named problem repeated as independent
+runs, the paper's Table III protocol ("100 independent runs" of one nursing scenario): every run has the same start
+and goal, and every planner is built anew for each run with the run's seed (PS-PRM samples a new roadmap, so its
+preprocessing is part of each run's time).
+
 Outputs (:func:`write_outputs`): ``results.csv`` (one row per planner and problem), ``table.md`` (the layout of the
 paper's Table II, or Table III for two-target groups), ``summary.json``, a bar chart per metric and a plot of example
 paths over the scene.
@@ -86,6 +91,7 @@ class BenchConfig:
     frame_spacing: float = 0.5  # motion-cost units between evaluated camera frames
     max_frames: int = 20  # per path (the spacing grows for longer paths)
     target_groups: Optional[list] = None  # [[target, ...], ...]; None: default_target_groups(scene)
+    scenario: Optional[str] = None  # a scene problem's name: ``problems`` independent runs of it (Table III protocol)
     planner_kwargs: dict = field(default_factory=dict)  # {planner: {setting: value}} (tests, tuning)
 
 
@@ -139,6 +145,56 @@ def make_problems(scene, robot, groups: list, n: int, seed: int) -> list:
         out.append({"index": i, "targets": list(groups[gi]), "start": np.asarray(a, float),
                     "goal": np.asarray(b, float)})
     return out
+
+
+def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optional[list] = None) -> list:
+    """``n`` independent runs of the scene's named problem ``name`` (the paper's Table III protocol).
+
+    Every run has the problem's start and (first) goal, with the camera joints aimed at the monitoring point of
+    ``targets`` (default: the problem's own targets; their centroids' mean), as in :func:`make_problems`; run ``i``
+    carries ``run_seed = seed + i``, the seed every planner is built with for that run.
+
+    Raises
+    ------
+    PsprmError
+        Unknown problem (the known names are listed), or a start or goal in collision.
+    """
+    from .baselines.base import aim_camera
+    from .collision import CollisionChecker
+    from .errors import PsprmError
+    from .planning.constraints import VisibilityConstraint
+    from .planning.factory import problem_configurations
+    from .planning.psprm import camera_joint_mask
+
+    try:
+        prob = scene.problem(name)
+    except KeyError:
+        known = ", ".join(p.name for p in scene.problems) or "none"
+        raise PsprmError(f"scene '{scene.name}' has no problem '{name}' (problems: {known})") from None
+    group = list(targets or prob.all_targets)
+    focus = np.mean([scene.target(t).center for t in group], axis=0)
+    start, goals = problem_configurations(robot, scene, prob)
+    ends = np.stack([start, goals[0]])
+    mask = camera_joint_mask(robot)
+    mask[: robot.base_dof] = False
+    cols = np.nonzero(mask)[0]
+    lo = np.where(np.isfinite(robot.lower), robot.lower, -1e9)
+    hi = np.where(np.isfinite(robot.upper), robot.upper, 1e9)
+    aimed, ok = aim_camera(VisibilityConstraint(robot, "line", focus), ends, cols, lo, hi, iters=10, restarts=8,
+                           seed=seed)
+    ends = np.asarray(aimed, float)  # unconverged: as close to the target as the joint limits allow
+    import torch
+
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    valid = checker.valid(torch.as_tensor(ends, dtype=torch.float32)).cpu().numpy()
+    for which, v in zip(("start", "goal"), valid):
+        if not v:
+            raise PsprmError(f"problem '{name}' of scene '{scene.name}': the {which} is in collision")
+    if not np.asarray(ok, bool).all():
+        log.warning("problem '%s': the camera joints cannot face %s at the %s (aimed as close as the limits allow)",
+                    name, "+".join(group), " and ".join(w for w, k in zip(("start", "goal"), ok) if not k))
+    return [{"index": i, "targets": group, "start": ends[0].copy(), "goal": ends[1].copy(), "run_seed": seed + i,
+             "scenario": name} for i in range(n)]
 
 
 # ---- evaluation -------------------------------------------------------------------------------------------------------
@@ -202,7 +258,7 @@ def evaluate_path(oracle, robot, motion, dense: np.ndarray, targets: Sequence[st
 
 
 # ---- workers ----------------------------------------------------------------------------------------------------------
-ROW_FIELDS = ["planner", "problem", "targets", "success", "reason", "preprocess_s", "plan_s", "total_s",
+ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "success", "reason", "preprocess_s", "plan_s", "total_s",
               "path_length_rad", "frames", "det_rate", "mean_confidence", "track_rate", "det_rate_any",
               "det_rate_all", "eval_s"]
 
@@ -210,7 +266,8 @@ ROW_FIELDS = ["planner", "problem", "targets", "success", "reason", "preprocess_
 def _failure_row(planner: str, prob: dict, reason: str, preprocess_s: float = float("nan"),
                  plan_s: float = float("nan")) -> dict:
     row = {k: float("nan") for k in ROW_FIELDS}
-    row.update(planner=planner, problem=int(prob["index"]), targets="+".join(prob["targets"]), success=False,
+    row.update(planner=planner, problem=int(prob["index"]), run_seed=prob.get("run_seed", float("nan")),
+               targets="+".join(prob["targets"]), success=False,
                reason=reason, preprocess_s=preprocess_s, plan_s=plan_s, total_s=preprocess_s + plan_s
                if not math.isnan(plan_s) else float("nan"), frames=0)
     return row
@@ -250,27 +307,37 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
         n = cfg.get("oracle_nodes") if planner.startswith("psprm") and cfg.get("oracle_nodes") else cfg.get("nodes")
         if n:
             kw.setdefault("n_nodes", int(n))
-    prep = {"preprocess_s": float("nan")}
-    t0 = time.perf_counter()
-    try:
-        p = make_baseline(planner, scene, targets, robot=robot, seed=cfg["seed"], **kw)
+    def build(seed: int) -> tuple:
+        """(planner, prepare stats, preprocess seconds) or raises."""
+        t0 = time.perf_counter()
+        p = make_baseline(planner, scene, targets, robot=robot, seed=seed, **kw)
         prep = dict(p.prepare())
         prep.setdefault("preprocess_s", time.perf_counter() - t0)
-    except Exception as exc:  # a planner that cannot even be built: every problem fails
-        log.error("%s could not be prepared: %s", planner, exc)
-        reason = f"prepare failed: {type(exc).__name__}: {exc}"
-        for prob in problems:
-            row = _failure_row(planner, prob, reason)
-            rows.append(row)
-            emit("row", row)
-        return {"rows": rows, "paths": paths, "prepare": {"error": reason}}
-    pre = float(prep.get("preprocess_s", float("nan")))
+        return p, prep, float(prep.get("preprocess_s", float("nan")))
+
+    # one instance for all problems, or (scenario runs) one per run seed, built when its first problem comes up
+    p, prep, pre, built_seed, build_error = None, {"preprocess_s": float("nan")}, float("nan"), None, None
     oracle = None
     try:
         from .perception.oracle import Oracle
 
-        oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
         for prob in problems:
+            seed = int(prob.get("run_seed", cfg["seed"]))
+            if seed != built_seed:
+                built_seed, p, build_error = seed, None, None
+                try:
+                    p, prep, pre = build(seed)
+                except Exception as exc:  # a planner that cannot be built: its problems fail
+                    log.error("%s could not be prepared: %s", planner, exc)
+                    build_error = f"prepare failed: {type(exc).__name__}: {exc}"
+                    prep = {"error": build_error}
+            if p is None:
+                row = _failure_row(planner, prob, build_error)
+                rows.append(row)
+                emit("row", row)
+                continue
+            if oracle is None:
+                oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
             emit("start", (planner, int(prob["index"])))
             t1 = time.perf_counter()
             try:
@@ -297,9 +364,10 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
                     ev = {"frames": 0, "det_rate": float("nan"), "mean_confidence": float("nan"),
                           "track_rate": float("nan"), "det_rate_any": float("nan"), "det_rate_all": float("nan"),
                           "eval_error": str(exc)}
-                row = {"planner": planner, "problem": int(prob["index"]), "targets": "+".join(prob["targets"]),
-                       "success": True, "reason": "ok", "preprocess_s": pre, "plan_s": plan_s,
-                       "total_s": pre + plan_s, "path_length_rad": path_length(motion, res.dense),
+                row = {"planner": planner, "problem": int(prob["index"]),
+                       "run_seed": prob.get("run_seed", float("nan")),
+                       "targets": "+".join(prob["targets"]), "success": True, "reason": "ok", "preprocess_s": pre,
+                       "plan_s": plan_s, "total_s": pre + plan_s, "path_length_rad": path_length(motion, res.dense),
                        "eval_s": time.perf_counter() - t2, **{k: ev[k] for k in ev if k in ROW_FIELDS}}
                 if len(paths) < keep_paths:
                     paths.append({"planner": planner, "problem": int(prob["index"]),
@@ -332,7 +400,14 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
         for t in g:
             scene.target(t)
     t_start = time.perf_counter()
-    problems = make_problems(scene, robot, groups, cfg.problems, cfg.seed)
+    if cfg.scenario:
+        if cfg.target_groups and len(cfg.target_groups) != 1:
+            raise PsprmError("--scenario takes one target group (e.g. --targets 'a,b'), not several")
+        problems = scenario_problems(scene, robot, cfg.scenario, cfg.problems, cfg.seed,
+                                     cfg.target_groups[0] if cfg.target_groups else None)
+        groups = [problems[0]["targets"]]
+    else:
+        problems = make_problems(scene, robot, groups, cfg.problems, cfg.seed)
     by_group = {}
     for prob in problems:
         by_group.setdefault(tuple(prob["targets"]), []).append(prob)
@@ -459,7 +534,8 @@ def summarize(rows: list, planners: Sequence[str]) -> dict:
         if not rs:
             continue
         ok = [r for r in rs if r["success"]]
-        pre = _nanmean({(r["targets"]): r["preprocess_s"] for r in rs}.values())
+        # one preprocessing per built instance: per target group, or per run in scenario mode
+        pre = _nanmean({f'{r["targets"]}|{r.get("run_seed", "")}': r["preprocess_s"] for r in rs}.values())
         pre = 0.0 if math.isnan(pre) else pre
         plan = _nanmean(r["plan_s"] for r in rs)
         out[pl] = {
@@ -479,6 +555,11 @@ def summarize(rows: list, planners: Sequence[str]) -> dict:
             b = out.get(base)
             if b is not None:
                 ratios[key] = n["det_rate"] / b["det_rate"] if b["det_rate"] and b["det_rate"] > 0 else float("nan")
+        b = out.get("manifold-line")
+        if b is not None and any("+" in str(r["targets"]) for r in rows):  # several targets: Table III's columns
+            for key in ("det_rate_any", "det_rate_all", "mean_confidence"):
+                ratios[f"{key}_vs_manifold_line"] = (n[key] / b[key] if b[key] and b[key] > 0
+                                                     else float("nan"))
         o = out.get("psprm-line")
         if o is not None and n["preprocess_s"] > 0:
             ratios["oracle_preprocess_vs_neural"] = o["preprocess_s"] / n["preprocess_s"]
@@ -607,7 +688,8 @@ def _plots(result: dict, out: Path, multi: bool) -> dict:
     ax.set_xlim(ws[0][0] - 0.2, ws[0][1] + 0.2)
     ax.set_ylim(ws[1][0] - 0.2, ws[1][1] + 0.2)
     ax.set_aspect("equal")
-    ax.legend(fontsize=6, loc="upper right")
+    if first:
+        ax.legend(fontsize=6, loc="upper right")
     ax.set_title(f"example paths ({scene.name})")
     fig.tight_layout()
     f = out / "paths.png"

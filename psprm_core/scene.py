@@ -119,13 +119,23 @@ class GoalRegion:
 @dataclass(frozen=True)
 class Problem:
     """A named start/goal query. ``start``/``goal`` map joint names (and base_x/base_y/base_theta) to values;
-    ``goal_regions`` names goal regions instead of (or in addition to) a goal configuration."""
+    ``goal_regions`` names goal regions instead of (or in addition to) a goal configuration.
+
+    ``target`` is the monitored target; a problem written with ``targets: [a, b]`` keeps several in view together
+    (their centroids' midpoint is the monitoring point, as in the paper's two-nurse task), and ``target`` is then
+    the first of them."""
 
     name: str
     target: str
     start: dict
     goal: dict = field(default_factory=dict)
     goal_regions: tuple = ()
+    targets: tuple = ()
+
+    @property
+    def all_targets(self) -> list:
+        """Every monitored target: ``targets`` if the problem names several, else ``[target]``."""
+        return list(self.targets) if self.targets else [self.target]
 
 
 @dataclass(frozen=True)
@@ -290,13 +300,22 @@ def load_scene(path: str | Path) -> Scene:
                                 joints=_joint_map(g, "joints")))
     problems = []
     for p in f.sub_list("problems", []):
-        p.check_keys(["name", "target", "start", "goal", "goal_regions"])
+        p.check_keys(["name", "target", "targets", "start", "goal", "goal_regions"])
         p.raw("start")  # required (may be an empty mapping only if written explicitly as {})
         regions = p.raw("goal_regions", [])
         if not isinstance(regions, list) or not all(isinstance(r, str) for r in regions):
             raise p.error("goal_regions", "expected a list of goal region names")
-        problems.append(Problem(name=p.str("name"), target=p.str("target"), start=_joint_map(p, "start"),
-                                goal=_joint_map(p, "goal"), goal_regions=tuple(regions)))
+        several = p.raw("targets", None)
+        if several is not None:
+            if p.raw("target", None) is not None:
+                raise p.error("targets", "give either 'target' or 'targets', not both")
+            if not isinstance(several, list) or not several or not all(isinstance(t, str) for t in several):
+                raise p.error("targets", "expected a non-empty list of target names")
+            if len(set(several)) != len(several):
+                raise p.error("targets", "a target is named twice")
+        problems.append(Problem(name=p.str("name"), target=several[0] if several else p.str("target"),
+                                start=_joint_map(p, "start"), goal=_joint_map(p, "goal"),
+                                goal_regions=tuple(regions), targets=tuple(several or ())))
     for kind, items in (("obstacles", obstacles), ("targets", targets), ("goals", goals), ("problems", problems)):
         names = [i.name for i in items]
         dup = {n for n in names if names.count(n) > 1}
@@ -308,8 +327,10 @@ def load_scene(path: str | Path) -> Scene:
     target_names = {t.name for t in targets}
     goal_names = {g.name for g in goals}
     for i, p in enumerate(problems):
-        if p.target not in target_names:
-            raise ConfigError(str(path), f"problems[{i}].target", f"unknown target '{p.target}'")
+        for t in p.all_targets:
+            if t not in target_names:
+                key = "targets" if p.targets else "target"
+                raise ConfigError(str(path), f"problems[{i}].{key}", f"unknown target '{t}'")
         for r in p.goal_regions:
             if r not in goal_names:
                 raise ConfigError(str(path), f"problems[{i}].goal_regions", f"unknown goal region '{r}'")

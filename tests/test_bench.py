@@ -10,7 +10,8 @@ import torch
 
 from psprm_core import baselines
 from psprm_core.bench import (BenchConfig, default_target_groups, frame_indices, json_summary, make_problems,
-                              run_bench, summarize, track_flags, write_outputs)
+                              run_bench, scenario_problems, summarize, track_flags, write_outputs)
+from psprm_core.errors import PsprmError
 from psprm_core.motion import DiffDriveMotion
 from psprm_core.paths import resolve_named
 from psprm_core.robot import RobotModel
@@ -30,6 +31,27 @@ class CrashingPlanner:
 
     def plan(self, start, goals, timeout_s=60.0):
         raise RuntimeError("boom")
+
+
+class SeedRecordingPlanner:
+    """Fails every query, naming the seed it was built with; its preprocessing time is its seed; seed 2 cannot be
+    built. Records the (start, goal) pairs it is asked."""
+
+    queries: list = []
+
+    def __init__(self, name, scene, targets, robot=None, seed=0, **kw):
+        if seed == 2:
+            raise RuntimeError("seed 2 breaks the build")
+        self.seed, self.targets = seed, list(targets)
+
+    def prepare(self):
+        return {"preprocess_s": float(self.seed)}
+
+    def plan(self, start, goals, timeout_s=60.0):
+        from psprm_core.planning.psprm import PlanResult
+
+        SeedRecordingPlanner.queries.append((np.asarray(start).copy(), np.asarray(goals).copy(), self.targets))
+        return PlanResult(success=False, reason=f"built with seed {self.seed}")
 
 
 @pytest.fixture(scope="module")
@@ -114,3 +136,54 @@ def test_summary_ratios():
     assert s["ratios"]["det_rate_vs_post"] == pytest.approx(4.0)
     assert s["ratios"]["det_rate_vs_manifold_line"] == pytest.approx(1.6)
     assert s["post"]["total_s"] == pytest.approx(1.5)
+
+
+def test_scenario_runs_rebuild_every_planner_per_run(tmp_path, monkeypatch):
+    """--scenario: the named problem's start and goal in every run, each run's planner built with seed + run."""
+    monkeypatch.setitem(baselines.BASELINES, "post", f"{__name__}:SeedRecordingPlanner")
+    SeedRecordingPlanner.queries.clear()
+    cfg = BenchConfig(scene="nursing", planners=["post"], problems=4, seed=0, out=str(tmp_path), workers=1,
+                      scenario="west_to_east_nurses")
+    res = run_bench(cfg, progress=False)
+    rows = sorted(res["rows"], key=lambda r: r["problem"])
+    assert [r["run_seed"] for r in rows] == [0, 1, 2, 3]
+    assert [r["reason"] for r in rows[:2]] + [rows[3]["reason"]] == [f"built with seed {k}" for k in (0, 1, 3)]
+    assert "prepare failed" in rows[2]["reason"] and "seed 2 breaks" in rows[2]["reason"]
+    assert res["config"]["target_groups"] == [["nurse_1_face", "nurse_2_face"]]
+    qs = SeedRecordingPlanner.queries
+    assert len(qs) == 3 and all(t == ["nurse_1_face", "nurse_2_face"] for _, _, t in qs)
+    assert all(np.array_equal(qs[0][0], s) and np.array_equal(qs[0][1], g) for s, g, _ in qs)
+    assert qs[0][0][:3] == pytest.approx([0.8, 4.2, 0.0]) and qs[0][1][:2] == pytest.approx([7.2, 4.2])
+    # preprocessing is averaged over the instances that were built (one per run here): seeds 0, 1, 3
+    assert res["summary"]["post"]["preprocess_s"] == pytest.approx(4.0 / 3.0)
+    write_outputs(res, tmp_path)
+    assert "det. rate (all targets)" in (tmp_path / "table.md").read_text()  # Table III layout
+
+
+def test_scenario_problems_face_the_targets_and_reject_bad_names():
+    scene = load_scene(resolve_named("scene", "nursing"))
+    robot = RobotModel.load(scene.robot)
+    probs = scenario_problems(scene, robot, "west_to_east_nurses", 3, seed=5)
+    assert [p["run_seed"] for p in probs] == [5, 6, 7]
+    from psprm_core.baselines.base import PlanningContext
+
+    ctx = PlanningContext(scene, probs[0]["targets"], robot=robot)
+    q = np.vstack([probs[0]["start"], probs[0]["goal"]])
+    assert ctx.valid(q).all() and (ctx.view_error(q, "line") < 0.03).all()
+    one = scenario_problems(scene, robot, "west_to_east_nurses", 1, seed=0, targets=["nurse_2_face"])
+    assert one[0]["targets"] == ["nurse_2_face"]
+    with pytest.raises(PsprmError, match="no problem 'nope'.*west_to_east_nurses"):
+        scenario_problems(scene, robot, "nope", 1, seed=0)
+
+
+def test_scenario_start_in_collision_is_a_clear_error(tmp_path):
+    import yaml
+
+    data = yaml.safe_load(open(resolve_named("scene", "nursing")))
+    prob = next(p for p in data["problems"] if p["name"] == "west_to_east_nurses")
+    prob["start"].update(base_x=4.0, base_y=5.45)  # on the bed
+    path = tmp_path / "nursing_bad.yaml"
+    path.write_text(yaml.safe_dump(data))
+    scene = load_scene(path)
+    with pytest.raises(PsprmError, match="start is in collision"):
+        scenario_problems(scene, RobotModel.load(scene.robot), "west_to_east_nurses", 2, seed=0)

@@ -255,6 +255,34 @@ def test_problem_names_unknown_target(tmp_path):
     _expect_error(_write(tmp_path, data), "problems[0].target", "unknown target", "mug")
 
 
+def _two_targets():
+    data = copy.deepcopy(VALID)
+    data["targets"].append({"name": "plate", "class": "bowl", "center": [2.3, 1.5, 0.76], "size": [0.2, 0.2, 0.03]})
+    return data
+
+
+def test_problem_with_several_targets(tmp_path):
+    data = _two_targets()
+    data["problems"][0].pop("target")
+    data["problems"][0]["targets"] = ["plate", "cup"]
+    p = load_scene(_write(tmp_path, data)).problems[0]
+    assert p.all_targets == ["plate", "cup"] and p.target == "plate"
+    single = load_scene(_write(tmp_path, VALID, "single.yaml")).problems[0]
+    assert single.all_targets == ["cup"] and single.targets == ()
+
+
+@pytest.mark.parametrize("value, fragment", [
+    (["plate", "mug"], "unknown target"), ([], "non-empty list"), ("cup", "list"), (["cup", "cup"], "twice"),
+    ("both", "either"),
+], ids=["unknown", "empty", "not_a_list", "twice", "with_target"])
+def test_problem_targets_errors(tmp_path, value, fragment):
+    data = _two_targets()
+    if value != "both":
+        data["problems"][0].pop("target")
+    data["problems"][0]["targets"] = ["cup", "plate"] if value == "both" else value
+    _expect_error(_write(tmp_path, data), "problems[0].targets", fragment)
+
+
 def test_problem_names_unknown_goal_region(tmp_path):
     data = copy.deepcopy(VALID)
     data["problems"][0]["goal_regions"] = ["west"]

@@ -8,8 +8,9 @@ import sys
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("bench", help="run planners on the same random problems; oracle-judged detection, tracking, "
-                                     "path length, success and times; CSV, Markdown table, plots, --json")
+    p = sub.add_parser("bench", help="run planners on the same random problems (or runs of a named one); "
+                                     "oracle-judged detection, tracking, path length, success and times; CSV, "
+                                     "Markdown table, plots, --json")
     p.add_argument("--scene", default="home")
     p.add_argument("--planners", default="all", help="comma-separated names, or 'all' (see psprm_core.baselines)")
     p.add_argument("--problems", type=int, default=100)
@@ -21,6 +22,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--oracle-nodes", type=int, default=None, help="roadmap size of the oracle PS-PRM variants")
     p.add_argument("--targets", default=None,
                    help="target groups: 'a,b;c' = a and b kept in view together, c alone (default: per scene)")
+    p.add_argument("--scenario", default=None, metavar="PROBLEM",
+                   help="run the scene's named problem PROBLEM --problems times as independent runs (every planner "
+                        "built anew per run with seed + run; the paper's Table III protocol), instead of random "
+                        "problems")
     p.add_argument("--frame-spacing", type=float, default=0.5, help="motion-cost units between judged frames")
     p.add_argument("--max-frames", type=int, default=20, help="judged frames per path at most")
     p.add_argument("--no-progress", action="store_true")
@@ -42,7 +47,7 @@ def _bench(args) -> int:
     cfg = BenchConfig(scene=args.scene, planners=names, problems=args.problems, seed=args.seed,
                       out=args.out or f"out/bench_{args.scene}", timeout_s=args.timeout, workers=args.workers,
                       nodes=args.nodes, oracle_nodes=args.oracle_nodes, frame_spacing=args.frame_spacing,
-                      max_frames=args.max_frames, target_groups=groups)
+                      max_frames=args.max_frames, target_groups=groups, scenario=args.scenario)
     res = run_bench(cfg, progress=not args.no_progress)
     files = write_outputs(res, cfg.out)
     if args.json:

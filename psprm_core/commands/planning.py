@@ -43,13 +43,13 @@ def run(args) -> int:
     robot = RobotModel.load(scene.robot)
     targets = [t.strip() for t in args.target.split(",")] if args.target else None
     problems = [p for p in scene.problems if args.problem in (None, p.name) and
-                (targets is None or p.target in targets)]
+                (targets is None or set(p.all_targets) & set(targets))]
     if args.problem and not problems:
         raise PsprmError(f"scene '{scene.name}' has no problem '{args.problem}' for that target")
     if not problems:
         raise PsprmError(f"scene '{scene.name}' has no problem for target(s) {targets}")
     prob = problems[0]
-    targets = targets or [prob.target]
+    targets = targets or prob.all_targets
     planner = make_planner(args.planner, scene, targets, robot=robot, checkpoint=args.checkpoint,
                            multi_mode=args.multi, n_nodes=args.nodes, seed=args.seed, alpha=args.alpha)
     start, goals = problem_configurations(robot, scene, prob)
