@@ -96,9 +96,11 @@ class BenchConfig:
 
 
 # ---- problems ---------------------------------------------------------------------------------------------------------
-#: Classes left out of the default target groups: the 8 cm cup needs the tiled CenterNet (0.4-2 s per judged frame)
-#: and reaches the detector's threshold in only ~12 % of views (docs/benchmarks.md); pass ``--targets cup`` to add it.
-DEFAULT_EXCLUDED_CLASSES = {"cup"}
+#: Classes left out of the default target groups (none at present). Until session 10 the cup was: judged on Stretch
+#: images rendered sideways it reached the detector's threshold in ~12 % of views; upright, an aimed camera detects
+#: it from 55 % of the home room (``psprm perf viewmap``), so it is benchmarked like the paper's other objects (its
+#: tiled CenterNet costs ~0.45 s per judged frame).
+DEFAULT_EXCLUDED_CLASSES: frozenset = frozenset()
 
 
 def default_target_groups(scene) -> list:
