@@ -162,11 +162,11 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
         Unknown problem (the known names are listed), or a start or goal in collision.
     """
     from .baselines.base import aim_camera
+    from .benchmarks import aim_joints
     from .collision import CollisionChecker
     from .errors import PsprmError
     from .planning.constraints import VisibilityConstraint
     from .planning.factory import problem_configurations
-    from .planning.psprm import camera_joint_mask
 
     try:
         prob = scene.problem(name)
@@ -177,11 +177,7 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
     focus = np.mean([scene.target(t).center for t in group], axis=0)
     start, goals = problem_configurations(robot, scene, prob)
     ends = np.stack([start, goals[0]])
-    mask = camera_joint_mask(robot)
-    mask[: robot.base_dof] = False
-    cols = np.nonzero(mask)[0]
-    lo = np.where(np.isfinite(robot.lower), robot.lower, -1e9)
-    hi = np.where(np.isfinite(robot.upper), robot.upper, 1e9)
+    cols, lo, hi = aim_joints(robot)
     aimed, ok = aim_camera(VisibilityConstraint(robot, "line", focus), ends, cols, lo, hi, iters=10, restarts=8,
                            seed=seed)
     ends = np.asarray(aimed, float)  # unconverged: as close to the target as the joint limits allow

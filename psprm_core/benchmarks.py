@@ -94,6 +94,18 @@ def kinematics_benchmark(robot_name: str, scene_name: str, n: int = 10000, seed:
     }
 
 
+def aim_joints(robot) -> tuple:
+    """The joints that aim the camera at problem ends (non-base camera joints) and every joint's finite limits:
+    (cols, lower, upper), for :func:`psprm_core.baselines.base.aim_camera`."""
+    from .planning.psprm import camera_joint_mask
+
+    mask = camera_joint_mask(robot)
+    mask[: robot.base_dof] = False
+    lo = np.where(np.isfinite(robot.lower), robot.lower, -1e9)
+    hi = np.where(np.isfinite(robot.upper), robot.upper, 1e9)
+    return np.nonzero(mask)[0], lo, hi
+
+
 def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, template: np.ndarray,
                     target_center: np.ndarray, min_distance: float = 1.0, aimed_only: bool = False,
                     aim_restarts: int = 0) -> list:
@@ -105,15 +117,10 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
     (:func:`psprm_core.baselines.base.aim_camera`); ``aimed_only`` keeps only configurations whose optical axis
     passes through the target (within the projection tolerance)."""
     from .planning.constraints import ProjectionSettings, VisibilityConstraint
-    from .planning.psprm import camera_joint_mask
 
-    mask = camera_joint_mask(robot)
-    mask[: robot.base_dof] = False
-    cols = np.nonzero(mask)[0]
+    cols, lo, hi = aim_joints(robot)
     con = VisibilityConstraint(robot, "line", target_center)
     out = []
-    lo = np.where(np.isfinite(robot.lower), robot.lower, -1e9)
-    hi = np.where(np.isfinite(robot.upper), robot.upper, 1e9)
     while len(out) < n:
         q = np.tile(template, (4 * n, 1))
         q[:, 0] = rng.uniform(*scene.workspace[0], 4 * n)
