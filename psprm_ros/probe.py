@@ -189,6 +189,11 @@ class InProcessSuite:
             pass
 
     def __exit__(self, *exc) -> None:
+        # stop spinning before destroying: a callback still running on the spin thread would otherwise hit a node
+        # being destroyed ("cannot use Destroyable because destruction was requested", printed at exit)
+        self.executor.shutdown(timeout_sec=2.0)
+        if getattr(self, "_thread", None):
+            self._thread.join(timeout=5.0)
         for n in reversed(getattr(self, "nodes", [])):
             try:
                 n.destroy()
@@ -196,7 +201,4 @@ class InProcessSuite:
                 pass
         if getattr(self, "probe", None):
             self.probe.destroy()
-        self.executor.shutdown(timeout_sec=2.0)
         self.context.try_shutdown()
-        if getattr(self, "_thread", None):
-            self._thread.join(timeout=5.0)
