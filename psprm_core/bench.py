@@ -396,7 +396,8 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
     groups = cfg.target_groups or default_target_groups(scene)
     for g in groups:
         for t in g:
-            scene.target(t)
+            if t not in scene.target_names:
+                raise PsprmError(f"scene '{scene.name}' has no target '{t}' (targets: {', '.join(scene.target_names)})")
     t_start = time.perf_counter()
     if cfg.scenario:
         if cfg.target_groups and len(cfg.target_groups) != 1:

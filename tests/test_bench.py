@@ -188,3 +188,14 @@ def test_scenario_start_in_collision_is_a_clear_error(tmp_path):
     scene = load_scene(path)
     with pytest.raises(PsprmError, match="start is in collision"):
         scenario_problems(scene, RobotModel.load(scene.robot), "west_to_east_nurses", 2, seed=0)
+
+
+def test_unknown_target_or_second_group_is_a_clear_error(tmp_path):
+    cfg = BenchConfig(scene="home", planners=["post"], problems=1, out=str(tmp_path), workers=1,
+                      target_groups=[["nope"]])
+    with pytest.raises(PsprmError, match="no target 'nope'.*potted_plant"):
+        run_bench(cfg, progress=False)
+    cfg = BenchConfig(scene="nursing", planners=["post"], problems=1, out=str(tmp_path), workers=1,
+                      target_groups=[["nurse_1_face"], ["nurse_2_face"]], scenario="west_to_east_nurses")
+    with pytest.raises(PsprmError, match="one target group"):
+        run_bench(cfg, progress=False)
