@@ -347,22 +347,20 @@ def detection_map(scene_name: str = "home", target: str | None = None, spacing: 
 
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
-    target = target or scene.target_names()[0]
+    target = target or scene.target_names[0]
     centre = np.asarray(scene.target(target).center, float)
     q0 = robot.default_configuration()
     height = float(robot.camera_poses(torch.as_tensor(q0[None], dtype=torch.float64))[0, 2, 3])
     (x0, x1), (y0, y1) = scene.workspace
     xs = np.arange(x0 + spacing / 2, x1, spacing)
     ys = np.arange(y0 + spacing / 2, y1, spacing)[::-1]
-    boxes = scene.collision_boxes()
+    # footprints (axis-aligned, grown by ``clearance``) of the boxes that reach below the camera, computed once
+    feet = [(b.center[:2] - half - clearance, b.center[:2] + half + clearance)
+            for b in scene.collision_boxes() if b.center[2] - 0.5 * b.size[2] < height
+            for half in [0.5 * np.abs(b.rotation[:2, :2]) @ b.size[:2]]]
 
     def blocked(x: float, y: float) -> bool:
-        for b in boxes:
-            lo = b.center[:2] - 0.5 * np.abs(b.rotation[:2, :2]) @ b.size[:2] - clearance
-            hi = b.center[:2] + 0.5 * np.abs(b.rotation[:2, :2]) @ b.size[:2] + clearance
-            if lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] and b.center[2] - 0.5 * b.size[2] < height:
-                return True
-        return False
+        return any(lo[0] <= x <= hi[0] and lo[1] <= y <= hi[1] for lo, hi in feet)
 
     roll = image_roll(extra_roll_deg)
     grid = np.full((len(ys), len(xs)), np.nan)

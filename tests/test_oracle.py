@@ -192,3 +192,22 @@ def test_stretch_head_camera_sees_the_home_tv_upright(load_robot):
     assert upright.image.shape[:2] == (640, 480)  # portrait
     assert upright.detected and upright.score > 0.5
     assert not sideways.detected and sideways.score < 0.5 * upright.score
+
+
+def test_detection_map_default_target_grid_and_roll():
+    """``psprm perf viewmap`` on a coarse grid: the scene's first target by default, obstacle cells left out, and a
+    sideways image (extra roll 90 deg) never scores above the upright one at the same points."""
+    from psprm_core.benchmarks import detection_map
+
+    try:
+        up = detection_map("home", None, spacing=2.0)
+        side = detection_map("home", "cup", spacing=2.0, extra_roll_deg=90.0)
+    except DetectorUnavailableError as exc:  # pragma: no cover
+        pytest.skip(str(exc))
+    assert up["target"] == "cup" and up["extra_roll_deg"] == 0.0
+    grid = np.array([[np.nan if v is None else v for v in row] for row in up["grid"]])
+    assert grid.shape == (len(up["y"]), len(up["x"])) == (3, 4)
+    assert up["points"] == int(np.isfinite(grid).sum()) and 0 < up["points"] < grid.size  # the table's cell is out
+    assert up["y"] == sorted(up["y"], reverse=True)
+    assert 0.0 <= up["detected_share"] <= 1.0 and up["points"] == side["points"]
+    assert up["detected_share"] > 0 and side["mean_confidence"] < up["mean_confidence"]
