@@ -574,8 +574,9 @@ def _fmt(v, pct=False, digits=3) -> str:
     return f"{100 * v:.1f} %" if pct else f"{v:.{digits}g}" if abs(v) >= 100 else f"{v:.{digits}f}"
 
 
-def markdown_table(summary: dict, multi_target: bool = False) -> str:
-    """The paper's Table II layout (or Table III's for two-target groups), ours next to the paper's value."""
+def markdown_table(summary: dict, multi_target: bool = False, settings: Optional[dict] = None) -> str:
+    """The paper's Table II layout (or Table III's for two-target groups), ours next to the paper's value; settings
+    changed for the run (``{planner: {key: value}}``, ``psprm bench --set``) are listed under the table."""
     lines = []
     if multi_target:
         lines.append("| method | plan. time (s) | path len. | det. rate (1 target) | det. rate (all targets) | "
@@ -607,6 +608,10 @@ def markdown_table(summary: dict, multi_target: bool = False) -> str:
                          f"{c('mean_confidence')} | {c('track_rate', True)} |")
     lines.append("")
     lines.append("Ours first, the paper's value in parentheses (– where the paper has none).")
+    changed = [f"{pl}.{k}={v}" for pl, kv in (settings or {}).items() for k, v in kv.items()]
+    if changed:
+        lines.append("")
+        lines.append("Settings changed for this run: " + ", ".join(changed) + " (the others as configured).")
     if "ratios" in summary:
         lines.append("")
         lines.append("Ratios: " + ", ".join(f"{k} = {_fmt(v)}" for k, v in summary["ratios"].items()))
@@ -625,7 +630,7 @@ def write_outputs(result: dict, out_dir: str | Path) -> dict:
             w.writerow(r)
     files["csv"] = out / "results.csv"
     multi = any(len(g) > 1 for g in result["config"]["target_groups"])
-    (out / "table.md").write_text(markdown_table(result["summary"], multi))
+    (out / "table.md").write_text(markdown_table(result["summary"], multi, result["config"].get("planner_kwargs")))
     files["table"] = out / "table.md"
     (out / "summary.json").write_text(json.dumps(
         {"config": result["config"], "summary": result["summary"], "prepare": result["prepare"],

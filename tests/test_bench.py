@@ -199,3 +199,53 @@ def test_unknown_target_or_second_group_is_a_clear_error(tmp_path):
                       target_groups=[["nurse_1_face"], ["nurse_2_face"]], scenario="west_to_east_nurses")
     with pytest.raises(PsprmError, match="one target group"):
         run_bench(cfg, progress=False)
+
+
+class KwargsRecordingPlanner(SeedRecordingPlanner):
+    """Records the settings it was built with; every query fails (no oracle frames to judge)."""
+
+    built: list = []
+
+    def __init__(self, name, scene, targets, robot=None, seed=0, **kw):
+        super().__init__(name, scene, targets, robot=robot, seed=seed)
+        KwargsRecordingPlanner.built.append(dict(kw))
+
+
+def test_planner_settings_are_typed_and_checked():
+    from psprm_core.baselines import parse_planner_settings
+
+    got = parse_planner_settings(["neural-psprm-line.alpha=0.95", "neural-psprm-line.k_long=4", "post.range=1",
+                                  "post.simplify=false"], ["post", "neural-psprm-line"])
+    assert got == {"neural-psprm-line": {"alpha": 0.95, "k_long": 4}, "post": {"range": 1.0, "simplify": False}}
+    assert isinstance(got["post"]["range"], float)
+    bad = {"alpha=0.9": "PLANNER.KEY=VALUE", "neural-psprm-line.alpha": "PLANNER.KEY=VALUE",
+           "rejection.range=1": "not among the planners run",
+           "neural-psprm-line.nope=1": "'nope' is not a setting.*settable: alpha",
+           "neural-psprm-line.seed=3": "'seed' is not a setting",  # the bench seeds every run itself
+           "neural-psprm-line.constraint=frustum": "'constraint' is not a setting",  # the variant's name decides
+           "neural-psprm-line.projection=1": "'projection' is not a setting",
+           "neural-psprm-line.alpha=high": "takes a number",
+           "neural-psprm-line.n_nodes=2.5": "takes an integer",
+           "neural-psprm-line.lazy_edges=1": "takes true or false",
+           "neural-psprm-line.alpha=1.5": "must lie in \\[0, 1\\]"}
+    for item, msg in bad.items():
+        with pytest.raises(PsprmError, match=msg):
+            parse_planner_settings([item], ["post", "neural-psprm-line"])
+
+
+def test_bench_set_reaches_the_planner_and_the_table(tmp_path, monkeypatch, capsys):
+    from psprm_core.cli import main
+
+    monkeypatch.setitem(baselines.BASELINES, "post", f"{__name__}:KwargsRecordingPlanner")
+    KwargsRecordingPlanner.built.clear()
+    assert main(["bench", "--scene", "nursing", "--planners", "post", "--scenario", "west_to_east_nurses",
+                 "--problems", "2", "--workers", "1", "--no-progress", "--out", str(tmp_path),
+                 "--set", "post.range=0.5", "--set", "post.simplify=false"]) == 0
+    assert KwargsRecordingPlanner.built == [{"range": 0.5, "simplify": False}] * 2  # both runs' builds
+    assert "Settings changed for this run: post.range=0.5, post.simplify=False" in (tmp_path / "table.md").read_text()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["config"]["planner_kwargs"] == {"post": {"range": 0.5, "simplify": False}}
+    capsys.readouterr()
+    assert main(["bench", "--scene", "nursing", "--planners", "post", "--problems", "1", "--workers", "1",
+                 "--out", str(tmp_path), "--set", "post.alpha=0.9"]) == 2
+    assert "'alpha' is not a setting of post" in capsys.readouterr().err

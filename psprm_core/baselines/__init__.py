@@ -27,6 +27,23 @@ BASELINES = {
 }
 
 
+#: Planner name -> ``"module:Class"`` of its settings dataclass (what ``psprm bench --set`` may change).
+SETTINGS = {
+    "post": "psprm_core.baselines.base:BaselineSettings",
+    "rejection": "psprm_core.baselines.base:BaselineSettings",
+    "manifold-line": "psprm_core.baselines.base:BaselineSettings",
+    "manifold-frustum": "psprm_core.baselines.base:BaselineSettings",
+    "trajopt": "psprm_core.baselines.trajopt:TrajOptSettings",
+    "rl-ppo": "psprm_core.baselines.rl_ppo:PPOSettings",
+    "psprm-line": "psprm_core.planning.psprm:PSPRMSettings",
+    "psprm-frustum": "psprm_core.planning.psprm:PSPRMSettings",
+    "neural-psprm-line": "psprm_core.planning.psprm:PSPRMSettings",
+    "neural-psprm-frustum": "psprm_core.planning.psprm:PSPRMSettings",
+}
+#: Settings the benchmark itself decides (per-run seed; the visibility model is part of a PS-PRM variant's name).
+FIXED_SETTINGS = frozenset({"seed", "constraint"})
+
+
 def planner_names() -> list:
     """Every benchmark planner, in the order of the paper's Table II."""
     return list(BASELINES)
@@ -56,4 +73,72 @@ def make_baseline(name: str, scene, targets: Sequence[str], robot=None, seed: in
     return cls(name=name, scene=scene, targets=list(targets), robot=robot, seed=seed, **kw)
 
 
-__all__ = ["BASELINES", "planner_names", "make_baseline", "resolve"]
+def settings_class(name: str) -> type:
+    """The settings dataclass of planner ``name``."""
+    if name not in SETTINGS:
+        raise PsprmError(f"unknown planner '{name}' (choose from {', '.join(BASELINES)})")
+    mod, cls = SETTINGS[name].split(":")
+    return getattr(importlib.import_module(mod), cls)
+
+
+def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dict:
+    """``["PLANNER.KEY=VALUE", ...]`` -> ``{planner: {key: value}}``, checked against each planner's settings.
+
+    Values are read as YAML scalars and must have the type of the field's default (an int is accepted for a float
+    field); the resulting settings must pass the class's ``validate()`` (e.g. ``alpha`` in [0, 1]).
+
+    Raises
+    ------
+    PsprmError
+        Malformed item, a planner not in ``planners``, an unknown or fixed setting, a value of the wrong type or
+        out of range.
+    """
+    import dataclasses
+
+    import yaml
+
+    out: dict = {}
+    for item in items:
+        head, eq, raw = str(item).partition("=")
+        name, dot, key = head.strip().rpartition(".")
+        if not eq or not dot or not name or not key or not raw.strip():
+            raise PsprmError(f"--set '{item}': expected PLANNER.KEY=VALUE (e.g. neural-psprm-line.alpha=0.95)")
+        if name not in planners:
+            raise PsprmError(f"--set '{item}': planner '{name}' is not among the planners run "
+                             f"({', '.join(planners)})")
+        cls = settings_class(name)
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        if key in FIXED_SETTINGS or key not in fields or fields[key].default is dataclasses.MISSING:
+            settable = sorted(k for k, f in fields.items() if k not in FIXED_SETTINGS and f.default is not
+                              dataclasses.MISSING)
+            raise PsprmError(f"--set '{item}': '{key}' is not a setting of {name} that --set can change "
+                             f"(settable: {', '.join(settable)})")
+        try:
+            value = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            value = raw.strip()
+        default = fields[key].default
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, int):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+            value = float(value) if ok else value
+        else:
+            ok = isinstance(value, str)
+        if not ok:
+            kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
+            raise PsprmError(f"--set '{item}': {name}.{key} takes {kind}, got {raw.strip()!r}")
+        probe = dataclasses.replace(cls(), **{key: value})
+        if hasattr(probe, "validate"):
+            try:
+                probe.validate(f"--set {name}")
+            except Exception as exc:
+                raise PsprmError(f"--set '{item}': {exc}") from None
+        out.setdefault(name, {})[key] = value
+    return out
+
+
+__all__ = ["BASELINES", "SETTINGS", "planner_names", "make_baseline", "resolve", "settings_class",
+           "parse_planner_settings"]

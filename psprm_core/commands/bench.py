@@ -28,13 +28,16 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "problems")
     p.add_argument("--frame-spacing", type=float, default=0.5, help="motion-cost units between judged frames")
     p.add_argument("--max-frames", type=int, default=20, help="judged frames per path at most")
+    p.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=VALUE", dest="settings",
+                   help="change one setting of one planner for this run (repeatable), e.g. "
+                        "neural-psprm-line.alpha=0.95; checked against the planner's settings class")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by planner")
     p.set_defaults(func=_bench)
 
 
 def _bench(args) -> int:
-    from ..baselines import planner_names
+    from ..baselines import parse_planner_settings, planner_names
     from ..bench import BenchConfig, json_summary, run_bench, write_outputs
     from ..errors import PsprmError
 
@@ -47,7 +50,8 @@ def _bench(args) -> int:
     cfg = BenchConfig(scene=args.scene, planners=names, problems=args.problems, seed=args.seed,
                       out=args.out or f"out/bench_{args.scene}", timeout_s=args.timeout, workers=args.workers,
                       nodes=args.nodes, oracle_nodes=args.oracle_nodes, frame_spacing=args.frame_spacing,
-                      max_frames=args.max_frames, target_groups=groups, scenario=args.scenario)
+                      max_frames=args.max_frames, target_groups=groups, scenario=args.scenario,
+                      planner_kwargs=parse_planner_settings(args.settings, names))
     res = run_bench(cfg, progress=not args.no_progress)
     files = write_outputs(res, cfg.out)
     if args.json:
