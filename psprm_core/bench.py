@@ -1,7 +1,8 @@
 """``psprm bench``: every planner on the same random problems, judged by the real detector (paper Tables II and III).
 
 Problems (:func:`make_problems`): random collision-free start and goal base poses with the camera joints aimed at the
-target (:func:`psprm_core.benchmarks.random_problems`), spread round-robin over target groups (by default each scene
+target, each one a short manoeuvre can leave (no boxed-in ends; :func:`psprm_core.benchmarks.random_problems`),
+spread round-robin over target groups (by default each scene
 target the surrogate knows; on ``nursing`` both nurses' faces together, the paper's two-face task).
 
 Each (planner, target group) pair is one task in a worker process (``ProcessPoolExecutor``, spawn, one torch
@@ -123,7 +124,10 @@ def default_target_groups(scene) -> list:
 
 
 def make_problems(scene, robot, groups: list, n: int, seed: int) -> list:
-    """``n`` problems spread round-robin over ``groups``: dicts with index, targets, start, goal (numpy)."""
+    """``n`` problems spread round-robin over ``groups``: dicts with index, targets, start, goal (numpy).
+
+    Ends are collision-free, aimed at the group's centroid and not boxed in (a short turn or drive leaves them,
+    :func:`psprm_core.benchmarks.can_move_away`; since session 12, so problem sets of earlier sessions differ)."""
     from .benchmarks import random_problems
     from .collision import CollisionChecker
 
@@ -136,7 +140,8 @@ def make_problems(scene, robot, groups: list, n: int, seed: int) -> list:
             continue
         focus = np.mean([scene.target(t).center for t in g], axis=0)
         pairs.append(random_problems(robot, scene, checker, k, np.random.default_rng([seed, gi]),
-                                     robot.default_configuration(), focus, aimed_only=True, aim_restarts=8))
+                                     robot.default_configuration(), focus, aimed_only=True, aim_restarts=8,
+                                     mobile_only=True))
     out, used = [], [0] * len(groups)
     for i in range(n):
         gi = i % len(groups)

@@ -106,16 +106,60 @@ def aim_joints(robot) -> tuple:
     return np.nonzero(mask)[0], lo, hi
 
 
+def can_move_away(robot, checker, q: torch.Tensor, template: np.ndarray, drive: float = 0.3,
+                  resolution: float = 0.05) -> torch.Tensor:
+    """Flags (N,): configurations ``q`` (N, dof) that a collision-free drive of ``drive`` m leads out of.
+
+    A mobile base tries eight manoeuvres from each configuration: turn in place by 0, +90, -90 or 180 degrees, then
+    drive ``drive`` m straight ahead, with the other joints kept or moved to ``template`` (e.g. the arm tucked)
+    during the turn. Every turn and drive is collision-checked densely (``resolution``) with the differential-drive
+    local motion. A configuration none of them leaves is boxed in: collision-free, but no planner can start from it
+    (or reach it); the problem generator rejects such ends. Fixed-base robots instead try ``drive`` radians of
+    motion towards ``template`` and away from it.
+    """
+    from .motion import DiffDriveMotion
+
+    motion = DiffDriveMotion(robot)
+    q = torch.as_tensor(q, dtype=checker.dtype, device=checker.device).reshape(-1, robot.dof)
+    n = len(q)
+    tpl = torch.as_tensor(np.asarray(template, float), dtype=q.dtype, device=q.device)
+    ok = torch.zeros(n, dtype=torch.bool, device=q.device)
+    if n == 0:
+        return ok
+    if not robot.mobile:
+        for sign in (1.0, -1.0):
+            d = sign * (tpl - q)
+            norm = d.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+            qb = torch.clamp(q + drive * d / norm, torch.as_tensor(robot.lower, dtype=q.dtype, device=q.device),
+                             torch.as_tensor(robot.upper, dtype=q.dtype, device=q.device))
+            ok |= checker.valid(qb) & motion.motion_valid(checker, q, qb, resolution)
+        return ok
+    for turn in (0.0, 0.5 * np.pi, -0.5 * np.pi, np.pi):
+        for tuck in (False, True):
+            qa = q.clone()
+            qa[:, 2] = torch.remainder(q[:, 2] + turn + np.pi, 2 * np.pi) - np.pi
+            if tuck:
+                qa[:, robot.base_dof:] = tpl[robot.base_dof:]
+            qb = qa.clone()
+            qb[:, 0] += drive * torch.cos(qa[:, 2])
+            qb[:, 1] += drive * torch.sin(qa[:, 2])
+            free = checker.valid(qa) & checker.valid(qb)
+            free &= motion.motion_valid(checker, q, qa, resolution) & motion.motion_valid(checker, qa, qb, resolution)
+            ok |= free
+    return ok
+
+
 def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, template: np.ndarray,
                     target_center: np.ndarray, min_distance: float = 1.0, aimed_only: bool = False,
-                    aim_restarts: int = 0) -> list:
+                    aim_restarts: int = 0, mobile_only: bool = False) -> list:
     """``n`` random collision-free (start, goal) pairs: base poses uniform over the workspace, the camera joints
     aimed at the target (projection onto the line-of-sight manifold with the non-base joints), others at
     ``template``; start and goal at least ``min_distance`` apart.
 
     ``aim_restarts`` > 0 retries unconverged aims from spread-out joint values
     (:func:`psprm_core.baselines.base.aim_camera`); ``aimed_only`` keeps only configurations whose optical axis
-    passes through the target (within the projection tolerance)."""
+    passes through the target (within the projection tolerance); ``mobile_only`` keeps only configurations that a
+    short collision-free manoeuvre leaves (:func:`can_move_away`: no boxed-in ends)."""
     from .planning.constraints import ProjectionSettings, VisibilityConstraint
 
     cols, lo, hi = aim_joints(robot)
@@ -139,6 +183,9 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
         keep = checker.valid(qt)
         if aimed_only:
             keep &= conv.to(keep.device)
+        if mobile_only and bool(keep.any()):
+            idx = torch.nonzero(keep, as_tuple=True)[0]
+            keep[idx[~can_move_away(robot, checker, qt[idx], template).to(keep.device)]] = False
         qt = qt[keep]
         qs = qt.double().numpy()
         for a, b in zip(qs[0::2], qs[1::2]):

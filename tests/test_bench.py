@@ -77,6 +77,29 @@ def test_problems_are_aimed_collision_free_and_spread(home):
         assert (ctx.view_error(q, "line") < 0.03).all()  # pan/tilt face the target
     again = make_problems(scene, robot, [["tv"], ["potted_plant"]], 4, seed=3)
     assert all(np.allclose(a["start"], b["start"]) for a, b in zip(probs, again))
+    from psprm_core.benchmarks import can_move_away
+
+    ends = torch.as_tensor(np.stack([p[k] for p in probs for k in ("start", "goal")]))
+    assert can_move_away(robot, ctx.checker, ends, robot.default_configuration()).all()  # no boxed-in ends
+
+
+def test_boxed_in_end_is_recognised(home):
+    """Between the suitcase and the east wall, facing the suitcase: collision-free, but every turn or drive out of
+    it collides (session 11's home problem 26 started there; no planner solved it)."""
+    from psprm_core.benchmarks import can_move_away
+    from psprm_core.collision import CollisionChecker
+
+    scene, robot = home
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    q = torch.as_tensor(np.stack([robot.configuration(dict(base_x=7.699, base_y=3.055, base_theta=3.11)),
+                                  robot.configuration(dict(base_x=4.4, base_y=3.0, base_theta=0.0))]))
+    assert checker.valid(q).tolist() == [True, True]
+    assert can_move_away(robot, checker, q, robot.default_configuration()).tolist() == [False, True]
+    # without the suitcase the same pose has room to turn and drive away
+    open_scene = load_scene(resolve_named("scene", "home"))
+    free = CollisionChecker(robot, [b for b in open_scene.collision_boxes() if b.name != "suitcase"],
+                            workspace=scene.workspace)
+    assert bool(can_move_away(robot, free, q[:1], robot.default_configuration())[0])
 
 
 def test_frame_indices_fixed_spacing(home):
