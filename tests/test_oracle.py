@@ -211,3 +211,24 @@ def test_detection_map_default_target_grid_and_roll():
     assert up["y"] == sorted(up["y"], reverse=True)
     assert 0.0 <= up["detected_share"] <= 1.0 and up["points"] == side["points"]
     assert up["detected_share"] > 0 and side["mean_confidence"] < up["mean_confidence"]
+
+
+def test_detection_map_of_two_targets_counts_both_and_either():
+    """Two nurses' faces aimed at together (their midpoint): the points south of the medication cart see both, the
+    ones behind the nurses neither; all-detected is never more frequent than any-detected."""
+    from psprm_core.benchmarks import detection_map
+    from psprm_core.errors import PsprmError
+
+    try:
+        res = detection_map("nursing", "nurse_1_face,nurse_2_face", spacing=2.0)
+    except DetectorUnavailableError as exc:  # pragma: no cover
+        pytest.skip(str(exc))
+    assert res["targets"] == ["nurse_1_face", "nurse_2_face"] and res["target"] == "nurse_1_face+nurse_2_face"
+    hits = {(x, y): h for y, row in zip(res["y"], res["detected"]) for x, h in zip(res["x"], row) if h is not None}
+    assert set(hits.values()) <= {0, 1, 2} and len(hits) == res["points"]
+    assert hits[(3.0, 1.0)] == 2 and hits[(5.0, 1.0)] == 2  # south of the cart, facing the nurses
+    assert hits[(1.0, 5.0)] == 0 and hits[(7.0, 5.0)] == 0  # north-west and north-east, behind them: backs only
+    assert 0 < res["detected_share"] <= res["detected_share_any"] <= 1
+    assert res["detected_share"] == pytest.approx(sum(h == 2 for h in hits.values()) / len(hits))
+    with pytest.raises(PsprmError, match="no target 'nurse_3_face'"):
+        detection_map("nursing", "nurse_1_face,nurse_3_face", spacing=2.0)

@@ -68,7 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     vm = ps.add_parser("viewmap", help="where the real detector sees a target: the robot's camera aimed at it from a "
                                        "grid of base positions (share detected, mean confidence, the grid)")
     vm.add_argument("--scene", default="home")
-    vm.add_argument("--target", default=None)
+    vm.add_argument("--target", default=None,
+                    help="target name (default: the scene's first); 'a,b': several, aimed at their midpoint")
     vm.add_argument("--spacing", type=float, default=0.5, help="grid spacing in metres")
     vm.add_argument("--extra-roll-deg", type=float, default=0.0,
                     help="roll the image about the line of sight (90: what a sideways camera shows the detector)")
@@ -139,14 +140,23 @@ def _viewmap(args) -> int:
     if args.json:
         print(json.dumps(res))
         return 0
-    print(f"{res['scene']} / {res['target']}: camera at {res['camera_height_m']:.2f} m, image "
-          f"{res['intrinsics'][0]}x{res['intrinsics'][1]}, extra roll {res['extra_roll_deg']:g} deg; "
-          f"detected (>= {res['threshold']:.2f}) from {100 * res['detected_share']:.1f} % of {res['points']} "
-          f"points, mean confidence {res['mean_confidence']:.3f} ('#' detected, '+' seen below threshold, "
-          f"'.' not seen, blank: obstacle)")
-    for y, row in zip(res["y"], res["grid"]):
-        print(f"y {y:5.2f} " + "".join(" " if v is None else "#" if v >= res["threshold"] else "+" if v > 0 else "."
-                                      for v in row))
+    head = (f"{res['scene']} / {res['target']}: camera at {res['camera_height_m']:.2f} m, image "
+            f"{res['intrinsics'][0]}x{res['intrinsics'][1]}, extra roll {res['extra_roll_deg']:g} deg; ")
+    if "detected" not in res:  # one target
+        print(head + f"detected (>= {res['threshold']:.2f}) from {100 * res['detected_share']:.1f} % of "
+              f"{res['points']} points, mean confidence {res['mean_confidence']:.3f} ('#' detected, '+' seen below "
+              f"threshold, '.' not seen, blank: obstacle)")
+        for y, row in zip(res["y"], res["grid"]):
+            print(f"y {y:5.2f} " + "".join(" " if v is None else "#" if v >= res["threshold"] else "+" if v > 0
+                                          else "." for v in row))
+        return 0
+    n = len(res["targets"])
+    print(head + f"aimed at their midpoint: all {n} detected from {100 * res['detected_share']:.1f} %, at least one "
+          f"from {100 * res['detected_share_any']:.1f} % of {res['points']} points, mean confidence "
+          f"{res['mean_confidence']:.3f} ('#' all detected, digit: how many, '.' none, blank: obstacle)")
+    for y, row in zip(res["y"], res["detected"]):
+        print(f"y {y:5.2f} " + "".join(" " if h is None else "#" if h == n else "." if h == 0 else str(h)
+                                      for h in row))
     return 0
 
 
