@@ -97,6 +97,9 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
 
     import yaml
 
+    from ..errors import ConfigError
+    from ..yamlio import Fields
+
     out: dict = {}
     for item in items:
         head, eq, raw = str(item).partition("=")
@@ -118,18 +121,13 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
         except yaml.YAMLError:
             value = raw.strip()
         default = fields[key].default
-        if isinstance(default, bool):
-            ok = isinstance(value, bool)
-        elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        elif isinstance(default, float):
-            ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-            value = float(value) if ok else value
-        else:
-            ok = isinstance(value, str)
-        if not ok:
+        f = Fields({key: value}, f"--set {name}")
+        try:  # typed as the YAML settings files are (the field default's type)
+            value = (f.bool(key) if isinstance(default, bool) else f.int(key) if isinstance(default, int)
+                     else f.float(key) if isinstance(default, float) else f.str(key))
+        except ConfigError:
             kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
-            raise PsprmError(f"--set '{item}': {name}.{key} takes {kind}, got {raw.strip()!r}")
+            raise PsprmError(f"--set '{item}': {name}.{key} takes {kind}, got {raw.strip()!r}") from None
         probe = dataclasses.replace(cls(), **{key: value})
         if hasattr(probe, "validate"):
             try:
