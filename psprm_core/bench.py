@@ -93,6 +93,7 @@ class BenchConfig:
     max_frames: int = 20  # per path (the spacing grows for longer paths)
     target_groups: Optional[list] = None  # [[target, ...], ...]; None: default_target_groups(scene)
     scenario: Optional[str] = None  # a scene problem's name: ``problems`` independent runs of it (Table III protocol)
+    placements: int = 1  # target poses per group (the first K of each target's; paper: 5 per object)
     planner_kwargs: dict = field(default_factory=dict)  # {planner: {setting: value}} (tests, tuning)
 
 
@@ -123,33 +124,55 @@ def default_target_groups(scene) -> list:
     return groups or [[t] for t in names]
 
 
-def make_problems(scene, robot, groups: list, n: int, seed: int) -> list:
-    """``n`` problems spread round-robin over ``groups``: dicts with index, targets, start, goal (numpy).
+def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int = 1) -> list:
+    """``n`` problems spread round-robin over ``groups`` x target placements ``0..placements-1``: dicts with index,
+    targets, placement, start, goal (numpy).
 
+    Placement ``k`` moves every target of the group to its ``k``-th pose (:meth:`Scene.with_placement`; the paper's
+    "five variations in the object's poses" per object); the problems of a placement are generated in that scene.
     Ends are collision-free, aimed at the group's centroid and not boxed in (a short turn or drive leaves them,
-    :func:`psprm_core.benchmarks.can_move_away`; since session 12, so problem sets of earlier sessions differ)."""
+    :func:`psprm_core.benchmarks.can_move_away`; since session 12, so problem sets of earlier sessions differ).
+    With ``placements=1`` the problems are those generated before placements existed (session 12).
+
+    Raises
+    ------
+    PsprmError
+        ``placements`` < 1, or a target of a group with fewer placements.
+    """
     from .benchmarks import random_problems
     from .collision import CollisionChecker
+    from .errors import PsprmError
 
-    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    per = [n // len(groups) + (1 if i < n % len(groups) else 0) for i in range(len(groups))]
+    if placements < 1:
+        raise PsprmError(f"placements must be at least 1, got {placements}")
+    for g in groups:
+        for t in g:
+            if scene.target(t).n_placements < placements:
+                raise PsprmError(f"target '{t}' of scene '{scene.name}' has {scene.target(t).n_placements} "
+                                 f"placement(s), fewer than the {placements} asked for")
+    cells = [(gi, k) for gi in range(len(groups)) for k in range(placements)]
+    per = [n // len(cells) + (1 if i < n % len(cells) else 0) for i in range(len(cells))]
     pairs = []
-    for gi, (g, k) in enumerate(zip(groups, per)):
-        if k == 0:
+    for (gi, k), m in zip(cells, per):
+        if m == 0:
             pairs.append([])
             continue
-        focus = np.mean([scene.target(t).center for t in g], axis=0)
-        pairs.append(random_problems(robot, scene, checker, k, np.random.default_rng([seed, gi]),
-                                     robot.default_configuration(), focus, aimed_only=True, aim_restarts=8,
-                                     mobile_only=True))
-    out, used = [], [0] * len(groups)
+        g = groups[gi]
+        placed = scene.with_placement(g, k)
+        checker = CollisionChecker(robot, placed.collision_boxes(), workspace=placed.workspace)
+        focus = np.mean([placed.target(t).center for t in g], axis=0)
+        rng = np.random.default_rng([seed, gi] if k == 0 else [seed, gi, k])
+        pairs.append(random_problems(robot, placed, checker, m, rng, robot.default_configuration(), focus,
+                                     aimed_only=True, aim_restarts=8, mobile_only=True))
+    out, used = [], [0] * len(cells)
     for i in range(n):
-        gi = i % len(groups)
-        while used[gi] >= per[gi]:
-            gi = (gi + 1) % len(groups)
-        a, b = pairs[gi][used[gi]]
-        used[gi] += 1
-        out.append({"index": i, "targets": list(groups[gi]), "start": np.asarray(a, float),
+        ci = i % len(cells)
+        while used[ci] >= per[ci]:
+            ci = (ci + 1) % len(cells)
+        a, b = pairs[ci][used[ci]]
+        used[ci] += 1
+        gi, k = cells[ci]
+        out.append({"index": i, "targets": list(groups[gi]), "placement": k, "start": np.asarray(a, float),
                     "goal": np.asarray(b, float)})
     return out
 
@@ -261,7 +284,7 @@ def evaluate_path(oracle, robot, motion, dense: np.ndarray, targets: Sequence[st
 
 
 # ---- workers ----------------------------------------------------------------------------------------------------------
-ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "success", "reason", "preprocess_s", "plan_s", "total_s",
+ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "placement", "success", "reason", "preprocess_s", "plan_s", "total_s",
               "path_length_rad", "frames", "det_rate", "mean_confidence", "track_rate", "det_rate_any",
               "det_rate_all", "eval_s"]
 
@@ -270,7 +293,7 @@ def _failure_row(planner: str, prob: dict, reason: str, preprocess_s: float = fl
                  plan_s: float = float("nan")) -> dict:
     row = {k: float("nan") for k in ROW_FIELDS}
     row.update(planner=planner, problem=int(prob["index"]), run_seed=prob.get("run_seed", float("nan")),
-               targets="+".join(prob["targets"]), success=False,
+               targets="+".join(prob["targets"]), placement=int(prob.get("placement", 0)), success=False,
                reason=reason, preprocess_s=preprocess_s, plan_s=plan_s, total_s=preprocess_s + plan_s
                if not math.isnan(plan_s) else float("nan"), frames=0)
     return row
@@ -283,7 +306,8 @@ def _worker_init() -> None:
 
 
 def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, keep_paths: int = 1) -> dict:
-    """Prepare one planner for one target group and run + evaluate its problems (in a worker process).
+    """Prepare one planner for one target group (at one placement) and run + evaluate its problems (in a worker
+    process).
 
     Rows go to the queue ``q`` as ``("row", row)`` as soon as they exist (so a dying worker loses nothing done);
     ``("start", planner, index)`` announces a problem. Returns {"rows": [...], "paths": [...], "prepare": {...}}.
@@ -302,7 +326,11 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
             q.put((kind, payload))
 
     rows, paths = [], []
-    scene = load_scene(resolve_named("scene", cfg["scene"]))
+    placement = {int(p.get("placement", 0)) for p in problems}
+    if len(placement) > 1:
+        raise ValueError(f"one task, one placement: got {sorted(placement)}")
+    placement = placement.pop() if placement else 0
+    scene = load_scene(resolve_named("scene", cfg["scene"])).with_placement(targets, placement)
     robot = RobotModel.load(scene.robot)
     motion = DiffDriveMotion(robot)
     kw = dict(cfg.get("planner_kwargs", {}).get(planner, {}))
@@ -369,11 +397,11 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
                           "eval_error": str(exc)}
                 row = {"planner": planner, "problem": int(prob["index"]),
                        "run_seed": prob.get("run_seed", float("nan")),
-                       "targets": "+".join(prob["targets"]), "success": True, "reason": "ok", "preprocess_s": pre,
+                       "targets": "+".join(prob["targets"]), "placement": placement, "success": True, "reason": "ok", "preprocess_s": pre,
                        "plan_s": plan_s, "total_s": pre + plan_s, "path_length_rad": path_length(motion, res.dense),
                        "eval_s": time.perf_counter() - t2, **{k: ev[k] for k in ev if k in ROW_FIELDS}}
                 if len(paths) < keep_paths:
-                    paths.append({"planner": planner, "problem": int(prob["index"]),
+                    paths.append({"planner": planner, "problem": int(prob["index"]), "placement": placement,
                                   "dense": np.asarray(res.dense, float)[:, :3].tolist()})
             rows.append(row)
             emit("row", row)
@@ -407,17 +435,19 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
     if cfg.scenario:
         if cfg.target_groups and len(cfg.target_groups) != 1:
             raise PsprmError("--scenario takes one target group (e.g. --targets 'a,b'), not several")
+        if cfg.placements != 1:
+            raise PsprmError("--scenario runs the scene's problem as written: no --placements")
         problems = scenario_problems(scene, robot, cfg.scenario, cfg.problems, cfg.seed,
                                      cfg.target_groups[0] if cfg.target_groups else None)
         groups = [problems[0]["targets"]]
     else:
-        problems = make_problems(scene, robot, groups, cfg.problems, cfg.seed)
-    by_group = {}
+        problems = make_problems(scene, robot, groups, cfg.problems, cfg.seed, cfg.placements)
+    by_group = {}  # one task per planner, target group and placement
     for prob in problems:
-        by_group.setdefault(tuple(prob["targets"]), []).append(prob)
+        by_group.setdefault((tuple(prob["targets"]), int(prob.get("placement", 0))), []).append(prob)
     order = {n: i for i, n in enumerate(planner_names())}
     planners = sorted(dict.fromkeys(cfg.planners), key=lambda n: order.get(n, 99))
-    tasks = [(pl, list(g), probs) for pl in planners for g, probs in by_group.items()]
+    tasks = [(pl, list(g), probs) for pl in planners for (g, _), probs in by_group.items()]
     # the slow preparations first (oracle roadmaps, RL training) so they overlap with the rest
     slow = {"psprm-line": 0, "psprm-frustum": 0, "rl-ppo": 1}
     tasks.sort(key=lambda t: slow.get(t[0], 2))
@@ -465,7 +495,7 @@ def _run_tasks(tasks: list, cfgd: dict, workers: int, progress: bool, total: int
                     out = run_task(pl, g, probs, cfgd, q)
                     drain()
                     paths += out["paths"]
-                    prepares.append({"planner": pl, "targets": g, **out["prepare"]})
+                    prepares.append({"planner": pl, "targets": g, **_placement_of(probs), **out["prepare"]})
                 pending = []
                 break
             with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as ex:
@@ -482,7 +512,7 @@ def _run_tasks(tasks: list, cfgd: dict, workers: int, progress: bool, total: int
                         try:
                             out = f.result()
                             paths += out["paths"]
-                            prepares.append({"planner": pl, "targets": g, **out["prepare"]})
+                            prepares.append({"planner": pl, "targets": g, **_placement_of(probs), **out["prepare"]})
                             done_tasks.append((pl, g, probs))
                         except BrokenProcessPool:
                             broken = True
@@ -521,6 +551,10 @@ def _run_tasks(tasks: list, cfgd: dict, workers: int, progress: bool, total: int
     return out, paths, prepares
 
 
+def _placement_of(problems: list) -> dict:
+    return {"placement": int(problems[0].get("placement", 0))} if problems else {}
+
+
 def _nanmean(xs) -> float:
     a = np.asarray([x for x in xs if x is not None], dtype=float)
     a = a[np.isfinite(a)]
@@ -538,8 +572,9 @@ def summarize(rows: list, planners: Sequence[str]) -> dict:
         if not rs:
             continue
         ok = [r for r in rs if r["success"]]
-        # one preprocessing per built instance: per target group, or per run in scenario mode
-        pre = _nanmean({f'{r["targets"]}|{r.get("run_seed", "")}': r["preprocess_s"] for r in rs}.values())
+        # one preprocessing per built instance: per target group and placement, or per run in scenario mode
+        pre = _nanmean({f'{r["targets"]}|{r.get("placement", 0)}|{r.get("run_seed", "")}': r["preprocess_s"]
+                        for r in rs}.values())
         pre = 0.0 if math.isnan(pre) else pre
         plan = _nanmean(r["plan_s"] for r in rs)
         out[pl] = {
@@ -570,6 +605,38 @@ def summarize(rows: list, planners: Sequence[str]) -> dict:
     if ratios:
         out["ratios"] = ratios
     return out
+
+
+def summarize_cells(rows: list, planners: Sequence[str]) -> dict:
+    """Per target group and placement (``"cup@2"``), per planner: problems, success rate and the detection rate over
+    the successful ones; shows whether a ratio comes from a few placements or from all."""
+    out: dict = {}
+    for r in sorted(rows, key=lambda r: (str(r["targets"]), int(r.get("placement", 0) or 0))):
+        cell = f'{r["targets"]}@{int(r.get("placement", 0) or 0)}'
+        out.setdefault(cell, {})
+    for cell in out:
+        for pl in planners:
+            rs = [r for r in rows if r["planner"] == pl
+                  and f'{r["targets"]}@{int(r.get("placement", 0) or 0)}' == cell]
+            if rs:
+                ok = [r for r in rs if r["success"]]
+                out[cell][pl] = {"problems": len(rs), "success_rate": len(ok) / len(rs),
+                                 "det_rate": _nanmean(r["det_rate"] for r in ok)}
+    return out
+
+
+def cells_table(cells: dict, planners: Sequence[str]) -> str:
+    """Markdown: one row per target group and placement, the detection rate of each planner (success rate in
+    parentheses)."""
+    planners = [pl for pl in planners if any(pl in c for c in cells.values())]
+    lines = ["| target@placement | problems | " + " | ".join(planners) + " |",
+             "|---|---|" + "---|" * len(planners)]
+    for cell, per in cells.items():
+        n = max((v["problems"] for v in per.values()), default=0)
+        vals = [f'{_fmt(per[pl]["det_rate"], True)} ({_fmt(per[pl]["success_rate"], True)})' if pl in per else "–"
+                for pl in planners]
+        lines.append(f"| {cell} | {n} | " + " | ".join(vals) + " |")
+    return "\n".join(lines) + "\n"
 
 
 # ---- outputs ----------------------------------------------------------------------------------------------------------
@@ -635,10 +702,15 @@ def write_outputs(result: dict, out_dir: str | Path) -> dict:
             w.writerow(r)
     files["csv"] = out / "results.csv"
     multi = any(len(g) > 1 for g in result["config"]["target_groups"])
-    (out / "table.md").write_text(markdown_table(result["summary"], multi, result["config"].get("planner_kwargs")))
+    table = markdown_table(result["summary"], multi, result["config"].get("planner_kwargs"))
+    cells = summarize_cells(result["rows"], result["config"]["planners"])
+    if len(cells) > 1:
+        table += ("\nDetection rate per target and placement (success rate in parentheses):\n\n"
+                  + cells_table(cells, result["config"]["planners"]))
+    (out / "table.md").write_text(table)
     files["table"] = out / "table.md"
     (out / "summary.json").write_text(json.dumps(
-        {"config": result["config"], "summary": result["summary"], "prepare": result["prepare"],
+        {"config": result["config"], "summary": result["summary"], "cells": cells, "prepare": result["prepare"],
          "wall_s": result["wall_s"]}, indent=2, default=str))
     files["summary"] = out / "summary.json"
     files.update(_plots(result, out, multi))
@@ -684,6 +756,10 @@ def _plots(result: dict, out: Path, multi: bool) -> dict:
         x, y = scene.target(t).center[:2]
         ax.plot(x, y, "r*", ms=10, zorder=3)
         ax.annotate(t, (x, y), fontsize=7)
+        for k in range(1, min(int(result["config"].get("placements", 1)), scene.target(t).n_placements)):
+            x, y = scene.target(t).pose(k)[0][:2]  # the other placements benchmarked: hollow stars
+            ax.plot(x, y, "*", mfc="none", mec="r", ms=9, zorder=3)
+            ax.annotate(f"{t}@{k}", (x, y), fontsize=6)
     cmap = plt.get_cmap("tab10")
     first = {}
     for p in result["paths"]:

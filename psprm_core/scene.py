@@ -81,6 +81,10 @@ class Target:
         Name of the texture/photo the renderer puts on the facing side.
     obstacle : bool
         Whether the target's box is also a collision obstacle.
+    placements : tuple of ((3,) ndarray, (4,) ndarray)
+        Other poses ``(center, quat)`` the target may stand at (the paper's "five variations in the object's poses"
+        per benchmark object); placement 0 is the pose above, placement ``k`` the ``k``-th of these. See
+        :meth:`pose` and :meth:`Scene.with_placement`.
     """
 
     name: str
@@ -90,10 +94,32 @@ class Target:
     quat: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     appearance: str = ""
     obstacle: bool = True
+    placements: tuple = ()
 
     @property
     def rotation(self) -> np.ndarray:
         return quat_to_matrix(self.quat)
+
+    @property
+    def n_placements(self) -> int:
+        """Number of poses the target can be placed at (its own plus :attr:`placements`)."""
+        return 1 + len(self.placements)
+
+    def pose(self, placement: int = 0) -> tuple:
+        """``(center, quat)`` of placement ``placement`` (0: the target's own pose).
+
+        Raises
+        ------
+        IndexError
+            Unknown placement (the number of placements is given).
+        """
+        if not 0 <= placement < self.n_placements:
+            raise IndexError(f"target '{self.name}' has {self.n_placements} placement(s) (0..{self.n_placements - 1}), "
+                             f"not {placement}")
+        if placement == 0:
+            return self.center, self.quat
+        c, q = self.placements[placement - 1]
+        return np.asarray(c, float), np.asarray(q, float)
 
     @property
     def facing(self) -> np.ndarray:
@@ -204,6 +230,24 @@ class Scene:
         )
         return replace(self, targets=tgs)
 
+    def with_placement(self, names, placement: int) -> "Scene":
+        """The scene with each target of ``names`` moved to its placement ``placement`` (:meth:`Target.pose`).
+
+        Raises
+        ------
+        KeyError
+            Unknown target.
+        IndexError
+            A target without that placement.
+        """
+        scene = self
+        for n in names:
+            if placement:
+                scene = scene.with_target_pose(n, *self.target(n).pose(placement))
+            else:
+                self.target(n)
+        return scene
+
     def copy(self) -> "Scene":
         return copy.deepcopy(self)
 
@@ -246,8 +290,13 @@ def _parse_box(f: Fields) -> Box:
     )
 
 
+def _parse_placement(f: Fields) -> tuple:
+    f.check_keys(["center", "yaw", "quat"])
+    return np.array(f.vec("center", 3)), _orientation(f)
+
+
 def _parse_target(f: Fields) -> Target:
-    f.check_keys(["name", "class", "center", "size", "yaw", "quat", "appearance", "obstacle"])
+    f.check_keys(["name", "class", "center", "size", "yaw", "quat", "appearance", "obstacle", "placements"])
     return Target(
         name=f.str("name"),
         detector_class=f.str("class"),
@@ -256,7 +305,43 @@ def _parse_target(f: Fields) -> Target:
         quat=_orientation(f),
         appearance=f.str("appearance", ""),
         obstacle=f.bool("obstacle", True),
+        placements=tuple(_parse_placement(p) for p in f.sub_list("placements", [])),
     )
+
+
+#: Depth (m) by which a target placement may sink into an obstacle: a box standing on a table top or hung on a wall
+#: touches it.
+PLACEMENT_CONTACT = 0.01
+
+
+def _check_placements(path: str, targets: tuple, obstacles: tuple, workspace: np.ndarray) -> None:
+    """Every extra placement of a target stands inside the workspace's footprint and overlaps no obstacle and no
+    other target (at its own pose) by more than :data:`PLACEMENT_CONTACT`."""
+    import torch
+
+    from .collision import obb_overlap
+
+    others_all = list(obstacles) + [t.as_box() for t in targets]
+    for i, t in enumerate(targets):
+        for k, (c, q) in enumerate(t.placements):
+            key = f"targets[{i}].placements[{k}]"
+            lo, hi = workspace[:, 0] - 0.5, workspace[:, 1] + 0.5  # walls stand just outside the workspace
+            if np.any(c[:2] < lo) or np.any(c[:2] > hi):
+                raise ConfigError(path, key, f"center {c.tolist()} is outside the workspace")
+            others = [b for b in others_all if b.name != t.name]
+            if not others:
+                continue
+            n = len(others)
+            ca = torch.as_tensor(np.tile(c, (n, 1)))
+            Ra = torch.as_tensor(np.tile(quat_to_matrix(q), (n, 1, 1)))
+            ha = torch.as_tensor(np.tile(np.maximum(t.size / 2 - PLACEMENT_CONTACT, 1e-4), (n, 1)))
+            cb = torch.as_tensor(np.stack([b.center for b in others]))
+            Rb = torch.as_tensor(np.stack([b.rotation for b in others]))
+            hb = torch.as_tensor(np.stack([b.half_extents for b in others]))
+            hit = obb_overlap(ca, Ra, ha, cb, Rb, hb, eps=0.0).numpy()
+            if hit.any():
+                names = ", ".join(b.name for b, h in zip(others, hit) if h)
+                raise ConfigError(path, key, f"target '{t.name}' placed at {c.tolist()} intersects {names}")
 
 
 def _joint_map(f: Fields, key: str) -> dict:
@@ -324,6 +409,7 @@ def load_scene(path: str | Path) -> Scene:
     shared = {b.name for b in obstacles} & {t.name for t in targets}
     if shared:  # collision_boxes() puts both in one list, looked up by name
         raise f.error("targets", f"names also used by obstacles: {', '.join(sorted(shared))}")
+    _check_placements(str(path), targets, obstacles, workspace)
     target_names = {t.name for t in targets}
     goal_names = {g.name for g in goals}
     for i, p in enumerate(problems):

@@ -54,6 +54,22 @@ class SeedRecordingPlanner:
         return PlanResult(success=False, reason=f"built with seed {self.seed}")
 
 
+class PlacementRecordingPlanner:
+    """Fails every query, naming where its scene puts its target (the bench must build it at the problem's
+    placement)."""
+
+    def __init__(self, name, scene, targets, robot=None, seed=0, **kw):
+        self.where = scene.target(targets[0]).center.round(3).tolist()
+
+    def prepare(self):
+        return {"preprocess_s": 1.0}
+
+    def plan(self, start, goals, timeout_s=60.0):
+        from psprm_core.planning.psprm import PlanResult
+
+        return PlanResult(success=False, reason=f"target at {self.where}")
+
+
 @pytest.fixture(scope="module")
 def home():
     scene = load_scene(resolve_named("scene", "home"))
@@ -81,6 +97,54 @@ def test_problems_are_aimed_collision_free_and_spread(home):
 
     ends = torch.as_tensor(np.stack([p[k] for p in probs for k in ("start", "goal")]))
     assert can_move_away(robot, ctx.checker, ends, robot.default_configuration()).all()  # no boxed-in ends
+
+
+def test_problems_over_target_placements(home):
+    """--placements: problems round-robin over target x placement, each generated in the scene with the target
+    moved there (collision-free and aimed at the moved target); placement 0 keeps the old problems."""
+    from psprm_core.baselines.base import PlanningContext
+
+    scene, robot = home
+    probs = make_problems(scene, robot, [["tv"], ["potted_plant"]], 5, seed=3, placements=2)
+    assert [(p["targets"], p["placement"]) for p in probs] == [
+        (["tv"], 0), (["tv"], 1), (["potted_plant"], 0), (["potted_plant"], 1), (["tv"], 0)]
+    for p in probs:
+        placed = scene.with_placement(p["targets"], p["placement"])
+        ctx = PlanningContext(placed, p["targets"], robot=robot)
+        q = np.vstack([p["start"], p["goal"]])
+        assert ctx.valid(q).all()
+        assert (ctx.view_error(q, "line") < 0.03).all()
+    # the TV's placement 1 is turned by 20 deg on the cabinet: the same centre, so check a plant placement instead
+    plant = [p for p in probs if p["targets"] == ["potted_plant"]]
+    moved = PlanningContext(scene, ["potted_plant"], robot=robot)  # the plant at its own pose (north-west corner)
+    assert (moved.view_error(np.vstack([plant[1]["start"], plant[1]["goal"]]), "line") > 0.1).all()
+    with pytest.raises(PsprmError, match="'fork' .* 1 placement"):
+        make_problems(scene, robot, [["fork"]], 2, seed=0, placements=2)
+    with pytest.raises(PsprmError, match="at least 1"):
+        make_problems(scene, robot, [["tv"]], 2, seed=0, placements=0)
+
+
+def test_bench_builds_each_planner_at_each_placement(tmp_path, monkeypatch):
+    monkeypatch.setitem(baselines.BASELINES, "post", f"{__name__}:PlacementRecordingPlanner")
+    cfg = BenchConfig(scene="home", planners=["post"], problems=4, seed=0, out=str(tmp_path), workers=1,
+                      target_groups=[["potted_plant"]], placements=3)
+    res = run_bench(cfg, progress=False)
+    scene = res["scene"]
+    rows = sorted(res["rows"], key=lambda r: r["problem"])
+    assert [r["placement"] for r in rows] == [0, 1, 2, 0]
+    for r in rows:
+        where = scene.target("potted_plant").pose(r["placement"])[0].round(3).tolist()
+        assert r["reason"] == f"target at {where}"
+    assert sorted(p["placement"] for p in res["prepare"]) == [0, 1, 2]  # one instance per placement
+    write_outputs(res, tmp_path)
+    table = (tmp_path / "table.md").read_text()
+    assert "| potted_plant@2 | 1 |" in table and "| potted_plant@0 | 2 |" in table
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["cells"]["potted_plant@1"]["post"]["success_rate"] == 0.0
+    assert summary["config"]["placements"] == 3
+    with pytest.raises(PsprmError, match="no --placements"):
+        run_bench(BenchConfig(scene="nursing", planners=["post"], problems=1, workers=1, placements=2,
+                              scenario="west_to_east_nurses"), progress=False)
 
 
 def test_boxed_in_end_is_recognised(home):

@@ -129,9 +129,11 @@ def test_start_goal_clear_of_obstacles(scene):
 def test_targets_are_above_the_floor_and_inside_the_room(scene):
     (x0, x1), (y0, y1) = scene.workspace
     for t in scene.targets:
-        lowest = t.center[2] - 0.5 * np.abs(t.rotation[2]) @ t.size
-        assert lowest >= -1e-6, t.name
-        assert x0 <= t.center[0] <= x1 and y0 <= t.center[1] <= y1, t.name
+        for k in range(t.n_placements):  # every benchmark placement too
+            c, q = t.pose(k)
+            lowest = c[2] - 0.5 * np.abs(quat_to_matrix(q)[2]) @ t.size
+            assert lowest >= -1e-6, (t.name, k)
+            assert x0 <= c[0] <= x1 and y0 <= c[1] <= y1, (t.name, k)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -174,6 +176,39 @@ def test_valid_minimal_scene_loads(tmp_path):
     assert s.frame == "map" and s.target("cup").obstacle is False
     assert np.allclose(s.obstacle("table").quat, [0, 0, 0, 1])
     assert s.problem("p").goal_regions == ()
+
+
+def test_target_placements(tmp_path):
+    data = copy.deepcopy(VALID)
+    data["targets"][0]["placements"] = [{"center": [1.7, 1.4, 0.8], "yaw": 1.0},
+                                        {"center": [0.5, 2.5, 0.05], "quat": [0, 0, 1, 1]}]
+    s = load_scene(_write(tmp_path, data))
+    cup = s.target("cup")
+    assert cup.n_placements == 3
+    c, q = cup.pose(1)
+    assert c.tolist() == [1.7, 1.4, 0.8] and np.allclose(q, yaw_to_quat(1.0))
+    assert np.allclose(cup.pose(2)[1], [0, 0, math.sqrt(0.5), math.sqrt(0.5)])  # normalised
+    assert np.array_equal(cup.pose(0)[0], cup.center)
+    moved = s.with_placement(["cup"], 2)
+    assert moved.target("cup").center.tolist() == [0.5, 2.5, 0.05] and s.target("cup").center[0] == 2.0
+    assert moved.target("cup").placements == cup.placements  # still knows where else it may go
+    assert s.with_placement(["cup"], 0) is s
+    with pytest.raises(IndexError, match="3 placement"):
+        cup.pose(3)
+    with pytest.raises(KeyError, match="no target 'mug'"):
+        s.with_placement(["mug"], 0)
+
+
+@pytest.mark.parametrize("placement, field, fragment", [
+    ({"center": [2.0, 1.5, 0.5], "yaw": 0.0}, "targets[0].placements[0]", "intersects table"),
+    ({"center": [9.0, 1.5, 0.8]}, "targets[0].placements[0]", "outside the workspace"),
+    ({"center": [2.0, 1.5, 0.8], "size": [1, 1, 1]}, "targets[0].placements[0].size", "unknown field"),
+    ({"center": [2.0, 1.5, float("nan")]}, "targets[0].placements[0].center", "finite"),
+], ids=["inside_an_obstacle", "outside", "unknown_key", "nan"])
+def test_bad_target_placements(tmp_path, placement, field, fragment):
+    data = copy.deepcopy(VALID)
+    data["targets"][0]["placements"] = [placement]
+    _expect_error(_write(tmp_path, data), field, fragment)
 
 
 def test_malformed_yaml(tmp_path):

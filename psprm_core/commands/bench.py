@@ -26,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="run the scene's named problem PROBLEM --problems times as independent runs (every planner "
                         "built anew per run with seed + run; the paper's Table III protocol), instead of random "
                         "problems")
+    p.add_argument("--placements", type=int, default=1, metavar="K",
+                   help="spread the problems over the first K poses of each target (the scene's 'placements'; the "
+                        "paper: five per object), one planner instance per target and placement")
     p.add_argument("--frame-spacing", type=float, default=0.5, help="motion-cost units between judged frames")
     p.add_argument("--max-frames", type=int, default=20, help="judged frames per path at most")
     p.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=VALUE", dest="settings",
@@ -44,6 +47,8 @@ def _bench(args) -> int:
     names = planner_names() if args.planners == "all" else [s.strip() for s in args.planners.split(",") if s.strip()]
     if args.problems < 1:
         raise PsprmError("--problems must be at least 1")
+    if args.placements < 1:
+        raise PsprmError("--placements must be at least 1")
     groups = None
     if args.targets:
         groups = [[t.strip() for t in g.split(",") if t.strip()] for g in args.targets.split(";") if g.strip()]
@@ -51,6 +56,7 @@ def _bench(args) -> int:
                       out=args.out or f"out/bench_{args.scene}", timeout_s=args.timeout, workers=args.workers,
                       nodes=args.nodes, oracle_nodes=args.oracle_nodes, frame_spacing=args.frame_spacing,
                       max_frames=args.max_frames, target_groups=groups, scenario=args.scenario,
+                      placements=args.placements,
                       planner_kwargs=parse_planner_settings(args.settings, names))
     res = run_bench(cfg, progress=not args.no_progress)
     files = write_outputs(res, cfg.out)
