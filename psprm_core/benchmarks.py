@@ -365,7 +365,7 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
 
 
 def detection_map(scene_name: str = "home", target: str | Sequence[str] | None = None, spacing: float = 0.5,
-                  extra_roll_deg: float = 0.0, clearance: float = 0.2) -> dict:
+                  extra_roll_deg: float = 0.0, clearance: float = 0.2, placement: int = 0) -> dict:
     """Where in the scene the real detector sees a target: the robot's camera aimed at it from a grid of base positions.
 
     At every grid point of the scene's workspace (``spacing`` apart, skipping points within ``clearance`` of an
@@ -379,6 +379,9 @@ def detection_map(scene_name: str = "home", target: str | Sequence[str] | None =
     camera is aimed at the mean of their centres, every target is judged in each view, ``detected_share`` counts
     the points where all of them are detected and ``detected_share_any`` those where at least one is; ``grid``
     holds the mean confidence over the targets and ``detected`` the number of targets detected per point.
+
+    ``placement`` moves the targets to that placement first (:meth:`psprm_core.scene.Scene.with_placement`, as
+    ``psprm bench --placements`` does).
 
     It is the ceiling of what any route can show the detector from that height: no occluder moved, no pan/tilt
     limit, every frame aimed.
@@ -405,6 +408,10 @@ def detection_map(scene_name: str = "home", target: str | Sequence[str] | None =
             raise PsprmError(f"scene '{scene.name}' has no target '{t}' (targets: {', '.join(scene.target_names)})")
     if not names or len(set(names)) != len(names):
         raise PsprmError(f"viewmap targets must be distinct scene targets, got {target!r}")
+    try:
+        scene = scene.with_placement(names, placement)
+    except IndexError as exc:
+        raise PsprmError(str(exc)) from None
     centre = np.mean([scene.target(t).center for t in names], axis=0)
     q0 = robot.default_configuration()
     height = float(robot.camera_poses(torch.as_tensor(q0[None], dtype=torch.float64))[0, 2, 3])
@@ -434,7 +441,8 @@ def detection_map(scene_name: str = "home", target: str | Sequence[str] | None =
                     grid[i, j] = float(np.mean(sc))
                     hits[i, j] = sum(v >= thr[t] for v, t in zip(sc, names))
     ok = np.isfinite(grid)
-    out = {"scene": scene.name, "target": "+".join(names), "targets": names, "camera_height_m": height,
+    out = {"scene": scene.name, "target": "+".join(names), "targets": names, "placement": placement,
+           "camera_height_m": height,
            "extra_roll_deg": extra_roll_deg,
            "intrinsics": [robot.config.intrinsics.width, robot.config.intrinsics.height],
            "points": int(ok.sum()), "threshold": thr[names[0]] if len(names) == 1 else thr,

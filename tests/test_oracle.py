@@ -232,3 +232,26 @@ def test_detection_map_of_two_targets_counts_both_and_either():
     assert res["detected_share"] == pytest.approx(sum(h == 2 for h in hits.values()) / len(hits))
     with pytest.raises(PsprmError, match="no target 'nurse_3_face'"):
         detection_map("nursing", "nurse_1_face,nurse_3_face", spacing=2.0)
+
+
+def test_detection_map_at_a_target_placement():
+    """``viewmap --placement``: the plant moved from the north-west corner to the south-east one is no longer seen
+    from the west wall (6.6 m away) but is from beside its new corner."""
+    from psprm_core.benchmarks import detection_map
+    from psprm_core.errors import PsprmError
+
+    try:
+        own = detection_map("home", "potted_plant", spacing=2.0)
+        moved = detection_map("home", "potted_plant", spacing=2.0, placement=2)
+    except DetectorUnavailableError as exc:  # pragma: no cover
+        pytest.skip(str(exc))
+
+    def detected(res, x, y):
+        v = res["grid"][res["y"].index(y)][res["x"].index(x)]
+        return v is not None and v >= res["threshold"]
+
+    assert own["placement"] == 0 and moved["placement"] == 2
+    assert detected(own, 1.0, 3.0) and not detected(moved, 1.0, 3.0)
+    assert detected(moved, 7.0, 3.0)
+    with pytest.raises(PsprmError, match="5 placement"):
+        detection_map("home", "potted_plant", spacing=2.0, placement=7)

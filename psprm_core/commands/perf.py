@@ -71,6 +71,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     vm.add_argument("--target", default=None,
                     help="target name (default: the scene's first); 'a,b': several, aimed at their midpoint")
     vm.add_argument("--spacing", type=float, default=0.5, help="grid spacing in metres")
+    vm.add_argument("--placement", type=int, default=0,
+                    help="move the target(s) to this placement of the scene's first (0: their own pose)")
     vm.add_argument("--extra-roll-deg", type=float, default=0.0,
                     help="roll the image about the line of sight (90: what a sideways camera shows the detector)")
     vm.add_argument("--json", action="store_true")
@@ -136,11 +138,13 @@ def _compare(args) -> int:
 def _viewmap(args) -> int:
     from ..benchmarks import detection_map
 
-    res = detection_map(args.scene, args.target, spacing=args.spacing, extra_roll_deg=args.extra_roll_deg)
+    res = detection_map(args.scene, args.target, spacing=args.spacing, extra_roll_deg=args.extra_roll_deg,
+                        placement=args.placement)
     if args.json:
         print(json.dumps(res))
         return 0
-    head = (f"{res['scene']} / {res['target']}: camera at {res['camera_height_m']:.2f} m, image "
+    at = f" (placement {res['placement']})" if res["placement"] else ""
+    head = (f"{res['scene']} / {res['target']}{at}: camera at {res['camera_height_m']:.2f} m, image "
             f"{res['intrinsics'][0]}x{res['intrinsics'][1]}, extra roll {res['extra_roll_deg']:g} deg; ")
     if "detected" not in res:  # one target
         print(head + f"detected (>= {res['threshold']:.2f}) from {100 * res['detected_share']:.1f} % of "
