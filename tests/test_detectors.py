@@ -123,3 +123,36 @@ def test_appearance_catalogue():
     assert get_appearance("typo", "cup").name == "coffee"
     img = crop_to_aspect(np.zeros((100, 200, 3), np.uint8), 0.5, focus=(90, 40, 110, 60))
     assert abs(img.shape[1] / img.shape[0] - 0.5) < 0.05
+
+
+def test_calibration_thresholds_pooled_over_detectable_cases(monkeypatch, tmp_path, capsys):
+    """``psprm calibrate-detectors``: a threshold per case (Youden's J) and one pooled per detector over the
+    detectable cases only; unknown cases are a clear error. Measurements are stood in (the real ones render)."""
+    import json
+
+    from psprm_core import cli
+    from psprm_core.perception.detectors import calibration
+
+    fake = {"grace_hopper": ([0.8, 0.9], [0.1, 0.85]), "astronaut": ([0.3, 0.35, 0.4], [0.05, 0.2]),
+            "monitor": ([0.6, 0.7], [0.1, 0.5]), "suitcase": ([0.0, 0.0], [0.0])}
+
+    def measure(case):
+        pos, neg = fake[case.appearance]
+        return {"pos": pos, "neg": neg, "views": {"d1_yaw0": pos[0]}, "ms_render": 1.0, "ms_detect": 2.0}
+
+    monkeypatch.setattr(calibration, "measure_case", measure)
+    res = calibration.calibrate(["astronaut", "grace_hopper", "monitor", "suitcase"])
+    assert res["astronaut"]["threshold"] == pytest.approx(0.25) and res["astronaut"]["tpr"] == 1.0
+    assert res["monitor"]["threshold"] == pytest.approx(0.55) and res["monitor"]["fpr"] == 0.0
+    faces = res["pooled:centerface"]  # both faces pooled: one threshold for the detector
+    assert (faces["n_pos"], faces["n_neg"]) == (5, 4)
+    assert faces["threshold"] == pytest.approx(0.25) and faces["tpr"] == 1.0 and faces["fpr"] == 0.25
+    # the undetectable suitcase is measured but kept out of CenterNet's pooled threshold
+    assert "suitcase" in res and res["pooled:centernet"]["n_pos"] == 2
+    assert "pooled:centernet:suitcase" not in res and res["pooled:centernet:tv"]["threshold"] == pytest.approx(0.55)
+    assert cli.main(["calibrate-detectors", "--cases", "astronaut", "monitor", "--json", str(tmp_path / "c.json")]) == 0
+    out = capsys.readouterr().out
+    assert "POOLED centernet: threshold 0.55" in out and "own threshold 0.25" in out
+    assert json.loads((tmp_path / "c.json").read_text())["monitor"]["threshold"] == pytest.approx(0.55)
+    assert cli.main(["calibrate-detectors", "--cases", "mug"]) == 2
+    assert "unknown calibration case(s) mug" in capsys.readouterr().err

@@ -1,4 +1,5 @@
-"""``psprm score``: render one camera view of a scene and print the oracle's perception score for a target.
+"""``psprm score``: render one camera view of a scene and print the oracle's perception score for a target;
+``psprm calibrate-detectors``: choose each detector's "detected" threshold on rendered views.
 
 Example::
 
@@ -36,6 +37,28 @@ def register(subparsers) -> None:
     p.add_argument("--renderer", choices=("tiny", "egl", "auto"), default="tiny", help="pybullet renderer")
     p.add_argument("--surrogate", metavar="CKPT", help="also print the neural surrogate's score (saved model file)")
     p.set_defaults(func=run)
+    c = subparsers.add_parser(
+        "calibrate-detectors", help="measure each detector's confidence on rendered views of the shipped "
+                                    "appearances and choose its 'detected' threshold (Youden's J; docs/detectors.md)")
+    c.add_argument("--cases", nargs="*", help="appearance names to measure (default: all)")
+    c.add_argument("--json", metavar="FILE", help="also write the raw measurements to this file")
+    c.set_defaults(func=_calibrate)
+
+
+def _calibrate(args) -> int:
+    from ..errors import PsprmError
+    from ..perception.detectors.calibration import calibrate, report_lines
+
+    try:
+        results = calibrate(args.cases)
+    except ValueError as exc:
+        raise PsprmError(str(exc)) from None
+    for line in report_lines(results):
+        print(line)
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(results, fh, indent=1)
+    return 0
 
 
 def camera_pose_from_args(values) -> np.ndarray:

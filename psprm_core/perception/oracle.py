@@ -6,7 +6,7 @@ matches the target's projected box (:func:`boxes_match`). The score is 0 when no
 box projects outside the image, or when it is behind the camera (those cases skip rendering altogether).
 
 Detector-specific "detected" thresholds live in :data:`DETECTION_THRESHOLDS`; ``docs/detectors.md`` explains how they
-were calibrated (``python -m psprm_core.perception.detectors.calibration`` reproduces the measurement).
+were calibrated (``psprm calibrate-detectors`` reproduces the measurement).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from .render import SceneRenderer
 log = logging.getLogger(__name__)
 
 #: Confidence at or above which a target counts as "detected", per detector (optionally per ``"detector:class"``);
-#: chosen by ``python -m psprm_core.perception.detectors.calibration`` (see docs/detectors.md).
+#: chosen by ``psprm calibrate-detectors`` (see docs/detectors.md).
 DETECTION_THRESHOLDS: Dict[str, float] = {
     "centerface": 0.34,  # faces: 0-40 deg at 1-2.5 m score 0.67-0.92; 75-180 deg and 80 % occluded score 0
     "centernet": 0.14,  # pooled over tv + potted plant (TPR 0.90, FPR 0.18)

@@ -1,7 +1,7 @@
 """Measure detector confidences on rendered views and choose each detector's "detected" threshold.
 
-Run ``python -m psprm_core.perception.detectors.calibration`` (a few minutes on 2 cores) to reproduce the tables in
-``docs/detectors.md``.
+Run ``psprm calibrate-detectors`` (or ``python -m psprm_core.perception.detectors.calibration``; a few minutes on 2
+cores) to reproduce the tables in ``docs/detectors.md``.
 
 Method. For each appearance a single target stands alone at 1 m height (camera at the target's height, looking at
 it). *Positive* views should be detected: frontal and up to 40 deg off-axis, at the case's four distances, unoccluded. *Negative*
@@ -13,13 +13,11 @@ all detectable appearances a detector serves.
 
 from __future__ import annotations
 
-import argparse
-import json
 import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Dict, List, Sequence
+from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
@@ -141,42 +139,80 @@ def youden_threshold(pos: Sequence[float], neg: Sequence[float], floor: float = 
     return t, float(np.mean(pos >= t)) if pos.size else 0.0, float(np.mean(neg >= t)) if neg.size else 0.0
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--cases", nargs="*", help="appearance names to measure (default: all)")
-    parser.add_argument("--json", help="also write the raw measurements to this file")
-    args = parser.parse_args(argv)
+def calibrate(appearances: Optional[Sequence[str]] = None, measure=None) -> dict:
+    """Measure every case of :data:`DEFAULT_CASES` (or those whose appearance is in ``appearances``) and choose the
+    thresholds: each case's own (Youden's J on its views) and, per detector and per ``detector:class``, one pooled
+    over the detectable cases.
+
+    Returns
+    -------
+    dict
+        ``{appearance: {"class", "detector", "threshold", "tpr", "fpr", "pos", "neg", "views", ...},
+        "pooled:<detector>": {"threshold", "tpr", "fpr", "n_pos", "n_neg"}, ...}``
+
+    Raises
+    ------
+    ValueError
+        An unknown appearance name (the known ones are listed).
+    """
     from . import default_detector_name
 
-    cases = [c for c in DEFAULT_CASES if not args.cases or c.appearance in args.cases]
+    known = [c.appearance for c in DEFAULT_CASES]
+    unknown = sorted(set(appearances or ()) - set(known))
+    if unknown:
+        raise ValueError(f"unknown calibration case(s) {', '.join(unknown)} (known: {', '.join(known)})")
+    measure = measure or measure_case
     results, pooled = {}, {}
-    for case in cases:
+    for case in DEFAULT_CASES:
+        if appearances and case.appearance not in appearances:
+            continue
         t0 = time.perf_counter()
-        m = measure_case(case)
+        m = measure(case)
         det = default_detector_name(case.detector_class)
-        results[case.appearance] = {"class": case.detector_class, "detector": det, **m}
+        thr, tpr, fpr = youden_threshold(m["pos"], m["neg"])
+        results[case.appearance] = {"class": case.detector_class, "detector": det, "detectable": case.detectable,
+                                    "threshold": thr, "tpr": tpr, "fpr": fpr, "s": time.perf_counter() - t0, **m}
+        log.info("calibration case %s measured in %.1f s", case.appearance, time.perf_counter() - t0)
         if case.detectable:
             for key in (det, f"{det}:{case.detector_class}"):
                 pooled.setdefault(key, {"pos": [], "neg": []})
-                pooled[key]["pos"] += m["pos"]
-                pooled[key]["neg"] += m["neg"]
-        thr, tpr, fpr = youden_threshold(m["pos"], m["neg"])
-        print(f"{case.appearance:14s} {case.detector_class:13s} pos median {np.median(m['pos']):.2f} "
-              f"(min {np.min(m['pos']):.2f}, max {np.max(m['pos']):.2f})  neg max "
-              f"{(np.max(m['neg']) if m['neg'] else float('nan')):.2f}  own threshold {thr:.2f} (TPR {tpr:.2f}, "
-              f"FPR {fpr:.2f})  render {m['ms_render']:.0f} ms, detect {m['ms_detect']:.0f} ms "
-              f"[{time.perf_counter() - t0:.1f} s]", flush=True)
-        print("    " + "  ".join(f"{k}={v:.2f}" for k, v in m["views"].items()), flush=True)
-    for det, d in pooled.items():
+                pooled[key]["pos"] += list(m["pos"])
+                pooled[key]["neg"] += list(m["neg"])
+    for key, d in pooled.items():
         thr, tpr, fpr = youden_threshold(d["pos"], d["neg"])
-        print(f"POOLED {det}: threshold {thr:.2f}  TPR {tpr:.2f}  FPR {fpr:.2f}  (n_pos={len(d['pos'])}, "
-              f"n_neg={len(d['neg'])})")
-        results[f"pooled:{det}"] = {"threshold": thr, "tpr": tpr, "fpr": fpr}
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(results, fh, indent=1)
-    return 0
+        results[f"pooled:{key}"] = {"threshold": thr, "tpr": tpr, "fpr": fpr, "n_pos": len(d["pos"]),
+                                    "n_neg": len(d["neg"])}
+    return results
 
 
-if __name__ == "__main__":  # pragma: no cover
-    raise SystemExit(main())
+def report_lines(results: dict) -> list:
+    """The human-readable table of :func:`calibrate`'s results (one line per case, its views, the pooled ones)."""
+
+    def fmt(v):
+        return f"{v:.2f}" if v == v else "nan"
+
+    lines = []
+    for name, r in results.items():
+        if name.startswith("pooled:"):
+            continue
+        pos, neg = np.asarray(r["pos"], float), np.asarray(r["neg"], float)
+        lines.append(f"{name:14s} {r['class']:13s} pos median {fmt(np.median(pos) if pos.size else float('nan'))} "
+                     f"(min {fmt(pos.min() if pos.size else float('nan'))}, max "
+                     f"{fmt(pos.max() if pos.size else float('nan'))})  neg max "
+                     f"{fmt(neg.max() if neg.size else float('nan'))}  own threshold {r['threshold']:.2f} "
+                     f"(TPR {r['tpr']:.2f}, FPR {r['fpr']:.2f})  render {r.get('ms_render', 0.0):.0f} ms, detect "
+                     f"{r.get('ms_detect', 0.0):.0f} ms [{r['s']:.1f} s]")
+        lines.append("    " + "  ".join(f"{k}={v:.2f}" for k, v in r.get("views", {}).items()))
+    for name, r in results.items():
+        if name.startswith("pooled:"):
+            lines.append(f"POOLED {name[len('pooled:'):]}: threshold {r['threshold']:.2f}  TPR {r['tpr']:.2f}  "
+                         f"FPR {r['fpr']:.2f}  (n_pos={r['n_pos']}, n_neg={r['n_neg']})")
+    return lines
+
+
+if __name__ == "__main__":  # pragma: no cover - the same as ``psprm calibrate-detectors``
+    import sys
+
+    from ...cli import main
+
+    raise SystemExit(main(["calibrate-detectors", *sys.argv[1:]]))
