@@ -284,8 +284,8 @@ def evaluate_path(oracle, robot, motion, dense: np.ndarray, targets: Sequence[st
 
 
 # ---- workers ----------------------------------------------------------------------------------------------------------
-ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "placement", "success", "reason", "preprocess_s", "plan_s", "total_s",
-              "path_length_rad", "frames", "det_rate", "mean_confidence", "track_rate", "det_rate_any",
+ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "placement", "success", "reason", "preprocess_s", "plan_s",
+              "total_s", "path_length_rad", "frames", "det_rate", "mean_confidence", "track_rate", "det_rate_any",
               "det_rate_all", "eval_s"]
 
 
@@ -397,7 +397,8 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
                           "eval_error": str(exc)}
                 row = {"planner": planner, "problem": int(prob["index"]),
                        "run_seed": prob.get("run_seed", float("nan")),
-                       "targets": "+".join(prob["targets"]), "placement": placement, "success": True, "reason": "ok", "preprocess_s": pre,
+                       "targets": "+".join(prob["targets"]), "placement": placement, "success": True, "reason": "ok",
+                       "preprocess_s": pre,
                        "plan_s": plan_s, "total_s": pre + plan_s, "path_length_rad": path_length(motion, res.dense),
                        "eval_s": time.perf_counter() - t2, **{k: ev[k] for k in ev if k in ROW_FIELDS}}
                 if len(paths) < keep_paths:
@@ -610,15 +611,16 @@ def summarize(rows: list, planners: Sequence[str]) -> dict:
 def summarize_cells(rows: list, planners: Sequence[str]) -> dict:
     """Per target group and placement (``"cup@2"``), per planner: problems, success rate and the detection rate over
     the successful ones; shows whether a ratio comes from a few placements or from all."""
-    out: dict = {}
+    groups: dict = {}
     for r in sorted(rows, key=lambda r: (str(r["targets"]), int(r.get("placement", 0) or 0))):
         cell = f'{r["targets"]}@{int(r.get("placement", 0) or 0)}'
-        out.setdefault(cell, {})
-    for cell in out:
+        groups.setdefault(cell, {}).setdefault(r["planner"], []).append(r)
+    out: dict = {}
+    for cell, per in groups.items():
+        out[cell] = {}
         for pl in planners:
-            rs = [r for r in rows if r["planner"] == pl
-                  and f'{r["targets"]}@{int(r.get("placement", 0) or 0)}' == cell]
-            if rs:
+            if pl in per:
+                rs = per[pl]
                 ok = [r for r in rs if r["success"]]
                 out[cell][pl] = {"problems": len(rs), "success_rate": len(ok) / len(rs),
                                  "det_rate": _nanmean(r["det_rate"] for r in ok)}
