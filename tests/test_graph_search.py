@@ -579,3 +579,69 @@ def test_warm_up_compiles_what_searches_call() -> None:
     res = lazy_astar(g, 0, 5, lambda e, path: EdgeCheck(weights={int(x): 3.0 for x in e}))
     assert res.success and res.iterations >= 2
     assert {n: len(getattr(S, n).signatures) for n in names} == before
+
+
+# ---------------------------------------------------------------------------- the motion-weighted objective
+def test_motion_weighted_weight_formula():
+    from psprm_core.planning.graph_search import edge_weight, motion_weighted
+
+    p, cm = np.array([0.0, 0.5, 1.0, 0.25]), np.array([1.0, 0.4, 0.3, 0.0])
+    for a in (0.0, 0.8, 1.0):
+        expect = [c * ((1 - a) + a * (1 - q)) for q, c in zip(p, cm)]  # perception loss per unit of motion
+        assert np.allclose(motion_weighted(p, cm, a), expect)
+        assert np.allclose(edge_weight(p, cm, a, "motion"), expect)
+        assert np.allclose(edge_weight(p, cm, a, "eq2"), [1 - a * q + (1 - a) * c for q, c in zip(p, cm)])
+    with pytest.raises(ValueError, match="objective"):
+        edge_weight(p, cm, 0.5, "hops")
+
+
+@st.composite
+def metric_graphs(draw: Any) -> dict[str, Any]:
+    """Random points in the plane joined by edges whose motion is at least their distance (a detour factor >= 1),
+    with random Eq. 1 scores, a start and a few goals."""
+    n = draw(st.integers(2, 24))
+    xy = np.asarray(draw(st.lists(st.tuples(st.floats(0, 10), st.floats(0, 10)), min_size=n, max_size=n)), float)
+    pairs = draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=80))
+    pairs = sorted({(min(a, b), max(a, b)) for a, b in pairs if a != b})
+    stretch = np.asarray(draw(st.lists(st.floats(1.0, 3.0), min_size=len(pairs), max_size=len(pairs))), float)
+    p = np.asarray(draw(st.lists(st.floats(0.0, 1.0), min_size=len(pairs), max_size=len(pairs))), float)
+    alpha = draw(st.sampled_from([0.0, 0.5, 0.8, 0.95, 1.0]))
+    start = draw(st.integers(0, n - 1))
+    goals = sorted(set(draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=3))))
+    return {"xy": xy, "pairs": pairs, "stretch": stretch, "p": p, "alpha": alpha, "start": start, "goals": goals}
+
+
+@SETTINGS
+@given(metric_graphs())
+def test_motion_heuristic_is_consistent_and_astar_optimal(case: dict[str, Any]) -> None:
+    """The motion-weighted objective with the distance heuristic: consistent on every edge, and A* (plain and lazy,
+    starting from optimistic weights) returns the cost of a textbook Dijkstra over the test's own weights."""
+    from psprm_core.planning.graph_search import motion_heuristic, motion_weighted
+
+    xy, pairs, a, scale = case["xy"], case["pairs"], case["alpha"], 2.5
+    n = len(xy)
+    if not pairs:
+        return
+    e = np.asarray(pairs, dtype=np.int64)
+    motion = np.linalg.norm(xy[e[:, 0]] - xy[e[:, 1]], axis=1) * case["stretch"]
+    w = [m / scale * ((1 - a) + a * (1 - q)) for m, q in zip(motion, case["p"])]  # the test's own formula
+    assert np.allclose(motion_weighted(case["p"], motion / scale, a), w)
+    g = Roadmap.from_edges(n, e, np.asarray(w))
+    lb = np.min(np.linalg.norm(xy[:, None] - xy[case["goals"]][None], axis=-1), axis=1)
+    h = motion_heuristic(lb, a, scale)
+    assert heuristic_consistency_gap(g, h) <= 1e-12
+    ref = reference_dijkstra(n, [(int(u), int(v), float(x)) for (u, v), x in zip(pairs, w)], case["goals"])
+    ref = ref[case["start"]]
+    for compiled in (True, False):
+        with backend(compiled):
+            res = astar(g, case["start"], case["goals"], heuristic=h)
+            if math.isinf(ref):
+                assert not res.success
+                continue
+            assert res.success and abs(res.cost - ref) <= 1e-9 * max(1.0, ref)
+            # lazy: the search starts from the optimistic weights of fully seen edges (p = 1, still >= the bound)
+            low = Roadmap.from_edges(n, e, motion / scale * (1 - a))
+            true_w = dict(enumerate(w))
+            lazy = lazy_astar(low, case["start"], case["goals"],
+                              lambda ids, path: EdgeCheck(weights={int(i): true_w[int(i)] for i in ids}), heuristic=h)
+            assert lazy.success and abs(lazy.cost - ref) <= 1e-9 * max(1.0, ref)

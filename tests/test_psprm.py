@@ -216,3 +216,61 @@ def test_rebuilt_roadmap_connects_queries_to_its_own_nodes(load_robot):
         off = np.abs(W - q)
         off[:, 2] = np.abs((W[:, 2] - q[2] + np.pi) % (2 * np.pi) - np.pi)
         assert (off.max(1) < 1e-4).any(), f"the path does not pass through its node {node}"
+
+
+def test_perception_preserving_shortcuts(home):
+    """``shortcut``: the same queries give paths that are no longer, still collision-free under pybullet, drivable
+    (rotate or drive straight), start and end where asked, and see as well along the dense path (the planner's
+    scorer on every configuration); at least one path gets shorter."""
+    import dataclasses
+
+    scene, robot, planner = home
+    saved = planner.settings
+    world = PybulletWorld(robot, scene.collision_boxes())
+    shorter = 0
+    try:
+        for p in (p for p in scene.problems if p.target == "tv"):
+            start, goals = problem_configurations(robot, scene, p)
+            out = {}
+            for sc in (False, True):
+                planner.settings = dataclasses.replace(saved, objective="motion", shortcut=sc)
+                planner.reweight(alpha=0.8, objective="motion")
+                out[sc] = planner.plan(start, goals, timing=True)
+                assert out[sc].success, out[sc].reason
+            a, b = out[False], out[True]
+            assert b.path_length <= a.path_length + 1e-9
+            shorter += b.path_length < a.path_length - 1e-3
+            for q, want in ((b.waypoints[0], start), (b.waypoints[-1], goals[0])):
+                d = q - want
+                d[2] = (d[2] + math.pi) % (2 * math.pi) - math.pi  # the base heading wraps
+                assert np.abs(d).max() < 1e-5
+            assert not world.in_collision(b.dense).any() and not world.in_collision(b.trajectory.positions).any()
+            assert check_base_segments(b.waypoints, (0, 1, 2), 1e-5) == []
+            assert b.mean_score >= a.mean_score - 0.03, (a.mean_score, b.mean_score)
+    finally:
+        world.close()
+        planner.settings = saved
+        planner.reweight(alpha=saved.alpha, objective=saved.objective)
+    assert shorter >= 1
+
+
+def test_motion_objective_reweights_and_validates(home):
+    """``reweight(objective="motion")``: every edge weighs c_m ((1 - alpha) + alpha (1 - c_p)) from its stored
+    Eq. 1 score and motion cost; the paper's form comes back; unknown forms are a ConfigError."""
+    scene, robot, planner = home
+    g = planner.graph
+    ids = g.valid_edge_ids()
+    before = np.asarray(g.weights)[ids].copy()
+    cp, cm = g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids]
+    try:
+        planner.reweight(alpha=0.9, objective="motion")
+        np.testing.assert_allclose(np.asarray(g.weights)[ids], cm * (0.1 + 0.9 * (1 - cp)), rtol=1e-12)
+        assert planner.heuristic_name == "distance"
+        start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
+        assert planner.plan(start, goals, timing=False).success
+        with pytest.raises(ConfigError, match="objective"):
+            planner.reweight(objective="hops")
+    finally:
+        planner.reweight(alpha=0.8, objective="eq2")  # the fixture's settings
+    # the build weighed in float32; the re-weighting in float64 from the stored c_p and c_m
+    np.testing.assert_allclose(np.asarray(g.weights)[ids], before, rtol=1e-6)

@@ -9,6 +9,8 @@ Paper, section "PRM construction and scoring":
 * Eq. 4, :func:`min_edge_cost`: :math:`c^{\\min} = \\min_{(u,v) \\in E} c(q_u, q_v)`.
 * Eqs. 5-6 show :math:`h(q_u) \\le c(q_u, q_v) + h(q_v)` (consistency) for non-negative weights, hence A* returns the
   optimal cost; :func:`heuristic_consistency_gap` checks this numerically on every edge.
+* Beside Eq. 2, :func:`motion_weighted` charges the perception loss per unit of motion,
+  :math:`c = c_m ((1 - \\alpha) + \\alpha (1 - c_p))`, with the consistent heuristic :func:`motion_heuristic`.
 
 :func:`lazy_astar` evaluates expensive edge data (perception scores of the interpolated configurations, collision
 checks) only for edges on candidate paths: it searches, asks a callback to verify the unverified edges of the path,
@@ -43,12 +45,15 @@ __all__ = [
     "astar",
     "combined_weight",
     "dijkstra",
+    "edge_weight",
     "edge_perception",
     "heuristic_consistency_gap",
     "hop_distances",
     "hop_heuristic",
     "lazy_astar",
     "min_edge_cost",
+    "motion_heuristic",
+    "motion_weighted",
     "path_cost",
 ]
 
@@ -105,6 +110,46 @@ def combined_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> Arr
     if not 0.0 <= float(alpha) <= 1.0:
         raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
     return 1.0 - alpha * p_edge + (1.0 - alpha) * c_motion
+
+
+#: Edge-weight forms: ``eq2`` (the paper's Eq. 2) and ``motion`` (perception loss per unit of motion).
+OBJECTIVES = ("eq2", "motion")
+
+
+def motion_weighted(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> ArrayLike:
+    """Motion-weighted edge weight: :math:`c = c_m \left((1 - \alpha) + \alpha (1 - c_p)\right)`.
+
+    The perception loss :math:`1 - c_p` (Eq. 1) is charged per unit of motion, so a path's cost is
+    :math:`(1 - \alpha) L + \alpha U` with :math:`L` its motion length and :math:`U` the length along which the target is
+    not seen (both in units of the roadmap's longest edge). Unlike Eq. 2 it charges nothing per edge: the cost does not
+    grow with the hop count, and a long edge pays for every part of it that sees poorly. Every weight is at least
+    :math:`(1 - \alpha) c_m`, which makes a lower bound of the motion to the goal an admissible, consistent heuristic
+    (:func:`motion_heuristic`).
+    """
+    if not 0.0 <= float(alpha) <= 1.0:
+        raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+    return c_motion * ((1.0 - alpha) + alpha * (1.0 - p_edge))
+
+
+def edge_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float, objective: str = "eq2") -> ArrayLike:
+    """Edge weight of the objective form ``objective`` (:data:`OBJECTIVES`): :func:`combined_weight` (Eq. 2) or
+    :func:`motion_weighted`."""
+    if objective == "eq2":
+        return combined_weight(p_edge, c_motion, alpha)
+    if objective == "motion":
+        return motion_weighted(p_edge, c_motion, alpha)
+    raise ValueError(f"unknown objective {objective!r} (one of {', '.join(OBJECTIVES)})")
+
+
+def motion_heuristic(lower_bound: np.ndarray, alpha: float, scale: float) -> np.ndarray:
+    """Consistent A* heuristic of the :func:`motion_weighted` form: :math:`h(q) = (1 - \alpha) d(q) / s`.
+
+    ``lower_bound`` (n,): for each node a lower bound :math:`d(q)` of the motion cost of any path from it to the goal
+    set, which is a metric's distance to the nearest goal (so :math:`d(q_u) \le m(q_u, q_v) + d(q_v)` on every edge
+    whose motion cost is :math:`m`); ``scale`` the motion cost that :math:`c_m = 1` stands for. Every edge weighs at
+    least :math:`(1 - \alpha) m / s`, hence :math:`h(q_u) \le c(q_u, q_v) + h(q_v)` (Eqs. 5-6). ``inf`` stays
+    ``inf``. Shrunk by a relative 1e-12 against rounding, like Eq. 3."""
+    return np.asarray(lower_bound, dtype=np.float64) * ((1.0 - float(alpha)) / float(scale) * _CMIN_SAFETY)
 
 
 # ====================================================================== results
@@ -700,8 +745,9 @@ def lazy_astar(
     weights : array-like, optional
         Initial weights (default: the roadmap's weights).  A private copy is updated; the roadmap is only modified
         when ``apply_to_graph`` is True.
-    heuristic : {"hop", "exact", "zero"}
-        The hop heuristic stays consistent across iterations: invalid edges get weight ``inf`` (hop distances on the
+    heuristic : {"hop", "exact", "zero"} or np.ndarray
+        A per-node array is used as it is (it must stay consistent for the weights verification can give, e.g.
+        :func:`motion_heuristic`, a bound that holds for any perception score). The hop heuristic stays consistent across iterations: invalid edges get weight ``inf`` (hop distances on the
         unchanged structure remain lower bounds) and :math:`c^{\\min}` (Eq. 4) is lowered when an update goes below it.
         ``exact`` uses the true cost-to-go of the current working weights (one compiled multi-source Dijkstra from the
         goals), recomputed only after a verified weight went down; A* then expands little more than the path.
@@ -736,14 +782,20 @@ def lazy_astar(
     invalidated: list[int] = []
     updated: dict[int, float] = {}
     checked: list[int] = []
+    fixed_h = None
+    if not isinstance(heuristic, str):  # a fixed per-node heuristic, consistent for every weight verification gives
+        fixed_h = np.asarray(heuristic, dtype=np.float64).reshape(-1)
+        if fixed_h.shape[0] != graph.n_nodes:
+            raise ValueError("heuristic array must have one entry per node slot")
+        heuristic = "fixed"
     use_hop = heuristic == "hop"
     use_exact = heuristic == "exact"
-    if heuristic not in ("hop", "exact", "zero", "none", "dijkstra"):
-        raise ValueError("lazy_astar supports heuristic 'hop', 'exact' or 'zero'")
+    if heuristic not in ("hop", "exact", "zero", "none", "dijkstra", "fixed"):
+        raise ValueError("lazy_astar supports heuristic 'hop', 'exact', 'zero' or a per-node array")
     c_min = min_edge_cost(graph, w_arr) if use_hop else 0.0
     total_expanded = 0
     result = _fail("max_iterations is 0")
-    h_arr = None
+    h_arr = fixed_h
     h_cmin = None  # the c_min the hop heuristic was scaled with: hop distances found once stay lower bounds (the
     # structure only loses edges while the search runs), so the heuristic is only rescaled when c_min drops
     stale = True  # exact heuristic: recompute after a weight decreased (increases keep it a consistent lower bound)

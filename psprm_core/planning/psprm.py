@@ -39,7 +39,8 @@ from ..yamlio import Fields, load_yaml
 from .constraints import ProjectionSettings, VisibilityConstraint
 from . import search_kernels
 from .graph import Roadmap
-from .graph_search import EdgeCheck, astar, combined_weight, edge_perception, lazy_astar, min_edge_cost
+from .graph_search import (OBJECTIVES, EdgeCheck, astar, edge_perception, edge_weight, lazy_astar, min_edge_cost,
+                           motion_heuristic)
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +59,7 @@ ESCAPE_KEEP = 4  # connections to the roadmap (and their tree branches) an escap
 _NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}  # the planner's dtype on the host
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
-QUERY_SETTINGS = ("alpha", "heuristic", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
+QUERY_SETTINGS = ("alpha", "objective", "heuristic", "shortcut", "shortcut_rounds", "connect_k", "build_timeout_s", "query_repair_nodes", "query_repair_radius",
                   "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
                   "query_wide_k", "query_untracked_fallback", "query_escape_s", "query_escape_nodes",
                   "query_escape_radius", "query_escape_step", "query_escape_connect_k",
@@ -81,6 +82,8 @@ class PSPRMSettings:
     k_long: int = 10  # extra random neighbours within max_edge_length (long edges: fewer hops per path, Eq. 2)
     max_edge_length: float = 2.0  # motion-cost units (m + weighted rad), the geodesic radius delta of Alg. 1
     alpha: float = 0.8  # Eq. 2 (paper: 0.75 with the oracle, 0.8 with the surrogate)
+    objective: str = "eq2"  # edge weight: eq2 (the paper's 1 - alpha c_p + (1 - alpha) c_m) | motion (c_m times
+    # ((1 - alpha) + alpha (1 - c_p)): perception loss per unit of motion; graph_search.motion_weighted)
     lazy_edges: bool = False  # score edge interiors (Eq. 1) only for edges on candidate paths (slow scorers)
     lazy_collision: bool = True  # Lazy PRM: check an edge's dense interior when a search first uses it
     normalize_scores: bool = True  # c_p = min(1, score / q99(node scores)): the paper's normalised score in [0, 1]
@@ -110,7 +113,10 @@ class PSPRMSettings:
     edge_view_slack: float = -1.0  # >= 0: interior configurations must keep the target within the frustum (+slack m);
     # < 0: no such filter (Eq. 1 already scores interiors that lose the target)
     connect_k: int = 12  # neighbours tried when connecting a start or goal
-    heuristic: str = "hop"  # A* heuristic: hop (Eq. 3, the paper's) | exact (cost-to-go from a compiled Dijkstra)
+    heuristic: str = "auto"  # A* heuristic: hop (Eq. 3, the paper's) | distance (motion lower bound, for the motion
+    # objective) | exact (cost-to-go from a compiled Dijkstra) | auto (hop for eq2, distance for motion)
+    shortcut: bool = False  # shorten the found path where a direct motion is free, on the manifold and sees as well
+    shortcut_rounds: int = 2  # greedy shortcut passes over the path
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     smooth_timing: bool = True  # trajectories pass the knots of a base phase without stopping (timing.smooth)
     sample_batch: int = 2048
@@ -160,8 +166,11 @@ class PSPRMSettings:
     def validate(self, source: str = "settings") -> None:
         if self.constraint not in ("line", "frustum"):
             raise ConfigError(source, "constraint", f"unknown visibility model '{self.constraint}' (line, frustum)")
-        if self.heuristic not in ("hop", "exact"):
-            raise ConfigError(source, "heuristic", f"unknown A* heuristic '{self.heuristic}' (hop, exact)")
+        if self.heuristic not in ("hop", "exact", "distance", "auto"):
+            raise ConfigError(source, "heuristic", f"unknown A* heuristic '{self.heuristic}' (hop, distance, exact, "
+                                                   "auto)")
+        if self.objective not in OBJECTIVES:
+            raise ConfigError(source, "objective", f"unknown objective '{self.objective}' ({', '.join(OBJECTIVES)})")
         if self.sample_joints not in ("camera", "all"):
             raise ConfigError(source, "sample_joints", "must be 'camera' or 'all'")
         if not 0.0 <= self.alpha <= 1.0:
@@ -606,7 +615,7 @@ class PSPRM:
         g.add_nodes(Q.double().cpu().numpy())
         self.knots.clear()
         edge_ids = g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
-                    combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
+                    self._weight(p_edge, c_m).double().cpu().numpy(),
                     c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
                     verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
                     checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
@@ -643,7 +652,7 @@ class PSPRM:
         added later (:meth:`grow`) drop it, and queries go back to the BFS."""
         self._hop_table = None
         R = len(self._roadmap_mask)
-        if (self.graph is None or not 2 <= R <= HOP_TABLE_MAX_NODES or self.settings.heuristic != "hop"
+        if (self.graph is None or not 2 <= R <= HOP_TABLE_MAX_NODES or self.heuristic_name != "hop"
                 or not search_kernels.available()):
             return
         nbr, _, deg = self.graph.array_adjacency()
@@ -980,6 +989,38 @@ class PSPRM:
                            torch.zeros(0, self.settings.n_interp, dtype=torch.long, device=self.device))
         return ok, p, (torch.cat(kept), torch.cat(kept_i))
 
+    def _weight(self, p, c_m):
+        """Edge weight of the configured objective (:func:`~.graph_search.edge_weight`): Eq. 2 or the motion-weighted
+        form, from the Eq. 1 perception ``p`` and the normalised motion cost ``c_m`` (numpy or torch)."""
+        return edge_weight(p, c_m, self.settings.alpha, self.settings.objective)
+
+    @property
+    def heuristic_name(self) -> str:
+        """The A* heuristic queries use: the setting, with ``auto`` resolved (hop for Eq. 2, distance for the
+        motion-weighted objective)."""
+        h = self.settings.heuristic
+        if h == "auto":
+            return "distance" if self.settings.objective == "motion" else "hop"
+        return h
+
+    def _distance_heuristic(self, goal_ids: Sequence[int], sink: Optional[int]) -> np.ndarray:
+        """Per-node :func:`~.graph_search.motion_heuristic` to the goals ``goal_ids``: (1 - alpha) times the motion
+        lower bound |dxy| + ||d joints|| (every local motion costs at least that, :mod:`psprm_core.motion`) to the
+        nearest goal, over the roadmap's longest edge; 0 at the virtual ``sink`` of a multi-goal query."""
+        g = self.graph
+        Q = g.configs[: g.n_nodes]
+        G = g.configs[np.asarray(goal_ids, dtype=np.int64)]
+        lb = np.full(len(Q), np.inf)
+        for q in G:
+            if self.robot.mobile:
+                d = np.linalg.norm(Q[:, :2] - q[:2], axis=1) + np.linalg.norm(Q[:, 3:] - q[3:], axis=1)
+            else:
+                d = np.linalg.norm(Q - q, axis=1)
+            np.minimum(lb, d, out=lb)
+        if sink is not None:
+            lb[sink] = 0.0
+        return motion_heuristic(lb, self.settings.alpha, self.max_motion)
+
     def _normalized(self, scores: torch.Tensor) -> torch.Tensor:
         """Normalised perception score c_p in [0, 1] (scores divided by the roadmap's 99th-percentile node score)."""
         return (scores * getattr(self, "score_scale", 1.0)).clamp(0.0, 1.0)
@@ -1022,12 +1063,22 @@ class PSPRM:
     # ---- query -----------------------------------------------------------------------------------------------------
     def set_alpha(self, alpha: float) -> None:
         """Re-weight every edge with a new alpha (Eq. 2) without rebuilding (alpha = 0: shortest-path PRM)."""
+        self.reweight(alpha=alpha)
+
+    def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None) -> None:
+        """Re-weight every edge from its stored Eq. 1 perception and motion cost with a new ``alpha`` and/or objective
+        form (:data:`~.graph_search.OBJECTIVES`) without rebuilding; ``None`` keeps the current one."""
+        changes = {k: v for k, v in (("alpha", alpha), ("objective", objective)) if v is not None}
+        new = dataclasses.replace(self.settings, **changes)
+        new.validate()
         self._compact()
         g = self.graph
         ids = g.valid_edge_ids()
-        w = combined_weight(g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids], alpha)
-        g.set_weights(ids, w)
-        self.settings = dataclasses.replace(self.settings, alpha=alpha)
+        self.settings = new
+        c_m = g.edge_attribute("c_m")[ids]
+        if new.objective == "eq2":
+            c_m = np.clip(c_m, 0, 1)
+        g.set_weights(ids, self._weight(g.edge_attribute("c_p")[ids], c_m))
 
     @_one_thread
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
@@ -1567,12 +1618,17 @@ class PSPRM:
             self._untracked_fallback = bool(untracked)
             if not goal_ids:
                 res = None
-            elif self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
-                hops = self._query_hops(search_goals, added_edges) if self.settings.heuristic == "hop" else None
-                res = lazy_astar(g, s_id, search_goals, self._verify_edges, heuristic=self.settings.heuristic,
-                                 apply_to_graph=True, hops=hops)
             else:
-                res = astar(g, s_id, search_goals, heuristic=self.settings.heuristic)
+                heur = self.heuristic_name
+                if heur == "distance":
+                    heur = self._distance_heuristic(goal_ids, search_goals[0] if sink_w is not None else None)
+                if self.settings.lazy_edges or self.settings.lazy_collision or self._unverified:
+                    hops = self._query_hops(search_goals, added_edges) if isinstance(heur, str) and heur == "hop" \
+                        else None
+                    res = lazy_astar(g, s_id, search_goals, self._verify_edges, heuristic=heur, apply_to_graph=True,
+                                     hops=hops)
+                else:
+                    res = astar(g, s_id, search_goals, heuristic=heur)
             if res is None or not res.success:
                 return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
                                   query_ms=(time.perf_counter() - t0) * 1e3)
@@ -1580,6 +1636,8 @@ class PSPRM:
             if sink_w is not None:  # drop the virtual sink and its terminal edge
                 path, goal = path[:-1], path[-2]
                 cost -= sink_w[goal]
+            if self.settings.shortcut and len(path) > 2:
+                path, cost = self._shortcut_path(path, cost, added_edges)
             result = self._finish(path, cost, timing)
             result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == goal)[0][0])
             result.query_ms = (time.perf_counter() - t0) * 1e3
@@ -1597,6 +1655,64 @@ class PSPRM:
             self._dead_nodes.extend(int(n) for n in added_nodes)
             if len(self._dead_nodes) >= 2 * COMPACT_EVERY:
                 self._compact()
+
+    def _shortcut_path(self, path: list, cost: float, added_edges: list) -> tuple:
+        """Perception-preserving shortcuts of a found path (``shortcut_rounds`` greedy passes): from each kept node,
+        the farthest later node joined by one direct local motion that is shorter than the stretch it replaces, is
+        collision-free (checked densely, like every edge), keeps every interior knot on the visibility manifold
+        (|h_M| within the projection tolerance after re-aiming) and whose Eq. 1 perception is at least the
+        motion-weighted mean Eq. 1 perception of the replaced edges. Every candidate of a node is checked in one
+        batch. The shortcut edges join the query's edges (``added_edges``) with their knots stored, so the path that
+        runs is the one checked. Returns the new path and its cost."""
+        g = self.graph
+        tol = float(self.settings.projection.tolerance)
+        for _ in range(max(1, self.settings.shortcut_rounds)):
+            eids = g.edge_ids_of_path(path)
+            cm = g.edge_attribute("c_m")[eids] * self.max_motion  # motion cost of each edge
+            cp = g.edge_attribute("c_p")[eids]
+            arc = np.concatenate([[0.0], np.cumsum(cm)])
+            seen = np.concatenate([[0.0], np.cumsum(cm * np.nan_to_num(cp))])
+            out, i, changed = [path[0]], 0, False
+            while i < len(path) - 1:
+                later = np.arange(i + 2, len(path))
+                j = i + 1
+                if len(later):
+                    qa = np.repeat(g.configs[path[i]][None], len(later), 0)
+                    qb = g.configs[np.asarray(path)[later]]
+                    d = self._motion_distance(qa, qb)
+                    span = arc[later] - arc[i]
+                    need = (seen[later] - seen[i]) / np.maximum(span, 1e-12)  # mean Eq. 1 of the replaced edges
+                    # an existing edge between the two was the search's to take (and must not be overwritten)
+                    joined = np.asarray([g.edge_id(path[i], path[x]) is not None for x in later])
+                    cand = np.nonzero((d < span - 1e-9) & ~joined)[0]
+                    if len(cand):
+                        ta, tb = self._t(qa[cand]), self._t(qb[cand])
+                        kn, ki = self.edge_knots(ta, tb)
+                        M = kn.shape[1]
+                        on = self.constraint.error(kn[:, 1:-1].reshape(-1, kn.shape[-1])).reshape(len(cand), M - 2)
+                        ok = (on <= tol).all(-1) if M > 2 else torch.ones(len(cand), dtype=torch.bool)
+                        ok &= self._knots_valid(kn, dense=True)
+                        p = torch.zeros(len(cand), dtype=self.dtype, device=self.device)
+                        if ok.any():
+                            p[ok] = self._knots_perception(kn[ok], ki[ok])
+                        good = ok.cpu().numpy() & (p.double().cpu().numpy() >= need[cand] - 1e-9)
+                        if good.any():
+                            m = int(np.nonzero(good)[0].max())
+                            jj = int(later[cand[m]])
+                            e = self._add_query_edges(np.asarray([path[i]]), np.asarray([path[jj]]),
+                                                      p[m:m + 1].cpu().numpy(), d[cand[m]:cand[m] + 1])
+                            self._put_knots(np.asarray(e), np.asarray([path[i]]), kn[m:m + 1], ki[m:m + 1])
+                            added_edges.extend(e)
+                            out.append(path[jj])
+                            i, changed = jj, True
+                            continue
+                out.append(path[j])
+                i = j
+            path = out
+            if not changed:
+                break
+        eids = g.edge_ids_of_path(path)
+        return path, float(g.weights[eids].sum())
 
     def _compact(self) -> None:
         """Remove the retired query nodes and edges from the graph (one adjacency rebuild for many queries)."""
@@ -1646,7 +1762,7 @@ class PSPRM:
             p = perception(score)
             g.edge_attribute("c_p")[sel] = p
             ver[sel] = 1.0
-            w = combined_weight(p, g.edge_attribute("c_m")[sel], self.settings.alpha)
+            w = self._weight(p, g.edge_attribute("c_m")[sel])
             weights = {int(e): float(x) for e, x in zip(sel, w)}
         return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
 
@@ -1796,8 +1912,10 @@ class PSPRM:
         """Add query edges ``ua`` -> ``vb`` with their Eq. 1 perception ``p`` (E,) and motion cost ``dist`` (E,), both
         numpy in the planner's dtype: validated and fully scored (``verified``), or unchecked with an endpoint
         estimate (verified lazily by the search). The Eq. 2 weight is computed in that dtype, as on the roadmap."""
-        c_m = np.clip(dist / np.asarray(self.max_motion, dist.dtype), 0, 1)
-        w = combined_weight(p, c_m, self.settings.alpha)
+        c_m = dist / np.asarray(self.max_motion, dist.dtype)
+        if self.settings.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs it whole
+            c_m = np.clip(c_m, 0, 1)
+        w = self._weight(p, c_m)
         return list(self.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),
                                          c_m=c_m.astype(np.float64), c_p=p.astype(np.float64),
                                          verified=float(verified), checked=float(verified)))
@@ -2005,7 +2123,7 @@ class PSPRM:
                 ver[e] = 0.0
                 self._unverified = True
             c_p[e] = p
-            g.set_weights(e, combined_weight(p, g.edge_attribute("c_m")[e], self.settings.alpha))
+            g.set_weights(e, self._weight(p, g.edge_attribute("c_m")[e]))
         return {"nodes": int(len(ids)), "changed_nodes": int(changed.sum()), "edges": int(len(e)),
                 "nodes_ms": t_nodes * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
 
@@ -2245,10 +2363,11 @@ class PSPRM:
                 sc = self._t(scores)
                 p_edge = edge_perception(self._normalized(sc[u_ids[sel]]), self._normalized(sc[v_ids[sel]]))
             v = valid.cpu().numpy()
-            c_m = (dist[sel] / self.max_motion).clamp(0, 1)[valid]
+            c_m = dist[sel] / self.max_motion
+            c_m = (c_m.clamp(0, 1) if s.objective == "eq2" else c_m)[valid]
             p_edge = p_edge[valid]
             eids = g.add_edges(u_ids[sel][v], v_ids[sel][v],
-                               combined_weight(p_edge, c_m, s.alpha).double().cpu().numpy(),
+                               self._weight(p_edge, c_m).double().cpu().numpy(),
                                c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
                                verified=np.full(int(v.sum()), 0.0 if s.lazy_edges else 1.0),
                                checked=np.full(int(v.sum()), 0.0 if s.lazy_collision else 1.0))
@@ -2293,7 +2412,7 @@ class PSPRM:
         g = Roadmap(dof=self.robot.dof, node_capacity=len(data["configs"]) + 64, edge_capacity=len(data["eu"]) + 1024)
         g.add_nodes(data["configs"])
         bad = np.nonzero(~data["node_valid"])[0]
-        w = combined_weight(data["c_p"], data["c_m"], self.settings.alpha)
+        w = self._weight(data["c_p"], data["c_m"])
         g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"], verified=data["verified"],
                     checked=data["checked"])
         if len(bad):
