@@ -94,6 +94,7 @@ class BenchConfig:
     target_groups: Optional[list] = None  # [[target, ...], ...]; None: default_target_groups(scene)
     scenario: Optional[str] = None  # a scene problem's name: ``problems`` independent runs of it (Table III protocol)
     placements: int = 1  # target poses per group (the first K of each target's; paper: 5 per object)
+    reference: bool = True  # judge the reference routes of every problem (headroom; :mod:`psprm_core.headroom`)
     planner_kwargs: dict = field(default_factory=dict)  # {planner: {setting: value}} (tests, tuning)
 
 
@@ -224,17 +225,37 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
 
 
 # ---- evaluation -------------------------------------------------------------------------------------------------------
-def frame_indices(motion, dense: np.ndarray, spacing: float, max_frames: int) -> np.ndarray:
-    """Indices of ``dense`` about ``spacing`` apart along the path (at most ``max_frames``; both ends included)."""
+def arc_lengths(motion, dense: np.ndarray) -> np.ndarray:
+    """Motion cost (:class:`~psprm_core.motion.DiffDriveMotion`) from the start to each configuration of ``dense``."""
     import torch
 
     if len(dense) < 2:
-        return np.zeros(len(dense), dtype=int)
+        return np.zeros(len(dense))
     q = torch.as_tensor(dense, dtype=torch.float64)
-    s = np.concatenate([[0.0], np.cumsum(motion.distance(q[:-1], q[1:]).numpy())])
+    return np.concatenate([[0.0], np.cumsum(motion.distance(q[:-1], q[1:]).numpy())])
+
+
+def frame_indices(motion, dense: np.ndarray, spacing: float, max_frames: int) -> np.ndarray:
+    """Indices of ``dense`` about ``spacing`` apart along the path (at most ``max_frames``; both ends included)."""
+    if len(dense) < 2:
+        return np.zeros(len(dense), dtype=int)
+    s = arc_lengths(motion, dense)
     n = int(min(max_frames, max(2, math.floor(s[-1] / spacing) + 1)))
     marks = np.linspace(0.0, s[-1], n)
     return np.unique(np.clip(np.searchsorted(s, marks), 0, len(dense) - 1))
+
+
+def unseen_ends(arc: np.ndarray, seen: np.ndarray) -> tuple:
+    """Motion along a path before its first and after its last seen frame: (head, tail). ``arc`` (F,) the frames'
+    arc lengths (increasing, from 0), ``seen`` (F,) their flags; a path that never sees gives its whole length twice.
+    """
+    arc, seen = np.asarray(arc, float), np.asarray(seen, bool)
+    if len(arc) == 0:
+        return 0.0, 0.0
+    if not seen.any():
+        return float(arc[-1]), float(arc[-1])
+    i = np.nonzero(seen)
+    return float(arc[i[0][0]]), float(arc[-1] - arc[i[0][-1]])
 
 
 def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
@@ -264,29 +285,48 @@ def track_flags(results: list, min_iou: float = 0.1) -> np.ndarray:
 
 
 def evaluate_path(oracle, robot, motion, dense: np.ndarray, targets: Sequence[str], spacing: float = 0.5,
-                  max_frames: int = 40) -> dict:
-    """Oracle metrics of an executed path: detection rate, mean confidence and track rate (averaged over the
-    targets), plus for several targets the rate of frames where at least one / all of them are detected."""
+                  max_frames: int = 40, per_frame: bool = False) -> dict:
+    """Oracle metrics of an executed path, from the oracle's verdict on camera frames about ``spacing`` apart:
+
+    - ``det_rate``: frames whose matched confidence reaches the detector's calibrated threshold
+      (:data:`~psprm_core.perception.oracle.DETECTION_THRESHOLDS`); ``det_rate_strict``: frames with a confident
+      detection (:data:`~psprm_core.perception.oracle.STRICT_THRESHOLDS`); ``mean_confidence``; ``track_rate``
+      (:func:`track_flags`); each averaged over the targets;
+    - ``det_rate_any`` / ``det_rate_all``: frames where at least one / every target is detected;
+    - ``unseen_head`` / ``unseen_tail``: the motion before the first and after the last frame in which a target is
+      detected (:func:`unseen_ends`), the stretches no route from the same start to the same goal may avoid if no
+      other route sees there either.
+
+    ``per_frame``: also the frames' arc lengths (``frame_arc``) and per-target detection flags and confidences."""
     import torch
 
     idx = frame_indices(motion, dense, spacing, max_frames)
     cams = robot.camera_poses(torch.as_tensor(dense[idx], dtype=torch.float64)).numpy()
-    det, conf, trk = [], [], []
+    det, conf, trk, strict = [], [], [], []
     for t in targets:
         res = oracle.score_many(list(cams), t)
         det.append([r.detected for r in res])
         conf.append([r.score for r in res])
         trk.append(track_flags(res))
-    det, conf, trk = np.asarray(det, bool), np.asarray(conf, float), np.asarray(trk, bool)
-    return {"frames": int(len(idx)), "det_rate": float(det.mean()), "mean_confidence": float(conf.mean()),
-            "track_rate": float(trk.mean()), "det_rate_any": float(det.any(0).mean()),
-            "det_rate_all": float(det.all(0).mean())}
+        strict.append(np.asarray(conf[-1]) >= oracle.strict_threshold(t))
+    det, conf, trk, strict = (np.asarray(det, bool), np.asarray(conf, float), np.asarray(trk, bool),
+                              np.asarray(strict, bool))
+    arc = arc_lengths(motion, dense)[idx]
+    head, tail = unseen_ends(arc, det.any(0))
+    out = {"frames": int(len(idx)), "det_rate": float(det.mean()), "mean_confidence": float(conf.mean()),
+           "track_rate": float(trk.mean()), "det_rate_any": float(det.any(0).mean()),
+           "det_rate_all": float(det.all(0).mean()), "det_rate_strict": float(strict.mean()),
+           "unseen_head": head, "unseen_tail": tail}
+    if per_frame:
+        out.update(frame_arc=arc, frame_detected=det, frame_confidence=conf)
+    return out
 
 
 # ---- workers ----------------------------------------------------------------------------------------------------------
 ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "placement", "success", "reason", "preprocess_s", "plan_s",
-              "total_s", "path_length_rad", "frames", "det_rate", "mean_confidence", "track_rate", "det_rate_any",
-              "det_rate_all", "eval_s"]
+              "total_s", "path_length_rad", "frames", "det_rate", "det_rate_strict", "mean_confidence", "track_rate",
+              "det_rate_any", "det_rate_all", "unseen_head", "unseen_tail", "route", "best_det_rate",
+              "unseeable_frame_rate", "headroom", "eval_s"]
 
 
 def _failure_row(planner: str, prob: dict, reason: str, preprocess_s: float = float("nan"),
@@ -296,6 +336,52 @@ def _failure_row(planner: str, prob: dict, reason: str, preprocess_s: float = fl
                targets="+".join(prob["targets"]), placement=int(prob.get("placement", 0)), success=False,
                reason=reason, preprocess_s=preprocess_s, plan_s=plan_s, total_s=preprocess_s + plan_s
                if not math.isnan(plan_s) else float("nan"), frames=0)
+    return row
+
+
+#: The pseudo-planner whose rows are each problem's best judged reference route (:mod:`psprm_core.headroom`), and the
+#: variant whose roadmap it searches (its ``--set`` settings apply to the reference too).
+REFERENCE = "reference"
+REFERENCE_VARIANT = "neural-psprm-line"
+
+
+def base_name(planner: str) -> str:
+    """The registered planner of a bench entry: ``NAME~LABEL`` is planner NAME run under its own label (so one run can
+    compare settings of one planner, each ``--set NAME~LABEL.KEY=VALUE``)."""
+    return planner.split("~", 1)[0]
+
+
+def _reference_row(ref, prob: dict, oracle, robot, motion, cfg: dict, placement: int, pre: float) -> dict:
+    """The reference row of one problem: every candidate route of ``ref`` (:class:`~psprm_core.headroom.
+    ReferenceRoutes`) judged by the oracle; the row carries the best one's metrics (detection rate, then mean
+    confidence), its label as ``route``, and the shortest unseen stretches at the start and the goal over all
+    candidates."""
+    from .baselines.base import path_length
+
+    t1 = time.perf_counter()
+    try:
+        cands = ref.routes(prob["start"], prob["goal"])
+    except Exception as exc:
+        log.error("reference routes failed on problem %d: %s", prob["index"], traceback.format_exc())
+        return _failure_row(REFERENCE, prob, f"reference raised {type(exc).__name__}: {exc}", pre,
+                            time.perf_counter() - t1)
+    plan_s = time.perf_counter() - t1
+    if not cands:
+        return _failure_row(REFERENCE, prob, "no candidate route", pre, plan_s)
+    t2 = time.perf_counter()
+    judged = []
+    for label, res in cands:
+        ev = evaluate_path(oracle, robot, motion, np.asarray(res.dense, float), prob["targets"],
+                           cfg["frame_spacing"], cfg["max_frames"])
+        judged.append((label, res, ev))
+    label, res, ev = max(judged, key=lambda x: (x[2]["det_rate"], x[2]["mean_confidence"]))
+    row = {"planner": REFERENCE, "problem": int(prob["index"]), "run_seed": prob.get("run_seed", float("nan")),
+           "targets": "+".join(prob["targets"]), "placement": placement, "success": True, "reason": "ok",
+           "preprocess_s": pre, "plan_s": plan_s, "total_s": pre + plan_s,
+           "path_length_rad": path_length(motion, res.dense), "eval_s": time.perf_counter() - t2,
+           **{k: ev[k] for k in ev if k in ROW_FIELDS}, "route": f"{label} (best of {len(judged)})",
+           "unseen_head": min(e["unseen_head"] for _, _, e in judged),
+           "unseen_tail": min(e["unseen_tail"] for _, _, e in judged)}
     return row
 
 
@@ -333,15 +419,23 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
     scene = load_scene(resolve_named("scene", cfg["scene"])).with_placement(targets, placement)
     robot = RobotModel.load(scene.robot)
     motion = DiffDriveMotion(robot)
-    kw = dict(cfg.get("planner_kwargs", {}).get(planner, {}))
-    if planner.startswith(("psprm", "neural-psprm")):
-        n = cfg.get("oracle_nodes") if planner.startswith("psprm") and cfg.get("oracle_nodes") else cfg.get("nodes")
+    base = base_name(planner)
+    reference = planner == REFERENCE
+    kw = dict(cfg.get("planner_kwargs", {}).get(REFERENCE_VARIANT if reference else planner, {}))
+    if reference or base.startswith(("psprm", "neural-psprm")):
+        n = cfg.get("oracle_nodes") if base.startswith("psprm") and cfg.get("oracle_nodes") else cfg.get("nodes")
         if n:
             kw.setdefault("n_nodes", int(n))
+
     def build(seed: int) -> tuple:
         """(planner, prepare stats, preprocess seconds) or raises."""
         t0 = time.perf_counter()
-        p = make_baseline(planner, scene, targets, robot=robot, seed=seed, **kw)
+        if reference:
+            from .headroom import ReferenceRoutes
+
+            p = ReferenceRoutes(scene, targets, robot=robot, seed=seed, variant=REFERENCE_VARIANT, **kw)
+        else:
+            p = make_baseline(base, scene, targets, robot=robot, seed=seed, **kw)
         prep = dict(p.prepare())
         prep.setdefault("preprocess_s", time.perf_counter() - t0)
         return p, prep, float(prep.get("preprocess_s", float("nan")))
@@ -370,6 +464,11 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
             if oracle is None:
                 oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
             emit("start", (planner, int(prob["index"])))
+            if reference:
+                row = _reference_row(p, prob, oracle, robot, motion, cfg, placement, pre)
+                rows.append(row)
+                emit("row", row)
+                continue
             t1 = time.perf_counter()
             try:
                 res = p.plan(prob["start"], prob["goal"], timeout_s=cfg["timeout_s"])
@@ -423,8 +522,9 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
     from .scene import load_scene
 
     for name in cfg.planners:  # unknown names fail before any work; a missing module becomes failure rows
-        if name not in BASELINES:
-            raise PsprmError(f"unknown planner '{name}' (choose from {', '.join(BASELINES)})")
+        if base_name(name) not in BASELINES or name == REFERENCE:
+            raise PsprmError(f"unknown planner '{name}' (choose from {', '.join(BASELINES)}; NAME~LABEL runs "
+                             "planner NAME under its own label)")
     scene = load_scene(resolve_named("scene", cfg.scene))
     robot = RobotModel.load(scene.robot)
     groups = cfg.target_groups or default_target_groups(scene)
@@ -447,13 +547,16 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
     for prob in problems:
         by_group.setdefault((tuple(prob["targets"]), int(prob.get("placement", 0))), []).append(prob)
     order = {n: i for i, n in enumerate(planner_names())}
-    planners = sorted(dict.fromkeys(cfg.planners), key=lambda n: order.get(n, 99))
+    planners = sorted(dict.fromkeys(cfg.planners), key=lambda n: (order.get(base_name(n), 99), n))
+    if cfg.reference:
+        planners.append(REFERENCE)
     tasks = [(pl, list(g), probs) for pl in planners for (g, _), probs in by_group.items()]
     # the slow preparations first (oracle roadmaps, RL training) so they overlap with the rest
-    slow = {"psprm-line": 0, "psprm-frustum": 0, "rl-ppo": 1}
-    tasks.sort(key=lambda t: slow.get(t[0], 2))
+    slow = {"psprm-line": 0, "psprm-frustum": 0, "rl-ppo": 1, REFERENCE: 1}
+    tasks.sort(key=lambda t: slow.get(base_name(t[0]), 2))
     cfgd = {k: v for k, v in asdict(cfg).items() if k != "planners"}
     rows, paths, prepares = _run_tasks(tasks, cfgd, cfg.workers, progress, len(planners) * len(problems))
+    annotate_headroom(rows)
     summary = summarize(rows, planners)
     return {"config": {**cfgd, "planners": planners, "target_groups": groups}, "rows": rows, "summary": summary,
             "paths": paths, "prepare": prepares, "problems": problems, "wall_s": time.perf_counter() - t_start,
@@ -562,11 +665,57 @@ def _nanmean(xs) -> float:
     return float(a.mean()) if len(a) else float("nan")
 
 
+#: A problem counts towards "headroom captured" when its best judged route detects the target in at least this share
+#: of frames more than Post's path does.
+HEADROOM_MIN_GAIN = 0.10
+
+
+def _finite(x) -> bool:
+    return isinstance(x, (int, float, np.floating)) and math.isfinite(float(x))
+
+
+def annotate_headroom(rows: list) -> None:
+    """Add the per-problem reference to every row (in place), from all rows of its problem (every planner's path and
+    the reference candidates, all judged by the oracle):
+
+    - ``best_det_rate``: the best detection rate of any judged route;
+    - ``unseeable_frame_rate`` (successful rows): the share of the row's path that no judged route saw, i.e. the
+      shortest unseen stretch after the start plus the shortest before the goal over all routes (the start and goal
+      views behind the target), over the row's path length, at most 1;
+    - ``headroom`` (successful rows, where Post solved the problem and ``best - post >= HEADROOM_MIN_GAIN``):
+      ``(det_rate - post) / (best - post)``, the share of the possible gain over Post the row's route captured.
+    """
+    by: dict = {}
+    for r in rows:
+        by.setdefault(r["problem"], []).append(r)
+        for k in ("best_det_rate", "unseeable_frame_rate", "headroom"):
+            r.setdefault(k, float("nan"))
+    for rs in by.values():
+        ok = [r for r in rs if r["success"] and _finite(r.get("det_rate"))]
+        if not ok:
+            continue
+        best = max(float(r["det_rate"]) for r in ok)
+        heads = [float(r["unseen_head"]) for r in ok if _finite(r.get("unseen_head"))]
+        tails = [float(r["unseen_tail"]) for r in ok if _finite(r.get("unseen_tail"))]
+        unseen = (min(heads) if heads else 0.0) + (min(tails) if tails else 0.0)
+        post = next((float(r["det_rate"]) for r in ok if r["planner"] == "post"), None)
+        for r in rs:
+            r["best_det_rate"] = best
+            if r not in ok:
+                continue
+            L = float(r["path_length_rad"]) if _finite(r.get("path_length_rad")) else float("nan")
+            r["unseeable_frame_rate"] = min(1.0, unseen / L) if L > 0 else float(unseen > 0)
+            if post is not None and best - post >= HEADROOM_MIN_GAIN:
+                r["headroom"] = (float(r["det_rate"]) - post) / (best - post)
+
+
 def summarize(rows: list, planners: Sequence[str]) -> dict:
     """Per planner: success rate over all problems; perception metrics and path length over the successful ones;
     preprocessing = mean build time per prepared instance; planning time = mean over all attempts;
-    total = preprocessing + planning. Plus ``ratios`` of neural-psprm-line's detection rate to Post's and
-    Manifold-line's when those ran."""
+    total = preprocessing + planning; ``headroom_captured`` the mean ``headroom`` (:func:`annotate_headroom`) over
+    the problems that have one (``headroom_problems`` of them), ``unseeable_frame_rate`` and ``best_det_rate`` means
+    over the successful ones. Plus ``ratios`` of neural-psprm-line's detection rates (calibrated and strict) and
+    mean confidence to Post's and Manifold-line's when those ran."""
     out = {}
     for pl in planners:
         rs = [r for r in rows if r["planner"] == pl]
@@ -581,20 +730,30 @@ def summarize(rows: list, planners: Sequence[str]) -> dict:
         out[pl] = {
             "problems": len(rs), "successes": len(ok), "success_rate": len(ok) / len(rs),
             "det_rate": _nanmean(r["det_rate"] for r in ok),
+            "det_rate_strict": _nanmean(r.get("det_rate_strict") for r in ok),
             "mean_confidence": _nanmean(r["mean_confidence"] for r in ok),
             "track_rate": _nanmean(r["track_rate"] for r in ok),
             "det_rate_any": _nanmean(r["det_rate_any"] for r in ok),
             "det_rate_all": _nanmean(r["det_rate_all"] for r in ok),
             "path_length_rad": _nanmean(r["path_length_rad"] for r in ok),
+            "median_path_length_rad": float(np.median([r["path_length_rad"] for r in ok])) if ok else float("nan"),
+            "headroom_captured": _nanmean(r.get("headroom") for r in ok),
+            "headroom_problems": sum(1 for r in ok if _finite(r.get("headroom"))),
+            "unseeable_frame_rate": _nanmean(r.get("unseeable_frame_rate") for r in ok),
+            "best_det_rate": _nanmean(r.get("best_det_rate") for r in ok),
             "preprocess_s": pre, "plan_s": plan, "total_s": pre + plan,
         }
     ratios = {}
     n = out.get("neural-psprm-line")
     if n is not None:
-        for base, key in (("post", "det_rate_vs_post"), ("manifold-line", "det_rate_vs_manifold_line")):
+        for base, suffix in (("post", "post"), ("manifold-line", "manifold_line")):
             b = out.get(base)
             if b is not None:
-                ratios[key] = n["det_rate"] / b["det_rate"] if b["det_rate"] and b["det_rate"] > 0 else float("nan")
+                for m in ("det_rate", "det_rate_strict", "mean_confidence"):
+                    ratios[f"{m}_vs_{suffix}"] = n[m] / b[m] if b[m] and b[m] > 0 else float("nan")
+                ratios[f"median_path_length_vs_{suffix}"] = (
+                    n["median_path_length_rad"] / b["median_path_length_rad"] if b["median_path_length_rad"] and
+                    b["median_path_length_rad"] > 0 else float("nan"))
         b = out.get("manifold-line")
         if b is not None and any("+" in str(r["targets"]) for r in rows):  # several targets: Table III's columns
             for key in ("det_rate_any", "det_rate_all", "mean_confidence"):
@@ -686,6 +845,19 @@ def markdown_table(summary: dict, multi_target: bool = False, settings: Optional
     if changed:
         lines.append("")
         lines.append("Settings changed for this run: " + ", ".join(changed) + " (the others as configured).")
+    if any(_finite(s.get("best_det_rate")) for k, s in summary.items() if k != "ratios"):
+        lines += ["", "Perception against each problem's best judged route (the reference routes and every planner's "
+                  f"path); headroom captured = (planner - Post) / (best - Post) over the problems where best - Post "
+                  f">= {100 * HEADROOM_MIN_GAIN:.0f} points; unseeable = share of the path no judged route saw:", "",
+                  "| method | det. rate | det. rate (strict) | conf. score | best route's det. rate | headroom captured "
+                  "(problems) | unseeable frames | median path len. |", "|---|---|---|---|---|---|---|---|"]
+        for pl, s in summary.items():
+            if pl == "ratios":
+                continue
+            lines.append(f"| {pl} | {_fmt(s['det_rate'], True)} | {_fmt(s.get('det_rate_strict'), True)} | "
+                         f"{_fmt(s['mean_confidence'])} | {_fmt(s.get('best_det_rate'), True)} | "
+                         f"{_fmt(s.get('headroom_captured'), True)} ({s.get('headroom_problems', 0)}) | "
+                         f"{_fmt(s.get('unseeable_frame_rate'), True)} | {_fmt(s.get('median_path_length_rad'))} |")
     if "ratios" in summary:
         lines.append("")
         lines.append("Ratios: " + ", ".join(f"{k} = {_fmt(v)}" for k, v in summary["ratios"].items()))

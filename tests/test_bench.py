@@ -126,7 +126,7 @@ def test_problems_over_target_placements(home):
 
 def test_bench_builds_each_planner_at_each_placement(tmp_path, monkeypatch):
     monkeypatch.setitem(baselines.BASELINES, "post", f"{__name__}:PlacementRecordingPlanner")
-    cfg = BenchConfig(scene="home", planners=["post"], problems=4, seed=0, out=str(tmp_path), workers=1,
+    cfg = BenchConfig(reference=False, scene="home", planners=["post"], problems=4, seed=0, out=str(tmp_path), workers=1,
                       target_groups=[["potted_plant"]], placements=3)
     res = run_bench(cfg, progress=False)
     scene = res["scene"]
@@ -143,7 +143,7 @@ def test_bench_builds_each_planner_at_each_placement(tmp_path, monkeypatch):
     assert summary["cells"]["potted_plant@1"]["post"]["success_rate"] == 0.0
     assert summary["config"]["placements"] == 3
     with pytest.raises(PsprmError, match="no --placements"):
-        run_bench(BenchConfig(scene="nursing", planners=["post"], problems=1, workers=1, placements=2,
+        run_bench(BenchConfig(reference=False, scene="nursing", planners=["post"], problems=1, workers=1, placements=2,
                               scenario="west_to_east_nurses"), progress=False)
 
 
@@ -191,7 +191,7 @@ def test_norfair_track_flags():
 
 def test_bench_runs_writes_outputs_and_records_crashes(tmp_path, monkeypatch):
     monkeypatch.setitem(baselines.BASELINES, "neural-psprm-line", f"{__name__}:CrashingPlanner")
-    cfg = BenchConfig(scene="home", planners=["post", "neural-psprm-line"], problems=2, seed=1, out=str(tmp_path),
+    cfg = BenchConfig(reference=False, scene="home", planners=["post", "neural-psprm-line"], problems=2, seed=1, out=str(tmp_path),
                       timeout_s=10.0, workers=1, max_frames=3, frame_spacing=1.0, target_groups=[["tv"]])
     res = run_bench(cfg, progress=False)
     files = write_outputs(res, tmp_path)
@@ -230,7 +230,7 @@ def test_scenario_runs_rebuild_every_planner_per_run(tmp_path, monkeypatch):
     """--scenario: the named problem's start and goal in every run, each run's planner built with seed + run."""
     monkeypatch.setitem(baselines.BASELINES, "post", f"{__name__}:SeedRecordingPlanner")
     SeedRecordingPlanner.queries.clear()
-    cfg = BenchConfig(scene="nursing", planners=["post"], problems=4, seed=0, out=str(tmp_path), workers=1,
+    cfg = BenchConfig(reference=False, scene="nursing", planners=["post"], problems=4, seed=0, out=str(tmp_path), workers=1,
                       scenario="west_to_east_nurses")
     res = run_bench(cfg, progress=False)
     rows = sorted(res["rows"], key=lambda r: r["problem"])
@@ -278,11 +278,11 @@ def test_scenario_start_in_collision_is_a_clear_error(tmp_path):
 
 
 def test_unknown_target_or_second_group_is_a_clear_error(tmp_path):
-    cfg = BenchConfig(scene="home", planners=["post"], problems=1, out=str(tmp_path), workers=1,
+    cfg = BenchConfig(reference=False, scene="home", planners=["post"], problems=1, out=str(tmp_path), workers=1,
                       target_groups=[["nope"]])
     with pytest.raises(PsprmError, match="no target 'nope'.*potted_plant"):
         run_bench(cfg, progress=False)
-    cfg = BenchConfig(scene="nursing", planners=["post"], problems=1, out=str(tmp_path), workers=1,
+    cfg = BenchConfig(reference=False, scene="nursing", planners=["post"], problems=1, out=str(tmp_path), workers=1,
                       target_groups=[["nurse_1_face"], ["nurse_2_face"]], scenario="west_to_east_nurses")
     with pytest.raises(PsprmError, match="one target group"):
         run_bench(cfg, progress=False)
@@ -325,7 +325,8 @@ def test_bench_set_reaches_the_planner_and_the_table(tmp_path, monkeypatch, caps
 
     monkeypatch.setitem(baselines.BASELINES, "post", f"{__name__}:KwargsRecordingPlanner")
     KwargsRecordingPlanner.built.clear()
-    assert main(["bench", "--scene", "nursing", "--planners", "post", "--scenario", "west_to_east_nurses",
+    assert main(["bench", "--no-reference", "--scene", "nursing", "--planners", "post", "--scenario",
+                 "west_to_east_nurses",
                  "--problems", "2", "--workers", "1", "--no-progress", "--out", str(tmp_path),
                  "--set", "post.range=0.5", "--set", "post.simplify=false"]) == 0
     assert KwargsRecordingPlanner.built == [{"range": 0.5, "simplify": False}] * 2  # both runs' builds

@@ -109,7 +109,7 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
         if name not in planners:
             raise PsprmError(f"--set '{item}': planner '{name}' is not among the planners run "
                              f"({', '.join(planners)})")
-        cls = settings_class(name)
+        cls = settings_class(name.split("~", 1)[0])  # NAME~LABEL: planner NAME under its own label
         fields = {f.name: f for f in dataclasses.fields(cls)}
         if key in FIXED_SETTINGS or key not in fields or fields[key].default is dataclasses.MISSING:
             settable = sorted(k for k, f in fields.items() if k not in FIXED_SETTINGS and f.default is not

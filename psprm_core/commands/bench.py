@@ -12,7 +12,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      "oracle-judged detection, tracking, path length, success and times; CSV, "
                                      "Markdown table, plots, --json")
     p.add_argument("--scene", default="home")
-    p.add_argument("--planners", default="all", help="comma-separated names, or 'all' (see psprm_core.baselines)")
+    p.add_argument("--planners", default="all",
+                   help="comma-separated names, or 'all' (see psprm_core.baselines); NAME~LABEL runs planner NAME "
+                        "under its own label, e.g. neural-psprm-line~paper with --set neural-psprm-line~paper.KEY=V")
     p.add_argument("--problems", type=int, default=100)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="output directory (default out/bench_<scene>)")
@@ -34,6 +36,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=VALUE", dest="settings",
                    help="change one setting of one planner for this run (repeatable), e.g. "
                         "neural-psprm-line.alpha=0.95; checked against the planner's settings class")
+    p.add_argument("--no-reference", action="store_true",
+                   help="do not judge the reference routes (the best-perceived routes of the PS-PRM roadmap) that "
+                        "headroom_captured and unseeable_frame_rate are measured against")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--json", action="store_true", help="print one JSON object keyed by planner")
     p.set_defaults(func=_bench)
@@ -56,7 +61,7 @@ def _bench(args) -> int:
                       out=args.out or f"out/bench_{args.scene}", timeout_s=args.timeout, workers=args.workers,
                       nodes=args.nodes, oracle_nodes=args.oracle_nodes, frame_spacing=args.frame_spacing,
                       max_frames=args.max_frames, target_groups=groups, scenario=args.scenario,
-                      placements=args.placements,
+                      placements=args.placements, reference=not args.no_reference,
                       planner_kwargs=parse_planner_settings(args.settings, names))
     res = run_bench(cfg, progress=not args.no_progress)
     files = write_outputs(res, cfg.out)

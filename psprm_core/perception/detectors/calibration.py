@@ -139,6 +139,13 @@ def youden_threshold(pos: Sequence[float], neg: Sequence[float], floor: float = 
     return t, float(np.mean(pos >= t)) if pos.size else 0.0, float(np.mean(neg >= t)) if neg.size else 0.0
 
 
+def strict_threshold(pos: Sequence[float], threshold: float) -> float:
+    """A confident detection: the median confidence of the positive views (rounded to 0.01), at least
+    ``threshold`` (the oracle's ``STRICT_THRESHOLDS``)."""
+    pos = np.asarray(pos, float)
+    return max(float(threshold), float(np.round(np.median(pos), 2)) if pos.size else float(threshold))
+
+
 def calibrate(appearances: Optional[Sequence[str]] = None, measure=None) -> dict:
     """Measure every case of :data:`DEFAULT_CASES` (or those whose appearance is in ``appearances``) and choose the
     thresholds: each case's own (Youden's J on its views) and, per detector and per ``detector:class``, one pooled
@@ -148,7 +155,7 @@ def calibrate(appearances: Optional[Sequence[str]] = None, measure=None) -> dict
     -------
     dict
         ``{appearance: {"class", "detector", "threshold", "tpr", "fpr", "pos", "neg", "views", ...},
-        "pooled:<detector>": {"threshold", "tpr", "fpr", "n_pos", "n_neg"}, ...}``
+        "pooled:<detector>": {"threshold", "tpr", "fpr", "n_pos", "n_neg", "strict"}, ...}``
 
     Raises
     ------
@@ -181,7 +188,7 @@ def calibrate(appearances: Optional[Sequence[str]] = None, measure=None) -> dict
     for key, d in pooled.items():
         thr, tpr, fpr = youden_threshold(d["pos"], d["neg"])
         results[f"pooled:{key}"] = {"threshold": thr, "tpr": tpr, "fpr": fpr, "n_pos": len(d["pos"]),
-                                    "n_neg": len(d["neg"])}
+                                    "n_neg": len(d["neg"]), "strict": strict_threshold(d["pos"], thr)}
     return results
 
 
@@ -206,7 +213,7 @@ def report_lines(results: dict) -> list:
     for name, r in results.items():
         if name.startswith("pooled:"):
             lines.append(f"POOLED {name[len('pooled:'):]}: threshold {r['threshold']:.2f}  TPR {r['tpr']:.2f}  "
-                         f"FPR {r['fpr']:.2f}  (n_pos={r['n_pos']}, n_neg={r['n_neg']})")
+                         f"FPR {r['fpr']:.2f}  strict {r['strict']:.2f}  (n_pos={r['n_pos']}, n_neg={r['n_neg']})")
     return lines
 
 

@@ -1,0 +1,109 @@
+"""The best-perceived routes a PS-PRM roadmap admits: the benchmark's reference for "how much more was possible".
+
+A planner's detection rate alone does not say whether a route that sees more existed. :class:`ReferenceRoutes` builds
+the roadmap the neural PS-PRM variant plans on (same settings and seed) and, for each problem, gives several distinct
+routes over it: searches with both objective forms (Eq. 2 and the motion-weighted one) at several alpha up to 1 (the
+route that only minimises what is not seen), with and without shortcutting, and alternative routes found by
+penalising the edges of the routes already found. ``psprm bench`` judges every candidate with the oracle; the best of
+them and of the planners' own paths is the problem's reference (:func:`psprm_core.bench.headroom_summary`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Sequence
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+#: (objective, alpha) searches of the candidate routes.
+SEARCHES = (("eq2", 0.8), ("eq2", 0.95), ("eq2", 1.0), ("motion", 0.8), ("motion", 0.95), ("motion", 1.0))
+#: Alternative routes: re-searches (motion objective, alpha = 1) with the edges of every route found so far weighted
+#: ``PENALTY`` times.
+ALTERNATIVES = 2
+PENALTY = 3.0
+
+
+class ReferenceRoutes:
+    """Candidate routes over the roadmap of ``variant`` for the bench's per-problem reference.
+
+    Parameters
+    ----------
+    scene, targets, robot, seed : as for every benchmark planner.
+    variant : the PS-PRM variant whose roadmap is searched (default: the neural line-of-sight one).
+    searches, alternatives, penalty : see :data:`SEARCHES`, :data:`ALTERNATIVES`, :data:`PENALTY`.
+    **overrides : :class:`~psprm_core.planning.psprm.PSPRMSettings` fields of the variant (the bench passes that
+        planner's own, so the roadmap is the one it plans on).
+    """
+
+    def __init__(self, scene, targets: Sequence[str], robot=None, seed: int = 0, variant: str = "neural-psprm-line",
+                 searches: Sequence[tuple] = SEARCHES, alternatives: int = ALTERNATIVES, penalty: float = PENALTY,
+                 **overrides):
+        from .planning.factory import make_planner
+
+        self.planner = make_planner(variant, scene, list(targets), robot=robot, seed=seed, **overrides)
+        self.robot = self.planner.robot
+        self.searches = list(searches)
+        self.alternatives = int(alternatives)
+        self.penalty = float(penalty)
+        self._built = False
+
+    def prepare(self) -> dict:
+        stats = self.planner.build()
+        self._built = bool(stats.get("success", True))
+        return {k: v for k, v in stats.items() if isinstance(v, (int, float, bool, str))}
+
+    def routes(self, start: np.ndarray, goal: np.ndarray) -> list:
+        """Distinct successful routes ``[(label, PlanResult), ...]`` from ``start`` to ``goal`` (configurations).
+
+        Labels name the search (``motion@1.0``, ``eq2@0.8+shortcut``, ``alt2``). Routes with the same waypoints are
+        given once. The planner's settings and weights are restored afterwards."""
+        if not self._built:
+            return []
+        p = self.planner
+        saved = p.settings
+        out, seen, used_edges = [], set(), []
+
+        def add(label, res):
+            if not res.success or res.waypoints is None:
+                return
+            key = np.round(np.asarray(res.waypoints, float), 4).tobytes()
+            if key in seen:
+                return
+            seen.add(key)
+            out.append((label, res))
+            used_edges.extend(self._roadmap_edges(res.path_nodes))
+
+        try:
+            for objective, alpha in self.searches:
+                for shortcut in (False, True):
+                    p.settings = dataclasses.replace(saved, shortcut=shortcut)
+                    p.reweight(alpha=alpha, objective=objective)
+                    add(f"{objective}@{alpha:g}" + ("+shortcut" if shortcut else ""),
+                        p.plan(start, goal, timing=False))
+            for k in range(self.alternatives):
+                p.settings = dataclasses.replace(saved, shortcut=False)
+                p.reweight(alpha=1.0, objective="motion")
+                g = p.graph
+                e = np.unique(np.asarray([x for x in used_edges if g.edge_valid[x]], dtype=np.int64))
+                if len(e):
+                    g.set_weights(e, g.weights[e] * self.penalty)
+                add(f"alt{k + 1}", p.plan(start, goal, timing=False))
+        finally:
+            p.settings = saved
+            p.reweight(alpha=saved.alpha, objective=saved.objective)
+        return out
+
+    def _roadmap_edges(self, path_nodes: Sequence[int]) -> list:
+        """Ids of the roadmap edges (not the query's own) between consecutive nodes of a route."""
+        p = self.planner
+        mask = p.roadmap_mask()
+        ids = []
+        for a, b in zip(path_nodes[:-1], path_nodes[1:]):
+            if a < len(mask) and b < len(mask) and mask[a] and mask[b]:
+                e = p.graph.edge_id(int(a), int(b))
+                if e is not None:
+                    ids.append(int(e))
+        return ids
