@@ -19,10 +19,10 @@ import numpy as np
 log = logging.getLogger(__name__)
 
 #: (objective, alpha) searches of the candidate routes.
-SEARCHES = (("eq2", 0.8), ("eq2", 0.95), ("eq2", 1.0), ("motion", 0.8), ("motion", 0.95), ("motion", 1.0))
+SEARCHES = (("eq2", 0.8), ("motion", 0.95), ("motion", 1.0))
 #: Alternative routes: re-searches (motion objective, alpha = 1) with the edges of every route found so far weighted
 #: ``PENALTY`` times.
-ALTERNATIVES = 2
+ALTERNATIVES = 1
 PENALTY = 3.0
 
 

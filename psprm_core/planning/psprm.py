@@ -55,6 +55,7 @@ ESCAPE_LONG = 4  # the escape search's long extensions, in steps
 ESCAPE_STUCK_ROUNDS = 16  # escape rounds after which an end with no free motion out of it is given up
 ESCAPE_MANOEUVRES = 8  # of the ESCAPE_BATCH extensions per round: drive/back-up/turn manoeuvres from tree nodes
 ESCAPE_KEEP = 4  # connections to the roadmap (and their tree branches) an escape search keeps
+SHORTCUT_CANDIDATES = 8  # later path nodes a shortcut from one node tries at most (the farthest ones)
 
 _NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}  # the planner's dtype on the host
 
@@ -91,6 +92,9 @@ class PSPRMSettings:
     constraint: str = "line"  # visibility model: line | frustum
     sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
     sample_spread: float = -1.0  # >= 0: non-base joints sampled within +-spread (rad/m) of the template, else uniform
+    biased_share: float = 0.0  # share of the nodes drawn where the scorer predicts good views (accepted with
+    # probability c_p, the normalised score); the others uniform on the manifold
+    biased_tries: float = 6.0  # at most this many manifold samples scored per biased node wanted
     expand_rounds: int = 0  # > 0: after the build, rounds of sampling between the largest component and the others
     expand_nodes: int = 30  # nodes sampled per disconnected component and round
     expand_components: int = 12  # components (of >= 3 nodes, largest first) bridged per round
@@ -175,6 +179,8 @@ class PSPRMSettings:
             raise ConfigError(source, "sample_joints", "must be 'camera' or 'all'")
         if not 0.0 <= self.alpha <= 1.0:
             raise ConfigError(source, "alpha", f"must lie in [0, 1], got {self.alpha}")
+        if not 0.0 <= self.biased_share <= 1.0:
+            raise ConfigError(source, "biased_share", f"must lie in [0, 1], got {self.biased_share}")
         if self.n_nodes < 2 or self.k_neighbors < 1:
             raise ConfigError(source, "n_nodes", "need at least 2 nodes and 1 neighbour")
         if not (self.query_escape_s >= 0 and np.isfinite(self.query_escape_s)):
@@ -578,26 +584,29 @@ class PSPRM:
         self.template = template
         t0 = time.perf_counter()
         nodes, tried = [], 0
-        lo, hi = self._lo, self._hi
         have = 0
-        while have < s.n_nodes:
+        n_biased = int(round(s.biased_share * s.n_nodes))
+        n_uniform = s.n_nodes - n_biased
+        while have < n_uniform:
             if time.perf_counter() - t0 > s.build_timeout_s:
                 log.warning("node sampling timed out with %d/%d nodes", have, s.n_nodes)
                 break
-            q = self._sample(s.sample_batch, rng, template)
-            tried += len(q)
-            q, ok = self.constraint.project(q, s.projection, lo, hi)
-            q = q[ok]
-            q = q[self.checker.valid(q)]
+            q = self._manifold_samples(rng, template)
+            tried += s.sample_batch
             nodes.append(q)
             have += len(q)
         t_sample = time.perf_counter() - t0
         if have < 2:
             self.stats = {"success": False, "reason": "could not sample configurations on the visibility manifold"}
             return self.stats
-        Q = torch.cat(nodes)[: s.n_nodes]
+        Q = torch.cat(nodes)[: n_uniform]
         t2 = time.perf_counter()
         node_scores = self.score_configs(Q)
+        biased = {}
+        if n_biased:
+            t5 = time.perf_counter()
+            Q, node_scores, biased = self._biased_nodes(Q, node_scores, n_biased, rng, template, t0)
+            t_sample += time.perf_counter() - t5
         self.score_scale = 1.0
         if s.normalize_scores:  # the normalised score of Eq. 1 (c_p in [0, 1]) is relative to this roadmap
             self.score_scale = 1.0 / max(float(torch.quantile(node_scores.double(), 0.99)), 1e-3)
@@ -639,10 +648,48 @@ class PSPRM:
             "success": True, "n_nodes": int(self.n_roadmap_nodes), "n_edges": int(len(self.roadmap_edge_ids())),
             "samples_tried": int(tried), "sample_s": t_sample, "edges_s": t_edges, "score_s": t_score,
             "hop_table_s": time.perf_counter() - t4, "build_s": build_s, "mean_node_score": float(node_scores.mean()),
+            **biased,
             **({"expand_s": time.perf_counter() - t3, **expand} if expand else {}),
         }
         log.info("PS-PRM built: %s", self.stats)
         return self.stats
+
+    def _manifold_samples(self, rng: np.random.Generator, template: np.ndarray) -> torch.Tensor:
+        """One batch of ``sample_batch`` samples projected onto the visibility manifold; the converged, valid ones."""
+        s = self.settings
+        q = self._sample(s.sample_batch, rng, template)
+        q, ok = self.constraint.project(q, s.projection, self._lo, self._hi)
+        q = q[ok]
+        return q[self.checker.valid(q)]
+
+    def _biased_nodes(self, Q: torch.Tensor, scores: torch.Tensor, n: int, rng: np.random.Generator,
+                      template: np.ndarray, t0: float) -> tuple:
+        """Perception-biased sampling: ``n`` more manifold nodes, each manifold sample kept with probability equal to
+        its normalised score (its score over the 99th-percentile score of the uniform nodes, at most 1), so that
+        regions with good predicted views (the surrogate with occlusion) are dense enough to route through; at most
+        ``biased_tries * n`` samples are scored. Returns the nodes and scores with the new ones appended, and stats."""
+        s = self.settings
+        ref = max(float(torch.quantile(scores.double(), 0.99)), 1e-3) if len(scores) else 1.0
+        keep_q, keep_s, tried = [Q], [scores], 0
+        got = 0
+        while got < n and tried < s.biased_tries * n:
+            if time.perf_counter() - t0 > s.build_timeout_s:
+                log.warning("biased sampling timed out with %d/%d nodes", got, n)
+                break
+            q = self._manifold_samples(rng, template)
+            if not len(q):
+                tried += s.sample_batch
+                continue
+            sc = self.score_configs(q)
+            tried += len(q)
+            accept = torch.as_tensor(rng.random(len(q)), dtype=sc.dtype, device=sc.device) < (sc / ref).clamp(0, 1)
+            q, sc = q[accept][: n - got], sc[accept][: n - got]
+            keep_q.append(q)
+            keep_s.append(sc)
+            got += len(q)
+        if got < n:
+            log.info("biased sampling kept %d of %d nodes within %d tries", got, n, tried)
+        return torch.cat(keep_q), torch.cat(keep_s), {"biased_nodes": int(got), "biased_tried": int(tried)}
 
     def _build_hop_table(self) -> None:
         """Hop distances between all roadmap nodes (uint8, :data:`HOP_TABLE_MAX_NODES` nodes at most), one BFS per
@@ -1658,7 +1705,8 @@ class PSPRM:
 
     def _shortcut_path(self, path: list, cost: float, added_edges: list) -> tuple:
         """Perception-preserving shortcuts of a found path (``shortcut_rounds`` greedy passes): from each kept node,
-        the farthest later node joined by one direct local motion that is shorter than the stretch it replaces, is
+        the farthest later node (of the :data:`SHORTCUT_CANDIDATES` farthest within twice the roadmap's longest edge)
+        joined by one direct local motion that is shorter than the stretch it replaces, is
         collision-free (checked densely, like every edge), keeps every interior knot on the visibility manifold
         (|h_M| within the projection tolerance after re-aiming) and whose Eq. 1 perception is at least the
         motion-weighted mean Eq. 1 perception of the replaced edges. Every candidate of a node is checked in one
@@ -1684,7 +1732,9 @@ class PSPRM:
                     need = (seen[later] - seen[i]) / np.maximum(span, 1e-12)  # mean Eq. 1 of the replaced edges
                     # an existing edge between the two was the search's to take (and must not be overwritten)
                     joined = np.asarray([g.edge_id(path[i], path[x]) is not None for x in later])
-                    cand = np.nonzero((d < span - 1e-9) & ~joined)[0]
+                    # at most SHORTCUT_CANDIDATES of the farthest, within twice the roadmap's edge length
+                    cand = np.nonzero((d < span - 1e-9) & ~joined & (d <= 2 * self.max_motion))[0]
+                    cand = cand[-SHORTCUT_CANDIDATES:]
                     if len(cand):
                         ta, tb = self._t(qa[cand]), self._t(qb[cand])
                         kn, ki = self.edge_knots(ta, tb)
