@@ -958,7 +958,7 @@ def _plots(result: dict, out: Path, multi: bool) -> dict:
 
 
 def json_summary(summary: dict) -> dict:
-    """The ``--json`` object: one entry per planner with the issue's keys (+ ``ratios``)."""
+    """The ``--json`` object: one entry per planner with the metric keys of Tables II-III (+ ``ratios``)."""
     keys = ["success_rate", "det_rate", "mean_confidence", "track_rate", "path_length_rad", "preprocess_s", "plan_s",
             "total_s", "det_rate_any", "det_rate_all", "problems", "successes"]
 
