@@ -99,10 +99,9 @@ class BenchConfig:
 
 
 # ---- problems ---------------------------------------------------------------------------------------------------------
-#: Classes left out of the default target groups (none at present). Until session 10 the cup was: judged on Stretch
-#: images rendered sideways it reached the detector's threshold in ~12 % of views; upright, an aimed camera detects
-#: it from 55 % of the home room (``psprm perf viewmap``), so it is benchmarked like the paper's other objects (its
-#: tiled CenterNet costs ~0.45 s per judged frame).
+#: Classes left out of the default target groups (none at present). The cup is included: an aimed, upright Stretch
+#: camera detects it from 55 % of the home room (``psprm perf viewmap``), so it is benchmarked like the paper's other
+#: objects (its tiled CenterNet costs ~0.45 s per judged frame).
 DEFAULT_EXCLUDED_CLASSES: frozenset = frozenset()
 
 
@@ -132,8 +131,8 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
     Placement ``k`` moves every target of the group to its ``k``-th pose (:meth:`Scene.with_placement`; the paper's
     "five variations in the object's poses" per object); the problems of a placement are generated in that scene.
     Ends are collision-free, aimed at the group's centroid and not boxed in (a short turn or drive leaves them,
-    :func:`psprm_core.benchmarks.can_move_away`; since session 12, so problem sets of earlier sessions differ).
-    With ``placements=1`` the problems are those generated before placements existed (session 12).
+    :func:`psprm_core.benchmarks.can_move_away`).
+    With ``placements=1`` every problem uses the targets' scene poses (placement 0).
 
     Raises
     ------
@@ -959,7 +958,7 @@ def _plots(result: dict, out: Path, multi: bool) -> dict:
 
 
 def json_summary(summary: dict) -> dict:
-    """The ``--json`` object: one entry per planner with the issue's keys (+ ``ratios``)."""
+    """The ``--json`` object: one entry per planner with the metric keys of Tables II-III (+ ``ratios``)."""
     keys = ["success_rate", "det_rate", "mean_confidence", "track_rate", "path_length_rad", "preprocess_s", "plan_s",
             "total_s", "det_rate_any", "det_rate_all", "problems", "successes"]
 

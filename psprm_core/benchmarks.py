@@ -477,7 +477,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
                                problems: int = 100, frames: int = 12, seed: int = 0, threads: int = 2,
                                target: str | None = None, oracle_problems: int | None = None,
                                aimed: bool = True) -> dict:
-    """Issue 4's evidence: success over random problems, and oracle-measured perception along the paths of PS-PRM
+    """Success over random problems, and oracle-measured perception along the paths of PS-PRM
     vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2)."""
     from .perception.oracle import Oracle
 
@@ -523,7 +523,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
 def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-psprm-line", nodes: int = 3000,
                      updates: int = 50, seed: int = 0, threads: int = 2, target: str | None = None,
                      heuristic: str | None = None) -> dict:
-    """Issue 5's numbers: latency of (update + re-search until a verified path) for target, obstacle and goal moves
+    """Latency of (update + re-search until a verified path) for target, obstacle and goal moves
     on one roadmap, and the time a full re-score of every node and edge takes (what lazy evaluation avoids).
 
     * ``target_move``: the person (target + the obstacle it stands in, if any) turns to a random yaw within +-1.2 rad

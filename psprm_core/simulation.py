@@ -378,7 +378,7 @@ def judge_frames(ep: dict, oracle, target: str) -> None:
 
 
 def summarize(ep: dict) -> dict:
-    """Summary numbers of an episode (the issue's JSON keys)."""
+    """Summary numbers of an episode (the keys of ``psprm simulate --json``)."""
     from .motion import DiffDriveMotion
 
     ex = ep["executed"]

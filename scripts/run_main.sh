@@ -3,7 +3,7 @@
 # the ROS 2 node suite (roadmap server, perception scorer, replan monitor, all in one process) on `dynamic_person`,
 # driven by the shipped motion-capture recording of a person turning side to side; prints every plan and replan
 # (triggers, latencies, predicted and oracle scores) and writes out/ros_demo.png / out/ros_demo.json.
-# The planning-only walk-through of session one is `.venv/bin/psprm demo --scene home`.
+# The planning-only walk-through is `.venv/bin/psprm demo --scene home`.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/setup_env.sh"

@@ -18,7 +18,12 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   echo "[setup] installing pinned requirements (torch==2.13.0, CPU build) ..." >&2
   "$venv/bin/python" -m pip install --quiet --upgrade pip 2>&1 | quiet_pip
   "$venv/bin/python" -m pip install --quiet -r "$root/requirements.txt" 2>&1 | quiet_pip
-  "$venv/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e "$root" 2>&1 | quiet_pip
+  # The editable install builds with the venv's own setuptools (no build isolation): >= 77 reads the SPDX license
+  # string of pyproject.toml. Its notice about editable installs is informational and filtered out.
+  "$venv/bin/python" -m pip install --quiet "setuptools>=77" 2>&1 | quiet_pip
+  echo "[setup] installing psprm (editable) ..." >&2
+  PYTHONWARNINGS="ignore:Editable installation" \
+    "$venv/bin/python" -m pip install --quiet --no-deps --no-build-isolation -e "$root" 2>&1 | quiet_pip
   "$venv/bin/python" -c "import torch, psprm_core; assert torch.__version__.startswith('2.13.0')" 
   echo "[setup] installing detector models (first run converts CenterNet once; cached afterwards) ..." >&2
   bash "$root/scripts/install_detectors.sh" "$venv/bin/python" >&2

@@ -16,7 +16,7 @@ Observation (float32, clipped to +-10)
     Optional (``goal_bearing``): the goal position relative to the base again in polar form, the sine and cosine
     of its bearing from the base heading and its (scaled) distance, so that "turn towards the goal" is a linear
     function of the observation.
-    Optional (``scan_beams > 0``; not part of the issue's observation, off by default): a horizontal range scan of
+    Optional (``scan_beams > 0``; not part of the base observation, off by default): a horizontal range scan of
     the scene boxes from the base (``scan_beams`` rays, ranges / ``scan_range``) and whether the last action was
     rejected (with ``streak_cap > 0``: the number of consecutive rejected actions / ``streak_cap``, at most 1, so
     that a deterministic policy that keeps driving into an obstacle sees a changing observation).

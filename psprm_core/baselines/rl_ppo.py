@@ -7,9 +7,8 @@ steps (:class:`PPOSettings`). The observation holds the configuration, the goal,
 progress; the reward is the geometric perception proxy, the motion cost, the goal progress, a collision penalty
 for rejected (invalid) actions and a goal bonus (see :mod:`.rl_env`).
 
-The shipped settings (``config/planners/baselines.yaml``) go beyond those issue values where that was measured to
-help (home, ``tv``, 50 bench problems, 1e5 steps: 42 % of the goals reached against 2-3 % with the issue values;
-docs/benchmarks.md): the 512-step rollout is split over 8 environments stepped in turn (64 steps each, more episodes
+The shipped settings (``config/planners/baselines.yaml``) go beyond those base values where that was measured to
+help (home, ``tv``, 50 bench problems, 1e5 steps: 42 % of the goals reached against 2-3 % with the base values): the 512-step rollout is split over 8 environments stepped in turn (64 steps each, more episodes
 per update), the initial action standard deviation is 0.37, the observation carries a 16-beam range scan, whether the
 last action was rejected and the goal's bearing, the goal progress counts 0.25 m per radian of heading error towards
 the goal, a rejected action costs 0.1 and the final motion to the goal is tried from 0.4 m. Optional, off, and

@@ -70,8 +70,8 @@ class ReplanSettings:
     # current weights; every update changes weights, and A* then expands little more than the path), "hop" (Eq. 3,
     # the paper's), or "planner" (keep the planner's setting)
     smooth_timing: bool = True  # replanned trajectories pass the knots of a base phase without stopping: about a
-    # third shorter to execute, for about +25 ms per replan (per-phase TOPP-RA); within the latency goals since the
-    # compiled query paths (session 6: target / obstacle / goal moves 62 / 93 / 38 ms median)
+    # third shorter to execute, for about +25 ms per replan (per-phase TOPP-RA); within the latency goals
+    # (docs/benchmarks.md, "Replanning latency")
 
     def __post_init__(self):
         if self.heuristic not in HEURISTICS:
