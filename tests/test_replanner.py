@@ -1,5 +1,6 @@
 """Online replanning: no returned path ever collides with the obstacle poses it was given (random dynamic episodes,
-judged by a fresh collision checker), lazy re-scoring yields verified Eq. 1 scores on the path, obstacle updates prune
+judged from the test's own record of the poses it sent, by a checker built afresh from it and by pybullet, on the dense
+path and the timed trajectory), goal hysteresis needs its margin, lazy re-scoring yields verified Eq. 1 scores on the path, obstacle updates prune
 exactly the colliding nodes, repair grows valid manifold nodes, triggers and bad input, scenario files."""
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
+from psprm_core.reference import PybulletWorld
 from psprm_core.scene import load_scene
 from psprm_core.simulation import PersonMotion, load_scenario, person_pose
 
@@ -61,55 +63,151 @@ def replanner(world, saved_roadmap):
     return rp
 
 
-def _free(robot, scene, dense) -> bool:
-    """Independent judge: a fresh checker built from the scene's current boxes."""
-    ch = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    return not bool(ch.check(torch.as_tensor(dense, dtype=torch.float32)).any())
+class SentPoses:
+    """The test's own record of every pose it sent, applied to the scene loaded afresh from its file: what the judge
+    checks against never comes from the replanner."""
+
+    def __init__(self, scene_name: str):
+        self.scene = load_scene(resolve_named("scene", scene_name))
+        self.poses = {b.name: (b.center.copy(), b.quat.copy()) for b in self.scene.obstacles}
+        self.poses.update({t.name: (t.center.copy(), t.quat.copy()) for t in self.scene.targets if t.obstacle})
+
+    def sent(self, name: str, center, quat) -> None:
+        q = np.asarray(quat, float)
+        self.poses[name] = (np.asarray(center, float).copy(), q / np.linalg.norm(q))
+
+    def boxes(self) -> list:
+        out = [dataclasses.replace(b, center=self.poses[b.name][0], quat=self.poses[b.name][1])
+               for b in self.scene.obstacles]
+        return out + [dataclasses.replace(t, center=self.poses[t.name][0], quat=self.poses[t.name][1]).as_box()
+                      for t in self.scene.targets if t.obstacle]
+
+
+class Judge:
+    """Collision flags of configurations against the poses a test sent: a collision checker built afresh from the
+    test's record (the planner's conservative box model) and pybullet's exact mesh check on the same record."""
+
+    def __init__(self, robot, sent: SentPoses):
+        self.robot, self.sent = robot, sent
+        self.world = PybulletWorld(robot, sent.boxes())
+        self._bodies = {name: body for body, name in self.world.box_bodies.items()}
+
+    def close(self) -> None:
+        self.world.close()
+
+    def colliding(self, qs: np.ndarray, exact_every: int = 1) -> np.ndarray:
+        qs = np.asarray(qs, float)
+        boxes = self.sent.boxes()
+        ch = CollisionChecker(self.robot, boxes, workspace=self.sent.scene.workspace)
+        hit = ch.check(torch.as_tensor(qs, dtype=torch.float32)).numpy().copy()
+        for b in boxes:  # the same poses in pybullet
+            self.world.p.resetBasePositionAndOrientation(self._bodies[b.name], list(b.center), list(b.quat),
+                                                         physicsClientId=self.world.cid)
+        idx = np.arange(0, len(qs), exact_every)
+        hit[idx] |= self.world.in_collision(qs[idx])
+        return hit
+
+
+def _wrap(q: np.ndarray) -> np.ndarray:
+    q = np.array(q, float)
+    q[..., 2] = (q[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    return q
+
+
+def _same(a: np.ndarray, b: np.ndarray, tol: float = 1e-4) -> bool:
+    d = np.asarray(a, float) - np.asarray(b, float)
+    d[..., 2] = (d[..., 2] + np.pi) % (2 * np.pi) - np.pi
+    return bool(np.abs(d).max() < tol)
+
+
+def _ahead(plan: PlanResult, q_robot: np.ndarray, t_robot: float, dt: float = 0.02) -> tuple:
+    """What the robot still executes of ``plan`` from ``q_robot`` at trajectory time ``t_robot``: the dense path from
+    its nearest configuration on, and the timed trajectory's positions sampled every ``dt`` from ``t_robot`` on."""
+    d = plan.dense - q_robot
+    d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    k = int(np.argmin(np.abs(d).sum(1)))
+    traj = plan.trajectory
+    ts = np.r_[np.arange(t_robot, traj.duration, dt), traj.duration]
+    return plan.dense[k:], traj.evaluate(ts)[0]
 
 
 def test_random_dynamic_episodes_never_return_a_colliding_path(world):
+    """Random episodes of obstacles pushed onto the path or anywhere near it (position and yaw), the person turning,
+    the goal changing and the robot advancing along its timed trajectory: after every step the motion the robot is
+    left to execute (a new plan from where it stands, or the rest of the kept one) is free under the test's own
+    record of the poses it sent, judged by a checker built afresh from that record and by pybullet, on the dense
+    path and on the trajectory's positions sampled in time. A new plan starts where the robot is and ends at a goal
+    the test set."""
     scene, robot = world
     rng = np.random.default_rng(0)
     movable = ["table", "chair", "cabinet", "sofa", "shelf"]
     motion = PersonMotion(target="person_face", body="person_body")
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
-    checked = 0
+    paths = replans = 0
     for episode in range(2):
+        sent = SentPoses("dynamic_person")
+        judge = Judge(robot, sent)
         p = _planner(robot, scene, seed=10 + episode, n=400)
         rp = Replanner(p, targets=["person_face"], settings=ReplanSettings(repair_nodes=80))
-        rp.set_robot_state(start)
-        rp.set_goals(goals)
-        res = rp.replan()
-        for step in range(6):
-            for _ in range(20):  # obstacles move anywhere, but not into the robot itself
-                if res.success and len(res.dense) > 4 and rng.random() < 0.6:
-                    # push a piece of furniture right onto the current path (the worst case), or anywhere nearby
-                    q_mid = res.dense[rng.integers(len(res.dense) // 2, len(res.dense))]
+        q_robot, goals_sent = start.copy(), goals.copy()
+        rp.set_robot_state(q_robot)
+        rp.set_goals(goals_sent)
+        plan, t_robot = None, 0.0
+        try:
+            for step in range(8):
+                if plan is not None and rng.random() < 0.5:  # the robot advances along the trajectory it executes
+                    t_robot = min(plan.trajectory.duration, t_robot + rng.uniform(0.2, 0.4) * plan.trajectory.duration)
+                    q_robot = _wrap(plan.trajectory.evaluate(t_robot)[0][0])
+                    rp.set_robot_state(q_robot)
+                for _ in range(20):  # an obstacle moves anywhere, but not into the robot itself
                     name = movable[rng.integers(len(movable))]
-                    c = np.r_[q_mid[:2] + rng.uniform(-0.3, 0.3, 2), scene.obstacle(name).center[2]]
-                else:
-                    name = movable[rng.integers(len(movable))]
-                    c = scene.obstacle(name).center + np.r_[rng.uniform(-0.8, 0.8, 2), 0.0]
-                yaw = rng.uniform(-np.pi, np.pi)
-                box = dataclasses.replace(scene.obstacle(name), center=c, quat=yaw_to_quat(yaw))
-                if not CollisionChecker(robot, [box]).check(torch.as_tensor(rp.q[None], dtype=torch.float32))[0]:
-                    break
-            rp.update_obstacle(name, c, yaw_to_quat(yaw))
-            pp = person_pose(scene, motion, 2.8 + rng.uniform(-1.5, 1.5))
-            rp.update_target("person_face", *pp["target"])
-            rp.update_obstacle("person_body", *pp["body"])
-            if rng.random() < 0.3:
-                rp.set_goals(goals[rng.integers(len(goals))])
-            if res.success and rng.random() < 0.5:  # the robot advanced along its (collision-free) path
-                rp.set_robot_state(res.dense[len(res.dense) // 3])
-            if rp.needs_replan() or not res.success:
-                res = rp.replan()
-            if res.success:
-                assert _free(robot, rp.scene, res.dense), f"episode {episode} step {step}: path collides"
-                checked += 1
-            else:  # a failure must say why
-                assert res.reason
-    assert checked >= 6
+                    if plan is not None and rng.random() < 0.6:  # onto the path still ahead (the worst case)
+                        rest, _ = _ahead(plan, q_robot, t_robot)
+                        q_on = rest[rng.integers(len(rest) // 2, len(rest))] if len(rest) > 1 else rest[0]
+                        c = np.r_[q_on[:2] + rng.uniform(-0.3, 0.3, 2), sent.scene.obstacle(name).center[2]]
+                    else:
+                        c = sent.scene.obstacle(name).center + np.r_[rng.uniform(-0.8, 0.8, 2), 0.0]
+                    quat = yaw_to_quat(rng.uniform(-np.pi, np.pi))
+                    box = dataclasses.replace(sent.scene.obstacle(name), center=c, quat=quat)
+                    if not CollisionChecker(robot, [box]).check(torch.as_tensor(q_robot[None], dtype=torch.float32))[0]:
+                        break
+                rp.update_obstacle(name, c, quat)
+                sent.sent(name, c, quat)
+                for _ in range(20):  # the person turns, but not into the robot
+                    pp = person_pose(sent.scene, motion, 2.8 + rng.uniform(-1.5, 1.5))
+                    body = dataclasses.replace(sent.scene.obstacle("person_body"), quat=pp["body"][1])
+                    if not CollisionChecker(robot, [body]).check(torch.as_tensor(q_robot[None], dtype=torch.float32))[0]:
+                        break
+                rp.update_target("person_face", *pp["target"])
+                sent.sent("person_face", *pp["target"])
+                rp.update_obstacle("person_body", *pp["body"])
+                sent.sent("person_body", *pp["body"])
+                if rng.random() < 0.3:
+                    goals_sent = goals[rng.integers(len(goals))][None]
+                    rp.set_goals(goals_sent)
+                if plan is None or rp.needs_replan():
+                    res = rp.replan()
+                    replans += 1
+                    if res.success:
+                        plan, t_robot = res, 0.0
+                        assert _same(res.dense[0], q_robot) and _same(res.trajectory.positions[0], q_robot)
+                        assert any(_same(res.dense[-1], g) for g in goals_sent), f"step {step}: not at a goal"
+                        assert _same(res.trajectory.evaluate(res.trajectory.duration)[0][0], res.dense[-1])
+                    else:
+                        assert res.reason
+                        if rp.result is None:  # the old plan is no longer safe: the robot stops where it is
+                            plan = None
+                if plan is None:
+                    assert not judge.colliding(q_robot[None]).any()
+                    continue
+                dense, timed = _ahead(plan, q_robot, t_robot)
+                assert not judge.colliding(dense).any(), f"episode {episode} step {step}: the dense path collides"
+                assert not judge.colliding(timed, exact_every=5).any(), \
+                    f"episode {episode} step {step}: the timed trajectory collides"
+                paths += 1
+        finally:
+            judge.close()
+    assert paths >= 10 and replans >= 8, (paths, replans)  # most steps leave a path to judge
 
 
 def test_lazy_rescore_verifies_the_path_edges(replanner, world):
@@ -152,16 +250,28 @@ def test_obstacle_update_prunes_exactly_the_colliding_nodes(replanner, world):
 
 
 def test_path_collision_trigger_and_replan_avoid_a_box_dropped_on_the_path(replanner, world):
+    """A chair dropped onto the middle of the path: the old path collides with it (judged from the test's own record),
+    the trigger fires, and the replan goes around it to one of the goals: free on the dense path and the trajectory."""
     scene, robot = world
     rp = replanner
-    q_mid = rp.result.dense[len(rp.result.dense) // 2]
+    old = rp.result
+    q_mid = old.dense[len(old.dense) // 2]
+    sent = SentPoses("dynamic_person")
+    chair_quat = sent.scene.obstacle("chair").quat
     rp.update_obstacle("chair", [q_mid[0], q_mid[1], 0.45])
-    assert "collision" in rp.needs_replan()
-    res = rp.replan()
-    if res.success:
-        assert _free(robot, rp.scene, res.dense)
-    else:
-        assert rp.result is None or not rp.remaining_path_collides()
+    sent.sent("chair", [q_mid[0], q_mid[1], 0.45], chair_quat)
+    judge = Judge(robot, sent)
+    try:
+        assert judge.colliding(old.dense).any()  # the drop really blocks the old path
+        assert "collision" in rp.needs_replan()
+        res = rp.replan()
+        assert res.success, res.reason
+        dense, timed = _ahead(res, rp.q, 0.0)
+        assert len(dense) == len(res.dense)
+        assert not judge.colliding(dense).any() and not judge.colliding(timed, exact_every=5).any()
+        assert _same(res.dense[0], rp.q) and any(_same(res.dense[-1], g) for g in rp.goals)
+    finally:
+        judge.close()
 
 
 def test_small_jitter_does_not_trigger(replanner):
@@ -500,17 +610,41 @@ def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
     assert all(set(extras[1][k].tolist()) < set(extras[2][k].tolist()) for k in extras[1])  # accumulated
 
 
-def test_goal_hysteresis_keeps_the_current_goal(replanner, world):
-    scene, robot = world
+def test_goal_hysteresis_needs_the_margin(replanner):
+    """With the shipped settings, a goal that becomes cheaper than the current one by less than the margin does not
+    take over; one cheaper by more than the margin does. The pairs are chosen from single-goal plans of roadmap
+    nodes from one robot state: the current goal is planned alone first, then both are offered (the cheaper first)."""
     rp = replanner
-    _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
-    current = rp.goals[rp.result.goal_index].copy()
-    other = [g for g in goals if not np.allclose(g, current)][0]
-    # make the other goal the only cheap one... by costs alone: with a huge margin the current goal is kept anyway
-    rp.settings = dataclasses.replace(rp.settings, goal_switch_margin=100.0)
-    rp.set_goals(np.stack([other, current]))
-    res = rp.replan()
-    assert res.success and np.allclose(rp.goals[res.goal_index], current)
+    p = rp.planner
+    margin = ReplanSettings.from_yaml(config_dir() / "planners" / "replan.yaml").goal_switch_margin
+    q = rp.q
+    rng = np.random.default_rng(1)
+    ids = rng.choice(p.roadmap_node_ids(), 60, replace=False)
+    cand = [(float(r.cost), p.graph.configs[i].copy()) for i in ids
+            for r in [p.plan(q, p.graph.configs[i], timing=False)] if r.success]
+    costs = np.array([c for c, _ in cand])
+    assert len(cand) > 30
+
+    def pair(lo: float, hi: float) -> tuple:
+        """(current, other): the other goal cheaper by a fraction of the current cost within [lo, hi]."""
+        for a in np.argsort(-costs):
+            gap = (costs[a] - costs) / costs[a]
+            ok = np.flatnonzero((gap > lo) & (gap < hi))
+            if len(ok):
+                return cand[a][1], cand[ok[0]][1]
+        raise AssertionError(f"no goal pair {lo}-{hi} cheaper among {len(cand)} roadmap goals")
+
+    for lo, hi, switch in ((0.02, 0.5 * margin, False), (2.0 * margin, 0.9, True)):
+        current, other = pair(lo, hi)
+        rp.set_robot_state(q)
+        rp.set_goals(current)
+        first = rp.replan()
+        assert first.success and _same(first.dense[-1], current)
+        rp.set_goals(np.stack([other, current]))
+        res = rp.replan()
+        assert res.success, res.reason
+        chosen = other if switch else current
+        assert _same(res.dense[-1], chosen), f"gap {lo}-{hi} of the current cost: switch expected = {switch}"
 
 
 def test_replan_runs_with_one_intra_op_thread(replanner, world, monkeypatch):
