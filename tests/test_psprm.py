@@ -16,9 +16,11 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
-from psprm_core.planning.timing import check_base_segments, max_limit_violation
+from psprm_core.planning.timing import check_base_segments
 from psprm_core.reference import PybulletWorld, sample_uniform
 from psprm_core.scene import load_scene
+
+from judges import limit_ratios  # noqa: E402
 
 N_NODES = 700
 
@@ -91,7 +93,8 @@ def test_path_is_collision_free_drivable_and_timed(home):
         world.close()
     assert check_base_segments(res.waypoints, (0, 1, 2), 1e-5) == []  # rotate or drive straight, never sideways
     assert check_base_segments(traj.positions, (0, 1, 2), 1e-5) == []  # also between the knots
-    assert max_limit_violation(traj, robot.velocity, robot.acceleration) < 1e-6
+    over = {k: r for k, r in limit_ratios(traj, robot).items() if r > 1 + 1e-3}
+    assert not over, f"limits exceeded (finite differences of the positions): {over}"
     assert np.all(np.diff(traj.times) > 0)
     # smooth timing: the robot stops where the base changes its motion, not at every re-aiming knot
     stops = int((np.abs(traj.velocities[1:-1]).max(1) <= 1e-9).sum())
@@ -101,6 +104,21 @@ def test_path_is_collision_free_drivable_and_timed(home):
     expected = planner.score_configs(torch.as_tensor(res.dense, dtype=planner.dtype)).double().numpy()
     np.testing.assert_allclose(res.dense_scores, expected, atol=1e-6)
     assert res.mean_score == pytest.approx(float(expected.mean()), abs=1e-6) and expected.std() > 0
+
+
+def test_every_problem_keeps_the_base_and_joint_limits_by_finite_differences(home):
+    """Over every home problem, the executed trajectories keep the base's linear (norm of the world-frame x, y
+    velocity) and angular limits and every joint's, speeds and accelerations alike, measured by finite differences of
+    the positions sampled along time; and the base comes close to its top speed, so the check is not idle."""
+    scene, robot, planner = home
+    worst = {}
+    for p in scene.problems:
+        res = planner.plan(*problem_configurations(robot, scene, p))
+        assert res.success, (p.name, res.reason)
+        for k, r in limit_ratios(res.trajectory, robot).items():
+            worst[k] = max(worst.get(k, 0.0), r)
+    assert max(worst.values()) <= 1 + 1e-3, {k: round(r, 4) for k, r in worst.items() if r > 1 + 1e-3}
+    assert worst["base_linear_velocity"] > 0.9 and worst["base_angular_velocity"] > 0.9
 
 
 def test_perception_weighting_beats_shortest_path(home):

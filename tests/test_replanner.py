@@ -20,9 +20,10 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
-from psprm_core.reference import PybulletWorld
 from psprm_core.scene import load_scene
 from psprm_core.simulation import PersonMotion, load_scenario, person_pose
+
+from judges import Judge, SentPoses, limit_ratios, same_config, wrap  # noqa: E402
 
 N_NODES = 500
 
@@ -63,63 +64,6 @@ def replanner(world, saved_roadmap):
     return rp
 
 
-class SentPoses:
-    """The test's own record of every pose it sent, applied to the scene loaded afresh from its file: what the judge
-    checks against never comes from the replanner."""
-
-    def __init__(self, scene_name: str):
-        self.scene = load_scene(resolve_named("scene", scene_name))
-        self.poses = {b.name: (b.center.copy(), b.quat.copy()) for b in self.scene.obstacles}
-        self.poses.update({t.name: (t.center.copy(), t.quat.copy()) for t in self.scene.targets if t.obstacle})
-
-    def sent(self, name: str, center, quat) -> None:
-        q = np.asarray(quat, float)
-        self.poses[name] = (np.asarray(center, float).copy(), q / np.linalg.norm(q))
-
-    def boxes(self) -> list:
-        out = [dataclasses.replace(b, center=self.poses[b.name][0], quat=self.poses[b.name][1])
-               for b in self.scene.obstacles]
-        return out + [dataclasses.replace(t, center=self.poses[t.name][0], quat=self.poses[t.name][1]).as_box()
-                      for t in self.scene.targets if t.obstacle]
-
-
-class Judge:
-    """Collision flags of configurations against the poses a test sent: a collision checker built afresh from the
-    test's record (the planner's conservative box model) and pybullet's exact mesh check on the same record."""
-
-    def __init__(self, robot, sent: SentPoses):
-        self.robot, self.sent = robot, sent
-        self.world = PybulletWorld(robot, sent.boxes())
-        self._bodies = {name: body for body, name in self.world.box_bodies.items()}
-
-    def close(self) -> None:
-        self.world.close()
-
-    def colliding(self, qs: np.ndarray, exact_every: int = 1) -> np.ndarray:
-        qs = np.asarray(qs, float)
-        boxes = self.sent.boxes()
-        ch = CollisionChecker(self.robot, boxes, workspace=self.sent.scene.workspace)
-        hit = ch.check(torch.as_tensor(qs, dtype=torch.float32)).numpy().copy()
-        for b in boxes:  # the same poses in pybullet
-            self.world.p.resetBasePositionAndOrientation(self._bodies[b.name], list(b.center), list(b.quat),
-                                                         physicsClientId=self.world.cid)
-        idx = np.arange(0, len(qs), exact_every)
-        hit[idx] |= self.world.in_collision(qs[idx])
-        return hit
-
-
-def _wrap(q: np.ndarray) -> np.ndarray:
-    q = np.array(q, float)
-    q[..., 2] = (q[..., 2] + np.pi) % (2 * np.pi) - np.pi
-    return q
-
-
-def _same(a: np.ndarray, b: np.ndarray, tol: float = 1e-4) -> bool:
-    d = np.asarray(a, float) - np.asarray(b, float)
-    d[..., 2] = (d[..., 2] + np.pi) % (2 * np.pi) - np.pi
-    return bool(np.abs(d).max() < tol)
-
-
 def _ahead(plan: PlanResult, q_robot: np.ndarray, t_robot: float, dt: float = 0.02) -> tuple:
     """What the robot still executes of ``plan`` from ``q_robot`` at trajectory time ``t_robot``: the dense path from
     its nearest configuration on, and the timed trajectory's positions sampled every ``dt`` from ``t_robot`` on."""
@@ -136,8 +80,8 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
     the goal changing and the robot advancing along its timed trajectory: after every step the motion the robot is
     left to execute (a new plan from where it stands, or the rest of the kept one) is free under the test's own
     record of the poses it sent, judged by a checker built afresh from that record and by pybullet, on the dense
-    path and on the trajectory's positions sampled in time. A new plan starts where the robot is and ends at a goal
-    the test set."""
+    path and on the trajectory's positions sampled in time. A new plan starts where the robot is, ends at a goal the
+    test set, and keeps every speed and acceleration limit (finite differences of its positions)."""
     scene, robot = world
     rng = np.random.default_rng(0)
     movable = ["table", "chair", "cabinet", "sofa", "shelf"]
@@ -157,7 +101,7 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
             for step in range(8):
                 if plan is not None and rng.random() < 0.5:  # the robot advances along the trajectory it executes
                     t_robot = min(plan.trajectory.duration, t_robot + rng.uniform(0.2, 0.4) * plan.trajectory.duration)
-                    q_robot = _wrap(plan.trajectory.evaluate(t_robot)[0][0])
+                    q_robot = wrap(plan.trajectory.evaluate(t_robot)[0][0])
                     rp.set_robot_state(q_robot)
                 for _ in range(20):  # an obstacle moves anywhere, but not into the robot itself
                     name = movable[rng.integers(len(movable))]
@@ -190,9 +134,11 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
                     replans += 1
                     if res.success:
                         plan, t_robot = res, 0.0
-                        assert _same(res.dense[0], q_robot) and _same(res.trajectory.positions[0], q_robot)
-                        assert any(_same(res.dense[-1], g) for g in goals_sent), f"step {step}: not at a goal"
-                        assert _same(res.trajectory.evaluate(res.trajectory.duration)[0][0], res.dense[-1])
+                        assert same_config(res.dense[0], q_robot) and same_config(res.trajectory.positions[0], q_robot)
+                        assert any(same_config(res.dense[-1], g) for g in goals_sent), f"step {step}: not at a goal"
+                        assert same_config(res.trajectory.evaluate(res.trajectory.duration)[0][0], res.dense[-1])
+                        over = {k: r for k, r in limit_ratios(res.trajectory, robot).items() if r > 1 + 1e-3}
+                        assert not over, f"step {step}: limits exceeded (finite differences): {over}"
                     else:
                         assert res.reason
                         if rp.result is None:  # the old plan is no longer safe: the robot stops where it is
@@ -269,7 +215,7 @@ def test_path_collision_trigger_and_replan_avoid_a_box_dropped_on_the_path(repla
         dense, timed = _ahead(res, rp.q, 0.0)
         assert len(dense) == len(res.dense)
         assert not judge.colliding(dense).any() and not judge.colliding(timed, exact_every=5).any()
-        assert _same(res.dense[0], rp.q) and any(_same(res.dense[-1], g) for g in rp.goals)
+        assert same_config(res.dense[0], rp.q) and any(same_config(res.dense[-1], g) for g in rp.goals)
     finally:
         judge.close()
 
@@ -639,12 +585,12 @@ def test_goal_hysteresis_needs_the_margin(replanner):
         rp.set_robot_state(q)
         rp.set_goals(current)
         first = rp.replan()
-        assert first.success and _same(first.dense[-1], current)
+        assert first.success and same_config(first.dense[-1], current)
         rp.set_goals(np.stack([other, current]))
         res = rp.replan()
         assert res.success, res.reason
         chosen = other if switch else current
-        assert _same(res.dense[-1], chosen), f"gap {lo}-{hi} of the current cost: switch expected = {switch}"
+        assert same_config(res.dense[-1], chosen), f"gap {lo}-{hi} of the current cost: switch expected = {switch}"
 
 
 def test_replan_runs_with_one_intra_op_thread(replanner, world, monkeypatch):
