@@ -321,6 +321,35 @@ def evaluate_path(oracle, robot, motion, dense: np.ndarray, targets: Sequence[st
     return out
 
 
+def verify_success(robot, checker, motion, start: np.ndarray, goal: np.ndarray, dense: np.ndarray,
+                   tol: float = 1e-3, max_step: float = 0.25) -> str:
+    """Why a planner's claimed success does not hold ("" when it does): the executed path ``dense`` must start at
+    ``start`` and end at ``goal`` (or at one of several goals (G, dof)), every joint within ``tol`` and the base
+    heading modulo a turn, advance in steps of at most ``max_step`` (the motion metric; the planners' paths step
+    0.05-0.13) and be collision-free under ``checker``, a collision checker of the bench's own scene. The bench counts
+    a success only when this holds."""
+    import torch
+
+    d = np.asarray(dense, float)
+    if d.ndim != 2 or len(d) < 2 or not np.isfinite(d).all():
+        return "the path is not a finite sequence of configurations"
+    for what, q, want in (("start", d[0], start), ("goal", d[-1], goal)):
+        off = q - np.atleast_2d(np.asarray(want, float))
+        if robot.mobile:
+            off[:, 2] = (off[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        if np.abs(off).max(1).min() > tol:
+            return f"the path's {'end' if what == 'goal' else what} is {np.abs(off).max(1).min():.3g} away from " \
+                   f"the problem's {what}"
+    q = torch.as_tensor(d, dtype=torch.float64)
+    step = float(motion.distance(q[:-1], q[1:]).max())
+    if step > max_step:
+        return f"the path jumps {step:.3g} between two of its configurations (at most {max_step:g})"
+    hit = checker.check(q.to(torch.float32)).cpu().numpy()
+    if hit.any():
+        return f"the path collides at {int(hit.sum())} of its {len(d)} configurations"
+    return ""
+
+
 # ---- workers ----------------------------------------------------------------------------------------------------------
 ROW_FIELDS = ["planner", "problem", "run_seed", "targets", "placement", "success", "reason", "preprocess_s", "plan_s",
               "total_s", "path_length_rad", "frames", "det_rate", "det_rate_strict", "mean_confidence", "track_rate",
@@ -441,8 +470,9 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
 
     # one instance for all problems, or (scenario runs) one per run seed, built when its first problem comes up
     p, prep, pre, built_seed, build_error = None, {"preprocess_s": float("nan")}, float("nan"), None, None
-    oracle = None
+    oracle = checker = None
     try:
+        from .collision import CollisionChecker
         from .perception.oracle import Oracle
 
         for prob in problems:
@@ -479,7 +509,15 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
                 emit("row", row)
                 continue
             plan_s = time.perf_counter() - t1
-            if not res.success or res.dense is None or len(res.dense) == 0:
+            claim = ""
+            if res.success and res.dense is not None and len(res.dense):
+                if checker is None:
+                    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+                claim = verify_success(robot, checker, motion, prob["start"], prob["goal"], res.dense)
+            if claim:
+                log.error("%s claimed success on problem %d: %s", planner, prob["index"], claim)
+                row = _failure_row(planner, prob, f"claimed success rejected: {claim}", pre, plan_s)
+            elif not res.success or res.dense is None or len(res.dense) == 0:
                 row = _failure_row(planner, prob, res.reason or "failed", pre, plan_s)
             else:
                 from .baselines.base import path_length

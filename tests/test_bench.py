@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from psprm_core import baselines
-from psprm_core.bench import (BenchConfig, default_target_groups, frame_indices, json_summary, make_problems,
-                              run_bench, scenario_problems, summarize, track_flags, write_outputs)
+from psprm_core.bench import (BenchConfig, default_target_groups, evaluate_path, frame_indices, json_summary,
+                              make_problems, run_bench, scenario_problems, summarize, track_flags, verify_success,
+                              write_outputs)
 from psprm_core.errors import PsprmError
 from psprm_core.motion import DiffDriveMotion
 from psprm_core.paths import resolve_named
@@ -52,6 +53,41 @@ class SeedRecordingPlanner:
 
         SeedRecordingPlanner.queries.append((np.asarray(start).copy(), np.asarray(goals).copy(), self.targets))
         return PlanResult(success=False, reason=f"built with seed {self.seed}")
+
+
+def _drive(robot, qa, qb, n: int = 200) -> np.ndarray:
+    """n configurations of the differential-drive motion from qa to qb (rotate, drive straight, rotate)."""
+    qa, qb = (torch.as_tensor(np.tile(q, (n, 1)), dtype=torch.float64) for q in (qa, qb))
+    return DiffDriveMotion(robot).interpolate(qa, qb, torch.linspace(0.0, 1.0, n, dtype=torch.float64)).numpy()
+
+
+class ClaimingPlanner:
+    """Claims success with a path it made up: driving through the table to the goal (``mode = "table"``), ending
+    half a metre short of the goal (``"short"``), or jumping from the start straight to the goal (``"jump"``)."""
+
+    mode = "table"
+
+    def __init__(self, name, scene, targets, robot=None, seed=0, **kw):
+        self.table, self.robot = scene.obstacle("table").center, robot or RobotModel.load(scene.robot)
+
+    def prepare(self):
+        return {"preprocess_s": 0.0}
+
+    def plan(self, start, goals, timeout_s=60.0):
+        from psprm_core.planning.psprm import PlanResult
+
+        goal = np.asarray(goals, float).reshape(-1, len(start))[0]
+        if ClaimingPlanner.mode == "jump":
+            dense = np.stack([start, goal])
+        elif ClaimingPlanner.mode == "table":
+            via = goal.copy()
+            via[:2] = self.table[:2]
+            dense = np.vstack([_drive(self.robot, start, via), _drive(self.robot, via, goal)[1:]])
+        else:
+            short = goal.copy()
+            short[0] -= 0.5
+            dense = _drive(self.robot, start, short)
+        return PlanResult(success=True, reason="ok", dense=dense, waypoints=dense[[0, -1]])
 
 
 class PlacementRecordingPlanner:
@@ -337,3 +373,108 @@ def test_bench_set_reaches_the_planner_and_the_table(tmp_path, monkeypatch, caps
     assert main(["bench", "--scene", "nursing", "--planners", "post", "--problems", "1", "--workers", "1",
                  "--out", str(tmp_path), "--set", "post.alpha=0.9"]) == 2
     assert "'alpha' is not a setting of post" in capsys.readouterr().err
+
+
+def test_bench_rejects_claimed_successes_that_collide_or_miss_the_goal(tmp_path, monkeypatch, home):
+    """A planner's success is re-checked by the bench: a path through the table (pybullet confirms it collides), one
+    that ends short of the goal, and one that jumps from start to goal are failure rows that say why; the honest Post
+    planner on the same problems keeps its successes."""
+    from psprm_core.reference import PybulletWorld
+
+    scene, robot = home
+    monkeypatch.setitem(baselines.BASELINES, "rejection", f"{__name__}:ClaimingPlanner")
+    probs = make_problems(scene, robot, [["tv"]], 1, seed=1)
+    ClaimingPlanner.mode = "table"
+    claimed = ClaimingPlanner("x", scene, ["tv"], robot=robot).plan(probs[0]["start"], probs[0]["goal"]).dense
+    world = PybulletWorld(robot, scene.collision_boxes())
+    try:
+        assert world.in_collision(claimed).any()
+    finally:
+        world.close()
+    for mode, why in (("table", "collides"), ("short", "path's end is 0.5 away"), ("jump", "jumps")):
+        ClaimingPlanner.mode = mode
+        cfg = BenchConfig(scene="home", planners=["post", "rejection"], problems=1, seed=1, out=str(tmp_path),
+                          workers=1, max_frames=2, frame_spacing=2.0, target_groups=[["tv"]])
+        rows = {r["planner"]: r for r in run_bench(cfg, progress=False)["rows"]}
+        assert rows["post"]["success"] is True, rows["post"]["reason"]
+        bad = rows["rejection"]
+        assert bad["success"] is False and "claimed success rejected" in bad["reason"] and why in bad["reason"], bad
+
+
+def test_verify_success_on_real_and_made_up_paths(home):
+    """The check itself: a PS-PRM path passes; the same path reversed, cut short, thinned out to a jump or moved
+    onto the table fails with the reason."""
+    from psprm_core.collision import CollisionChecker
+    from psprm_core.planning.factory import make_planner
+
+    scene, robot = home
+    motion = DiffDriveMotion(robot)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    prob = make_problems(scene, robot, [["tv"]], 1, seed=2)[0]
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=300, seed=0)
+    p.build()
+    res = p.plan(prob["start"], prob["goal"], timing=False)
+    assert res.success, res.reason
+    d = res.dense
+    assert verify_success(robot, checker, motion, prob["start"], prob["goal"], d) == ""
+    assert verify_success(robot, checker, motion, prob["start"], np.stack([d[0], prob["goal"]]), d) == ""
+    assert "start" in verify_success(robot, checker, motion, prob["start"], prob["goal"], d[::-1])
+    assert "end" in verify_success(robot, checker, motion, prob["start"], prob["goal"], d[: len(d) // 2])
+    assert "jumps" in verify_success(robot, checker, motion, prob["start"], prob["goal"], d[[0, len(d) // 2, -1]])
+    k = len(d) // 2
+    via = d[k].copy()
+    via[:2] = scene.obstacle("table").center[:2]
+    bumpy = np.vstack([d[:k], _drive(robot, d[k], via, 60), _drive(robot, via, d[k], 60), d[k:]])
+    assert "collides" in verify_success(robot, checker, motion, prob["start"], prob["goal"], bumpy)
+    assert "finite" in verify_success(robot, checker, motion, prob["start"], prob["goal"], d[:1])
+
+
+def _reference_track_flags(results, threshold, cls):
+    """norfair over the frames' detections of the target's class at or above the threshold (two corner points, IoU
+    distance; a track is confirmed on its second hit and survives three missed frames); a frame counts as tracked
+    when a returned track overlaps the target's projected box with IoU >= 0.1."""
+    from norfair import Detection, Tracker
+
+    from psprm_core.perception.oracle import box_iou
+
+    tracker = Tracker(distance_function="iou", distance_threshold=0.95, initialization_delay=1, hit_counter_max=3)
+    out = []
+    for r in results:
+        dets = [Detection(points=np.asarray(d.box_xyxy, float).reshape(2, 2), scores=np.array([d.score, d.score]))
+                for d in r.detections if d.label == cls and d.score >= threshold]
+        objs = tracker.update(detections=dets)
+        out.append(r.projected_box is not None and any(box_iou(o.estimate.reshape(4), r.projected_box) >= 0.1
+                                                       for o in objs))
+    return np.array(out)
+
+
+def test_evaluate_path_metrics_match_per_frame_oracle_scores(home):
+    """evaluate_path on a fixed path with two targets: its detection rate, mean confidence, any/all-target rates and
+    track rate equal what the test computes from its own per-frame oracle scores (detected = confidence at or above
+    the detector's calibrated threshold, not merely above 0). The path has frames that score above 0 but under the
+    threshold and frames where one target is detected and the other not, so every rule is exercised."""
+    from psprm_core.perception.oracle import DETECTION_THRESHOLDS, Oracle
+
+    scene, robot = home
+    targets = ["tv", "potted_plant"]
+    thr = {"tv": DETECTION_THRESHOLDS["centernet:tv"], "potted_plant": DETECTION_THRESHOLDS["centernet:potted plant"]}
+    prob = make_problems(scene, robot, [targets], 1, seed=6)[0]
+    dense = prob["start"] + np.linspace(0.0, 1.0, 150)[:, None] * (prob["goal"] - prob["start"])
+    motion = DiffDriveMotion(robot)
+    with Oracle(scene, intrinsics=robot.config.intrinsics) as oracle:
+        ev = evaluate_path(oracle, robot, motion, dense, targets, spacing=0.5, max_frames=6)
+    idx = frame_indices(motion, dense, 0.5, 6)
+    cams = robot.camera_poses(torch.as_tensor(dense[idx], dtype=torch.float64)).numpy()
+    with Oracle(scene, intrinsics=robot.config.intrinsics) as own:
+        res = {t: [own.score(T, t, keep_image=False) for T in cams] for t in targets}
+    score = np.array([[r.score for r in res[t]] for t in targets])
+    det = score >= np.array([[thr[t]] for t in targets])
+    assert ((score > 0) & ~det).any(), score.round(3)  # a "score > 0" rule would count these
+    assert det.any(0).mean() != det.all(0).mean(), det
+    assert ev["frames"] == len(idx) == 6
+    assert ev["det_rate"] == pytest.approx(det.mean())
+    assert ev["mean_confidence"] == pytest.approx(score.mean(), abs=1e-6)
+    assert ev["det_rate_any"] == pytest.approx(det.any(0).mean())
+    assert ev["det_rate_all"] == pytest.approx(det.all(0).mean())
+    trk = np.array([_reference_track_flags(res[t], thr[t], scene.target(t).detector_class) for t in targets])
+    assert ev["track_rate"] == pytest.approx(trk.mean())
