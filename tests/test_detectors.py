@@ -156,3 +156,21 @@ def test_calibration_thresholds_pooled_over_detectable_cases(monkeypatch, tmp_pa
     assert json.loads((tmp_path / "c.json").read_text())["monitor"]["threshold"] == pytest.approx(0.55)
     assert cli.main(["calibrate-detectors", "--cases", "mug"]) == 2
     assert "unknown calibration case(s) mug" in capsys.readouterr().err
+
+
+def test_shipped_thresholds_are_what_calibration_measures_on_real_renders():
+    """Every "detected" threshold the oracle ships is the one ``calibrate()`` chooses on real renders with the real
+    detectors (the detectable cases of :data:`DEFAULT_CASES`, pooled per detector and per detector:class)."""
+    from psprm_core.perception.detectors import calibration
+    from psprm_core.perception.oracle import DETECTION_THRESHOLDS
+
+    res = calibration.calibrate([c.appearance for c in calibration.DEFAULT_CASES if c.detectable])
+    measured = {k[len("pooled:"):]: r["threshold"] for k, r in res.items() if k.startswith("pooled:")}
+    assert set(DETECTION_THRESHOLDS) <= set(measured), sorted(measured)
+    shipped = {k: pytest.approx(v, abs=1e-9) for k, v in DETECTION_THRESHOLDS.items()}
+    assert {k: measured[k] for k in DETECTION_THRESHOLDS} == shipped
+    # the measurement separates: each detectable case's positives are mostly at or above its shipped threshold
+    for c in calibration.DEFAULT_CASES:
+        if c.detectable:
+            r = res[c.appearance]
+            assert r["tpr"] >= 0.45 and r["fpr"] <= 0.2, (c.appearance, r["tpr"], r["fpr"])
