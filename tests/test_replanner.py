@@ -1,7 +1,8 @@
 """Online replanning: no returned path ever collides with the obstacle poses it was given (random dynamic episodes,
 judged from the test's own record of the poses it sent, by a checker built afresh from it and by pybullet, on the dense
-path and the timed trajectory), goal hysteresis needs its margin, lazy re-scoring yields verified Eq. 1 scores on the path, obstacle updates prune
-exactly the colliding nodes, repair grows valid manifold nodes, triggers and bad input, scenario files."""
+path and the timed trajectory), goal hysteresis needs its margin, lazy re-scoring yields verified Eq. 1 scores on the
+path, obstacle updates prune exactly the colliding nodes, repair grows valid manifold nodes, triggers and bad input,
+scenario files."""
 
 from __future__ import annotations
 
@@ -120,7 +121,7 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
                 for _ in range(20):  # the person turns, but not into the robot
                     pp = person_pose(sent.scene, motion, 2.8 + rng.uniform(-1.5, 1.5))
                     body = dataclasses.replace(sent.scene.obstacle("person_body"), quat=pp["body"][1])
-                    if not CollisionChecker(robot, [body]).check(torch.as_tensor(q_robot[None], dtype=torch.float32))[0]:
+                    if not CollisionChecker(robot, [body]).check(torch.as_tensor(q_robot[None]).float())[0]:
                         break
                 rp.update_target("person_face", *pp["target"])
                 sent.sent("person_face", *pp["target"])

@@ -5,6 +5,7 @@ rolls out deterministically within 200 steps."""
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 import pytest
@@ -134,8 +135,11 @@ def test_reward_terms_have_the_right_signs(planner, env):
 
 def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatch):
     monkeypatch.setattr(rl_ppo, "rl_cache_dir", lambda: tmp_path)
+    t0 = time.perf_counter()
     info = planner.prepare()
-    assert not info["cached"] and info["timesteps"] >= TINY["total_timesteps"] and info["preprocess_s"] > 0
+    wall = time.perf_counter() - t0
+    assert not info["cached"] and info["timesteps"] >= TINY["total_timesteps"]
+    assert 0.5 * wall <= info["preprocess_s"] <= wall  # the training is the preparation's time, on this clock
     assert planner.cache_path().is_file()
     m = planner.model
     assert (m.n_steps * m.n_envs, m.batch_size, m.learning_rate) == (512, 64, 3e-4)  # rollout 512 in all
@@ -269,12 +273,23 @@ def test_goal_bearing_and_heading_progress(planner):
                                 settings=dataclasses.replace(settings, goal_bearing=False))
     assert env.observation_space.shape[0] == plain.observation_space.shape[0] + 3
     start, goal = _config(planner, 4.5, 4.0, 0.0), _config(planner, 4.5, 2.0, 0.0)  # the goal 2 m to the right
-    obs, _ = env.reset(options={"start": start, "goal": goal})
     n = plain.observation_space.shape[0] - (settings.scan_beams + 1 if settings.scan_beams > 0 else 0)
-    assert obs[n:n + 2] == pytest.approx([-1.0, 0.0], abs=1e-5) and obs[n + 2] > 0
+    # the bearing's (sin, cos) and a distance feature proportional to the goal's distance (1 m ahead, 2 m right)
+    ahead, _ = env.reset(options={"start": start, "goal": _config(planner, 5.5, 4.0, 0.0)})
+    obs, _ = env.reset(options={"start": start, "goal": goal})
+    assert ahead[n:n + 2] == pytest.approx([0.0, 1.0], abs=1e-5)
+    assert obs[n:n + 2] == pytest.approx([-1.0, 0.0], abs=1e-5)
+    assert 0 < ahead[n + 2] < 2.0 and obs[n + 2] == pytest.approx(2.0 * ahead[n + 2], rel=1e-5)
     assert env.progress_distance(start) == pytest.approx(2.0 + 0.25 * np.pi / 2)
+
+    def heading_error(q):
+        return abs((np.arctan2(goal[1] - q[1], goal[0] - q[0]) - q[2] + np.pi) % (2 * np.pi) - np.pi)
+
     _, _, _, _, info = env.step(np.array([0.0, -1.0, 0.0, 0.0], dtype=np.float32))  # turn right, on the spot
-    assert not info["rejected"] and info["terms"]["progress"] == pytest.approx(0.25 * 0.3, abs=1e-6)
+    turned = start[2] - env.q[2]
+    assert not info["rejected"] and turned > 0.1 and np.allclose(env.q[:2], start[:2])
+    expected = 0.25 * (heading_error(start) - heading_error(env.q))  # the heading error fell by the turn
+    assert info["terms"]["progress"] == pytest.approx(expected, abs=1e-6) and expected == pytest.approx(0.25 * turned)
     env.reset(options={"start": start, "goal": goal})
     _, _, _, _, info = env.step(np.array([0.0, 1.0, 0.0, 0.0], dtype=np.float32))  # turn left, away
     assert info["terms"]["progress"] == pytest.approx(-0.25 * 0.3, abs=1e-6)
