@@ -326,7 +326,8 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
     the distribution PS-PRM actually plans over (occluders, distances and headings of the scene).
 
     ``checkpoints``: further surrogate checkpoints scored on the same views against the same oracle labels (reported
-    under ``checkpoints``, keyed by path), e.g. a studio-only and a fine-tuned surrogate side by side."""
+    under ``checkpoints``, keyed by path), e.g. a studio-only and a fine-tuned surrogate side by side. ``views`` holds
+    the per-view record (camera poses, neural and oracle scores) the correlations are computed from."""
     from scipy.stats import spearmanr
 
     from .planning.factory import make_scorer
@@ -357,10 +358,13 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
         return {**corr(pred, oracle), "by_distance": bins}
 
     out = {"scene": scene.name, "target": target, "n_nodes": stats.get("n_nodes"), "samples": int(len(sel)),
-           **report(neural), "oracle_s": oracle_s}
+           **report(neural), "oracle_s": oracle_s,
+           "views": {"camera_poses": cams.double().cpu().numpy().tolist(), "neural": neural.tolist(),
+                     "oracle": oracle.tolist()}}
     for ck in checkpoints:
         sc = make_scorer("neural", scene, [target], robot.config.intrinsics, checkpoint=ck)
-        out.setdefault("checkpoints", {})[str(ck)] = report(sc.score(cams).double().cpu().numpy())
+        pred = sc.score(cams).double().cpu().numpy()
+        out.setdefault("checkpoints", {})[str(ck)] = {**report(pred), "neural": pred.tolist()}
     return out
 
 
