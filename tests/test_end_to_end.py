@@ -1,0 +1,132 @@
+"""End to end on small roadmaps, judged independently: the oracle-scored variants (psprm-line, psprm-frustum) built
+by make_planner and answering a query, and the multi-target (nursing) planner. The judges are pybullet (exact
+collision check and its own forward kinematics for the camera), the test's own oracle instance, finite differences
+of the trajectory, and scorers the test builds itself."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from psprm_core.paths import resolve_named
+from psprm_core.perception.oracle import Oracle
+from psprm_core.perception.scoring import NeuralScorer, OracleScorer
+from psprm_core.perception.surrogate import load_surrogate
+from psprm_core.planning.factory import default_checkpoint, make_planner, problem_configurations
+from psprm_core.reference import PybulletWorld
+from psprm_core.scene import load_scene
+
+from judges import limit_ratios, same_config  # noqa: E402
+
+
+def _target_in_camera(world: PybulletWorld, qs: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """(N, 3) the point in the optical frame of pybullet's own camera pose at each configuration."""
+    out = []
+    for q in qs:
+        T = world.camera_pose(q)
+        out.append(T[:3, :3].T @ (point - T[:3, 3]))
+    return np.array(out)
+
+
+def _between(dense: np.ndarray, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+    """The part of ``dense`` from configuration ``qa`` to ``qb`` (both on it)."""
+    def index(q):
+        d = dense - q
+        d[:, 2] = (d[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        k = int(np.argmin(np.abs(d).max(1)))
+        assert same_config(dense[k], q), "a roadmap node of the path is not on the dense path"
+        return k
+
+    return dense[index(qa): index(qb) + 1]
+
+
+def _valid_plan(res, robot, scene, start, goals) -> None:
+    """Starts at the start, ends at a goal, free under pybullet (dense path and trajectory), within every limit."""
+    assert res.success, res.reason
+    assert same_config(res.dense[0], start) and any(same_config(res.dense[-1], g) for g in goals)
+    world = PybulletWorld(robot, load_scene(scene.source).collision_boxes())
+    try:
+        ts = np.linspace(0.0, res.trajectory.duration, 400)
+        assert not world.in_collision(res.dense).any()
+        assert not world.in_collision(res.trajectory.evaluate(ts)[0]).any()
+    finally:
+        world.close()
+    over = {k: r for k, r in limit_ratios(res.trajectory, robot).items() if r > 1 + 1e-3}
+    assert not over, over
+
+
+@pytest.mark.parametrize("variant", ["psprm-line", "psprm-frustum"])
+def test_oracle_variant_plans_a_query_seen_as_the_oracle_sees_it(variant, load_robot):
+    """make_planner builds the oracle-scored variant (render + real detector); its plan is valid; at every roadmap
+    node of the path the visibility condition holds by pybullet's forward kinematics (target on the optical axis,
+    or inside the frustum with the planner's margin), the target stays in the image along the roadmap edges, and the
+    node scores the roadmap holds are the test's own oracle's scores of those views."""
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    robot = load_robot(scene.robot)
+    target = "person_face"
+    start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    p = make_planner(variant, scene, [target], robot=robot, n_nodes=24, seed=0)
+    assert isinstance(p.scorer, OracleScorer) and p.settings.constraint == variant.split("-")[1]
+    assert p.build(template=start)["success"]
+    res = p.plan(start, goals)
+    _valid_plan(res, robot, scene, start, goals)
+    nodes = [n for n in res.path_nodes[1:-1] if n < p.n_roadmap_nodes]
+    assert nodes, "the path uses no roadmap node"
+    q_nodes = p.graph.configs[nodes]
+    face = scene.target(target).center
+    intr = robot.config.intrinsics
+    world = PybulletWorld(robot)
+    try:
+        pc = _target_in_camera(world, q_nodes, face)
+        along = _target_in_camera(world, _between(res.dense, q_nodes[0], q_nodes[-1]), face)
+        cams = [world.camera_pose(q) for q in q_nodes]
+    finally:
+        world.close()
+    tol = p.settings.projection.tolerance
+    assert (pc[:, 2] >= p.settings.min_view_distance - tol).all()
+    if variant == "psprm-line":
+        assert (np.hypot(pc[:, 0], pc[:, 1]) <= 1.5 * tol).all(), pc
+    else:  # inside the frustum, by its half-angles, with the margin kept on every side
+        m = p.settings.frustum_margin - 1.5 * tol
+        assert (np.abs(pc[:, 0]) + m <= intr.tan_half_h * pc[:, 2] + 1e-9).all(), pc
+        assert (np.abs(pc[:, 1]) + m <= intr.tan_half_v * pc[:, 2] + 1e-9).all(), pc
+    assert (along[:, 2] > 0).all()
+    assert (np.abs(along[:, 0]) <= intr.tan_half_h * along[:, 2]).all()
+    assert (np.abs(along[:, 1]) <= intr.tan_half_v * along[:, 2]).all()
+    with Oracle(scene, intrinsics=intr) as own:
+        seen = np.array([own.score(T, target, keep_image=False).score for T in cams])
+    np.testing.assert_allclose(p.node_scores[nodes], seen, atol=1e-3)
+
+
+def test_nursing_planner_combines_both_faces(load_robot):
+    """The multi-target planner of the nursing task (make_planner with both nurses' faces): a valid plan of the
+    scene's problem, its roadmap nodes aiming at the faces' midpoint (pybullet's forward kinematics), and its
+    reported scores along the path the mean of two single-face scorers the test builds itself."""
+    scene = load_scene(resolve_named("scene", "nursing"))
+    robot = load_robot(scene.robot)
+    faces = ["nurse_1_face", "nurse_2_face"]
+    prob = scene.problem("west_to_east_nurses")
+    start, goals = problem_configurations(robot, scene, prob)
+    p = make_planner("neural-psprm-line", scene, faces, robot=robot, n_nodes=300, seed=0)
+    assert p.build(template=start)["success"]
+    res = p.plan(start, goals)
+    _valid_plan(res, robot, scene, start, goals)
+    mid = np.mean([scene.target(f).center for f in faces], axis=0)
+    nodes = [n for n in res.path_nodes[1:-1] if n < p.n_roadmap_nodes]
+    roadmap = p.roadmap_node_ids()
+    world = PybulletWorld(robot)
+    try:
+        pc = _target_in_camera(world, p.graph.configs[nodes], mid)
+        path_cams = torch.as_tensor(np.stack([world.camera_pose(q) for q in res.dense]))
+        node_cams = torch.as_tensor(np.stack([world.camera_pose(q) for q in p.graph.configs[roadmap]]))
+    finally:
+        world.close()
+    assert (np.hypot(pc[:, 0], pc[:, 1]) <= 1.5 * p.settings.projection.tolerance).all(), pc
+    model = load_surrogate(default_checkpoint())
+    scorers = [NeuralScorer(model, scene, f) for f in faces]
+    each = [s.score(path_cams).double().numpy() for s in scorers]
+    np.testing.assert_allclose(res.dense_scores, np.mean(each, axis=0), atol=1e-4)
+    at_nodes = [s.score(node_cams).double().numpy() for s in scorers]
+    np.testing.assert_allclose(p.node_scores[roadmap], np.mean(at_nodes, axis=0), atol=1e-4)
+    assert np.abs(at_nodes[0] - at_nodes[1]).max() > 0.3  # the faces are seen differently: the mean is not trivial
