@@ -464,7 +464,8 @@ def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames:
     """Judge an executed path with the real detector: ``frames`` camera frames evenly spaced along ``dense``.
 
     Returns the mean confidence and the detection rate (frames at or above the detector's calibrated threshold),
-    averaged over the targets (several targets: the nursing-style average).
+    averaged over the targets (several targets: the nursing-style average), and the per-frame record: the frames'
+    configurations and each target's scores of them.
     """
     idx = np.unique(np.linspace(0, len(dense) - 1, frames).round().astype(int))
     cams = robot.camera_poses(torch.as_tensor(dense[idx], dtype=torch.float64)).numpy()
@@ -474,7 +475,7 @@ def oracle_path_metrics(oracle, robot, dense: np.ndarray, targets: list, frames:
         conf.append([r.score for r in res])
         det.append([r.detected for r in res])
     return {"oracle_confidence": float(np.mean(conf)), "oracle_detection_rate": float(np.mean(det)),
-            "frames": int(len(idx))}
+            "frames": int(len(idx)), "frame_configs": dense[idx].tolist(), "frame_scores": conf}
 
 
 def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000,
@@ -482,7 +483,8 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
                                target: str | None = None, oracle_problems: int | None = None,
                                aimed: bool = True) -> dict:
     """Success over random problems, and oracle-measured perception along the paths of PS-PRM
-    vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2)."""
+    vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2). ``rows`` holds the per-problem record
+    (start, goal, success, length, predicted score and the judged frames) the summaries are computed from."""
     from .perception.oracle import Oracle
 
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
@@ -496,7 +498,8 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
             for key, al in (("psprm", alpha), ("shortest", 0.0)):
                 p.set_alpha(al)
                 res = p.plan(a, b, timing=False)
-                row = {"success": res.success, "length": res.path_length, "predicted": res.mean_score}
+                row = {"success": res.success, "length": res.path_length, "predicted": res.mean_score,
+                       "start": np.asarray(a, float).tolist(), "goal": np.asarray(b, float).tolist()}
                 if res.success and i < n_oracle:
                     row.update(oracle_path_metrics(oracle, robot, res.dense, [target], frames))
                 rows[key].append(row)
@@ -521,7 +524,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
             "problems": len(probs),
             "frames_per_path": frames, "build_s": stats.get("build_s"), "n_nodes": stats.get("n_nodes"),
             "n_edges": stats.get("n_edges"), planner: summary(rows["psprm"]), "shortest_path_alpha0":
-            summary(rows["shortest"])}
+            summary(rows["shortest"]), "rows": rows}
 
 
 def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-psprm-line", nodes: int = 3000,

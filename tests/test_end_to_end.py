@@ -5,6 +5,8 @@ of the trajectory, and scorers the test builds itself."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -130,3 +132,51 @@ def test_nursing_planner_combines_both_faces(load_robot):
     at_nodes = [s.score(node_cams).double().numpy() for s in scorers]
     np.testing.assert_allclose(p.node_scores[roadmap], np.mean(at_nodes, axis=0), atol=1e-4)
     assert np.abs(at_nodes[0] - at_nodes[1]).max() > 0.3  # the faces are seen differently: the mean is not trivial
+
+
+def test_perf_compare_is_judged_from_its_per_problem_record(capsys, load_robot):
+    """``psprm perf compare`` on a small roadmap: its problems are free and face the target (pybullet), its
+    summaries are the means of its per-problem record, the shortest-path PRM's paths are never longer than PS-PRM's
+    on the same roadmap, and the frames it judged score the same with the test's own oracle."""
+    from psprm_core.cli import main
+    from psprm_core.perception.oracle import DETECTION_THRESHOLDS
+
+    assert main(["perf", "compare", "--scene", "dynamic_person", "--nodes", "200", "--problems", "3", "--frames", "3",
+                 "--threads", "1", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    robot = load_robot(scene.robot)
+    target = res["target"]
+    face = scene.target(target).center
+    rows = res["rows"]
+    assert len(rows["psprm"]) == len(rows["shortest"]) == res["problems"] == 3
+    world = PybulletWorld(robot, scene.collision_boxes())
+    try:
+        for r in rows["psprm"]:
+            ends = np.vstack([r["start"], np.reshape(r["goal"], (-1, robot.dof))])
+            assert not world.in_collision(ends).any()
+            pc = _target_in_camera(world, ends, face)
+            assert (pc[:, 2] > 0).all() and (np.hypot(pc[:, 0], pc[:, 1]) < 0.05).all()
+    finally:
+        world.close()
+    thr = DETECTION_THRESHOLDS["centerface"]
+    for key, name in (("psprm", res["planner"]), ("shortest", "shortest_path_alpha0")):
+        rs, summary = rows[key], res[name]
+        ok = [r for r in rs if r["success"]]
+        assert summary["success_rate"] == pytest.approx(len(ok) / len(rs)) and summary["judged_paths"] == len(ok)
+        assert summary["path_length"] == pytest.approx(np.mean([r["length"] for r in ok]))
+        assert summary["oracle_confidence"] == pytest.approx(np.mean([np.mean(r["frame_scores"]) for r in ok]))
+        assert summary["oracle_detection_rate"] == pytest.approx(
+            np.mean([np.mean(np.asarray(r["frame_scores"]) >= thr) for r in ok]))
+    for a, b in zip(rows["psprm"], rows["shortest"]):
+        if a["success"] and b["success"]:
+            assert b["length"] <= a["length"] + 1e-6
+    judged = [r for r in rows["psprm"] if r["success"]][0]
+    world = PybulletWorld(robot)
+    try:
+        cams = [world.camera_pose(np.asarray(q)) for q in judged["frame_configs"]]
+    finally:
+        world.close()
+    with Oracle(scene, intrinsics=robot.config.intrinsics) as own:
+        mine = [own.score(T, target, keep_image=False).score for T in cams]
+    np.testing.assert_allclose(mine, judged["frame_scores"][0], atol=1e-3)
