@@ -1,4 +1,4 @@
-"""Baselines of issue 6: Post, Rejection, Manifold-line/-frustum behind the common BenchPlanner interface."""
+"""The bench baselines: Post, Rejection, Manifold-line/-frustum behind the common BenchPlanner interface."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,5 @@
-"""``psprm bench`` (issue 6): problems, oracle evaluation with norfair tracking, outputs, failure rows."""
+"""``psprm bench``: problems, oracle evaluation with norfair tracking judged against per-frame oracle scores, claimed
+successes re-checked, outputs, failure rows."""
 
 import csv
 import json
@@ -185,7 +186,7 @@ def test_bench_builds_each_planner_at_each_placement(tmp_path, monkeypatch):
 
 def test_boxed_in_end_is_recognised(home):
     """Between the suitcase and the east wall, facing the suitcase: collision-free, but every turn or drive out of
-    it collides (session 11's home problem 26 started there; no planner solved it)."""
+    it collides (a home bench problem once started there; no planner solved it)."""
     from psprm_core.benchmarks import can_move_away
     from psprm_core.collision import CollisionChecker
 
