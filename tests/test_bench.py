@@ -63,10 +63,12 @@ def _drive(robot, qa, qb, n: int = 200) -> np.ndarray:
 
 
 class ClaimingPlanner:
-    """Claims success with a path it made up: driving through the table to the goal (``mode = "table"``), ending
-    half a metre short of the goal (``"short"``), or jumping from the start straight to the goal (``"jump"``)."""
+    """Claims success with a path it made up, by turns (``modes``, one per query): driving through the table to the
+    goal (``"table"``), ending half a metre short of the goal (``"short"``), jumping from the start straight to the
+    goal (``"jump"``)."""
 
-    mode = "table"
+    modes = ["table", "short", "jump"]
+    calls = 0
 
     def __init__(self, name, scene, targets, robot=None, seed=0, **kw):
         self.table, self.robot = scene.obstacle("table").center, robot or RobotModel.load(scene.robot)
@@ -78,9 +80,11 @@ class ClaimingPlanner:
         from psprm_core.planning.psprm import PlanResult
 
         goal = np.asarray(goals, float).reshape(-1, len(start))[0]
-        if ClaimingPlanner.mode == "jump":
+        mode = ClaimingPlanner.modes[ClaimingPlanner.calls % len(ClaimingPlanner.modes)]
+        ClaimingPlanner.calls += 1
+        if mode == "jump":
             dense = np.stack([start, goal])
-        elif ClaimingPlanner.mode == "table":
+        elif mode == "table":
             via = goal.copy()
             via[:2] = self.table[:2]
             dense = np.vstack([_drive(self.robot, start, via), _drive(self.robot, via, goal)[1:]])
@@ -384,22 +388,24 @@ def test_bench_rejects_claimed_successes_that_collide_or_miss_the_goal(tmp_path,
 
     scene, robot = home
     monkeypatch.setitem(baselines.BASELINES, "rejection", f"{__name__}:ClaimingPlanner")
-    probs = make_problems(scene, robot, [["tv"]], 1, seed=1)
-    ClaimingPlanner.mode = "table"
-    claimed = ClaimingPlanner("x", scene, ["tv"], robot=robot).plan(probs[0]["start"], probs[0]["goal"]).dense
+    probs = make_problems(scene, robot, [["tv"]], 3, seed=1)
+    ClaimingPlanner.modes, ClaimingPlanner.calls = ["table"], 0
     world = PybulletWorld(robot, scene.collision_boxes())
     try:
-        assert world.in_collision(claimed).any()
+        for prob in probs:
+            assert world.in_collision(ClaimingPlanner("x", scene, ["tv"], robot=robot).plan(
+                prob["start"], prob["goal"]).dense).any()
     finally:
         world.close()
-    for mode, why in (("table", "collides"), ("short", "path's end is 0.5 away"), ("jump", "jumps")):
-        ClaimingPlanner.mode = mode
-        cfg = BenchConfig(scene="home", planners=["post", "rejection"], problems=1, seed=1, out=str(tmp_path),
-                          workers=1, max_frames=2, frame_spacing=2.0, target_groups=[["tv"]])
-        rows = {r["planner"]: r for r in run_bench(cfg, progress=False)["rows"]}
-        assert rows["post"]["success"] is True, rows["post"]["reason"]
-        bad = rows["rejection"]
-        assert bad["success"] is False and "claimed success rejected" in bad["reason"] and why in bad["reason"], bad
+    ClaimingPlanner.modes, ClaimingPlanner.calls = ["table", "short", "jump"], 0
+    cfg = BenchConfig(scene="home", planners=["post", "rejection"], problems=3, seed=1, out=str(tmp_path), workers=1,
+                      max_frames=2, frame_spacing=2.0, target_groups=[["tv"]])
+    rows = run_bench(cfg, progress=False)["rows"]
+    assert [r["success"] for r in sorted(rows, key=lambda r: r["problem"]) if r["planner"] == "post"] == [True] * 3
+    bad = sorted((r for r in rows if r["planner"] == "rejection"), key=lambda r: r["problem"])
+    for r, why in zip(bad, ("collides", "path's end is 0.5 away", "jumps")):
+        assert r["success"] is False and "claimed success rejected" in r["reason"] and why in r["reason"], r
+    assert ClaimingPlanner.calls == 3
 
 
 def test_verify_success_on_real_and_made_up_paths(home):
