@@ -460,7 +460,7 @@ def test_evaluate_path_metrics_match_per_frame_oracle_scores(home):
     track rate equal what the test computes from its own per-frame oracle scores (detected = confidence at or above
     the detector's calibrated threshold, not merely above 0). The path has frames that score above 0 but under the
     threshold and frames where one target is detected and the other not, so every rule is exercised."""
-    from psprm_core.perception.oracle import DETECTION_THRESHOLDS, Oracle
+    from psprm_core.perception.oracle import DETECTION_THRESHOLDS, STRICT_THRESHOLDS, Oracle
 
     scene, robot = home
     targets = ["tv", "potted_plant"]
@@ -485,3 +485,5 @@ def test_evaluate_path_metrics_match_per_frame_oracle_scores(home):
     assert ev["det_rate_all"] == pytest.approx(det.all(0).mean())
     trk = np.array([_reference_track_flags(res[t], thr[t], scene.target(t).detector_class) for t in targets])
     assert ev["track_rate"] == pytest.approx(trk.mean())
+    strict = score >= np.array([[STRICT_THRESHOLDS["centernet:tv"]], [STRICT_THRESHOLDS["centernet:potted plant"]]])
+    assert ev["det_rate_strict"] == pytest.approx(strict.mean())

@@ -159,16 +159,20 @@ def test_calibration_thresholds_pooled_over_detectable_cases(monkeypatch, tmp_pa
 
 
 def test_shipped_thresholds_are_what_calibration_measures_on_real_renders():
-    """Every "detected" threshold the oracle ships is the one ``calibrate()`` chooses on real renders with the real
-    detectors (the detectable cases of :data:`DEFAULT_CASES`, pooled per detector and per detector:class)."""
+    """Every "detected" threshold the oracle ships, and every strict one, is the one ``calibrate()`` chooses on real
+    renders with the real detectors (the detectable cases of :data:`DEFAULT_CASES`, pooled per detector and per
+    detector:class)."""
     from psprm_core.perception.detectors import calibration
-    from psprm_core.perception.oracle import DETECTION_THRESHOLDS
+    from psprm_core.perception.oracle import DETECTION_THRESHOLDS, STRICT_THRESHOLDS
 
     res = calibration.calibrate([c.appearance for c in calibration.DEFAULT_CASES if c.detectable])
     measured = {k[len("pooled:"):]: r["threshold"] for k, r in res.items() if k.startswith("pooled:")}
     assert set(DETECTION_THRESHOLDS) <= set(measured), sorted(measured)
     shipped = {k: pytest.approx(v, abs=1e-9) for k, v in DETECTION_THRESHOLDS.items()}
     assert {k: measured[k] for k in DETECTION_THRESHOLDS} == shipped
+    strict = {k[len("pooled:"):]: r["strict"] for k, r in res.items() if k.startswith("pooled:")}
+    assert {k: strict[k] for k in STRICT_THRESHOLDS} == {k: pytest.approx(v, abs=1e-9)
+                                                         for k, v in STRICT_THRESHOLDS.items()}
     # the measurement separates: each detectable case's positives are mostly at or above its shipped threshold
     for c in calibration.DEFAULT_CASES:
         if c.detectable:
