@@ -483,12 +483,16 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
                                target: str | None = None, oracle_problems: int | None = None,
                                aimed: bool = True) -> dict:
     """Success over random problems, and oracle-measured perception along the paths of PS-PRM
-    vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2). ``rows`` holds the per-problem record
-    (start, goal, success, length, predicted score and the judged frames) the summaries are computed from."""
+    vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2). Both search the roadmap alone: the
+    path shortcuts are off, so the shortest-path paths are the roadmap's shortest. ``rows`` holds the per-problem
+    record (start, goal, success, length, predicted score and the judged frames) the summaries are computed from."""
+    import dataclasses
+
     from .perception.oracle import Oracle
 
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
                                                            target, aimed=aimed)
+    p.settings = dataclasses.replace(p.settings, shortcut=False)  # this comparison is of the searches
     alpha = p.settings.alpha
     oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
     n_oracle = len(probs) if oracle_problems is None else min(oracle_problems, len(probs))

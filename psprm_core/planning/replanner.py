@@ -72,6 +72,8 @@ class ReplanSettings:
     smooth_timing: bool = True  # replanned trajectories pass the knots of a base phase without stopping: about a
     # third shorter to execute, for about +25 ms per replan (per-phase TOPP-RA); within the latency goals
     # (docs/benchmarks.md, "Replanning latency")
+    shortcut: bool = False  # perception-preserving shortcuts of replanned paths (PSPRMSettings.shortcut): off, since
+    # checking the candidate shortcuts costs tens of ms per replan
 
     def __post_init__(self):
         if self.heuristic not in HEURISTICS:
@@ -136,6 +138,8 @@ class Replanner:
             planner.settings = dataclasses.replace(planner.settings, heuristic=settings.heuristic)
         if planner.settings.smooth_timing != settings.smooth_timing:
             planner.settings = dataclasses.replace(planner.settings, smooth_timing=settings.smooth_timing)
+        if planner.settings.shortcut != settings.shortcut:
+            planner.settings = dataclasses.replace(planner.settings, shortcut=settings.shortcut)
         self.robot = planner.robot
         self.scene = planner.scene
         self.targets = list(targets or getattr(planner, "targets", None) or self.scene.target_names)
