@@ -398,8 +398,8 @@ def test_bench_rejects_claimed_successes_that_collide_or_miss_the_goal(tmp_path,
     finally:
         world.close()
     ClaimingPlanner.modes, ClaimingPlanner.calls = ["table", "short", "jump"], 0
-    cfg = BenchConfig(scene="home", planners=["post", "rejection"], problems=3, seed=1, out=str(tmp_path), workers=1,
-                      max_frames=2, frame_spacing=2.0, target_groups=[["tv"]])
+    cfg = BenchConfig(reference=False, scene="home", planners=["post", "rejection"], problems=3, seed=1,
+                      out=str(tmp_path), workers=1, max_frames=2, frame_spacing=2.0, target_groups=[["tv"]])
     rows = run_bench(cfg, progress=False)["rows"]
     assert [r["success"] for r in sorted(rows, key=lambda r: r["problem"]) if r["planner"] == "post"] == [True] * 3
     bad = sorted((r for r in rows if r["planner"] == "rejection"), key=lambda r: r["problem"])
