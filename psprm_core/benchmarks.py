@@ -283,8 +283,10 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     focus = scene.target(target).center
 
     def build(kind: str, n: int) -> dict:
+        # the same uniform roadmap for both scorers (perception-biased sampling would score thousands of extra
+        # oracle views)
         settings = dataclasses.replace(base, constraint="line", alpha=0.75 if kind == "oracle" else 0.8,
-                                       lazy_edges=False, n_nodes=n, seed=seed, expand_rounds=0)
+                                       lazy_edges=False, n_nodes=n, seed=seed, expand_rounds=0, biased_share=0.0)
         scorer = _TimedScorer(make_scorer(kind, scene, [target], robot.config.intrinsics))
         p = PSPRM(robot, scene, scorer, focus, settings)
         st = p.build()
