@@ -344,11 +344,15 @@ def densify_linear(P: np.ndarray, step: float = 0.02) -> np.ndarray:
     return np.vstack([out, P[-1:]])
 
 
-def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None):
+def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None, hold_s: float = 0.25):
     """A one-point trajectory that holds ``q`` with zero velocity (what the server publishes when nothing safe
-    exists)."""
+    exists). ``time_from_start`` is ``hold_s`` (> 0) and the stamp 0 ("start now", unless ``stamp`` is given): a
+    joint_trajectory_controller drops a trajectory whose stamp + last time_from_start lies in the past, which a
+    point at time 0 stamped now always does by the time it arrives."""
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+    if not hold_s > 0:
+        raise ValueError(f"hold_s must be > 0, got {hold_s}")
     m = JointTrajectory()
     m.header.frame_id = frame
     if stamp is not None:
@@ -358,8 +362,27 @@ def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None)
     p.positions = [float(v) for v in q]
     p.velocities = [0.0] * len(names)
     p.accelerations = [0.0] * len(names)
-    p.time_from_start = duration_msg(0.0)
+    p.time_from_start = duration_msg(float(hold_s))
     m.points = [p]
+    return m
+
+
+def base_path_msg(P: np.ndarray, frame: str, stamp=None):
+    """Planning-joint positions (M, dof; base_x, base_y, base_theta first) -> ``nav_msgs/Path`` of the base route."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+
+    m = Path()
+    m.header.frame_id = frame
+    if stamp is not None:
+        m.header.stamp = stamp
+    poses = []
+    for x, y, th in np.asarray(P, float).reshape(-1, np.shape(P)[-1] if np.ndim(P) == 2 else 3)[:, :3]:
+        ps = PoseStamped()
+        ps.header = m.header
+        numpy_to_pose([x, y, 0.0], yaw_quat(th), ps.pose)
+        poses.append(ps)
+    m.poses = poses
     return m
 
 

@@ -33,6 +33,36 @@ def self_check() -> dict:
     return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods)}
 
 
+def _raise_on_signals() -> None:
+    import signal
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def start_lifecycles(owners) -> list:
+    """Configure and activate every lifecycle node whose ``autostart`` parameter is true, each on its own thread
+    (the roadmap server's configure builds or loads the roadmap). Returns the threads."""
+    import threading
+
+    from .core import autostart
+
+    threads = []
+    for n in owners:
+        if not hasattr(n.node, "trigger_configure"):
+            continue
+        p = getattr(n, "p", {})
+        if not p.get("autostart", True):
+            continue
+        t = threading.Thread(target=autostart, args=(n,), name=f"autostart-{n.node.get_name()}", daemon=True)
+        t.start()
+        threads.append(t)
+    return threads
+
+
 #: Python's GIL switch interval in the node processes (default 0.005 s), see :func:`run_nodes`.
 GIL_SWITCH_INTERVAL_S = 0.0005
 
@@ -62,7 +92,13 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
     # the executor thread is busy with message callbacks (120 Hz mocap), every re-take can wait a full switch interval
     # (5 ms by default), which stretched a 0.5 s plan to 10-60 s in the demo. A shorter interval bounds that wait.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    rclpy.init(args=argv)
+    # rclpy's own SIGINT handler shuts the context down at once, after which no node can publish: the adapter's stop
+    # on shutdown would be lost. Here SIGINT/SIGTERM end the spin instead; the nodes are destroyed (an adapter stops
+    # the robot) while the context is still up, then it is shut down.
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    _raise_on_signals()
     nodes = []
     executor = MultiThreadedExecutor(num_threads=max(2, opts.threads))
     try:
@@ -70,6 +106,7 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
             n = f()
             nodes.append(n)
             executor.add_node(n.node)
+        start_lifecycles(nodes)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
