@@ -577,6 +577,7 @@ class RoadmapServer:
             msg = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"])
             P = cv.joint_trajectory_positions(msg, self.names)
             t2 = time.perf_counter()
+            self._take_fresh_obstacles()
             unsafe = self._unsafe(P)
             info.update(msg_ms=_f((t2 - t1) * 1e3), check_ms=_f((time.perf_counter() - t2) * 1e3))
             if unsafe:
@@ -635,6 +636,29 @@ class RoadmapServer:
         from std_msgs.msg import String
 
         self.pub_info.publish(String(data=json.dumps(info)))
+
+    def _take_fresh_obstacles(self) -> None:
+        """Obstacle poses that arrived while the planner was running go into the final check now (the planner sees
+        them in the next cycle): a trajectory is never published unchecked against a pose the server already has."""
+        with self._lock:
+            fresh = dict(self._pending["obstacles"])
+            fresh_t = {n: v for n, v in self._pending["targets"].items()}
+        changed = False
+        for name, (p, q) in fresh.items():
+            try:
+                self.safety_scene = self.safety_scene.with_obstacle_pose(name, p, q)
+                changed = True
+            except (KeyError, ValueError):
+                pass
+        for name, (p, q) in fresh_t.items():
+            try:
+                if self.safety_scene.target(name).obstacle:
+                    self.safety_scene = self.safety_scene.with_target_pose(name, p, q)
+                    changed = True
+            except (KeyError, ValueError):
+                pass
+        if changed:
+            self.safety.set_boxes(self.safety_scene.collision_boxes())
 
     def _unsafe(self, positions: np.ndarray) -> bool:
         """True when any configuration along ``positions`` (densified to the planner's edge resolution) collides
