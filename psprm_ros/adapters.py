@@ -319,6 +319,26 @@ def controller_command(ctrl: ControllerConfig, names: Sequence[str], times, posi
     return Command(ctrl.name, ctrl.robot_joints, stamp, t, P.copy(), None if V is None else V.copy())
 
 
+def progress_offset(times, positions, measured: np.ndarray, velocity=(0.0, 0.0), lead: float = 0.0,
+                    horizon_s: float = 1.5, rotation_weight: float = 0.3) -> float:
+    """Where along a new trajectory the robot will be when it starts: the time (within ``horizon_s`` of its start)
+    whose base pose is nearest to the measured base pose moved ``lead`` seconds on at the measured ``velocity``
+    (v, omega). A replan starts from the robot's state when planning began; by the time it is executed the robot has
+    driven on, and starting the new trajectory at its beginning would pull the base back. 0 for a robot at rest."""
+    t = np.asarray(times, float)
+    P = np.asarray(positions, float)
+    x, y, th = (float(v) for v in measured[:3])
+    v, w = (float(a) for a in velocity)
+    th_m = th + 0.5 * w * lead
+    pred = np.array([x + v * lead * math.cos(th_m), y + v * lead * math.sin(th_m), th + w * lead])
+    sel = np.nonzero(t - t[0] <= horizon_s)[0]
+    if len(sel) == 0:
+        return 0.0
+    d = np.hypot(P[sel, 0] - pred[0], P[sel, 1] - pred[1])
+    d = d + rotation_weight * np.abs(np.remainder(P[sel, 2] - pred[2] + math.pi, 2 * math.pi) - math.pi)
+    return float(t[sel[int(np.argmin(d))]] - t[0])
+
+
 def trim_from(t: np.ndarray, P: np.ndarray, V: Optional[np.ndarray], tau: float) -> tuple:
     """The trajectory from time ``tau`` on, re-based to start at 0 (its first point interpolated at ``tau``)."""
     if tau >= t[-1]:

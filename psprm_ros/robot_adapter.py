@@ -157,7 +157,11 @@ class RobotAdapter:
             self._twist_pub = self.node.create_publisher(TwistStamped if b.stamped else Twist, b.topic, 10)
             self.follower = BaseFollower(Limits.for_robot(self.robot, b), Gains(b.k_x, b.k_y, b.k_theta),
                                          b.goal_tolerance_m, b.goal_tolerance_rad, b.settle_s, b.preview_s)
-        self._timer = self.node.create_timer(1.0 / b.rate_hz, self._tick, callback_group=self.cb)
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+
+        # the follower runs on its own callback group: a burst of state messages never delays a control step
+        self._timer = self.node.create_timer(1.0 / b.rate_hz, self._tick,
+                                             callback_group=MutuallyExclusiveCallbackGroup())
         self.status(f"configured: adapter {cfg.robot} ({len(cfg.controllers)} controllers: "
                     f"{', '.join(f'{c.name} [{c.interface}]' for c in cfg.controllers)}; base {b.mode} on {b.topic})")
         return True
@@ -277,6 +281,17 @@ class RobotAdapter:
         V = None
         if all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
             V = cv.joint_trajectory_positions(_Velocities(msg), self.names)
+        lead = max([c.lead_time_s for c in self.cfg.controllers] + [self.cfg.base.lead_time_s])
+        if self.robot.mobile:
+            # the robot drove on since the plan started from its state: splice at its progress, not back at the start
+            with self._lock:
+                vel = self.tracker.base_velocity.copy()
+            tau0 = ad.progress_offset(t, P, q, vel, lead)
+            if tau0 > 0:
+                t, P, V = ad.trim_from(t - t[0], P, V, tau0)
+                if len(t) <= 1:
+                    self.stop("the robot is already at the end of the new trajectory")
+                    return False
         for c in self.cfg.controllers:
             ok, joint, err = ad.check_start(c, self.names, P[0], q)
             if not ok:
@@ -287,7 +302,6 @@ class RobotAdapter:
             if not ok:
                 return self._refuse(f"first point {err:.3f} from the measured {what}")
         now = self._now()
-        lead = max([c.lead_time_s for c in self.cfg.controllers] + [self.cfg.base.lead_time_s])
         start_at = now + lead
         with self._lock:
             for c in self.cfg.controllers:
