@@ -174,3 +174,32 @@ def test_base_pose_from_a_mocap_body_with_its_offset(load_robot):
         finally:
             state.stop()
             s.probe.node.destroy_subscription(sub)
+
+
+@pytest.mark.parametrize("params_file", ["dynamic_person.yaml", "fetchlike_nursing.yaml",
+                                         "ur5_mobile_blind_spot_alley.yaml"])
+def test_params_files_of_the_three_robots_configure_every_node(params_file, load_robot):
+    """Each shipped params file: all nodes are constructed from it; the monitor, the adapter (topic interface)
+    and sim_robot configure and activate; the server and scorer take its parameters (the roadmap build itself is
+    the server's configure, covered elsewhere)."""
+    from psprm_ros.core import autostart
+
+    path = ROOT / "config" / "ros" / params_file
+    with InProcessSuite({"interface": "topic"}, domain_id=random.randint(1, 200), params_file=str(path),
+                        nodes=("server", "scorer", "monitor", "adapter", "sim"), autostart=False) as s:
+        robot = s.server.robot
+        assert s.monitor.robot.name == s.adapter.robot.name == s.sim.robot.name == robot.name
+        for owner in (s.monitor, s.adapter):
+            assert autostart(owner), s.probe.statuses[-3:]
+        assert s.adapter.cfg.robot == robot.name
+        for t in s.server.targets:
+            s.server.scene.target(t)
+        # the simulated robot reports, the adapter measures the robot from /joint_states + /odom
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and s.adapter.measured()[0] is None:
+            time.sleep(0.1)
+        q, why = s.adapter.measured()
+        assert q is not None, why
+        d = q - s.sim.q
+        d[2] = np.remainder(d[2] + np.pi, 2 * np.pi) - np.pi  # a heading of pi may come back as -pi
+        assert np.abs(d).max() < 0.05
