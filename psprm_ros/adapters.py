@@ -320,23 +320,29 @@ def controller_command(ctrl: ControllerConfig, names: Sequence[str], times, posi
 
 
 def progress_offset(times, positions, measured: np.ndarray, velocity=(0.0, 0.0), lead: float = 0.0,
-                    horizon_s: float = 1.5, rotation_weight: float = 0.3) -> float:
+                    horizon_s: float = 1.5, velocity_limits: Optional[np.ndarray] = None) -> float:
     """Where along a new trajectory the robot will be when it starts: the time (within ``horizon_s`` of its start)
-    whose base pose is nearest to the measured base pose moved ``lead`` seconds on at the measured ``velocity``
-    (v, omega). A replan starts from the robot's state when planning began; by the time it is executed the robot has
-    driven on, and starting the new trajectory at its beginning would pull the base back. 0 for a robot at rest."""
+    whose configuration is nearest to the measured one, the base moved ``lead`` seconds on at the measured
+    ``velocity`` (v, omega). Nearness is time-like: the largest joint difference divided by that joint's velocity
+    limit (``velocity_limits``; base x, y, theta first). A replan starts from the robot's state when planning began;
+    by the time it is executed the robot has moved on, and starting the new trajectory at its beginning would pull
+    the robot back. 0 for a robot at rest at the trajectory's start."""
     t = np.asarray(times, float)
     P = np.asarray(positions, float)
-    x, y, th = (float(v) for v in measured[:3])
+    pred = np.asarray(measured, float).copy()
+    x, y, th = (float(v) for v in pred[:3])
     v, w = (float(a) for a in velocity)
     th_m = th + 0.5 * w * lead
-    pred = np.array([x + v * lead * math.cos(th_m), y + v * lead * math.sin(th_m), th + w * lead])
+    pred[:3] = [x + v * lead * math.cos(th_m), y + v * lead * math.sin(th_m), th + w * lead]
     sel = np.nonzero(t - t[0] <= horizon_s)[0]
     if len(sel) == 0:
         return 0.0
-    d = np.hypot(P[sel, 0] - pred[0], P[sel, 1] - pred[1])
-    d = d + rotation_weight * np.abs(np.remainder(P[sel, 2] - pred[2] + math.pi, 2 * math.pi) - math.pi)
-    return float(t[sel[int(np.argmin(d))]] - t[0])
+    vl = np.ones(P.shape[1]) if velocity_limits is None else np.maximum(np.asarray(velocity_limits, float), 1e-6)
+    d = np.abs(P[sel] - pred)
+    d[:, 2] = np.abs(np.remainder(P[sel, 2] - pred[2] + math.pi, 2 * math.pi) - math.pi)
+    lin = np.hypot(P[sel, 0] - pred[0], P[sel, 1] - pred[1])
+    cost = np.maximum((d[:, 2:] / vl[2:]).max(1), lin / vl[0])
+    return float(t[sel[int(np.argmin(cost))]] - t[0])
 
 
 def trim_from(t: np.ndarray, P: np.ndarray, V: Optional[np.ndarray], tau: float) -> tuple:

@@ -329,6 +329,41 @@ def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: fl
     return m
 
 
+def prepend_start(msg, q: np.ndarray, velocity_limits: np.ndarray, acceleration_limits: np.ndarray,
+                  continuous: Optional[Sequence[int]] = None, tol: float = 1e-3) -> float:
+    """Make ``msg`` (a JointTrajectory of all planning joints, in ``q``'s order) start exactly at ``q``: when its
+    first point differs (the planner re-aims the camera joints at the start), a point at ``q`` is put first, at time
+    0, and every other point is shifted by the time a rest-to-rest move to the old first point takes within the
+    limits (the slowest joint's trapezoid). Returns that shift (0 when nothing was added). The new segment is part of
+    the published trajectory, so the final collision check covers it."""
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    if not msg.points:
+        return 0.0
+    first = np.asarray(msg.points[0].positions, float)
+    d = first - np.asarray(q, float)
+    for j in continuous or ():
+        d[j] = (d[j] + math.pi) % (2.0 * math.pi) - math.pi
+    if np.abs(d).max() <= tol:
+        return 0.0
+    v = np.asarray(velocity_limits, float)
+    a = np.asarray(acceleration_limits, float)
+    ad = np.abs(d)
+    # rest to rest: triangular when the distance is short, trapezoidal otherwise
+    t = np.where(ad < v * v / a, 2.0 * np.sqrt(ad / a), ad / v + v / a)
+    shift = float(max(t.max(), 0.05))
+    for p in msg.points:
+        p.time_from_start = duration_msg(duration_to_sec(p.time_from_start) + shift)
+    p0 = JointTrajectoryPoint()
+    start = first - d  # q, with continuous joints on the first point's branch
+    p0.positions = _f64(start)
+    p0.velocities = _f64(np.zeros(len(start)))
+    p0.accelerations = _f64(np.zeros(len(start)))
+    p0.time_from_start = duration_msg(0.0)
+    msg.points = [p0] + list(msg.points)
+    return shift
+
+
 def densify_linear(P: np.ndarray, step: float = 0.02) -> np.ndarray:
     """Configurations at most ``step`` apart (largest joint change, metres or radians) along the polyline through
     ``P`` (M, dof): what a controller interpolating linearly between the points executes. Vectorised numpy."""

@@ -188,12 +188,36 @@ def install_param_callback(node, spec: dict, values: dict, apply) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------------- scene
-def load_scene_and_robot(scene_name: str, robot_name: str = ""):
+def resolve_scene(scene_name: str):
+    """A scene by path, by name among psprm_core's scenes, or by name among the scenes installed with the colcon
+    package (``share/psprm_ros/scenes``)."""
+    from psprm_core.errors import ConfigError
     from psprm_core.paths import resolve_named
+
+    try:
+        return resolve_named("scene", scene_name)
+    except ConfigError:
+        share = share_dir()
+        if share is not None and (share / "scenes" / f"{scene_name}.yaml").is_file():
+            return share / "scenes" / f"{scene_name}.yaml"
+        raise
+
+
+def share_dir() -> Optional[Path]:
+    """``share/psprm_ros`` of the installed colcon package, or None when it is not installed."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory("psprm_ros"))
+    except Exception:
+        return None
+
+
+def load_scene_and_robot(scene_name: str, robot_name: str = ""):
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
-    scene = load_scene(resolve_named("scene", scene_name))
+    scene = load_scene(resolve_scene(scene_name))
     robot = RobotModel.load(robot_name or scene.robot)
     return scene, robot
 

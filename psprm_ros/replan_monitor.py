@@ -42,6 +42,8 @@ MONITOR_PARAMS = {
     "joint_states_topic": P("/joint_states", "sensor_msgs/JointState of the robot"),
     "robot_state_timeout_s": P(0.5, "a base pose or joint state older than this is stale: no robot state is "
                                     "forwarded (nothing is planned)", live=True, lo=0.01),
+    "robot_state_rate_hz": P(20.0, "forward the robot state at most this often (0 = every /joint_states message)",
+                             live=True, lo=0.0),
     "goal_topic": P("/psprm/goal", "PoseStamped base goal (x, y, yaw)"),
     "goal_regions_topic": P("/psprm/goal_regions", "String: comma-separated goal regions of the scene"),
     "max_pose_age_s": P(1.0, "refuse poses older than this (0 = no check)", live=True, lo=0.0),
@@ -113,6 +115,7 @@ class ReplanMonitor:
             self.p["robot_state_timeout_s"], template=self.q)
         self.active = False
         self.robot_state_problem = "waiting for base pose"
+        self._robot_fwd_t = 0.0
         self._warned: dict = {}  # warning kind -> monotonic time of its last report
         self.base: Optional[np.ndarray] = None
         self._lock = threading.Lock()
@@ -320,6 +323,11 @@ class ReplanMonitor:
             self.status("robot state live (joints and base pose)")
         if not self.active:
             return
+        now = time.monotonic()
+        hz = self.p["robot_state_rate_hz"]
+        if hz > 0 and now - self._robot_fwd_t < 1.0 / hz:
+            return
+        self._robot_fwd_t = now
         self.pub_robot.publish(cv.planning_joint_state(q, self.names, stamp or self.node.get_clock().now().to_msg()))
         self._check_deviation(q)
 

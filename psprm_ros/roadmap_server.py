@@ -575,6 +575,11 @@ class RoadmapServer:
         if traj is not None:
             stamp = self.node.get_clock().now().to_msg()
             msg = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"])
+            # the trajectory starts at the measured state it was planned from (the planner re-aims the camera joints
+            # at its start): a controller then never jumps, and the connecting move is checked below with the rest
+            cont = [2] if self.robot.mobile else []
+            info["start_shift_s"] = _f(cv.prepend_start(msg, self.rp.q, self.robot.velocity, self.robot.acceleration,
+                                                        cont))
             P = cv.joint_trajectory_positions(msg, self.names)
             t2 = time.perf_counter()
             self._take_fresh_obstacles()

@@ -286,7 +286,7 @@ class RobotAdapter:
             # the robot drove on since the plan started from its state: splice at its progress, not back at the start
             with self._lock:
                 vel = self.tracker.base_velocity.copy()
-            tau0 = ad.progress_offset(t, P, q, vel, lead)
+            tau0 = ad.progress_offset(t, P, q, vel, lead, velocity_limits=self.robot.velocity)
             if tau0 > 0:
                 t, P, V = ad.trim_from(t - t[0], P, V, tau0)
                 if len(t) <= 1:
