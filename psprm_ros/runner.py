@@ -25,12 +25,17 @@ def self_check() -> dict:
     import psprm_core
     import psprm_ros
 
-    mods = ["rclpy", "std_msgs.msg", "geometry_msgs.msg", "sensor_msgs.msg", "trajectory_msgs.msg",
-            "visualization_msgs.msg", "std_srvs.srv", "psprm_ros.roadmap_server", "psprm_ros.perception_scorer",
-            "psprm_ros.replan_monitor", "psprm_ros.all_in_one", "psprm_ros.mocap_replay"]
+    mods = ["rclpy", "rclpy.lifecycle", "rclpy.action", "std_msgs.msg", "geometry_msgs.msg", "sensor_msgs.msg",
+            "nav_msgs.msg", "trajectory_msgs.msg", "visualization_msgs.msg", "diagnostic_msgs.msg", "lifecycle_msgs.msg",
+            "rosgraph_msgs.msg", "std_srvs.srv", "psprm_ros.roadmap_server", "psprm_ros.perception_scorer",
+            "psprm_ros.replan_monitor", "psprm_ros.robot_adapter", "psprm_ros.sim_robot", "psprm_ros.all_in_one",
+            "psprm_ros.mocap_replay", "psprm_ros.soak"]
     for m in mods:
         importlib.import_module(m)
-    return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods)}
+    from .adapters import import_follow_joint_trajectory
+
+    return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods),
+            "control_msgs": import_follow_joint_trajectory() is not None}
 
 
 def _raise_on_signals() -> None:
