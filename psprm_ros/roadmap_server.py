@@ -192,6 +192,7 @@ class RoadmapServer:
         from concurrent.futures import ThreadPoolExecutor
 
         self._side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psprm-publish")
+        self._side_jobs: dict = {}  # kind -> (fn, args) of the newest job waiting for the side thread
         self._idle = threading.Event()  # set while the worker waits for input: side jobs (markers) run then
         self._idle.set()
         self._thread = threading.Thread(target=self._worker, name="psprm-planner", daemon=True)
@@ -617,12 +618,23 @@ class RoadmapServer:
         self._publish_info(info)
         self.status(f"plan {info['seq']} ({', '.join(reasons)}): {info['n_points']} points, "
                     f"{info['duration_s']:.1f} s, predicted score {res.mean_score:.3f}, query {res.query_ms:.0f} ms")
-        self._side.submit(self._side_job, "path markers", self._publish_path, res, self.safety_scene)
+        self._submit_side("path markers", self._publish_path, res, self.safety_scene)
 
-    def _side_job(self, what: str, fn, *args) -> None:
-        """Run ``fn`` on the side thread once the planner is idle (waits at most 1 s): publishing markers is pure
-        Python and would otherwise compete with a replan for the interpreter."""
+    def _submit_side(self, what: str, fn, *args) -> None:
+        """Queue a side job; a job of the same kind still waiting is replaced (only the newest path or roadmap
+        matters: while the planner replans back to back, jobs would otherwise pile up faster than they run)."""
+        with self._lock:
+            queued = what in self._side_jobs
+            self._side_jobs[what] = (fn, args)
+        if not queued:
+            self._side.submit(self._side_job, what)
+
+    def _side_job(self, what: str) -> None:
+        """Run the newest job of kind ``what`` on the side thread once the planner is idle (waits at most 1 s):
+        publishing markers is pure Python and would otherwise compete with a replan for the interpreter."""
         self._idle.wait(1.0)
+        with self._lock:
+            fn, args = self._side_jobs.pop(what)
         try:
             fn(*args)
         except Exception as exc:  # never lose the side thread
@@ -740,7 +752,7 @@ class RoadmapServer:
         e = e[(e >= 0).all(1)]
         snap = (self.safety_scene, self._rm_cams[keep, :3, 3].copy(), self._node_scores()[keep].copy(),
                 g.configs[ids[keep], :2].copy(), e)
-        self._side.submit(self._side_job, "roadmap markers", self._publish_roadmap_markers, *snap)
+        self._submit_side("roadmap markers", self._publish_roadmap_markers, *snap)
 
     def _publish_roadmap_markers(self, scene, cam_xyz, scores, base_xy, edges) -> None:
         from . import markers as mk
