@@ -366,7 +366,8 @@ class RobotAdapter:
         if now - self._last_replan_request < self.p["replan_request_interval_s"] or not self.cli_plan.service_is_ready():
             return
         self._last_replan_request = now
-        self.cli_plan.call_async(Trigger.Request())
+        fut = self.cli_plan.call_async(Trigger.Request())
+        fut.add_done_callback(_retrieve)
 
     def stop(self, why: str) -> None:
         """Stop every interface: zero twist, a hold at the measured configuration on every topic controller, cancel
@@ -447,6 +448,14 @@ class RobotAdapter:
         except Exception:
             pass
         self.node.destroy_node()
+
+
+def _retrieve(fut) -> None:
+    """Take a finished service call's result or exception (an unanswered call is cut off at shutdown)."""
+    try:
+        fut.result()
+    except Exception:
+        pass
 
 
 class _Velocities:
