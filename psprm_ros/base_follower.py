@@ -74,6 +74,24 @@ class BaseReference:
     def duration(self) -> float:
         return float(self.t[-1])
 
+    def run_end(self, tau: float) -> tuple:
+        """End of the motion the reference is in at ``tau``: (pose (3,), kind) where the current run of segments with
+        the same kind (rotation or translation) and direction ends -- where the base must have stopped."""
+        if len(self.t) == 1 or tau >= self.t[-1]:
+            return self.P[-1].copy(), ""
+        k = max(0, int(np.searchsorted(self.t, max(tau, 0.0), side="right") - 1))
+        rot = abs(self.w[k]) > 1e-6 and abs(self.v[k]) < 1e-6
+        sgn = np.sign(self.w[k] if rot else self.v[k])
+        if sgn == 0:
+            return self.P[k].copy(), ""
+        j = k
+        while j + 1 < len(self.v):
+            nxt = self.w[j + 1] if rot else self.v[j + 1]
+            if np.sign(nxt) != sgn or (rot and abs(self.v[j + 1]) > 1e-6):
+                break
+            j += 1
+        return self.P[j + 1].copy(), "rotation" if rot else "translation"
+
     def sample(self, tau: float) -> tuple:
         """(pose (3,), v_ref, omega_ref) at ``tau`` seconds from the start (clamped to the ends; zero velocity
         outside)."""
@@ -100,6 +118,7 @@ class BaseFollower:
         self.last_t: Optional[float] = None
         self.done = True
         self.error = np.zeros(3)  # last (e_x, e_y, e_theta)
+        self._periods: list = []  # recent control periods (the braking margin covers the longest of them)
 
     def set_path(self, ref: BaseReference, t0: float) -> None:
         self.ref, self.t0, self.done = ref, float(t0), False
@@ -112,6 +131,9 @@ class BaseFollower:
     def command(self, t: float, pose) -> tuple:
         """(v, omega) for the measured ``pose`` (x, y, theta) at time ``t``."""
         dt = 0.0 if self.last_t is None else max(0.0, min(t - self.last_t, 0.2))
+        if self.last_t is not None:
+            self._periods.append(max(0.0, t - self.last_t))
+            del self._periods[:-60]
         self.last_t = t
         if self.ref is None or self.done:
             self.cmd = np.zeros(2)
@@ -138,12 +160,31 @@ class BaseFollower:
         w = wr + g.k_y * vr * ey + g.k_theta * math.sin(eth)
         v = float(np.clip(v, -lim.linear_velocity, lim.linear_velocity))
         w = float(np.clip(w, -lim.angular_velocity, lim.angular_velocity))
+        # never faster than the base can still stop at the end of the motion it is in, with the longest recent
+        # control period as the reaction delay: a late or skipped control step must not carry the base past a
+        # corner of the path
+        end, kind = self.ref.run_end(tau)
+        delay = max([self.preview_s] + self._periods[-30:])  # a loaded computer runs this loop late at times
+        if kind == "rotation" and w != 0.0:
+            rem = _wrap(end[2] - th) * np.sign(w)
+            w = float(np.sign(w) * min(abs(w), _stoppable(rem, lim.angular_acceleration, delay)))
+        elif kind == "translation" and v != 0.0:
+            rem = ((end[0] - x) * c + (end[1] - y) * s) * np.sign(v)
+            v = float(np.sign(v) * min(abs(v), _stoppable(rem, lim.linear_acceleration, delay)))
         if dt > 0:
             v = float(np.clip(v, self.cmd[0] - lim.linear_acceleration * dt, self.cmd[0] + lim.linear_acceleration * dt))
             w = float(np.clip(w, self.cmd[1] - lim.angular_acceleration * dt,
                               self.cmd[1] + lim.angular_acceleration * dt))
         self.cmd = np.array([v, w])
         return v, w
+
+
+def _stoppable(remaining: float, accel: float, delay: float) -> float:
+    """The largest speed from which a base that reacts ``delay`` late and brakes at ``accel`` stops within
+    ``remaining`` (0 when nothing remains)."""
+    if remaining <= 0.0:
+        return 0.0
+    return accel * (-delay + math.sqrt(delay * delay + 2.0 * remaining / accel))
 
 
 def _wrap(a: float) -> float:

@@ -118,6 +118,24 @@ def test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(su
     P = traj_positions(msg, robot.joint_names)
     assert not collides(robot, suite.sent.scene, P).any()
     assert in_view_fraction(robot, scene, cv.joint_trajectory_positions(msg, robot.joint_names)) >= 0.8
+    # the planned base route as nav_msgs/Path: the trajectory's base poses
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    paths = []
+    q = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    sub = suite.probe.node.create_subscription(PathMsg, "/psprm/base_path", paths.append, q)
+    try:
+        assert suite.probe.wait_for(lambda: paths, 5)
+        B = cv.joint_trajectory_positions(suite.probe.trajectories[-1][1], robot.joint_names)[:, :3]
+        xy = np.array([[p.pose.position.x, p.pose.position.y] for p in paths[-1].poses])
+        yaw = np.array([cv.yaw_of([p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z,
+                                   p.pose.orientation.w]) for p in paths[-1].poses])
+        assert paths[-1].header.frame_id == "map" and xy.shape == (len(B), 2)
+        assert np.allclose(xy, B[:, :2], atol=1e-6)
+        assert np.allclose(np.remainder(yaw - B[:, 2] + np.pi, 2 * np.pi) - np.pi, 0.0, atol=1e-6)
+    finally:
+        suite.probe.node.destroy_subscription(sub)
     # the perception scorer re-scores the roadmap and the path
     assert suite.probe.wait_for(lambda: suite.probe.path_scores, 20)
 

@@ -64,6 +64,9 @@ def test_no_plan_without_a_fresh_base_pose(load_robot):
         assert s.server.ready.wait(180)
         assert s.probe.wait_subscribers("/psprm/goal_regions")
         q = start_q(robot, scene)
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        diags, dsub = _subscribe(s.probe.node, DiagnosticArray, "/diagnostics")
         state = s.probe.hold_robot_state(q, robot.joint_names)
         state.pub_odom_saved, state.pub_odom = state.pub_odom, _Null()  # joints only
         try:
@@ -73,11 +76,22 @@ def test_no_plan_without_a_fresh_base_pose(load_robot):
             assert s.probe.wait_status("waiting for base pose", t0, timeout=10, level="warning")
             time.sleep(1.0)
             assert len(s.probe.trajectories) == n0, "a trajectory was planned without a base pose"
+
+            def diag(name, needle):
+                for t, m in reversed(diags):
+                    for st in m.status:
+                        if st.name == f"psprm: {name}" and needle in st.message and t > t0:
+                            return st
+                return None
+            st = s.probe.wait_for(lambda: diag("roadmap_server", "waiting for base pose"), 5)
+            assert st is not None and st.level == bytes([1])  # WARN on /diagnostics too
+            assert {kv.key: kv.value for kv in st.values}["lifecycle"] == "active"
+            assert s.probe.wait_for(lambda: diag("replan_monitor", "waiting for base pose"), 5)
             state.pub_odom = state.pub_odom_saved  # odometry now arrives
             msg = s.probe.wait_trajectory(n0, 30)
             assert msg is not None and len(msg.points) > 1
             P = cv.joint_trajectory_positions(msg, robot.joint_names)
-            assert np.allclose(P[0, :3], q[:3], atol=1e-6)  # planned from the pose the odometry said
+            assert np.allclose(P[0], q, atol=1e-6)  # starts at the measured state (base from the odometry)
             # the base pose goes stale; the joints keep coming
             state.pub_odom = _Null()
             time.sleep(1.2)
@@ -89,6 +103,7 @@ def test_no_plan_without_a_fresh_base_pose(load_robot):
             assert len(s.probe.trajectories) == n1
         finally:
             state.stop()
+            s.probe.node.destroy_subscription(dsub)
 
 
 class _Null:
