@@ -592,8 +592,9 @@ class RoadmapServer:
             else:
                 self.pub_traj.publish(msg)
                 t_pub = time.perf_counter()
-                self.pub_base_path.publish(cv.base_path_msg(P, self.frame, stamp) if self.robot.mobile else
-                                           cv.base_path_msg(np.zeros((0, 3)), self.frame, stamp))
+                if self.robot.mobile:  # built on the side thread: ~400 PoseStamped are pure Python
+                    self._submit_side("base path", lambda P=P, stamp=stamp: self.pub_base_path.publish(
+                        cv.base_path_msg(P, self.frame, stamp)))
                 self.counts["plans"] += 1
                 if pend["t_first"]:
                     self.last_latency_ms = (t_pub - pend["t_first"]) * 1e3
