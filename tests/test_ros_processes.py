@@ -107,8 +107,11 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
 
     from trajectory_msgs.msg import JointTrajectory
 
-    cmds = []
+    from geometry_msgs.msg import Twist
+
+    cmds, twists = [], []
     probe.node.create_subscription(JointTrajectory, "/stretch_controller/joint_trajectory", cmds.append, 10)
+    probe.node.create_subscription(Twist, "/stretch/cmd_vel", lambda m: twists.append((time.perf_counter(), m)), 50)
     stop = threading.Event()
     th = threading.Thread(target=_spin, args=(ex, stop), daemon=True)
     th.start()
@@ -145,6 +148,16 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
         assert cmds, "robot_adapter sent nothing to the stretch_controller topic"
         assert set(cmds[-1].joint_names) == {"joint_lift", "wrist_extension", "joint_wrist_yaw", "joint_head_pan",
                                              "joint_head_tilt"}
+        # stop on shutdown: after SIGTERM the adapter sends a zero twist and a hold before the process ends
+        n_cmds, t_term = len(cmds), time.perf_counter()
+        os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+        time.sleep(0.3)
+        assert [m for t, m in twists if t >= t_term and m.linear.x == 0.0 and m.angular.z == 0.0], \
+            "no zero twist at shutdown"
+        assert [m for m in cmds[n_cmds:] if len(m.points) == 1], "no hold trajectory at shutdown"
         state.stop()
     finally:
         stop.set()  # the spin thread leaves before the executor, node and context go (no shutdown race)
