@@ -218,3 +218,32 @@ def test_params_files_of_the_three_robots_configure_every_node(params_file, load
         d = q - s.sim.q
         d[2] = np.remainder(d[2] + np.pi, 2 * np.pi) - np.pi  # a heading of pi may come back as -pi
         assert np.abs(d).max() < 0.05
+
+
+def test_sim_robot_mocap_pose_of_its_base(load_robot):
+    """sim_robot's optional mocap pose: a body 0.2 m behind and 0.3 m above base_link, in ``world`` (the map's pose
+    in world: 1 m east, turned 90 deg); the test recomputes it from the robot's own /odom (odom = map)."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import qos_profile_sensor_data
+
+    T_map_world = yaw_matrix(1.0, 0.0, 0.0, math.pi / 2)
+    wq = cv.matrices_to_quats(T_map_world[None, :3, :3])[0]
+    T_body_base = yaw_matrix(0.2, 0.0, -0.3, 0.0)
+    params = {"scene": "dynamic_person", "mocap_topic": "/mocap/robot/pose", "mocap_frame": "world",
+              "mocap_world.xyz": T_map_world[:3, 3].tolist(), "mocap_world.quat": wq.tolist(),
+              "mocap_body_offset.xyz": T_body_base[:3, 3].tolist(), "initial_base": [2.0, 1.5, 0.7]}
+    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("sim",)) as s:
+        mocap, s1 = _subscribe(s.probe.node, PoseStamped, "/mocap/robot/pose", qos_profile_sensor_data)
+        odom, s2 = _subscribe(s.probe.node, Odometry, "/odom")
+        assert s.probe.wait_for(lambda: mocap and odom, 10)
+        m = mocap[-1][1]
+        o = odom[-1][1]
+        assert m.header.frame_id == "world" and o.header.frame_id == "odom"
+        T_map_base = cv.pose_to_matrix(o.pose.pose)
+        expect = np.linalg.inv(T_map_world) @ T_map_base @ np.linalg.inv(T_body_base)
+        T = cv.pose_to_matrix(m.pose)
+        assert np.allclose(T, expect, atol=1e-6)
+        assert np.allclose(T_map_base[:2, 3], [2.0, 1.5], atol=1e-6)
+        s.probe.node.destroy_subscription(s1)
+        s.probe.node.destroy_subscription(s2)
