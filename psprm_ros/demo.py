@@ -84,6 +84,57 @@ class Record:
             return self.executed[-1] if self.executed else None
 
 
+class ClosedLoop:
+    """The suite (``run_all_in_one.sh``) and ``sim_robot`` (``run_sim_robot.sh``) as their own processes, and a client
+    node (:class:`~psprm_ros.probe.Probe`) spinning in this one; ``close()`` ends all of it."""
+
+    def __init__(self, params_file: str, overrides: dict, out: Path, prefix: str, domain: int):
+        self.params_file, self.overrides, self.out, self.prefix, self.domain = params_file, overrides, out, prefix, domain
+        self.procs: dict = {}
+        self.ex = self.ctx = self.probe = None
+
+    def start(self, say=None) -> "ClosedLoop":
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+
+        from .probe import Probe
+
+        env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
+        suite = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), self.params_file]
+        for k, v in self.overrides.items():
+            suite += ["-p", f"{k}:={v}"]
+        sim = ["bash", str(ROOT / "scripts" / "run_sim_robot.sh"), self.params_file]
+        for name, cmd in (("suite", suite), ("sim_robot", sim)):
+            log_path = self.out / f"{self.prefix}_{name}.log"
+            self.procs[name] = subprocess.Popen(cmd, env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT,
+                                                start_new_session=True)
+            if say:
+                say(f"[{self.prefix}] started {name}: {' '.join(cmd[1:])} (log {log_path})")
+        self.ctx = rclpy.Context()
+        self.ctx.init(domain_id=self.domain)
+        self.probe = Probe(context=self.ctx)
+        self.ex = MultiThreadedExecutor(num_threads=3, context=self.ctx)
+        self.ex.add_node(self.probe.node)
+        threading.Thread(target=lambda: _spin(self.ex), daemon=True).start()
+        return self
+
+    def close(self) -> None:
+        try:
+            self.ex.shutdown(timeout_sec=1.0)
+            self.probe.destroy()
+            self.ctx.try_shutdown()
+        except Exception:
+            pass
+        for p in self.procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGINT)  # the adapter stops the robot on its way out
+        for p in self.procs.values():
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
+
+
 def _params_frames(params_file: str, scene_frame: str):
     """The input frames of the params file's shared section (the demo reads /odom as the nodes do)."""
     import yaml
@@ -126,14 +177,13 @@ def main(args=None) -> int:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
-    import rclpy
 
     from psprm_core.paths import resolve_named
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
     from .mocap_replay import Replayer
-    from .probe import InProcessSuite, Probe
+    from .probe import InProcessSuite
     from .recordings import load_recording
 
     out = Path(a.out)
@@ -148,7 +198,7 @@ def main(args=None) -> int:
     say = lambda m: print(m, flush=True)  # noqa: E731
     say(f"[demo] scene {scene.name}, robot {robot.name}, recording {Path(a.recording).name} "
         f"({rec.duration:.1f} s, bodies {', '.join(rec.bodies)}, {rec.rate_hz(rec.bodies[0]):.0f} Hz, looped)")
-    procs, suite, ex = [], None, None
+    loop, suite = None, None
     result = {}
     try:
         if a.in_process:
@@ -157,24 +207,8 @@ def main(args=None) -> int:
             suite.__enter__()
             probe = suite.probe
         else:
-            env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
-            cmd = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), a.params]
-            for k, v in overrides.items():
-                cmd += ["-p", f"{k}:={v}"]
-            sim_cmd = ["bash", str(ROOT / "scripts" / "run_sim_robot.sh"), a.params]
-            for c, name in ((cmd, "suite"), (sim_cmd, "sim_robot")):
-                log_path = out / f"ros_demo_{name}.log"
-                procs.append(subprocess.Popen(c, env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT,
-                                              start_new_session=True))
-                say(f"[demo] started {name}: {' '.join(c[1:])} (log {log_path})")
-            ctx = rclpy.Context()
-            ctx.init(domain_id=domain)
-            probe = Probe(context=ctx)
-            from rclpy.executors import MultiThreadedExecutor
-
-            ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-            ex.add_node(probe.node)
-            threading.Thread(target=lambda: _spin(ex), daemon=True).start()
+            loop = ClosedLoop(a.params, overrides, out, "ros_demo", domain).start(say)
+            probe = loop.probe
         record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
         wall_minus_perf = time.time() - time.perf_counter()
         ready = probe.wait_ready(timeout=1200)
@@ -240,21 +274,8 @@ def main(args=None) -> int:
     finally:
         if suite is not None:
             suite.__exit__(None, None, None)
-        if ex is not None:
-            try:
-                ex.shutdown(timeout_sec=1.0)
-                probe.destroy()
-                ctx.try_shutdown()
-            except Exception:
-                pass
-        for p in procs:
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGINT)
-        for p in procs:
-            try:
-                p.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+        if loop is not None:
+            loop.close()
     if result:
         (out / "ros_demo.json").write_text(json.dumps(result, indent=1))
         say(f"[demo] wrote {out / 'ros_demo.png'} and {out / 'ros_demo.json'}")

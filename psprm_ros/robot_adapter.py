@@ -99,7 +99,6 @@ class RobotAdapter:
         self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
         self.cb = MutuallyExclusiveCallbackGroup()
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._latest_traj = None
         node.create_subscription(JointTrajectory, self.p["trajectory_topic"], self._traj_cb, latched,
                                  callback_group=self.cb)
         node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, 10, callback_group=self.cb)
@@ -254,8 +253,7 @@ class RobotAdapter:
 
     def _traj_cb(self, msg) -> None:
         self.counts["trajectories"] += 1
-        if not self.active or self.cfg is None:
-            self._latest_traj = msg
+        if not self.active or self.cfg is None:  # an inactive adapter drives nothing (activation asks for a new plan)
             return
         try:
             self.execute(msg)

@@ -25,11 +25,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import random
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -38,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from . import conversions as cv
-from .demo import ROOT, Record, _params_frames, _scene_with, _spin, at_goal
+from .demo import ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal
 
 
 def rss_mb(pid: int) -> float:
@@ -181,14 +178,10 @@ def main(args=None) -> int:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    import rclpy
-    from rclpy.executors import MultiThreadedExecutor
-
     from psprm_core.paths import resolve_named
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
-    from .probe import Probe
     from .recordings import load_recording
 
     rng = np.random.default_rng(a.seed)
@@ -198,20 +191,9 @@ def main(args=None) -> int:
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = RobotModel.load(scene.robot)
     domain = a.domain_id or random.randint(100, 200)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
-    suite_cmd = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), a.params, "-p",
-                 f"roadmap_server:n_nodes:={a.nodes}", "-p", "robot_adapter:interface:=topic"]
-    sim_cmd = ["bash", str(ROOT / "scripts" / "run_sim_robot.sh"), a.params]
-    procs = {}
-    for name, cmd in (("suite", suite_cmd), ("sim_robot", sim_cmd)):
-        procs[name] = subprocess.Popen(cmd, env=env, stdout=open(out / f"soak_{name}.log", "w"),
-                                       stderr=subprocess.STDOUT, start_new_session=True)
-    ctx = rclpy.Context()
-    ctx.init(domain_id=domain)
-    probe = Probe(context=ctx)
-    ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-    ex.add_node(probe.node)
-    threading.Thread(target=lambda: _spin(ex), daemon=True).start()
+    loop = ClosedLoop(a.params, {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}, out, "soak",
+                      domain).start()
+    procs, probe = loop.procs, loop.probe
     record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
     from diagnostic_msgs.msg import DiagnosticArray
 
@@ -301,20 +283,7 @@ def main(args=None) -> int:
     finally:
         if stream is not None:
             stream.stop()
-        try:
-            ex.shutdown(timeout_sec=1.0)
-            probe.destroy()
-            ctx.try_shutdown()
-        except Exception:
-            pass
-        for p in procs.values():
-            if p.poll() is None:
-                os.killpg(p.pid, signal.SIGINT)
-        for p in procs.values():
-            try:
-                p.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(p.pid, signal.SIGKILL)
+        loop.close()
     if result:
         (out / "soak.json").write_text(json.dumps(result, indent=1))
         if a.json:

@@ -127,7 +127,6 @@ def test_keep_stamps_with_clock_is_coherent_with_use_sim_time(tmp_path):
     from rclpy.executors import MultiThreadedExecutor
     from rclpy.parameter import Parameter
     from rclpy.qos import qos_profile_sensor_data
-    from rosgraph_msgs.msg import Clock
 
     from psprm_ros.mocap_replay import Replayer
     from psprm_ros.replan_monitor import ReplanMonitor
