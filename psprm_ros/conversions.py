@@ -304,9 +304,11 @@ def _f64(row: np.ndarray):
     return array.array("d", np.ascontiguousarray(row, dtype=np.float64).tobytes())
 
 
-def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: float = 0.1):
+def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: float = 0.1,
+                      with_positions: bool = False):
     """A :class:`psprm_core.planning.timing.Trajectory` -> ``trajectory_msgs/JointTrajectory`` (samples from
-    :func:`trajectory_samples`; the last point at rest)."""
+    :func:`trajectory_samples`; the last point at rest). ``with_positions``: (msg, the points' positions (M, dof))
+    without reading them back from the message."""
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     t, pos, vel, acc = trajectory_samples(traj, dt)
@@ -326,7 +328,7 @@ def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: fl
         p.time_from_start = duration_msg(float(t[k]))
         pts.append(p)
     m.points = pts
-    return m
+    return (m, np.asarray(pos, float)) if with_positions else m
 
 
 def prepend_start(msg, q: np.ndarray, velocity_limits: np.ndarray, acceleration_limits: np.ndarray,

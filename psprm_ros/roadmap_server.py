@@ -575,13 +575,15 @@ class RoadmapServer:
             return True, json.dumps(info)
         if traj is not None:
             stamp = self.node.get_clock().now().to_msg()
-            msg = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"])
+            msg, P = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"],
+                                          with_positions=True)
             # the trajectory starts at the measured state it was planned from (the planner re-aims the camera joints
             # at its start): a controller then never jumps, and the connecting move is checked below with the rest
             cont = [2] if self.robot.mobile else []
-            info["start_shift_s"] = _f(cv.prepend_start(msg, self.rp.q, self.robot.velocity, self.robot.acceleration,
-                                                        cont))
-            P = cv.joint_trajectory_positions(msg, self.names)
+            shift = cv.prepend_start(msg, self.rp.q, self.robot.velocity, self.robot.acceleration, cont)
+            info["start_shift_s"] = _f(shift)
+            if shift > 0:
+                P = np.vstack([np.asarray(msg.points[0].positions, float), P])
             t2 = time.perf_counter()
             self._take_fresh_obstacles()
             unsafe = self._unsafe(P)

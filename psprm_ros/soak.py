@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from . import conversions as cv
-from .demo import ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal
+from .demo import GOAL_REASONS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal
 
 
 def rss_mb(pid: int) -> float:
@@ -306,7 +306,8 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         statuses = [(t, n, s) for t, n, s in probe.statuses if t0 <= t <= t_end]
     lat = []
     for t, info in infos:
-        if info.get("input_stamp") and info.get("success") and not info.get("stop") and not info.get("kept_last"):
+        if info.get("input_stamp") and info.get("success") and not info.get("stop") and not info.get("kept_last") \
+                and not any(r in GOAL_REASONS for r in info.get("reasons") or []):
             rx = [tt for tt, _ in trajs if tt <= t + 1e-6]
             if rx:
                 lat.append((rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3)
