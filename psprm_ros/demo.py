@@ -336,6 +336,7 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
                      "pose_to_trajectory_ms": None if e2e is None else round(e2e, 1),
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
                      "apply_ms": info.get("apply_ms"), "msg_ms": info.get("msg_ms"), "check_ms": info.get("check_ms"),
+                     "input_age_ms": info.get("input_age_ms"),
                      "predicted_score": info.get("mean_score"), "reason": info.get("reason")})
     goal_names = [g.name for g in scene.goals]
     say("[demo] plans (t = seconds since the replay started):")
@@ -412,7 +413,7 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
         "goal_to_trajectory_ms": [round(float(v), 1) for v in goal_lat],
         **{f"{k}_median": (round(float(np.median(v)), 1) if v else None) for k, v in
            ((k, [r[k] for r in rows if r.get(k) is not None]) for k in ("server_ms", "replan_ms", "apply_ms",
-                                                                        "msg_ms", "check_ms"))},
+                                                                        "msg_ms", "check_ms", "input_age_ms"))},
         "executed_configurations": int(len(Q)), "executed_collisions": int(collided),
         "executed_distance_m": round(dist, 3), "final_base": [round(float(v), 3) for v in Q[-1, :3]] if len(Q) else None,
         "oracle_detected_fraction": round(float(np.mean(detected)), 3) if detected else None,

@@ -286,6 +286,7 @@ class RoadmapServer:
                 if pend["t_first"] is None:
                     pend["t_first"] = t
                     pend["stamp"] = cv.stamp_to_sec(msg.header.stamp)
+                    pend["input_age_ms"] = (self._now() - pend["stamp"]) * 1e3  # stamp -> receipt here
             self._wake.set()
         return cb
 
@@ -567,7 +568,8 @@ class RoadmapServer:
         t1 = time.perf_counter()
         info = {"seq": self.seq, "reasons": reasons, "success": bool(res.success), "reason": res.reason,
                 "query_ms": _f(res.query_ms), "mean_score": _f(res.mean_score), "goal_index": int(res.goal_index),
-                "input_stamp": pend["stamp"], **pend.get("timing", {}), "replan_ms": _f((t1 - t0) * 1e3)}
+                "input_stamp": pend["stamp"], "input_age_ms": _f(pend.get("input_age_ms")), **pend.get("timing", {}),
+                "replan_ms": _f((t1 - t0) * 1e3)}
         self.seq += 1
         traj = res.trajectory if res.success else None
         if res.success and traj is None:  # already at the goal
