@@ -327,16 +327,21 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
         if t < t_replay - 1.0 or t > t_end:
             continue
         rx = [tt for tt, _ in trajs if tt <= t + 1e-6]
-        e2e = None
+        e2e = at_client = None
         if info.get("input_stamp") and rx and not info.get("kept_last") and not info.get("stop") \
                 and info.get("success"):
-            e2e = (rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3
+            # the suite's latency: the pose message's stamp to the trajectory's publication (the server's clock,
+            # the same wall clock); and as this client received it (its own callbacks and the replay add to it)
+            if info.get("published_stamp"):
+                e2e = (info["published_stamp"] - info["input_stamp"]) * 1e3
+            at_client = (rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3
         rows.append({"t": round(t - t_replay, 2), "reasons": info.get("reasons"), "success": info.get("success"),
                      "stop": bool(info.get("stop")), "goal_index": info.get("goal_index"),
                      "pose_to_trajectory_ms": None if e2e is None else round(e2e, 1),
+                     "at_client_ms": None if at_client is None else round(at_client, 1),
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
                      "apply_ms": info.get("apply_ms"), "msg_ms": info.get("msg_ms"), "check_ms": info.get("check_ms"),
-                     "input_age_ms": info.get("input_age_ms"),
+                     "input_age_ms": info.get("input_age_ms"), "triggers_ms": info.get("triggers_ms"),
                      "predicted_score": info.get("mean_score"), "reason": info.get("reason")})
     goal_names = [g.name for g in scene.goals]
     say("[demo] plans (t = seconds since the replay started):")
@@ -354,6 +359,8 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
                     and not _goal_triggered(r)], float)
     goal_lat = [r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None
                 and _goal_triggered(r)]
+    client = np.array([r["at_client_ms"] for r in rows if r["at_client_ms"] is not None and not _goal_triggered(r)],
+                      float)
     # the executed motion against the replayed person at each instant
     with record.lock:
         ex = [(t, q) for t, q in record.executed if t_replay <= t <= t_end]
@@ -410,10 +417,12 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
         "pose_to_trajectory_ms_p95": round(float(np.percentile(lat, 95)), 1) if len(lat) else None,
         "pose_to_trajectory_ms_max": round(float(lat.max()), 1) if len(lat) else None,
         "latency_samples": int(len(lat)),
+        "pose_to_trajectory_at_client_ms_median": round(float(np.median(client)), 1) if len(client) else None,
+        "pose_to_trajectory_at_client_ms_p95": round(float(np.percentile(client, 95)), 1) if len(client) else None,
         "goal_to_trajectory_ms": [round(float(v), 1) for v in goal_lat],
         **{f"{k}_median": (round(float(np.median(v)), 1) if v else None) for k, v in
            ((k, [r[k] for r in rows if r.get(k) is not None]) for k in ("server_ms", "replan_ms", "apply_ms",
-                                                                        "msg_ms", "check_ms", "input_age_ms"))},
+                                                                        "msg_ms", "check_ms", "input_age_ms", "triggers_ms"))},
         "executed_configurations": int(len(Q)), "executed_collisions": int(collided),
         "executed_distance_m": round(dist, 3), "final_base": [round(float(v), 3) for v in Q[-1, :3]] if len(Q) else None,
         "oracle_detected_fraction": round(float(np.mean(detected)), 3) if detected else None,
@@ -422,7 +431,9 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
     say(f"[demo] {n_ok} plans ({summary['replans']} replans), {summary['stops']} stops, {summary['failed']} failed; "
         f"pose->trajectory latency median {summary['pose_to_trajectory_ms_median']} ms, p95 "
         f"{summary['pose_to_trajectory_ms_p95']} ms, max {summary['pose_to_trajectory_ms_max']} ms "
-        f"({len(lat)} plans triggered by a pose; goal -> trajectory {summary['goal_to_trajectory_ms']} ms)")
+        f"({len(lat)} plans triggered by a pose; goal -> trajectory {summary['goal_to_trajectory_ms']} ms); as "
+        f"received by this client: median {summary['pose_to_trajectory_at_client_ms_median']} ms, p95 "
+        f"{summary['pose_to_trajectory_at_client_ms_p95']} ms")
     try:
         _figure(Path(a.out) / "ros_demo.png", scene, record, first, robot, Q, T, ts, oracle, rows, t_replay)
     except Exception as exc:  # the figure is a report, never a reason to lose the result

@@ -596,6 +596,7 @@ class RoadmapServer:
             else:
                 self.pub_traj.publish(msg)
                 t_pub = time.perf_counter()
+                info["published_stamp"] = self._now()  # node clock (the inputs' stamps are on it too)
                 if self.robot.mobile:  # built on the side thread: ~400 PoseStamped are pure Python
                     self._submit_side("base path", lambda P=P, stamp=stamp: self.pub_base_path.publish(
                         cv.base_path_msg(P, self.frame, stamp)))
