@@ -1,5 +1,7 @@
-"""``all_in_one``: ``roadmap_server``, ``perception_scorer`` and ``replan_monitor`` in one process on a
-MultiThreadedExecutor (the lowest pose-to-trajectory latency: no inter-process hop, one copy of the core).
+"""``all_in_one``: ``roadmap_server``, ``perception_scorer``, ``replan_monitor`` and ``robot_adapter`` in one
+process on a MultiThreadedExecutor (the lowest pose-to-trajectory latency: no inter-process hop, one copy of the
+core). The adapter drives the robot's controllers (``adapter`` parameter); set ``robot_adapter:autostart:=false`` to
+plan without executing.
 
 Same parameters and topics as the separate nodes; one params file (``/**`` section shared, one section per node).
 """
@@ -11,8 +13,9 @@ def factories() -> list:
     from .perception_scorer import PerceptionScorer
     from .replan_monitor import ReplanMonitor
     from .roadmap_server import RoadmapServer
+    from .robot_adapter import RobotAdapter
 
-    return [RoadmapServer, PerceptionScorer, ReplanMonitor]
+    return [RoadmapServer, PerceptionScorer, ReplanMonitor, RobotAdapter]
 
 
 def main(args=None) -> int:

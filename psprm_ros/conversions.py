@@ -304,9 +304,11 @@ def _f64(row: np.ndarray):
     return array.array("d", np.ascontiguousarray(row, dtype=np.float64).tobytes())
 
 
-def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: float = 0.1):
+def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: float = 0.1,
+                      with_positions: bool = False):
     """A :class:`psprm_core.planning.timing.Trajectory` -> ``trajectory_msgs/JointTrajectory`` (samples from
-    :func:`trajectory_samples`; the last point at rest)."""
+    :func:`trajectory_samples`; the last point at rest). ``with_positions``: (msg, the points' positions (M, dof))
+    without reading them back from the message."""
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     t, pos, vel, acc = trajectory_samples(traj, dt)
@@ -326,7 +328,42 @@ def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: fl
         p.time_from_start = duration_msg(float(t[k]))
         pts.append(p)
     m.points = pts
-    return m
+    return (m, np.asarray(pos, float)) if with_positions else m
+
+
+def prepend_start(msg, q: np.ndarray, velocity_limits: np.ndarray, acceleration_limits: np.ndarray,
+                  continuous: Optional[Sequence[int]] = None, tol: float = 1e-3) -> float:
+    """Make ``msg`` (a JointTrajectory of all planning joints, in ``q``'s order) start exactly at ``q``: when its
+    first point differs (the planner re-aims the camera joints at the start), a point at ``q`` is put first, at time
+    0, and every other point is shifted by the time a rest-to-rest move to the old first point takes within the
+    limits (the slowest joint's trapezoid). Returns that shift (0 when nothing was added). The new segment is part of
+    the published trajectory, so the final collision check covers it."""
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    if not msg.points:
+        return 0.0
+    first = np.asarray(msg.points[0].positions, float)
+    d = first - np.asarray(q, float)
+    for j in continuous or ():
+        d[j] = (d[j] + math.pi) % (2.0 * math.pi) - math.pi
+    if np.abs(d).max() <= tol:
+        return 0.0
+    v = np.asarray(velocity_limits, float)
+    a = np.asarray(acceleration_limits, float)
+    ad = np.abs(d)
+    # rest to rest: triangular when the distance is short, trapezoidal otherwise
+    t = np.where(ad < v * v / a, 2.0 * np.sqrt(ad / a), ad / v + v / a)
+    shift = float(max(t.max(), 0.05))
+    for p in msg.points:
+        p.time_from_start = duration_msg(duration_to_sec(p.time_from_start) + shift)
+    p0 = JointTrajectoryPoint()
+    start = first - d  # q, with continuous joints on the first point's branch
+    p0.positions = _f64(start)
+    p0.velocities = _f64(np.zeros(len(start)))
+    p0.accelerations = _f64(np.zeros(len(start)))
+    p0.time_from_start = duration_msg(0.0)
+    msg.points = [p0] + list(msg.points)
+    return shift
 
 
 def densify_linear(P: np.ndarray, step: float = 0.02) -> np.ndarray:
@@ -344,11 +381,15 @@ def densify_linear(P: np.ndarray, step: float = 0.02) -> np.ndarray:
     return np.vstack([out, P[-1:]])
 
 
-def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None):
+def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None, hold_s: float = 0.25):
     """A one-point trajectory that holds ``q`` with zero velocity (what the server publishes when nothing safe
-    exists)."""
+    exists). ``time_from_start`` is ``hold_s`` (> 0) and the stamp 0 ("start now", unless ``stamp`` is given): a
+    joint_trajectory_controller drops a trajectory whose stamp + last time_from_start lies in the past, which a
+    point at time 0 stamped now always does by the time it arrives."""
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
+    if not hold_s > 0:
+        raise ValueError(f"hold_s must be > 0, got {hold_s}")
     m = JointTrajectory()
     m.header.frame_id = frame
     if stamp is not None:
@@ -358,8 +399,27 @@ def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None)
     p.positions = [float(v) for v in q]
     p.velocities = [0.0] * len(names)
     p.accelerations = [0.0] * len(names)
-    p.time_from_start = duration_msg(0.0)
+    p.time_from_start = duration_msg(float(hold_s))
     m.points = [p]
+    return m
+
+
+def base_path_msg(P: np.ndarray, frame: str, stamp=None):
+    """Planning-joint positions (M, dof; base_x, base_y, base_theta first) -> ``nav_msgs/Path`` of the base route."""
+    from geometry_msgs.msg import PoseStamped
+    from nav_msgs.msg import Path
+
+    m = Path()
+    m.header.frame_id = frame
+    if stamp is not None:
+        m.header.stamp = stamp
+    poses = []
+    for x, y, th in np.asarray(P, float).reshape(-1, np.shape(P)[-1] if np.ndim(P) == 2 else 3)[:, :3]:
+        ps = PoseStamped()
+        ps.header = m.header
+        numpy_to_pose([x, y, 0.0], yaw_quat(th), ps.pose)
+        poses.append(ps)
+    m.poses = poses
     return m
 
 

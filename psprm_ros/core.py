@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -15,6 +16,22 @@ from typing import Any, Optional
 import numpy as np
 
 log = logging.getLogger(__name__)
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """A node parameter: its default, what it means, and whether a running node applies a change (``live``) or the
+    change needs a rebuild (``rebuild``: read-only while the node runs; set it in the params file and restart or
+    reconfigure). ``lo``/``hi``: range of a number."""
+
+    default: Any
+    description: str = ""
+    live: bool = False
+    rebuild: bool = False
+    lo: Optional[float] = None
+    hi: Optional[float] = None
+
+
 
 #: topics shared by the nodes (absolute, so the nodes can be started in any namespace layout)
 STATE_PREFIX = "/psprm/state"
@@ -27,14 +44,24 @@ PLAN_INFO_TOPIC = "/psprm/plan_info"
 SERVER_STATE_TOPIC = "/psprm/server_state"  # latched std_msgs/String: "building ...", "ready: ...", "error: ..."
 SERVER_NAME = "roadmap_server"
 
+BASE_PATH_TOPIC = "/psprm/base_path"  # nav_msgs/Path of the planned base route (latched)
+
+
+def _common_params() -> dict:
+    P = Param
+    return {
+        "scene": P("dynamic_person", "scene name under config/scenes or a YAML path", rebuild=True),
+        "robot": P("", "robot name or YAML path; '' = the scene's robot", rebuild=True),
+        "targets": P([], "targets kept in view; [] = the targets of the scene's problems", rebuild=True),
+        "dynamic_obstacles": P([], "scene obstacles whose poses arrive on topics", rebuild=True),
+        "torch_threads": P(2, "torch intra-op threads", lo=1),
+        "autostart": P(True, "configure and activate the lifecycle node at start-up (as a lifecycle manager with "
+                             "autostart would)"),
+    }
+
+
 #: parameters every node reads (scene and robot), with defaults
-COMMON_PARAMS = {
-    "scene": "dynamic_person",  # scene name under config/scenes or a YAML path
-    "robot": "",  # robot name or YAML path; "" = the scene's robot
-    "targets": [],  # targets the planner and scorer keep in view; [] = the targets of the scene's problems
-    "dynamic_obstacles": [],  # scene obstacles whose poses arrive on topics
-    "torch_threads": 2,
-}
+COMMON_PARAMS = {k: v.default for k, v in _common_params().items()}
 
 
 def report(log, publisher, text: str, level: str = "info") -> None:
@@ -69,17 +96,27 @@ GOALS_TOPIC = f"{STATE_PREFIX}/goals"
 
 # ---------------------------------------------------------------------------------------------------------- params
 def declare_params(node, spec: dict) -> dict:
-    """Declare ``spec`` (name -> default) with dynamic typing and return the values coerced to the defaults' types
-    (a YAML ``4`` for a float parameter is accepted; ``[]`` defaults accept any list)."""
-    from rcl_interfaces.msg import ParameterDescriptor
+    """Declare ``spec`` (name -> default or :class:`Param`) with dynamic typing and descriptors (description,
+    read-only for rebuild parameters, ranges) and return the values coerced to the defaults' types (a YAML ``4`` for
+    a float parameter is accepted; ``[]`` defaults accept any list)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 
     out = {}
-    for name, default in spec.items():
+    for name, item in spec.items():
+        prm = item if isinstance(item, Param) else Param(item)
         if node.has_parameter(name):
             p = node.get_parameter(name)
         else:
-            p = node.declare_parameter(name, default, ParameterDescriptor(dynamic_typing=True))
-        out[name] = coerce(name, p.value, default)
+            d = ParameterDescriptor(dynamic_typing=True, description=prm.description, read_only=prm.rebuild)
+            if prm.lo is not None or prm.hi is not None:
+                lo = -1e300 if prm.lo is None else prm.lo
+                hi = 1e300 if prm.hi is None else prm.hi
+                if isinstance(prm.default, float):
+                    d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
+                elif isinstance(prm.default, int) and not isinstance(prm.default, bool):
+                    d.integer_range = [IntegerRange(from_value=int(max(lo, -2**62)), to_value=int(min(hi, 2**62)))]
+            p = node.declare_parameter(name, prm.default, d)
+        out[name] = coerce(name, p.value, prm.default)
     return out
 
 
@@ -103,13 +140,84 @@ def coerce(name: str, value: Any, default: Any) -> Any:
     return value
 
 
+def common_params() -> dict:
+    """:data:`COMMON_PARAMS` with descriptions (scene, robot, targets and obstacles need a rebuild)."""
+    return _common_params()
+
+
+def default_of(item) -> Any:
+    return item.default if isinstance(item, Param) else item
+
+
+def install_param_callback(node, spec: dict, values: dict, apply) -> None:
+    """Set-parameters callback: a change to a ``live`` parameter is checked (type, range, finite) and handed to
+    ``apply(name, value)`` (which may raise ValueError to refuse it); any other change is refused with the reason.
+    ``values`` (the dict :func:`declare_params` returned) is updated for accepted changes."""
+    from rcl_interfaces.msg import SetParametersResult
+
+    def cb(params):
+        staged = {}
+        for prm in params:
+            item = spec.get(prm.name)
+            if item is None:
+                continue  # parameters of other parts of the node (use_sim_time, input frames) are not ours
+            p = item if isinstance(item, Param) else Param(item)
+            if not p.live:
+                why = "needs a rebuild: set it in the params file and reconfigure the node" if p.rebuild else \
+                    "is read when the node is configured: deactivate, cleanup and configure to change it"
+                return SetParametersResult(successful=False, reason=f"{prm.name} {why}")
+            try:
+                v = coerce(prm.name, prm.value, p.default)
+                if isinstance(v, float) and not math.isfinite(v):
+                    raise ValueError("must be finite")
+                if isinstance(v, (int, float)) and not isinstance(v, bool):
+                    if (p.lo is not None and v < p.lo) or (p.hi is not None and v > p.hi):
+                        raise ValueError(f"must lie in [{p.lo}, {p.hi}]")
+                staged[prm.name] = v
+            except (TypeError, ValueError) as exc:
+                return SetParametersResult(successful=False, reason=f"{prm.name}: {exc}")
+        for k, v in staged.items():
+            try:
+                apply(k, v)
+            except ValueError as exc:
+                return SetParametersResult(successful=False, reason=f"{k}: {exc}")
+            values[k] = v
+        return SetParametersResult(successful=True)
+
+    node.add_on_set_parameters_callback(cb)
+
+
 # ---------------------------------------------------------------------------------------------------------- scene
-def load_scene_and_robot(scene_name: str, robot_name: str = ""):
+def resolve_scene(scene_name: str):
+    """A scene by path, by name among psprm_core's scenes, or by name among the scenes installed with the colcon
+    package (``share/psprm_ros/scenes``)."""
+    from psprm_core.errors import ConfigError
     from psprm_core.paths import resolve_named
+
+    try:
+        return resolve_named("scene", scene_name)
+    except ConfigError:
+        share = share_dir()
+        if share is not None and (share / "scenes" / f"{scene_name}.yaml").is_file():
+            return share / "scenes" / f"{scene_name}.yaml"
+        raise
+
+
+def share_dir() -> Optional[Path]:
+    """``share/psprm_ros`` of the installed colcon package, or None when it is not installed."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        return Path(get_package_share_directory("psprm_ros"))
+    except Exception:
+        return None
+
+
+def load_scene_and_robot(scene_name: str, robot_name: str = ""):
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
-    scene = load_scene(resolve_named("scene", scene_name))
+    scene = load_scene(resolve_scene(scene_name))
     robot = RobotModel.load(robot_name or scene.robot)
     return scene, robot
 
@@ -227,3 +335,109 @@ def make_replanner(planner, settings_path: str = ""):
 
     settings = ReplanSettings.from_yaml(resolve_named("planner", settings_path)) if settings_path else ReplanSettings()
     return Replanner(planner, settings)
+
+
+# ---------------------------------------------------------------------------------------------------------- lifecycle
+def lifecycle_node(owner, node_name: str, **node_kwargs):
+    """An ``rclpy.lifecycle.LifecycleNode`` whose transitions call ``owner.on_configure(state)``,
+    ``on_activate``, ``on_deactivate``, ``on_cleanup``, ``on_shutdown`` (those the owner has). A callback returning
+    False fails the transition; one raising is reported on the log and fails it too (the node stays usable)."""
+    from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
+
+    def call(name, state):
+        fn = getattr(owner, name, None)
+        if fn is None:
+            return TransitionCallbackReturn.SUCCESS
+        try:
+            ok = fn(state)
+        except Exception as exc:  # a configuration error: the transition fails, the node lives on
+            node.get_logger().error(f"{name[3:]} failed: {exc}")
+            status = getattr(owner, "status", None)
+            if status is not None:
+                try:
+                    status(f"{name[3:]} failed: {exc}", "error")
+                except Exception:
+                    pass
+            return TransitionCallbackReturn.FAILURE
+        return TransitionCallbackReturn.FAILURE if ok is False else TransitionCallbackReturn.SUCCESS
+
+    class _Managed(LifecycleNode):
+        def on_configure(self, state):
+            return call("on_configure", state)
+
+        def on_activate(self, state):
+            r = call("on_activate", state)
+            if r == TransitionCallbackReturn.SUCCESS:
+                super().on_activate(state)  # lifecycle publishers follow
+            return r
+
+        def on_deactivate(self, state):
+            r = call("on_deactivate", state)
+            if r == TransitionCallbackReturn.SUCCESS:
+                super().on_deactivate(state)
+            return r
+
+        def on_cleanup(self, state):
+            return call("on_cleanup", state)
+
+        def on_shutdown(self, state):
+            return call("on_shutdown", state)
+
+        def on_error(self, state):
+            return call("on_error", state)
+
+    node = _Managed(node_name, **node_kwargs)
+    return node
+
+
+def lifecycle_state(node) -> str:
+    """Label of a lifecycle node's current state (``unconfigured``, ``inactive``, ``active``, ``finalized``)."""
+    try:
+        return node._state_machine.current_state[1]
+    except Exception:
+        return "unknown"
+
+
+def autostart(owner) -> bool:
+    """Configure then activate ``owner.node`` (what a lifecycle manager with autostart does); True when active."""
+    from rclpy.lifecycle import TransitionCallbackReturn
+
+    n = owner.node
+    if lifecycle_state(n) == "unconfigured" and n.trigger_configure() != TransitionCallbackReturn.SUCCESS:
+        return False
+    if lifecycle_state(n) == "inactive" and n.trigger_activate() != TransitionCallbackReturn.SUCCESS:
+        return False
+    return lifecycle_state(n) == "active"
+
+
+# ---------------------------------------------------------------------------------------------------------- diagnostics
+DIAG_OK, DIAG_WARN, DIAG_ERROR, DIAG_STALE = 0, 1, 2, 3
+DIAGNOSTICS_TOPIC = "/diagnostics"
+
+
+def diagnostic_status(name: str, hardware_id: str, level: int, message: str, values: dict):
+    """``diagnostic_msgs/DiagnosticStatus`` with ``values`` as key/value strings (floats rounded)."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    s = DiagnosticStatus()
+    s.level = bytes([int(level)])
+    s.name, s.hardware_id, s.message = name, hardware_id, message
+    kv = []
+    for k, v in values.items():
+        if isinstance(v, float):
+            v = f"{v:.4g}"
+        kv.append(KeyValue(key=str(k), value=str(v)))
+    s.values = kv
+    return s
+
+
+def publish_diagnostics(pub, node, statuses: list) -> None:
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    a = DiagnosticArray()
+    a.header.stamp = node.get_clock().now().to_msg()
+    a.status = list(statuses)
+    try:
+        pub.publish(a)
+    except Exception:  # shutting down
+        pass

@@ -1,24 +1,28 @@
-"""``demo``: the node suite end to end on the default scene with the shipped mocap recording.
+"""``demo``: the node suite in closed loop with a simulated robot, on the default scene and the shipped mocap recording.
 
     python -m psprm_ros.demo [--params config/ros/dynamic_person.yaml] [--recording config/recordings/person_turning.csv]
-                             [--out out] [--nodes 3000] [--sim-speed 3] [--in-process] [--no-oracle]
+                             [--out out] [--nodes 3000] [--timeout 120] [--in-process] [--no-oracle] [--fresh-roadmap]
 
-1. starts the suite (``scripts/run_all_in_one.sh`` as a separate process; ``--in-process`` runs it in this process),
-   waits until the roadmap is ready (built once, ~2 min on 2 cores, then loaded from the cache);
-2. sends the goal (either goal region of the scene) and the person's first recorded pose, receives the first plan;
-3. replays the recording (a person turning side to side, 120 Hz) as PoseStamped topics while a simulated robot
-   executes the latest trajectory (``--sim-speed`` x faster than its timing, so it gets somewhere within the 20 s)
-   and reports its joint states to the monitor;
-4. prints every plan and replan (triggers, latency from the pose message to the trajectory, predicted score) and
-   compares the predicted perception score with the oracle (rendered view + real face detector) along the executed
-   motion, also against executing the first plan without replanning; writes ``<out>/ros_demo.png`` and
-   ``<out>/ros_demo.json``.
+1. starts the suite (``scripts/run_all_in_one.sh``: roadmap server, perception scorer, replan monitor and robot
+   adapter in one process) and ``sim_robot`` (a kinematic Stretch 2 behind the interfaces a real one offers: its
+   controller's JointTrajectory topic and cmd_vel, publishing /joint_states and /odom), each as its own process
+   (``--in-process``: all in this one);
+2. once the roadmap is ready (built, or loaded from the cache), replays the recorded person turning side to side
+   (120 Hz PoseStamped topics, looped) and sends the goal (either goal region of the scene);
+3. the robot adapter executes every planned trajectory on the simulated robot; this process records what the robot
+   reports (/odom, /joint_states) and every pose it replayed, until the robot rests at a goal (or ``--timeout``);
+4. prints every plan and replan (triggers, latency from the pose message to the trajectory), the executed motion, the
+   executed configurations in collision with the replayed person (pose at that instant), and the oracle's verdict
+   (rendered views + the real face detector) along the executed motion; writes ``<out>/ros_demo.json`` (with
+   ``reached_goal``, ``executed_collisions``, ``pose_to_trajectory_ms_median`` / ``_p95``, ``first_plan_s``) and
+   ``<out>/ros_demo.png``.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import random
 import signal
@@ -35,57 +39,124 @@ from . import conversions as cv
 ROOT = Path(__file__).resolve().parent.parent
 
 
-class SimRobot:
-    """Executes the latest trajectory from the probe (linear interpolation between its points, ``speed`` x faster)
-    and publishes ``/joint_states`` with planning joint names at ``rate`` Hz."""
+class Record:
+    """What the demo saw: the robot's reports, the poses it replayed, with perf_counter times."""
 
-    def __init__(self, probe, names, q0, speed: float = 3.0, rate: float = 20.0):
+    def __init__(self, node, robot, adapter_name: str, frames):
+        from nav_msgs.msg import Odometry
         from sensor_msgs.msg import JointState
-        from rclpy.qos import qos_profile_sensor_data
 
-        self.probe, self.names, self.speed, self.rate = probe, list(names), speed, rate
-        self.q = np.asarray(q0, float).copy()
-        self.pub = probe.node.create_publisher(JointState, "/joint_states", qos_profile_sensor_data)
-        self.log: list = []  # (t_wall_since_start, q)
-        self._n = 0
-        self._traj = None
-        self._stop = threading.Event()
-        self.t_start = time.monotonic()
+        from .adapters import load_adapter
+        from .robot_state import RobotStateTracker
 
-    def start(self):
-        self.t_start = time.monotonic()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        self.lock = threading.Lock()
+        self.tracker = RobotStateTracker(robot, frames, "odom", load_adapter(adapter_name, robot).name_map(),
+                                         timeout_s=1.0)
+        self.executed: list = []  # (t, q)
+        self.poses: list = []  # (t, body, p, q) as replayed
+        node.create_subscription(Odometry, "/odom", self._odom, 50)
+        node.create_subscription(JointState, "/joint_states", self._joints, 50)
+
+    def _odom(self, m):
+        with self.lock:
+            try:
+                self.tracker.update_odometry(m, time.perf_counter())
+            except Exception:
+                pass
+
+    def _joints(self, m):
+        t = time.perf_counter()
+        with self.lock:
+            try:
+                self.tracker.update_joints(m, t)
+            except Exception:
+                return
+            q, _ = self.tracker.state(t)
+            if q is not None:
+                self.executed.append((t, q))
+
+    def on_sample(self, body, t_rec, p, q):
+        with self.lock:
+            self.poses.append((time.perf_counter(), body, np.array(p, float), np.array(q, float)))
+
+    def latest(self):
+        with self.lock:
+            return self.executed[-1] if self.executed else None
+
+
+class ClosedLoop:
+    """The suite (``run_all_in_one.sh``) and ``sim_robot`` (``run_sim_robot.sh``) as their own processes, and a client
+    node (:class:`~psprm_ros.probe.Probe`) spinning in this one; ``close()`` ends all of it."""
+
+    def __init__(self, params_file: str, overrides: dict, out: Path, prefix: str, domain: int):
+        self.params_file, self.overrides, self.out, self.prefix, self.domain = params_file, overrides, out, prefix, domain
+        self.procs: dict = {}
+        self.ex = self.ctx = self.probe = None
+
+    def start(self, say=None) -> "ClosedLoop":
+        import rclpy
+        from rclpy.executors import MultiThreadedExecutor
+
+        from .probe import Probe
+
+        env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
+        suite = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), self.params_file]
+        for k, v in self.overrides.items():
+            suite += ["-p", f"{k}:={v}"]
+        sim = ["bash", str(ROOT / "scripts" / "run_sim_robot.sh"), self.params_file]
+        for name, cmd in (("suite", suite), ("sim_robot", sim)):
+            log_path = self.out / f"{self.prefix}_{name}.log"
+            self.procs[name] = subprocess.Popen(cmd, env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT,
+                                                start_new_session=True)
+            if say:
+                say(f"[{self.prefix}] started {name}: {' '.join(cmd[1:])} (log {log_path})")
+        self.ctx = rclpy.Context()
+        self.ctx.init(domain_id=self.domain)
+        self.probe = Probe(context=self.ctx)
+        self.ex = MultiThreadedExecutor(num_threads=3, context=self.ctx)
+        self.ex.add_node(self.probe.node)
+        threading.Thread(target=lambda: _spin(self.ex), daemon=True).start()
         return self
 
-    def stop(self):
-        self._stop.set()
-        self._thread.join(2.0)
-
-    def _run(self):
-        period = 1.0 / self.rate
-        while not self._stop.wait(period):
-            now = time.monotonic()
-            with self.probe.cond:
-                n = len(self.probe.trajectories)
-                msg = self.probe.trajectories[-1][1] if n else None
-            if n != self._n and msg is not None:
-                self._n = n
-                P = cv.joint_trajectory_positions(msg, self.names)
-                t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
-                self._traj = (now, t, P)
-            if self._traj is not None:
-                t0, t, P = self._traj
-                el = min((now - t0) * self.speed, t[-1])
-                self.q = np.array([np.interp(el, t, P[:, j]) for j in range(P.shape[1])]) if len(t) > 1 else P[0]
-            self.log.append((now - self.t_start, self.q.copy()))
-            self.pub.publish(cv.planning_joint_state(self.q, self.names, self.probe.node.get_clock().now().to_msg()))
+    def close(self) -> None:
+        try:
+            self.ex.shutdown(timeout_sec=1.0)
+            self.probe.destroy()
+            self.ctx.try_shutdown()
+        except Exception:
+            pass
+        for p in self.procs.values():
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGINT)  # the adapter stops the robot on its way out
+        for p in self.procs.values():
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                os.killpg(p.pid, signal.SIGKILL)
 
 
-def pose_at(rec, body: str, t: float) -> tuple:
-    ts, P, Q = rec.track(body)
-    i = int(np.clip(np.searchsorted(ts, t), 0, len(ts) - 1))
-    return P[i], Q[i]
+def _params_frames(params_file: str, scene_frame: str):
+    """The input frames of the params file's shared section (the demo reads /odom as the nodes do)."""
+    import yaml
+
+    from .frames import FrameTable
+
+    data = yaml.safe_load(Path(params_file).read_text()) or {}
+    shared = (data.get("/**") or {}).get("ros__parameters", {})
+    table = FrameTable(scene_frame)
+    for n in shared.get("input_frames", []) or []:
+        spec = (shared.get("input_frame") or {}).get(n, {})
+        table.add(n, spec.get("xyz", [0, 0, 0]), spec.get("quat", [0, 0, 0, 1]))
+    return table
+
+
+def at_goal(scene, q) -> str:
+    """Name of the scene goal region whose tolerances contain the base of ``q`` ("" = none)."""
+    for g in scene.goals:
+        if math.hypot(q[0] - g.base[0], q[1] - g.base[1]) <= g.xy_tolerance and \
+                abs(math.remainder(q[2] - g.base[2], 2 * math.pi)) <= g.theta_tolerance:
+            return g.name
+    return ""
 
 
 def main(args=None) -> int:
@@ -95,25 +166,24 @@ def main(args=None) -> int:
     ap.add_argument("--recording", default=str(ROOT / "config" / "recordings" / "person_turning.csv"))
     ap.add_argument("--out", default="out")
     ap.add_argument("--nodes", type=int, default=3000)
-    ap.add_argument("--sim-speed", type=float, default=3.0)
-    ap.add_argument("--in-process", action="store_true", help="run the suite in this process")
+    ap.add_argument("--timeout", type=float, default=120.0, help="longest closed-loop run after the first plan (s)")
+    ap.add_argument("--in-process", action="store_true", help="run the suite and the simulated robot in this process")
     ap.add_argument("--no-oracle", action="store_true", help="skip the oracle evaluation (no detector needed)")
-    ap.add_argument("--oracle-every", type=float, default=0.5, help="oracle sample spacing along the motion (s)")
+    ap.add_argument("--oracle-every", type=float, default=1.0, help="oracle sample spacing along the motion (s)")
+    ap.add_argument("--fresh-roadmap", action="store_true", help="build the roadmap (not from the cache, not saved)")
     ap.add_argument("--domain-id", type=int, default=0)
     a = ap.parse_args(argv[1:])
+    t_start = time.perf_counter()
     import logging
 
-    import torch
-
     logging.basicConfig(level=logging.WARNING)
-    torch.set_num_threads(2)
-    import rclpy
 
     from psprm_core.paths import resolve_named
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
-    from .probe import InProcessSuite, Probe
+    from .mocap_replay import Replayer
+    from .probe import InProcessSuite
     from .recordings import load_recording
 
     out = Path(a.out)
@@ -121,91 +191,102 @@ def main(args=None) -> int:
     rec = load_recording(a.recording)
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = RobotModel.load(scene.robot)
-    names = robot.joint_names
     domain = a.domain_id or random.randint(100, 200)
-    # the simulated robot runs faster than its trajectories are timed: no deviation trigger
-    overrides = {"roadmap_server:n_nodes": a.nodes, "replan_monitor:deviation_tolerance": 1000.0}
+    overrides = {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}
+    if a.fresh_roadmap:
+        overrides["roadmap_server:roadmap_file"] = "none"
     say = lambda m: print(m, flush=True)  # noqa: E731
     say(f"[demo] scene {scene.name}, robot {robot.name}, recording {Path(a.recording).name} "
-        f"({rec.duration:.1f} s, bodies {', '.join(rec.bodies)}, {rec.rate_hz(rec.bodies[0]):.0f} Hz)")
-    proc = suite = None
-    if a.in_process:
-        suite = InProcessSuite({k.split(":")[-1]: v for k, v in overrides.items()}, domain_id=domain,
-                               params_file=a.params).__enter__()
-        probe, ctx = suite.probe, suite.context
-    else:
-        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1")
-        cmd = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), a.params]
-        for k, v in overrides.items():
-            cmd += ["-p", f"{k}:={v}"]
-        log_path = out / "ros_demo_suite.log"
-        proc = subprocess.Popen(cmd, env=env, stdout=open(log_path, "w"), stderr=subprocess.STDOUT,
-                                start_new_session=True)
-        say(f"[demo] started the suite: {' '.join(cmd[1:])} (log {log_path})")
-        ctx = rclpy.Context()
-        ctx.init(domain_id=domain)
-        probe = Probe(context=ctx)
-        from rclpy.executors import MultiThreadedExecutor
-
-        ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-        ex.add_node(probe.node)
-        threading.Thread(target=lambda: _spin(ex), daemon=True).start()
-    wall_minus_perf = time.time() - time.perf_counter()
+        f"({rec.duration:.1f} s, bodies {', '.join(rec.bodies)}, {rec.rate_hz(rec.bodies[0]):.0f} Hz, looped)")
+    loop, suite = None, None
     result = {}
     try:
-        t0 = time.perf_counter()
+        if a.in_process:
+            suite = InProcessSuite({k.split(":")[-1]: v for k, v in overrides.items()}, domain_id=domain,
+                                   params_file=a.params, nodes=("server", "scorer", "monitor", "adapter", "sim"))
+            suite.__enter__()
+            probe = suite.probe
+        else:
+            loop = ClosedLoop(a.params, overrides, out, "ros_demo", domain).start(say)
+            probe = loop.probe
+        record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
+        wall_minus_perf = time.time() - time.perf_counter()
         ready = probe.wait_ready(timeout=1200)
         if not ready:
             raise RuntimeError("the suite did not become ready (see the suite log)")
-        say(f"[demo] suite ready after {time.perf_counter() - t0:.1f} s: {ready.split(': ', 1)[-1]}")
+        t_ready = time.perf_counter()
+        say(f"[demo] suite ready {t_ready - t_start:.1f} s after start: {ready.split(': ', 1)[-1]}")
         probe.wait_subscribers("/mocap/person_face/pose", timeout=30)
         probe.wait_subscribers("/psprm/goal_regions", timeout=30)
-        from .core import start_configuration
-
-        q0 = start_configuration(robot, scene, "south_to_either")
-        sim = SimRobot(probe, names, q0, speed=a.sim_speed)
-        from .mocap_replay import Replayer
-
-        replay = Replayer(probe.node, rec)
-        t_replay_perf = time.perf_counter()
+        if not probe.wait_for(lambda: record.latest() is not None, 30):
+            raise RuntimeError("no /joint_states + /odom from the simulated robot")
+        replay = Replayer(probe.node, rec, loop=True, on_sample=record.on_sample)
         n0 = len(probe.trajectories)
-        sim.start()
-        replay.start()  # the mocap stream runs from now on (the monitor stops the robot when it goes silent)
+        t_replay = time.perf_counter()
+        replay.start()
         goals = [g.name for g in scene.goals]
         time.sleep(0.2)
         probe.publish_regions(goals)
-        say(f"[demo] replaying {rec.duration:.0f} s of mocap at 120 Hz; goal: {' or '.join(goals)}; "
-            f"robot simulated at x{a.sim_speed:g}")
-        got = probe.wait_for(lambda: [m for _, m in probe.trajectories[n0:] if len(m.points) > 1], 60)
+        say(f"[demo] replaying the person at 120 Hz (looped); goal: {' or '.join(goals)}")
+        got = probe.wait_for(lambda: [(t, m) for t, m in probe.trajectories[n0:] if len(m.points) > 1], 60)
         if not got:
             raise RuntimeError("no trajectory within 60 s of the goal")
-        first = got[0]
-        say(f"[demo] first plan: {len(first.points)} points, "
-            f"{cv.duration_to_sec(first.points[-1].time_from_start):.1f} s")
-        replay.join(rec.duration + 30)
-        time.sleep(1.0)
-        sim.stop()
-        result = analyse(a, rec, scene, robot, probe, sim, first, t_replay_perf, wall_minus_perf, say)
+        t_first, first = got[0]
+        first_plan_s = t_first - t_start
+        say(f"[demo] first plan {first_plan_s:.1f} s after start ({t_first - t_ready:.1f} s after ready): "
+            f"{len(first.points)} points, {cv.duration_to_sec(first.points[-1].time_from_start):.1f} s")
+        reached = ""
+        deadline = time.perf_counter() + a.timeout
+        rest_since = None
+        while time.perf_counter() < deadline:
+            time.sleep(0.2)
+            last = record.latest()
+            if last is None:
+                continue
+            g = at_goal(scene, last[1])
+            with record.lock:
+                recent = [q[:3] for t, q in record.executed if t > last[0] - 1.0]
+            # the base at rest (the head may keep re-aiming at the turning person)
+            still = len(recent) > 5 and np.abs(np.ptp(np.array(recent), axis=0)).max() < 5e-3
+            if g and still:
+                rest_since = rest_since or time.perf_counter()
+                if time.perf_counter() - rest_since > 1.0:
+                    reached = g
+                    break
+            else:
+                rest_since = None
+        replay.stop()
+        t_end = time.perf_counter()
+        say(f"[demo] {'robot at rest at goal ' + reached if reached else 'goal NOT reached'} "
+            f"{t_end - t_replay:.1f} s after the replay started")
+        result = analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_perf, say)
+        result.update(reached_goal=bool(reached), goal=reached, first_plan_s=round(first_plan_s, 2),
+                      ready_s=round(t_ready - t_start, 2), load_avg_1min=round(os.getloadavg()[0], 2),
+                      cpus=os.cpu_count(), fresh_roadmap=bool(a.fresh_roadmap))
+        with probe.cond:
+            statuses = list(probe.statuses)
+        result["adapter_refusals"] = sum(1 for _, n, t in statuses if n == "robot_adapter" and "refused" in t)
+        result["controller_refusals"] = sum(1 for _, n, t in statuses if n == "sim_robot" and "refused" in t)
+        say(f"[demo] result: reached_goal {result['reached_goal']} ({reached or '-'}), executed collisions "
+            f"{result['executed_collisions']}, pose->trajectory median {result['pose_to_trajectory_ms_median']} ms "
+            f"/ p95 {result['pose_to_trajectory_ms_p95']} ms, first plan {result['first_plan_s']} s "
+            f"(load average {result['load_avg_1min']} on {result['cpus']} cores)")
     finally:
         if suite is not None:
             suite.__exit__(None, None, None)
-        if proc is not None:
-            try:
-                ex.shutdown(timeout_sec=1.0)
-                probe.destroy()
-                ctx.try_shutdown()
-            except Exception:
-                pass
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGINT)
-            try:
-                proc.wait(20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
+        if loop is not None:
+            loop.close()
     if result:
         (out / "ros_demo.json").write_text(json.dumps(result, indent=1))
         say(f"[demo] wrote {out / 'ros_demo.png'} and {out / 'ros_demo.json'}")
-    return 0 if result.get("plans_ok", 0) > 0 else 1
+    return 0 if result.get("reached_goal") and result.get("executed_collisions") == 0 else 1
+
+
+GOAL_REASONS = ("goal_received", "goal_changed", "no_plan", "plan requested")
+
+
+def _goal_triggered(row) -> bool:
+    return any(r in GOAL_REASONS for r in (row.get("reasons") or []))
 
 
 def _spin(ex):
@@ -215,133 +296,152 @@ def _spin(ex):
         pass
 
 
-def analyse(a, rec, scene, robot, probe, sim, first, t_replay_perf, wall_minus_perf, say) -> dict:
+def _scene_with(scene, poses: dict):
+    s = scene
+    for b, (p, q) in poses.items():
+        s = s.with_target_pose(b, p, q) if b in scene.target_names else s.with_obstacle_pose(b, p, q)
+    return s
+
+
+def person_at(record: Record, t: float) -> dict:
+    """The latest replayed pose of each body at time ``t`` (perf_counter)."""
+    out = {}
+    with record.lock:
+        for tt, b, p, q in record.poses:
+            if tt > t:
+                break
+            out[b] = (p, q)
+    return out
+
+
+def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_perf, say) -> dict:
     import torch
 
-    names = robot.joint_names
+    from psprm_core.collision import CollisionChecker
+
     with probe.cond:
         infos = list(probe.infos)
         trajs = list(probe.trajectories)
-        statuses = list(probe.statuses)
     rows = []
     for t, info in infos:
-        if t < t_replay_perf - 5:
+        if t < t_replay - 1.0 or t > t_end:
             continue
         rx = [tt for tt, _ in trajs if tt <= t + 1e-6]
-        e2e = None
-        if info.get("input_stamp") and rx and not info.get("kept_last"):
-            e2e = (rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3
-        rows.append({"t": round(t - t_replay_perf, 2), "reasons": info.get("reasons"), "success": info.get("success"),
+        e2e = at_client = None
+        if info.get("input_stamp") and rx and not info.get("kept_last") and not info.get("stop") \
+                and info.get("success"):
+            # the suite's latency: the pose message's stamp to the trajectory's publication (the server's clock,
+            # the same wall clock); and as this client received it (its own callbacks and the replay add to it)
+            if info.get("published_stamp"):
+                e2e = (info["published_stamp"] - info["input_stamp"]) * 1e3
+            at_client = (rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3
+        rows.append({"t": round(t - t_replay, 2), "reasons": info.get("reasons"), "success": info.get("success"),
                      "stop": bool(info.get("stop")), "goal_index": info.get("goal_index"),
                      "pose_to_trajectory_ms": None if e2e is None else round(e2e, 1),
+                     "at_client_ms": None if at_client is None else round(at_client, 1),
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
+                     "apply_ms": info.get("apply_ms"), "msg_ms": info.get("msg_ms"), "check_ms": info.get("check_ms"),
+                     "input_age_ms": info.get("input_age_ms"), "triggers_ms": info.get("triggers_ms"),
                      "predicted_score": info.get("mean_score"), "reason": info.get("reason")})
     goal_names = [g.name for g in scene.goals]
     say("[demo] plans (t = seconds since the replay started):")
     for r in rows:
         what = "STOP" if r["stop"] else ("plan" if r["success"] else "FAILED")
-        goal = goal_names[r["goal_index"]] if r["success"] and r["goal_index"] is not None and r["goal_index"] >= 0 \
-            and r["goal_index"] < len(goal_names) else "-"
+        gi = r["goal_index"]
+        goal = goal_names[gi] if r["success"] and gi is not None and 0 <= gi < len(goal_names) else "-"
         lat = "" if r["pose_to_trajectory_ms"] is None else f", pose->trajectory {r['pose_to_trajectory_ms']:.0f} ms"
         rp = "" if r["replan_ms"] is None else f", replan {r['replan_ms']:.0f} ms"
         sc = "" if r["predicted_score"] is None else f", predicted score {r['predicted_score']:.3f}"
         say(f"  t={r['t']:6.2f}  {what:6s} -> {goal:10s} triggers: {', '.join(r['reasons'] or [])}{lat}{rp}{sc}")
-    warnings = [s for s in statuses if s[2].startswith("warning") and s[0] >= t_replay_perf]
-    lat = [r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None and r["t"] > 0]
-    # the executed motion, sampled every --oracle-every seconds, with the person's recorded pose at that time
-    log_t = np.array([t for t, _ in sim.log])
-    log_q = np.array([q for _, q in sim.log])
-    ts = np.arange(0.0, min(rec.duration, log_t[-1]) + 1e-9, a.oracle_every)
-    Qexec = np.array([log_q[min(np.searchsorted(log_t, t), len(log_t) - 1)] for t in ts])
-    P0 = cv.joint_trajectory_positions(first, names)
-    t_first = np.array([cv.duration_to_sec(p.time_from_start) for p in first.points])
-    Qnoreplan = np.array([[np.interp(t * a.sim_speed, t_first, P0[:, j]) for j in range(len(names))] for t in ts])
-    person = [{b: pose_at(rec, b, t) for b in rec.bodies} for t in ts]
-
-    def camera(Q):
-        with torch.no_grad():
-            return robot.camera_poses(torch.as_tensor(Q, dtype=torch.float32)).double().numpy()
-
-    from psprm_core.planning.factory import make_scorer
-
-    def scene_at(k):
-        s = scene
-        for b, (p, q) in person[k].items():
-            s = s.with_target_pose(b, p, q) if b in scene.target_names else s.with_obstacle_pose(b, p, q)
-        return s
-
-    scorer = make_scorer("neural", scene, ["person_face"], robot.config.intrinsics)
-    pred = {"replanning": [], "first_plan_only": []}
-    for k in range(len(ts)):
-        scorer.set_scene(scene_at(k))
-        for key, Q in (("replanning", Qexec), ("first_plan_only", Qnoreplan)):
-            with torch.no_grad():
-                pred[key].append(float(scorer.score(torch.as_tensor(camera(Q[k:k + 1]), dtype=torch.float32))[0]))
-    oracle, detected = {}, {}
-    if not a.no_oracle:
+    # pose -> trajectory: plans a pose triggered (a move, a score or collision trigger after it); plans for a new
+    # goal or on request are goal -> trajectory (their first input is the goal, not a pose)
+    lat = np.array([r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None
+                    and not _goal_triggered(r)], float)
+    goal_lat = [r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None
+                and _goal_triggered(r)]
+    client = np.array([r["at_client_ms"] for r in rows if r["at_client_ms"] is not None and not _goal_triggered(r)],
+                      float)
+    # the executed motion against the replayed person at each instant
+    with record.lock:
+        ex = [(t, q) for t, q in record.executed if t_replay <= t <= t_end]
+    T = np.array([t for t, _ in ex])
+    Q = np.array([q for _, q in ex])
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    collided, idx_bad = 0, []
+    with record.lock:
+        poses = list(record.poses)
+    k = 0
+    cur: dict = {}
+    for i, t in enumerate(T):
+        while k < len(poses) and poses[k][0] <= t:
+            cur[poses[k][1]] = (poses[k][2], poses[k][3])
+            k += 1
+        checker.set_boxes(_scene_with(scene, cur).collision_boxes())
+        if bool(checker.check(torch.as_tensor(Q[i:i + 1], dtype=torch.float32))[0]):
+            collided += 1
+            idx_bad.append(i)
+    dist = float(np.sum(np.hypot(*np.diff(Q[:, :2], axis=0).T))) if len(Q) > 1 else 0.0
+    say(f"[demo] executed motion: {len(Q)} configurations over {T[-1] - T[0] if len(T) else 0:.1f} s "
+        f"(reported at {len(Q) / max(1e-9, T[-1] - T[0]) if len(T) > 1 else 0:.0f} Hz), base drove {dist:.2f} m "
+        f"from ({Q[0, 0]:.2f}, {Q[0, 1]:.2f}) to ({Q[-1, 0]:.2f}, {Q[-1, 1]:.2f}, yaw {Q[-1, 2]:.2f}); "
+        f"{collided} configurations in collision with the replayed person")
+    # oracle along the executed motion
+    ts = np.arange(T[0], T[-1] + 1e-9, a.oracle_every) if len(T) else np.zeros(0)
+    Qs = np.array([Q[min(np.searchsorted(T, t), len(T) - 1)] for t in ts]).reshape(-1, robot.dof)
+    people = [person_at(record, t) for t in ts]
+    oracle, detected = [], []
+    if not a.no_oracle and len(ts):
         try:
             from psprm_core.perception.oracle import Oracle
 
+            with torch.no_grad():
+                cams = robot.camera_poses(torch.as_tensor(Qs, dtype=torch.float32)).double().numpy()
             t0 = time.perf_counter()
             with Oracle(scene, intrinsics=robot.config.intrinsics) as orc:
-                for key, Q in (("replanning", Qexec), ("first_plan_only", Qnoreplan)):
-                    T = camera(Q)
-                    vals, det = [], []
-                    for k in range(len(ts)):
-                        for b, (p, q) in person[k].items():
-                            (orc.set_target_pose if b in scene.target_names else orc.set_obstacle_pose)(b, p, q)
-                        r = orc.score(T[k], "person_face", keep_image=False)
-                        vals.append(float(r.score))
-                        det.append(bool(r.detected))
-                    oracle[key], detected[key] = vals, det
-            say(f"[demo] oracle: {2 * len(ts)} rendered views scored by the face detector in "
-                f"{time.perf_counter() - t0:.1f} s")
+                for i in range(len(ts)):
+                    for b, (p, q) in people[i].items():
+                        (orc.set_target_pose if b in scene.target_names else orc.set_obstacle_pose)(b, p, q)
+                    r = orc.score(cams[i], "person_face", keep_image=False)
+                    oracle.append(float(r.score))
+                    detected.append(bool(r.detected))
+            say(f"[demo] oracle: {len(ts)} rendered views along the executed motion scored by the face detector in "
+                f"{time.perf_counter() - t0:.1f} s: face detected in {np.mean(detected):.0%} of them, mean score "
+                f"{np.mean(oracle):.3f}")
         except Exception as exc:  # detectors not installed: report and continue without
             say(f"[demo] oracle evaluation skipped: {exc}")
-    collided = _collisions(robot, scene, rec, log_t, log_q)
     n_ok = sum(1 for r in rows if r["success"] and not r["stop"])
     summary = {
         "plans_ok": n_ok, "replans": max(0, n_ok - 1), "stops": sum(r["stop"] for r in rows),
-        "failed": sum(1 for r in rows if not r["success"] and not r["stop"]), "warnings": len(warnings),
-        "pose_to_trajectory_ms_median": round(float(np.median(lat)), 1) if lat else None,
-        "pose_to_trajectory_ms_max": round(float(np.max(lat)), 1) if lat else None,
-        "predicted_mean": {k: round(float(np.mean(v)), 4) for k, v in pred.items()},
-        "oracle_mean": {k: round(float(np.mean(v)), 4) for k, v in oracle.items()},
-        "oracle_detected_fraction": {k: round(float(np.mean(v)), 3) for k, v in detected.items()},
-        "executed_collisions": int(collided), "final_base": [round(float(v), 3) for v in log_q[-1][:3]],
+        "failed": sum(1 for r in rows if not r["success"] and not r["stop"]),
+        "pose_to_trajectory_ms_median": round(float(np.median(lat)), 1) if len(lat) else None,
+        "pose_to_trajectory_ms_p95": round(float(np.percentile(lat, 95)), 1) if len(lat) else None,
+        "pose_to_trajectory_ms_max": round(float(lat.max()), 1) if len(lat) else None,
+        "latency_samples": int(len(lat)),
+        "pose_to_trajectory_at_client_ms_median": round(float(np.median(client)), 1) if len(client) else None,
+        "pose_to_trajectory_at_client_ms_p95": round(float(np.percentile(client, 95)), 1) if len(client) else None,
+        "goal_to_trajectory_ms": [round(float(v), 1) for v in goal_lat],
+        **{f"{k}_median": (round(float(np.median(v)), 1) if v else None) for k, v in
+           ((k, [r[k] for r in rows if r.get(k) is not None]) for k in ("server_ms", "replan_ms", "apply_ms",
+                                                                        "msg_ms", "check_ms", "input_age_ms", "triggers_ms"))},
+        "executed_configurations": int(len(Q)), "executed_collisions": int(collided),
+        "executed_distance_m": round(dist, 3), "final_base": [round(float(v), 3) for v in Q[-1, :3]] if len(Q) else None,
+        "oracle_detected_fraction": round(float(np.mean(detected)), 3) if detected else None,
+        "oracle_mean": round(float(np.mean(oracle)), 4) if oracle else None, "oracle_views": len(oracle),
     }
-    say(f"[demo] {summary['plans_ok']} plans ({summary['replans']} replans), {summary['stops']} stops, "
-        f"{summary['failed']} failed, {summary['warnings']} warnings; pose->trajectory latency median "
-        f"{summary['pose_to_trajectory_ms_median']} ms, max {summary['pose_to_trajectory_ms_max']} ms")
-    say(f"[demo] along the executed motion (every {a.oracle_every:g} s): predicted score {summary['predicted_mean']}")
-    if oracle:
-        say(f"[demo] oracle score (face detector on the rendered view): {summary['oracle_mean']}; "
-            f"detected fraction {summary['oracle_detected_fraction']}")
-    say(f"[demo] executed configurations in collision with the recorded person: {collided}; "
-        f"robot ended at base {summary['final_base']}")
-    _figure(Path(a.out) / "ros_demo.png", scene, rec, rows, ts, Qexec, P0, log_q, pred, oracle)
-    return {**summary, "plans": rows, "t": ts.tolist(), "predicted": pred, "oracle": oracle,
-            "warnings_text": [w[2] for w in warnings[:20]]}
+    say(f"[demo] {n_ok} plans ({summary['replans']} replans), {summary['stops']} stops, {summary['failed']} failed; "
+        f"pose->trajectory latency median {summary['pose_to_trajectory_ms_median']} ms, p95 "
+        f"{summary['pose_to_trajectory_ms_p95']} ms, max {summary['pose_to_trajectory_ms_max']} ms "
+        f"({len(lat)} plans triggered by a pose; goal -> trajectory {summary['goal_to_trajectory_ms']} ms); as "
+        f"received by this client: median {summary['pose_to_trajectory_at_client_ms_median']} ms, p95 "
+        f"{summary['pose_to_trajectory_at_client_ms_p95']} ms")
+    try:
+        _figure(Path(a.out) / "ros_demo.png", scene, record, first, robot, Q, T, ts, oracle, rows, t_replay)
+    except Exception as exc:  # the figure is a report, never a reason to lose the result
+        say(f"[demo] figure failed: {exc}")
+    return {**summary, "plans": rows, "oracle": oracle, "oracle_t": (ts - t_replay).tolist() if len(ts) else []}
 
 
-def _collisions(robot, scene, rec, log_t, log_q) -> int:
-    import torch
-
-    from psprm_core.collision import CollisionChecker
-
-    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    n = 0
-    for t, q in zip(log_t[::4], log_q[::4]):
-        s = scene
-        for b in rec.bodies:
-            p, qq = pose_at(rec, b, min(t, rec.duration))
-            s = s.with_target_pose(b, p, qq) if b in scene.target_names else s.with_obstacle_pose(b, p, qq)
-        checker.set_boxes(s.collision_boxes())
-        n += int(checker.check(torch.as_tensor(q[None], dtype=torch.float32))[0])
-    return n
-
-
-def _figure(path, scene, rec, rows, ts, Qexec, P0, log_q, pred, oracle) -> None:
+def _figure(path, scene, record, first, robot, Q, T, ts, oracle, rows, t_replay) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -351,37 +451,29 @@ def _figure(path, scene, rec, rows, ts, Qexec, P0, log_q, pred, oracle) -> None:
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 2, 1)
     viz.plot_scene_top(ax, scene, show_labels=True)
+    P0 = cv.joint_trajectory_positions(first, robot.joint_names)
     ax.plot(P0[:, 0], P0[:, 1], "--", color="0.4", lw=1.2, label="first plan")
-    sc = np.array(oracle.get("replanning", pred["replanning"]))
-    viz.plot_path_top(ax, Qexec[:, :2], sc, label="executed (replanning)", vmin=0, vmax=max(0.05, float(sc.max())))
-    ax.plot(log_q[:, 0], log_q[:, 1], color="k", lw=0.6, alpha=0.6)
-    tf, Pf, Qf = rec.track("person_face")
-    for t in np.arange(0, rec.duration, 2.5):
-        i = int(np.searchsorted(tf, t))
-        i = min(i, len(tf) - 1)
-        yaw = cv.yaw_of(Qf[i])
-        ax.arrow(Pf[i, 0], Pf[i, 1], 0.35 * np.cos(yaw), 0.35 * np.sin(yaw), width=0.01, color="tab:orange",
-                 alpha=0.5)
-    ax.set_title("dynamic_person: executed motion coloured by " + ("oracle" if oracle else "predicted") + " score")
+    ax.plot(Q[:, 0], Q[:, 1], color="k", lw=1.5, label="executed (sim_robot /odom)")
+    with record.lock:
+        face = [(t, p, q) for t, b, p, q in record.poses if b == "person_face"]
+    for t, p, q in face[::240]:
+        yaw = cv.yaw_of(q)
+        ax.arrow(p[0], p[1], 0.35 * np.cos(yaw), 0.35 * np.sin(yaw), width=0.01, color="tab:orange", alpha=0.5)
+    ax.set_title("dynamic_person: closed loop (adapter + sim_robot), person replayed")
     ax.legend(loc="lower right", fontsize=7)
     ax2 = fig.add_subplot(1, 2, 2)
-    yaw = np.unwrap([cv.yaw_of(q) for q in Qf])
-    ax2.plot(tf, yaw, color="tab:orange", lw=1, label="face yaw (rad)")
-    ax2.set_xlabel("time since replay start (s)")
+    tf = np.array([t for t, _, _ in face]) - t_replay
+    ax2.plot(tf, np.unwrap([cv.yaw_of(q) for _, _, q in face]), color="tab:orange", lw=1, label="face yaw (rad)")
+    ax2.set_xlabel("time since the replay started (s)")
     ax2.set_ylabel("face yaw (rad)")
     for r in rows:
-        if r["t"] >= -0.5:
-            ax2.axvline(r["t"], color="red" if r["stop"] else "0.6", lw=0.8, ls=":" if r["success"] else "-")
-    ax3 = ax2.twinx()
-    for key, st in (("replanning", "-"), ("first_plan_only", "--")):
-        if key in oracle:
-            ax3.plot(ts, oracle[key], st, color="tab:blue", label=f"oracle, {key}")
-        ax3.plot(ts, pred[key], st, color="tab:green", alpha=0.7, label=f"predicted, {key}")
-    ax3.set_ylabel("perception score")
-    ax3.set_ylim(0, 1.05)
-    h1, l1 = ax2.get_legend_handles_labels()
-    h2, l2 = ax3.get_legend_handles_labels()
-    ax3.legend(h1 + h2, l1 + l2, fontsize=7, loc="upper right")
+        ax2.axvline(r["t"], color="red" if r["stop"] else "0.6", lw=0.8, ls=":" if r["success"] else "-")
+    if oracle:
+        ax3 = ax2.twinx()
+        ax3.plot(ts - t_replay, oracle, color="tab:blue", label="oracle score along the executed motion")
+        ax3.set_ylim(0, 1.05)
+        ax3.set_ylabel("oracle score")
+        ax3.legend(fontsize=7, loc="upper right")
     ax2.set_title("person turning; dotted lines = plans/replans")
     fig.tight_layout()
     fig.savefig(path)

@@ -1,12 +1,16 @@
 """``mocap_replay``: publish recorded rigid-body poses as ``geometry_msgs/PoseStamped`` topics at their recorded rate.
 
     mocap_replay config/recordings/person_turning.csv [--prefix /mocap] [--rate 1.0] [--loop] [--bodies a,b]
-                 [--keep-stamps] [--ros-args ...]
+                 [--keep-stamps] [--clock] [--frame world] [--ros-args ...]
 
 Input: a CSV recording or a rosbag2 (read with ``rosbags``; format in :mod:`psprm_ros.recordings`). Each body is
 published on ``<prefix>/<body>/pose`` with sensor-data QoS (best effort, keep last 1), like a motion-capture driver.
-Stamps are re-written to the current time (``--keep-stamps`` keeps the recorded ones). Pacing runs on its own thread
-against a monotonic clock, so the rate holds at 120 Hz without drift.
+Stamps are re-written to the current time; ``--keep-stamps`` keeps the recorded ones. ``--clock`` publishes
+``/clock`` (rosgraph_msgs/Clock) with the replay's time -- the recorded time with ``--keep-stamps``, else the wall
+time at the start plus the replayed time -- so nodes started with ``use_sim_time:=true`` see the poses as fresh
+(without it, recorded stamps are stale against the wall clock and every pose is refused). ``--frame`` overrides the
+recorded frame id (e.g. ``world``, as vrpn_mocap publishes). Pacing runs on its own thread against a monotonic
+clock, so the rate holds at 120 Hz without drift.
 """
 
 from __future__ import annotations
@@ -28,13 +32,20 @@ class Replayer:
 
     def __init__(self, node, rec: Recording, prefix: str = "/mocap", rate: float = 1.0, loop: bool = False,
                  bodies: Optional[list] = None, keep_stamps: bool = False,
-                 on_sample: Optional[Callable] = None):
+                 on_sample: Optional[Callable] = None, clock: bool = False, frame: str = ""):
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
 
         self.node, self.rec, self.rate, self.loop = node, rec, float(rate), loop
         self.keep_stamps = keep_stamps
         self.on_sample = on_sample
+        self.frame = frame
+        self.pub_clock = None
+        if clock:
+            from rosgraph_msgs.msg import Clock
+
+            self.pub_clock = node.create_publisher(Clock, "/clock", 10)
+        self._time0 = 0.0  # replay time of recording time 0 (set at each pass)
         want = bodies or rec.bodies
         unknown = set(want) - set(rec.bodies)
         if unknown:
@@ -67,8 +78,17 @@ class Replayer:
     def run(self) -> None:
         rec = self.rec
         idx = np.nonzero(self.selected)[0]
+        pass_no = 0
         while not self._stop.is_set():
             t0 = time.monotonic()
+            # recording time 0 on the replay's clock: the recorded stamp of the first sample (--keep-stamps) or the
+            # wall time now; a looped pass continues after the previous one, so time never runs backwards
+            period = rec.duration / max(1, len(rec.times) - 1)
+            if pass_no == 0:
+                self._time0 = rec.t0 if self.keep_stamps else time.time()
+            else:
+                self._time0 += rec.duration + period
+            pass_no += 1
             for i in idx:
                 due = t0 + rec.times[i] / self.rate
                 delay = due - time.monotonic()
@@ -81,11 +101,15 @@ class Replayer:
     def publish(self, i: int) -> None:
         rec = self.rec
         b = int(rec.body[i])
-        if self.keep_stamps:
-            stamp = cv.sec_to_stamp(1_700_000_000 + rec.times[i])
+        if self.keep_stamps or self.pub_clock is not None:
+            stamp = cv.sec_to_stamp(self._time0 + rec.times[i])  # the recorded stamp (or replay time with --clock)
         else:
             stamp = self.node.get_clock().now().to_msg()
-        msg = cv.pose_stamped(rec.P[i], rec.Q[i], rec.frames[b], stamp)
+        if self.pub_clock is not None:
+            from rosgraph_msgs.msg import Clock
+
+            self.pub_clock.publish(Clock(clock=stamp))
+        msg = cv.pose_stamped(rec.P[i], rec.Q[i], self.frame or rec.frames[b], stamp)
         self.pubs[b].publish(msg)
         self.published += 1
         if self.on_sample is not None:
@@ -103,6 +127,8 @@ def main(args=None) -> int:
     ap.add_argument("--loop", action="store_true", help="repeat until stopped")
     ap.add_argument("--bodies", default="", help="comma-separated bodies to publish (default all)")
     ap.add_argument("--keep-stamps", action="store_true", help="keep the recorded stamps instead of now")
+    ap.add_argument("--clock", action="store_true", help="publish /clock with the replay's time (use_sim_time nodes)")
+    ap.add_argument("--frame", default="", help="frame id of every pose (default: the recorded frames)")
     ap.add_argument("--wait-subscribers", type=float, default=5.0,
                     help="wait up to this many seconds for a subscriber before starting (default 5)")
     ap.add_argument("--self-check", action="store_true", help="import and exit (see runner --self-check)")
@@ -130,7 +156,7 @@ def main(args=None) -> int:
     bodies = [b.strip() for b in a.bodies.split(",") if b.strip()] or None
     rp = None
     try:
-        rp = Replayer(node, rec, a.prefix, a.rate, a.loop, bodies, a.keep_stamps)
+        rp = Replayer(node, rec, a.prefix, a.rate, a.loop, bodies, a.keep_stamps, clock=a.clock, frame=a.frame)
         deadline = time.monotonic() + a.wait_subscribers
         while time.monotonic() < deadline and not any(p.get_subscription_count() for p in rp.pubs.values()):
             time.sleep(0.05)

@@ -19,19 +19,19 @@ import numpy as np
 from . import conversions as cv
 from . import core
 
+P = core.Param
 SCORER_PARAMS = {
-    "scorer": "neural",  # neural (surrogate + occlusion) | geometric (closed-form proxy)
-    "checkpoint": "",
-    "rescore_rate_hz": 5.0,  # path score updates per second (while the target moves)
-    "roadmap_rescore_period_s": 2.0,  # roadmap scores (marker colours) at most this often
-    "max_pose_age_s": 1.0,
+    "scorer": P("neural", "neural (surrogate + occlusion) | geometric (closed-form proxy)", rebuild=True),
+    "checkpoint": P("", "surrogate checkpoint ('' = the shipped one)", rebuild=True),
+    "rescore_rate_hz": P(5.0, "path score updates per second (while the target moves)", lo=0.1),
+    "roadmap_rescore_period_s": P(2.0, "roadmap scores (marker colours) at most this often", live=True, lo=0.1),
+    "max_pose_age_s": P(1.0, "refuse poses older than this (0 = no check)", live=True, lo=0.0),
 }
 
 
 class PerceptionScorer:
     def __init__(self, node_name: str = "perception_scorer", **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-        from rclpy.node import Node
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from geometry_msgs.msg import PoseArray, PoseStamped
         from std_msgs.msg import Float32, Float32MultiArray, String
@@ -39,9 +39,11 @@ class PerceptionScorer:
 
         from psprm_core.planning.factory import make_scorer
 
-        self.node = node = Node(node_name, **node_kwargs)
+        self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
-        self.p = core.declare_params(node, {**core.COMMON_PARAMS, **SCORER_PARAMS})
+        self.spec = {**core.common_params(), **SCORER_PARAMS}
+        self.p = core.declare_params(node, self.spec)
+        self.active = False
         torch.set_num_threads(max(1, self.p["torch_threads"]))
         self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
         self.frame = self.scene.frame
@@ -72,6 +74,17 @@ class PerceptionScorer:
         node.create_subscription(PoseArray, core.PATH_CAMERAS_TOPIC, self._cams_cb("path"), latched, callback_group=cb)
         period = 1.0 / max(0.1, self.p["rescore_rate_hz"])
         node.create_timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup())
+        core.install_param_callback(node, self.spec, self.p, lambda k, v: None)
+
+    def on_activate(self, state) -> bool:
+        self.active = True
+        with self._lock:
+            self._rm_dirty = self._path_dirty = True
+        return True
+
+    def on_deactivate(self, state) -> bool:
+        self.active = False
+        return True
 
     def status(self, text: str, level: str = "info") -> None:
         core.report(self.log, self.pub_status, text, level)
@@ -116,6 +129,8 @@ class PerceptionScorer:
     def _tick(self, force: bool = False) -> None:
         from std_msgs.msg import Float32
 
+        if not self.active:
+            return
         try:
             with self._lock:
                 if self._scene_dirty:

@@ -39,7 +39,7 @@ class Probe:
         node.create_subscription(Float32, core.PATH_SCORE_TOPIC, self._rec(self.path_scores, lambda m: m.data), 10)
         node.create_subscription(String, core.SERVER_STATE_TOPIC, self._rec(self.server_state, lambda m: m.data),
                                  latched)
-        for n in ("roadmap_server", "perception_scorer", "replan_monitor"):
+        for n in ("roadmap_server", "perception_scorer", "replan_monitor", "robot_adapter", "sim_robot"):
             node.create_subscription(String, f"/{n}/status", self._status_cb(n), 50)
         from geometry_msgs.msg import PoseStamped
 
@@ -133,8 +133,63 @@ class Probe:
             time.sleep(0.05)
         return False
 
+    def hold_robot_state(self, q, names, rate_hz: float = 20.0, odom_frame: str = "odom"):
+        """Publish a standing robot's measured state from a thread: ``/joint_states`` (the non-base planning joints)
+        and ``/odom`` (the base ``q[:3]``; frame ``odom_frame``) at ``rate_hz``. Returns the
+        :class:`StatePublisher` (``.q`` may be changed, ``.stop()`` ends it)."""
+        return StatePublisher(self.node, q, names, rate_hz, odom_frame).start()
+
     def destroy(self) -> None:
         self.node.destroy_node()
+
+
+class StatePublisher:
+    """What a robot standing at ``q`` publishes: /joint_states and /odom (see :meth:`Probe.hold_robot_state`)."""
+
+    def __init__(self, node, q, names, rate_hz: float = 20.0, odom_frame: str = "odom"):
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+
+        self.node, self.names, self.rate, self.odom_frame = node, list(names), rate_hz, odom_frame
+        self.q = list(map(float, q))
+        self.mobile = self.names[:3] == ["base_x", "base_y", "base_theta"]
+        self.pub_js = node.create_publisher(JointState, "/joint_states", 10)
+        self.pub_odom = node.create_publisher(Odometry, "/odom", 10)
+        self._stop = threading.Event()
+        self.published = 0
+
+    def start(self) -> "StatePublisher":
+        self._thread = threading.Thread(target=self._run, daemon=True, name="state-publisher")
+        self._thread.start()
+        return self
+
+    def publish_once(self) -> None:
+        from nav_msgs.msg import Odometry
+
+        stamp = self.node.get_clock().now().to_msg()
+        q = list(self.q)
+        k = 3 if self.mobile else 0
+        self.pub_js.publish(cv.planning_joint_state(q[k:], self.names[k:], stamp))
+        if self.mobile:
+            od = Odometry()
+            od.header.stamp = stamp
+            od.header.frame_id = self.odom_frame
+            od.child_frame_id = "base_link"
+            cv.numpy_to_pose([q[0], q[1], 0.0], cv.yaw_quat(q[2]), od.pose.pose)
+            self.pub_odom.publish(od)
+        self.published += 1
+
+    def _run(self) -> None:
+        while not self._stop.wait(1.0 / self.rate):
+            try:
+                self.publish_once()
+            except Exception:  # context shutting down
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        if getattr(self, "_thread", None):
+            self._thread.join(2.0)
 
 
 class InProcessSuite:
@@ -142,9 +197,9 @@ class InProcessSuite:
     MultiThreadedExecutor: ``with InProcessSuite(params) as s: s.probe.publish_pose(...)``."""
 
     def __init__(self, params: dict, domain_id: Optional[int] = None, nodes=("server", "scorer", "monitor"),
-                 params_file: Optional[str] = None, threads: int = 6):
+                 params_file: Optional[str] = None, threads: int = 6, autostart: bool = True):
         self.params, self.domain_id, self.which = params, domain_id, nodes
-        self.params_file, self.threads = params_file, threads
+        self.params_file, self.threads, self.autostart = params_file, threads, autostart
 
     def __enter__(self) -> "InProcessSuite":
         import rclpy
@@ -162,8 +217,12 @@ class InProcessSuite:
         kw = {"context": self.context, "parameter_overrides": overrides}
         self.executor = MultiThreadedExecutor(num_threads=self.threads, context=self.context)
         self.nodes = []
-        make = {"server": RoadmapServer, "scorer": PerceptionScorer, "monitor": ReplanMonitor}
-        self.server = self.scorer = self.monitor = None
+        from .robot_adapter import RobotAdapter
+        from .sim_robot import SimRobotNode
+
+        make = {"server": RoadmapServer, "scorer": PerceptionScorer, "monitor": ReplanMonitor,
+                "adapter": RobotAdapter, "sim": SimRobotNode}
+        self.server = self.scorer = self.monitor = self.adapter = self.sim = None
         try:
             for w in self.which:
                 n = make[w](**kw)
@@ -178,6 +237,10 @@ class InProcessSuite:
             raise
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
+        if self.autostart:
+            from .runner import start_lifecycles
+
+            start_lifecycles(self.nodes)
         return self
 
     def _spin(self):

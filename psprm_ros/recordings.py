@@ -35,6 +35,7 @@ class Recording:
     P: np.ndarray
     Q: np.ndarray
     frames: list
+    t0: float = 0.0  # the recorded time (stamp, s) of the first sample: recorded stamps are t0 + times
 
     @property
     def duration(self) -> float:
@@ -56,9 +57,10 @@ def _finish(times, body_names, P, Q, frames_by_body) -> Recording:
     times = np.asarray(times, float)
     order = np.argsort(times, kind="stable")
     t = times[order]
-    t = t - (t[0] if len(t) else 0.0)
+    t0 = float(t[0]) if len(t) else 0.0
+    t = t - t0
     return Recording(times=t, body=idx[order], bodies=bodies, P=np.asarray(P, float).reshape(-1, 3)[order],
-                     Q=np.asarray(Q, float).reshape(-1, 4)[order], frames=[frames_by_body[b] for b in bodies])
+                     Q=np.asarray(Q, float).reshape(-1, 4)[order], frames=[frames_by_body[b] for b in bodies], t0=t0)
 
 
 def load_csv(path) -> Recording:
@@ -130,7 +132,7 @@ def save_csv(rec: Recording, path) -> Path:
         w = csv.writer(f)
         w.writerow(COLUMNS)
         for t, b, p, q in zip(rec.times, rec.body, rec.P, rec.Q):
-            w.writerow([f"{t:.6f}", rec.bodies[b], rec.frames[b]] + [f"{v:.5f}" for v in p] +
+            w.writerow([f"{rec.t0 + t:.6f}", rec.bodies[b], rec.frames[b]] + [f"{v:.5f}" for v in p] +
                        [f"{v:.6f}" for v in q])
     return path
 
@@ -148,7 +150,7 @@ def save_rosbag(rec: Recording, path, prefix: str = "/mocap") -> Path:
     Point = ts.types["geometry_msgs/msg/Point"]
     Quaternion = ts.types["geometry_msgs/msg/Quaternion"]
     path = Path(path)
-    t0 = 1_700_000_000 * 10**9
+    t0 = int(round(rec.t0 * 1e9)) if rec.t0 > 0 else 1_700_000_000 * 10**9
     with Writer(path, version=8) as w:
         conns = [w.add_connection(f"{prefix}/{b}/pose", "geometry_msgs/msg/PoseStamped", typestore=ts)
                  for b in rec.bodies]

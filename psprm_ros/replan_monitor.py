@@ -26,38 +26,56 @@ import numpy as np
 from . import conversions as cv
 from . import core
 
+P = core.Param
 MONITOR_PARAMS = {
-    "mocap_prefix": "/mocap",  # default topic of a rigid body: <prefix>/<name>/pose
-    "target_topics": [],  # one per target (same order); [] = defaults from mocap_prefix
-    "obstacle_topics": [],  # one per dynamic obstacle (same order)
-    "robot_pose_topic": "",  # the robot's own rigid body (base x, y, yaw); "" = base from /joint_states or fixed
-    "joint_states_topic": "/joint_states",
-    "goal_topic": "/psprm/goal",
-    "goal_regions_topic": "/psprm/goal_regions",
-    "max_pose_age_s": 1.0,
+    "mocap_prefix": P("/mocap", "default topic of a rigid body: <prefix>/<name>/pose"),
+    "target_topics": P([], "one per target (same order); [] = defaults from mocap_prefix"),
+    "obstacle_topics": P([], "one per dynamic obstacle (same order)"),
+    "base_pose_source": P("odom", "where the base pose comes from: odom (nav_msgs/Odometry on odom_topic), pose (a "
+                                  "mocap PoseStamped of a body on the base, robot_pose_topic) or joint_states "
+                                  "(base_x/base_y/base_theta in /joint_states)"),
+    "odom_topic": P("/odom", "nav_msgs/Odometry of the base (base_pose_source odom)"),
+    "robot_pose_topic": P("", "the robot's own rigid body (base_pose_source pose)"),
+    "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz"),
+    "base_body_offset.quat": P([0.0, 0.0, 0.0, 1.0], "... and quaternion (x, y, z, w)"),
+    "adapter": P("", "adapter config whose name maps translate /joint_states names ('' = the robot's, 'none')"),
+    "joint_states_topic": P("/joint_states", "sensor_msgs/JointState of the robot"),
+    "robot_state_timeout_s": P(0.5, "a base pose or joint state older than this is stale: no robot state is "
+                                    "forwarded (nothing is planned)", live=True, lo=0.01),
+    "robot_state_rate_hz": P(20.0, "forward the robot state at most this often (0 = every /joint_states message)",
+                             live=True, lo=0.0),
+    "goal_topic": P("/psprm/goal", "PoseStamped base goal (x, y, yaw)"),
+    "goal_regions_topic": P("/psprm/goal_regions", "String: comma-separated goal regions of the scene"),
+    "max_pose_age_s": P(1.0, "refuse poses older than this (0 = no check)", live=True, lo=0.0),
     # forwarding of the mocap stream: a pose that moved more than the deadband since the last forwarded one goes out
     # at once; otherwise at most relay_keepalive_hz (keeps the downstream nodes' CPU for planning; the core's move
     # thresholds are 3-5 cm / 0.1-0.15 rad, so nothing that matters is held back). 0 / 0 = forward everything.
-    "relay_deadband_m": 0.01,
-    "relay_deadband_rad": 0.02,
-    "relay_keepalive_hz": 10.0,
-    "stale_timeout_s": 0.5,
-    "stop_on_stale_obstacle": True,
-    "check_rate_hz": 10.0,
-    "min_path_score_ratio": 0.5,
-    "deviation_tolerance": 0.3,
-    "replan_period_s": 0.0,
-    "min_request_interval_s": 1.0,
-    "start_problem": "",
+    "relay_deadband_m": P(0.01, "forward at once when moved more than this (m)", live=True, lo=0.0),
+    "relay_deadband_rad": P(0.02, "... or turned more than this (rad)", live=True, lo=0.0),
+    "relay_keepalive_hz": P(10.0, "otherwise forward at most this often", live=True, lo=0.0),
+    "stale_timeout_s": P(0.5, "a rigid body silent this long is stale (obstacle: stop)", live=True, lo=0.01),
+    "stop_on_stale_obstacle": P(True, "stop the robot when an obstacle's stream goes silent", live=True),
+    "check_rate_hz": P(10.0, "watchdog rate", lo=0.5),
+    "min_path_score_ratio": P(0.5, "ask for a plan when the path score < ratio x plan score (0 = off)", live=True,
+                              lo=0.0, hi=1.0),
+    "deviation_tolerance": P(0.3, "ask for a plan when the base is this far (m) off the trajectory", live=True,
+                             lo=0.0),
+    "replan_period_s": P(0.0, "periodic replan (0 = off)", live=True, lo=0.0),
+    "min_request_interval_s": P(1.0, "at most one plan request per interval", live=True, lo=0.0),
+    "warning_period_s": P(1.0, "the same kind of warning at most once per period (a 120 Hz stream of bad poses "
+                               "does not flood the log)", live=True, lo=0.0),
+    "start_problem": P("", "scene problem whose start fills joints /joint_states does not carry"),
+    "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
 }
 
 
 class ReplanMonitor:
     def __init__(self, node_name: str = "replan_monitor", **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-        from rclpy.node import Node
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from diagnostic_msgs.msg import DiagnosticArray
         from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float32, String
         from std_srvs.srv import Trigger
@@ -65,11 +83,17 @@ class ReplanMonitor:
 
         from psprm_core.collision import CollisionChecker
 
-        self.node = node = Node(node_name, **node_kwargs)
+        from .adapters import load_adapter
+        from .frames import declare_frame_params
+        from .robot_state import RobotStateTracker, offset_from_params
+
+        self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
-        self.p = core.declare_params(node, {**core.COMMON_PARAMS, **MONITOR_PARAMS})
+        self.spec = {**core.common_params(), **MONITOR_PARAMS}
+        self.p = core.declare_params(node, self.spec)
         self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
         self.frame = self.scene.frame
+        self.frames = declare_frame_params(node, self.frame)
         self.targets = core.scene_targets(self.scene, self.p["targets"])
         self.obstacles = list(self.p["dynamic_obstacles"])
         for o in self.obstacles:
@@ -77,11 +101,28 @@ class ReplanMonitor:
         self.names = list(self.robot.joint_names)
         self.checker = CollisionChecker(self.robot, self.scene.collision_boxes(), workspace=self.scene.workspace)
         self.q = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
+        name_map = {}
+        if self.p["adapter"] != "none":
+            try:
+                name_map = load_adapter(self.p["adapter"] or self.robot.name, self.robot).name_map()
+            except Exception as exc:  # no adapter config for this robot: planning/URDF names only
+                if self.p["adapter"]:
+                    raise
+                self.log.info(f"no adapter name map ({exc})")
+        self.tracker = RobotStateTracker(
+            self.robot, self.frames, self.p["base_pose_source"], name_map,
+            offset_from_params(self.p["base_body_offset.xyz"], self.p["base_body_offset.quat"]),
+            self.p["robot_state_timeout_s"], template=self.q)
+        self.active = False
+        self.robot_state_problem = "waiting for base pose"
+        self._robot_fwd_t = 0.0
+        self._warned: dict = {}  # warning kind -> monotonic time of its last report
         self.base: Optional[np.ndarray] = None
         self._lock = threading.Lock()
         self.last_seen: dict = {}  # body -> monotonic time of the last good pose
         self.stale: set = set()
-        self.counts = {"forwarded": 0, "refused": 0, "plans": 0, "stops": 0, "failed": 0, "requests": 0}
+        self.counts = {"forwarded": 0, "refused": 0, "plans": 0, "stops": 0, "failed": 0, "requests": 0,
+                       "robot_states": 0}
         self.latencies: list = []
         self.plan_score: Optional[float] = None
         self.path_score: Optional[float] = None
@@ -105,9 +146,14 @@ class ReplanMonitor:
             self.relay[(kind, name)] = node.create_publisher(PoseStamped, out, sensor)
             node.create_subscription(PoseStamped, topic, self._pose_cb(kind, name), sensor, callback_group=cb)
         self.topics = {f"{k}:{n}": t for k, n, t in pairs}
-        if self.p["robot_pose_topic"]:
+        src = self.p["base_pose_source"]
+        if self.robot.mobile and src == "pose":
+            if not self.p["robot_pose_topic"]:
+                raise ValueError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
             node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
-        node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, sensor, callback_group=cb)
+        if self.robot.mobile and src == "odom":
+            node.create_subscription(Odometry, self.p["odom_topic"], self._odom_cb, 10, callback_group=cb)
+        node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
         node.create_subscription(PoseStamped, self.p["goal_topic"], self._goal_cb, 10, callback_group=cb)
         node.create_subscription(String, self.p["goal_regions_topic"], self._regions_cb, 10, callback_group=cb)
         node.create_subscription(String, core.PLAN_INFO_TOPIC, self._info_cb, 10, callback_group=cb)
@@ -119,6 +165,52 @@ class ReplanMonitor:
         node.create_timer(1.0 / max(0.5, self.p["check_rate_hz"]), self._check,
                           callback_group=MutuallyExclusiveCallbackGroup())
         node.create_timer(1.0, self._report, callback_group=MutuallyExclusiveCallbackGroup())
+        self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
+        node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
+                          callback_group=MutuallyExclusiveCallbackGroup())
+        core.install_param_callback(node, self.spec, self.p, self._apply_param)
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def on_activate(self, state) -> bool:
+        self.active = True
+        self.status("active: forwarding inputs")
+        return True
+
+    def on_deactivate(self, state) -> bool:
+        self.active = False
+        self.status("inactive: inputs are no longer forwarded")
+        return True
+
+    def _apply_param(self, name: str, value) -> None:
+        if name == "robot_state_timeout_s":
+            self.tracker.timeout_s = float(value)
+
+    def warn_limited(self, kind: str, text: str) -> None:
+        """A warning, at most once per ``warning_period_s`` for each ``kind`` (others are counted only)."""
+        now = time.monotonic()
+        if now - self._warned.get(kind, -1e9) >= self.p["warning_period_s"]:
+            self._warned[kind] = now
+            self.status(text, "warning")
+
+    def _diagnostics(self) -> None:
+        now = time.monotonic()
+        with self._lock:
+            seen = {f"{k} {n}": now - t for (k, n), t in self.last_seen.items()}
+            counts = dict(self.counts)
+            stale = sorted(self.stale)
+            problem = self.robot_state_problem
+        bt = self.tracker.base_t
+        level = core.DIAG_OK
+        msg = "inputs live"
+        if problem:
+            level, msg = core.DIAG_WARN, problem
+        elif stale:
+            level, msg = core.DIAG_WARN, f"stale: {', '.join(stale)}"
+        vals = {"lifecycle": core.lifecycle_state(self.node), **counts,
+                "base_pose_age_s": (now - bt) if bt is not None else "never",
+                **{f"age_s {k}": v for k, v in seen.items()}}
+        core.publish_diagnostics(self.pub_diag, self.node, [
+            core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
 
     def _topics(self, kind, names, topics) -> list:
         if topics and len(topics) != len(names):
@@ -137,6 +229,7 @@ class ReplanMonitor:
             return {**self.counts, "stale": sorted(self.stale), "plan_score": self.plan_score,
                     "path_score": self.path_score,
                     "latency_ms_median": float(np.median(lat)) if len(lat) else None,
+                    "robot_state": self.robot_state_problem or "ok",
                     "last_warning": self.last_warning}
 
     def _report(self) -> None:
@@ -149,13 +242,17 @@ class ReplanMonitor:
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def _pose_cb(self, kind: str, name: str):
+        from .frames import validated_pose_in
+
         def cb(msg):
             try:
-                p, q = cv.validated_pose(msg, self.frame, self._now(), self.p["max_pose_age_s"], f"{kind} {name}")
+                p, q = validated_pose_in(msg, self.frames, self._now(), self.p["max_pose_age_s"], f"{kind} {name}")
             except Exception as exc:
                 with self._lock:
                     self.counts["refused"] += 1
-                self.status(f"ignored {exc}", "warning")
+                self.warn_limited(f"{kind} {name} {_kind_of(exc)}", f"ignored {exc}")
+                return
+            if not self.active:
                 return
             now = time.monotonic()
             with self._lock:
@@ -187,32 +284,58 @@ class ReplanMonitor:
 
     def _base_cb(self, msg) -> None:
         try:
-            p, q = cv.validated_pose(msg, self.frame, self._now(), self.p["max_pose_age_s"], "robot pose")
+            with self._lock:
+                self.tracker.update_pose(msg, time.monotonic(), self._now(), self.p["max_pose_age_s"])
         except Exception as exc:
-            self.status(f"ignored {exc}", "warning")
+            self.warn_limited(f"base {_kind_of(exc)}", f"ignored {exc}")
+
+    def _odom_cb(self, msg) -> None:
+        try:
+            with self._lock:
+                self.tracker.update_odometry(msg, time.monotonic(), self._now(), self.p["max_pose_age_s"])
+        except Exception as exc:
+            self.warn_limited(f"odom {_kind_of(exc)}", f"ignored {exc}")
             return
-        with self._lock:
-            self.base = np.array([p[0], p[1], cv.yaw_of(q)])
-            self.last_seen[("robot", "base")] = time.monotonic()
 
     def _joints_cb(self, msg) -> None:
         try:
             with self._lock:
-                base = self.base
-            q, found = cv.joint_state_to_planning(msg, self.robot, base=base, template=self.q)
-            if self.robot.mobile and base is None and not {"base_x", "base_y", "base_theta"} <= set(found):
-                pass  # base stays at the start configuration until a base pose arrives
+                self.tracker.update_joints(msg, time.monotonic())
         except Exception as exc:
-            self.status(f"ignored {exc}", "warning")
+            self.warn_limited(f"joints {_kind_of(exc)}", f"ignored {exc}")
             return
+        self._forward_robot_state(msg.header.stamp)
+
+    def _forward_robot_state(self, stamp=None) -> None:
+        """Forward the measured configuration when joints and base pose are fresh; otherwise report why not
+        (nothing is planned then)."""
         with self._lock:
-            self.q = q
-        self.pub_robot.publish(cv.planning_joint_state(q, self.names, msg.header.stamp))
+            q, why = self.tracker.state(time.monotonic())
+            was = self.robot_state_problem
+            self.robot_state_problem = "" if q is not None else why
+            if q is not None:
+                self.q = q
+                self.counts["robot_states"] += 1
+        if q is None:
+            self.warn_limited("robot state", f"not forwarding the robot state: {why}")
+            return
+        if was:
+            self.status("robot state live (joints and base pose)")
+        if not self.active:
+            return
+        now = time.monotonic()
+        hz = self.p["robot_state_rate_hz"]
+        if hz > 0 and now - self._robot_fwd_t < 1.0 / hz:
+            return
+        self._robot_fwd_t = now
+        self.pub_robot.publish(cv.planning_joint_state(q, self.names, stamp or self.node.get_clock().now().to_msg()))
         self._check_deviation(q)
 
     def _goal_cb(self, msg) -> None:
         try:
-            p, q = cv.validated_pose(msg, self.frame, None, 0.0, "goal")
+            from .frames import validated_pose_in
+
+            p, q = validated_pose_in(msg, self.frames, None, 0.0, "goal")
             if not self.robot.mobile:
                 raise cv.InputError("goal poses need a mobile base; use goal regions")
             vals = {"base_x": p[0], "base_y": p[1], "base_theta": cv.yaw_of(q)}
@@ -359,6 +482,15 @@ class ReplanMonitor:
 
     def destroy(self) -> None:
         self.node.destroy_node()
+
+
+def _kind_of(exc) -> str:
+    """A short key of an input error for rate-limited warnings (frame / non-finite / stale / other)."""
+    t = str(exc)
+    for k in ("frame", "non-finite", "stale", "quaternion"):
+        if k in t:
+            return k
+    return type(exc).__name__
 
 
 def main(args=None) -> int:

@@ -32,22 +32,65 @@ import numpy as np
 from . import conversions as cv
 from . import core
 
+P = core.Param
 SERVER_PARAMS = {
-    "start_problem": "",  # scene problem whose start is the robot state until /psprm/state/robot arrives
-    "goal_regions": [],  # goals used before any goal message arrives ([] = wait for a goal)
-    "plan_on_start": False,  # plan to goal_regions as soon as the roadmap is ready
-    "auto_replan": True,  # ask the Replanner's triggers after every state update
-    "trajectory_dt": 0.1,  # sample spacing of the published trajectory (s)
-    "max_pose_age_s": 1.0,  # refuse pose messages older than this (0 = no check)
-    "publish_markers": True,
-    "marker_max_edges": 5000,  # roadmap edges drawn (an evenly spread subset; building markers costs ~9 ms/1000)
-    "markers_period_s": 5.0,  # roadmap markers (scores changed) at most this often, built when the planner is idle
-    "path_camera_samples": 200,
-    "service_timeout_s": 120.0,
-    "robot_trigger_period_s": 0.5,  # re-evaluate the triggers on robot progress at most this often
-    "safety_step": 0.05,  # spacing (m / rad) of the final collision check along the published trajectory
-    # (the planner's own edge resolution)
+    "start_problem": P("", "scene problem whose start is the template of the roadmap build; planning waits for the "
+                           "measured robot state (/psprm/state/robot)"),
+    "goal_regions": P([], "goals used before any goal message arrives ([] = wait for a goal)"),
+    "plan_on_start": P(False, "plan to goal_regions as soon as the node is active"),
+    "auto_replan": P(True, "ask the replanner's triggers after every state update", live=True),
+    "trajectory_dt": P(0.1, "sample spacing of the published trajectory (s)", live=True, lo=0.01, hi=1.0),
+    "max_pose_age_s": P(1.0, "refuse pose messages older than this (0 = no check)", live=True, lo=0.0),
+    "robot_state_timeout_s": P(1.0, "plan only with a robot state (joints and base pose) at most this old", live=True,
+                               lo=0.05),
+    "publish_markers": P(True, "RViz markers of the scene, roadmap and path", live=True),
+    "marker_max_edges": P(5000, "roadmap edges drawn (an evenly spread subset; ~9 ms per 1000)", live=True, lo=0),
+    "markers_period_s": P(5.0, "roadmap markers at most this often, built while the planner is idle", live=True,
+                          lo=0.1),
+    "path_camera_samples": P(200, "camera poses along the path sent to the perception scorer", live=True, lo=2),
+    "service_timeout_s": P(120.0, "longest wait of a service call for the planner", live=True, lo=1.0),
+    "robot_trigger_period_s": P(0.5, "re-evaluate the triggers on robot progress at most this often", live=True,
+                                lo=0.0),
+    "safety_step": P(0.05, "spacing (m / rad) of the final collision check along the published trajectory",
+                     live=True, lo=0.005, hi=0.2),
+    "stop_hold_s": P(0.25, "time_from_start of the stop trajectory's one point", live=True, lo=0.01),
+    "alpha": P(-1.0, "Eq. 2 weight of perception against motion cost (< 0: the planner variant's default)",
+               live=True, lo=-1.0, hi=1.0),
+    "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
 }
+#: the replanner's settings a running server changes live (their defaults come from the replan settings file)
+LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
+               "target_turn_rad": "target rotation that counts as a move (rad)",
+               "obstacle_move_m": "obstacle translation that counts as a move (m)",
+               "obstacle_turn_rad": "obstacle rotation that counts as a move (rad)",
+               "replan_on_move": "a target/obstacle move alone triggers a replan",
+               "score_min": "replan when the predicted normalised score along the remaining path falls below this",
+               "score_drop": "... or drops by more than this since the plan",
+               "goal_switch_margin": "goal hysteresis (fraction of the current plan's cost)",
+               "min_interval_s": "at most one score/move-triggered replan per interval (s)"}
+PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
+                        "n_nodes": "roadmap nodes", "seed": "roadmap sampling seed",
+                        "planner_settings": "PSPRMSettings YAML ('' = config/planners/psprm.yaml)",
+                        "replan_settings": "ReplanSettings: a name in config/planners/ or a YAML path",
+                        "roadmap_file": "'' = cache under ~/.cache/psprm/roadmaps; 'none' = always build",
+                        "checkpoint": "surrogate checkpoint ('' = the shipped one)"}
+
+
+def planner_params() -> dict:
+    return {k: P(v, PLANNER_DESCRIPTIONS.get(k, ""), rebuild=True) for k, v in core.PLANNER_PARAMS.items()}
+
+
+def replan_params(settings_name: str) -> dict:
+    """Live replanning thresholds with the settings file's values as defaults."""
+    from psprm_core.paths import resolve_named
+    from psprm_core.planning.replanner import ReplanSettings
+
+    rs = ReplanSettings.from_yaml(resolve_named("planner", settings_name)) if settings_name else ReplanSettings()
+    out = {}
+    for k, d in LIVE_REPLAN.items():
+        v = getattr(rs, k)
+        out[k] = P(v, d, live=True) if isinstance(v, bool) else P(float(v), d, live=True, lo=0.0)
+    return out
 
 
 class RoadmapServer:
@@ -55,7 +98,6 @@ class RoadmapServer:
 
     def __init__(self, node_name: str = core.SERVER_NAME, **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-        from rclpy.node import Node
         from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from geometry_msgs.msg import PoseArray, PoseStamped
         from sensor_msgs.msg import JointState
@@ -63,11 +105,16 @@ class RoadmapServer:
         from std_srvs.srv import Trigger
         from trajectory_msgs.msg import JointTrajectory
         from visualization_msgs.msg import MarkerArray
+        from diagnostic_msgs.msg import DiagnosticArray
+        from nav_msgs.msg import Path
         import torch
 
-        self.node = node = Node(node_name, **node_kwargs)
+        self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
-        self.p = core.declare_params(node, {**core.COMMON_PARAMS, **core.PLANNER_PARAMS, **SERVER_PARAMS})
+        common = {**core.common_params(), **planner_params(), **SERVER_PARAMS}
+        self.p = core.declare_params(node, common)
+        self.spec_params = {**common, **replan_params(self.p["replan_settings"])}
+        self.p.update(core.declare_params(node, self.spec_params))
         torch.set_num_threads(max(1, self.p["torch_threads"]))
         self.spec = core.PlannerSpec(**{k: self.p[k] for k in core.PLANNER_PARAMS})
         self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
@@ -90,6 +137,8 @@ class RoadmapServer:
         self.pub_path_markers = node.create_publisher(MarkerArray, "~/path_markers", latched)
         self.pub_rm_cams = node.create_publisher(PoseArray, core.ROADMAP_CAMERAS_TOPIC, latched)
         self.pub_path_cams = node.create_publisher(PoseArray, core.PATH_CAMERAS_TOPIC, latched)
+        self.pub_base_path = node.create_publisher(Path, core.BASE_PATH_TOPIC, latched)
+        self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
 
         cb = MutuallyExclusiveCallbackGroup()
         for t in self.targets:
@@ -131,13 +180,76 @@ class RoadmapServer:
         self._markers_t = 0.0
         self._rm_ids = np.zeros(0, dtype=np.int64)  # roadmap node slots whose camera poses were last published
         self.build_info: dict = {}
+        self.active = False  # lifecycle: plan and publish only while active
+        self._robot_rx: Optional[float] = None  # monotonic receipt time of the last robot state
+        self._waiting_t = 0.0  # last "waiting for base pose" report
+        self.waiting = ""  # why nothing is planned now ("" = not waiting)
+        self._live: dict = {}  # parameter changes for the worker to apply
+        self._transition: Optional[tuple] = None  # (kind, Event, result list) run by the worker
+        self.last_latency_ms: Optional[float] = None
+        self.counts = {"plans": 0, "stops": 0, "failed": 0, "refused_unsafe": 0}
+        self._input_t: dict = {}  # input label -> monotonic receipt time
         from concurrent.futures import ThreadPoolExecutor
 
         self._side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psprm-publish")
+        self._side_jobs: dict = {}  # kind -> (fn, args) of the newest job waiting for the side thread
         self._idle = threading.Event()  # set while the worker waits for input: side jobs (markers) run then
         self._idle.set()
         self._thread = threading.Thread(target=self._worker, name="psprm-planner", daemon=True)
         self._thread.start()
+        core.install_param_callback(node, self.spec_params, self.p, self._stage_param)
+        node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
+                          callback_group=MutuallyExclusiveCallbackGroup())
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def on_configure(self, state) -> bool:
+        """Build or load the roadmap (blocks until it is ready)."""
+        return self._run_on_worker("configure")
+
+    def on_activate(self, state) -> bool:
+        self.active = True
+        self.status("active")
+        with self._lock:
+            resume = self.current is not None  # re-activated after a deactivation: plan again
+            self.hold = False
+            if self.goals is not None and (self.p["plan_on_start"] or resume):
+                self._requests.append(("plan", -1))
+        self._wake.set()
+        return True
+
+    def on_deactivate(self, state) -> bool:
+        """Stop the robot (a stop trajectory), then stop planning."""
+        ok = self._run_on_worker("deactivate")
+        self.active = False
+        return ok
+
+    def on_cleanup(self, state) -> bool:
+        return self._run_on_worker("cleanup")
+
+    def on_shutdown(self, state) -> bool:
+        if self.active:
+            self._run_on_worker("deactivate", timeout=10.0)
+        self.active = False
+        return True
+
+    def _run_on_worker(self, kind: str, timeout: Optional[float] = None) -> bool:
+        """Run a lifecycle step on the planner thread (which owns the planner) and wait for it."""
+        done, out = threading.Event(), []
+        with self._lock:
+            self._transition = (kind, done, out)
+        self._wake.set()
+        done.wait(timeout)
+        return bool(out and out[0])
+
+    def _stage_param(self, name: str, value) -> None:
+        """Set-parameters callback (executor thread): check, then hand the change to the worker."""
+        if name in LIVE_REPLAN and self.rp is not None:
+            import dataclasses
+
+            dataclasses.replace(self.rp.settings, **{name: value})  # ReplanSettings refuses bad values
+        with self._lock:
+            self._live[name] = value
+        self._wake.set()
 
     # ------------------------------------------------------------------------------------------------ callbacks
     @staticmethod
@@ -168,11 +280,13 @@ class RoadmapServer:
                 self.status(f"ignored malformed {kind} {name}: {exc}", "warning")
                 return
             with self._lock:
+                self._input_t[f"{kind} {name}"] = time.monotonic()
                 pend = self._pending
                 pend["targets" if kind == "target" else "obstacles"][name] = (p, q)
                 if pend["t_first"] is None:
                     pend["t_first"] = t
                     pend["stamp"] = cv.stamp_to_sec(msg.header.stamp)
+                    pend["input_age_ms"] = (self._now() - pend["stamp"]) * 1e3  # stamp -> receipt here
             self._wake.set()
         return cb
 
@@ -187,6 +301,7 @@ class RoadmapServer:
             return
         with self._lock:
             self._pending["robot"] = q
+            self._robot_rx = time.monotonic()
         self._wake.set()
 
     def _goals_cb(self, msg) -> None:
@@ -234,24 +349,28 @@ class RoadmapServer:
 
     # ------------------------------------------------------------------------------------------------ worker
     def _worker(self) -> None:
-        try:
-            self._build(initial=True)
-        except Exception as exc:  # configuration errors end up here: report, keep the node alive
-            self.status(f"roadmap build failed: {exc}", "error")
-            self.set_state(f"error: roadmap build failed: {exc}")
-        if self.rp is not None and self.p["plan_on_start"] and self.goals is not None:
-            with self._lock:
-                self._requests.append(("plan", -1))
         while self._running:
             self._wake.wait(0.1)
             self._wake.clear()
             if not self._running:
                 break
             with self._lock:
+                tr, self._transition = self._transition, None
+            if tr is not None:
+                self._do_transition(*tr)
+            if self.rp is None:  # not configured: inputs wait (goals are latched, poses keep coming)
+                with self._lock:
+                    reqs, self._requests = self._requests, []
+                self._answer(reqs, False, "the roadmap is not ready (node not configured)")
+                continue
+            with self._lock:
                 pend, self._pending = self._pending, self._empty_pending()
                 reqs, self._requests = self._requests, []
+                live, self._live = self._live, {}
             self._idle.clear()
             try:
+                if live:
+                    self._apply_live(live)
                 self._cycle(pend, reqs)
             except Exception as exc:  # a bug or a core error must not end the worker
                 self.log.error(f"planning cycle failed: {exc!r}")
@@ -259,6 +378,47 @@ class RoadmapServer:
                 self._answer(reqs, False, f"error: {exc}")
             finally:
                 self._idle.set()
+
+    def _do_transition(self, kind: str, done: threading.Event, out: list) -> None:
+        ok = False
+        try:
+            if kind == "configure":
+                self._build(initial=True)
+                if self.p["alpha"] >= 0:
+                    self._apply_live({"alpha": self.p["alpha"]})
+                self._apply_live({k: self.p[k] for k in LIVE_REPLAN})
+                ok = True
+            elif kind == "deactivate":
+                if self.rp is not None:
+                    self.hold = True
+                    self._publish_stop("node deactivated")
+                self.set_state("inactive: " + (self.build_info and f"{self.build_info.get('n_nodes', 0)} nodes" or ""))
+                ok = True
+            elif kind == "cleanup":
+                self.rp = self.planner = self.safety = None
+                self.current = None
+                self.ready.clear()
+                self.set_state("unconfigured")
+                ok = True
+        except Exception as exc:  # configuration errors end up here: report, keep the node alive
+            self.status(f"{kind} failed: {exc}", "error")
+            if kind == "configure":
+                self.set_state(f"error: roadmap build failed: {exc}")
+        finally:
+            out.append(ok)
+            done.set()
+
+    def _apply_live(self, live: dict) -> None:
+        import dataclasses
+
+        rp_changes = {k: v for k, v in live.items() if k in LIVE_REPLAN}
+        if rp_changes and self.rp is not None:
+            self.rp.settings = dataclasses.replace(self.rp.settings, **rp_changes)
+        a = live.get("alpha")
+        if a is not None and a >= 0 and self.planner is not None and hasattr(self.planner, "set_alpha"):
+            self.planner.set_alpha(float(a))
+        if live:
+            self.status(f"parameters applied: {', '.join(f'{k}={v}' for k, v in sorted(live.items()))}")
 
     def _answer(self, reqs, ok: bool, message: str, kinds=None) -> None:
         with self._done:
@@ -356,6 +516,20 @@ class RoadmapServer:
             return
         if self.hold:
             return
+        if not self.active:
+            self._answer(reqs, False, "node inactive", kinds={"plan"})
+            return
+        waiting = self._robot_state_problem()
+        if waiting:
+            self.waiting = waiting
+            if time.monotonic() - self._waiting_t > 2.0 or reasons:
+                self._waiting_t = time.monotonic()
+                self.status(f"not planning: {waiting}", "warning")
+            self._answer(reqs, False, waiting, kinds={"plan"})
+            return
+        if self.waiting:
+            self.status("robot state live: planning resumes")
+            self.waiting = ""
         t1 = time.perf_counter()
         # the core's triggers change only when something moved beyond its thresholds, the goal changed, or the robot
         # advanced along the path (checked at most every robot_trigger_period_s); keep-alive poses cost nothing
@@ -375,6 +549,18 @@ class RoadmapServer:
             self._answer(reqs, ok, msg, kinds={"plan"})
         self._maybe_republish_markers()
 
+    def _robot_state_problem(self) -> str:
+        """Why no plan may start now ("" = none): the measured robot state (joints + base pose, forwarded by the
+        monitor only while both are fresh) is missing or older than robot_state_timeout_s."""
+        with self._lock:
+            rx = self._robot_rx
+        if rx is None:
+            return "waiting for base pose (no robot state received yet)"
+        age = time.monotonic() - rx
+        if age > self.p["robot_state_timeout_s"]:
+            return f"waiting for base pose (the last robot state is {age:.1f} s old)"
+        return ""
+
     # ------------------------------------------------------------------------------------------------ planning
     def _plan(self, reasons: list, pend: dict) -> tuple:
         t0 = time.perf_counter()
@@ -382,7 +568,8 @@ class RoadmapServer:
         t1 = time.perf_counter()
         info = {"seq": self.seq, "reasons": reasons, "success": bool(res.success), "reason": res.reason,
                 "query_ms": _f(res.query_ms), "mean_score": _f(res.mean_score), "goal_index": int(res.goal_index),
-                "input_stamp": pend["stamp"], **pend.get("timing", {}), "replan_ms": _f((t1 - t0) * 1e3)}
+                "input_stamp": pend["stamp"], "input_age_ms": _f(pend.get("input_age_ms")), **pend.get("timing", {}),
+                "replan_ms": _f((t1 - t0) * 1e3)}
         self.seq += 1
         traj = res.trajectory if res.success else None
         if res.success and traj is None:  # already at the goal
@@ -390,22 +577,39 @@ class RoadmapServer:
             return True, json.dumps(info)
         if traj is not None:
             stamp = self.node.get_clock().now().to_msg()
-            msg = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"])
-            P = cv.joint_trajectory_positions(msg, self.names)
+            msg, P = cv.trajectory_to_msg(traj, self.names, self.frame, stamp, self.p["trajectory_dt"],
+                                          with_positions=True)
+            # the trajectory starts at the measured state it was planned from (the planner re-aims the camera joints
+            # at its start): a controller then never jumps, and the connecting move is checked below with the rest
+            cont = [2] if self.robot.mobile else []
+            shift = cv.prepend_start(msg, self.rp.q, self.robot.velocity, self.robot.acceleration, cont)
+            info["start_shift_s"] = _f(shift)
+            if shift > 0:
+                P = np.vstack([np.asarray(msg.points[0].positions, float), P])
             t2 = time.perf_counter()
+            self._take_fresh_obstacles()
             unsafe = self._unsafe(P)
             info.update(msg_ms=_f((t2 - t1) * 1e3), check_ms=_f((time.perf_counter() - t2) * 1e3))
             if unsafe:
                 info.update(success=False, reason="planner output in collision with the latest obstacles: refused")
+                self.counts["refused_unsafe"] += 1
             else:
                 self.pub_traj.publish(msg)
                 t_pub = time.perf_counter()
+                info["published_stamp"] = self._now()  # node clock (the inputs' stamps are on it too)
+                if self.robot.mobile:  # built on the side thread: ~400 PoseStamped are pure Python
+                    self._submit_side("base path", lambda P=P, stamp=stamp: self.pub_base_path.publish(
+                        cv.base_path_msg(P, self.frame, stamp)))
+                self.counts["plans"] += 1
+                if pend["t_first"]:
+                    self.last_latency_ms = (t_pub - pend["t_first"]) * 1e3
                 self.current = {"result": res, "msg": msg, "t_pub": t_pub, "positions": P}
                 info.update(latency_ms=_f((t_pub - pend["t_first"]) * 1e3) if pend["t_first"] else None,
                             duration_s=_f(traj.duration), n_points=len(msg.points), stop=False)
                 self._after_publish(res, info, reasons)
                 return True, json.dumps(info)
         # nothing new and safe: keep the last safe trajectory, else stop
+        self.counts["failed"] += 1
         self.status(f"planning failed ({info['reason']})", "warning")
         if self.current is not None and not self._unsafe(self._remaining(self.current["positions"])):
             info.update(stop=False, kept_last=True)
@@ -420,20 +624,31 @@ class RoadmapServer:
         self._publish_info(info)
         self.status(f"plan {info['seq']} ({', '.join(reasons)}): {info['n_points']} points, "
                     f"{info['duration_s']:.1f} s, predicted score {res.mean_score:.3f}, query {res.query_ms:.0f} ms")
-        self._side.submit(self._side_job, "path markers", self._publish_path, res, self.safety_scene)
+        self._submit_side("path markers", self._publish_path, res, self.safety_scene)
 
-    def _side_job(self, what: str, fn, *args) -> None:
-        """Run ``fn`` on the side thread once the planner is idle (waits at most 1 s): publishing markers is pure
-        Python and would otherwise compete with a replan for the interpreter."""
+    def _submit_side(self, what: str, fn, *args) -> None:
+        """Queue a side job; a job of the same kind still waiting is replaced (only the newest path or roadmap
+        matters: while the planner replans back to back, jobs would otherwise pile up faster than they run)."""
+        with self._lock:
+            queued = what in self._side_jobs
+            self._side_jobs[what] = (fn, args)
+        if not queued:
+            self._side.submit(self._side_job, what)
+
+    def _side_job(self, what: str) -> None:
+        """Run the newest job of kind ``what`` on the side thread once the planner is idle (waits at most 1 s):
+        publishing markers is pure Python and would otherwise compete with a replan for the interpreter."""
         self._idle.wait(1.0)
+        with self._lock:
+            fn, args = self._side_jobs.pop(what)
         try:
             fn(*args)
         except Exception as exc:  # never lose the side thread
             self.status(f"{what} failed: {exc}", "warning")
 
     def _publish_stop(self, why: str, info: Optional[dict] = None) -> None:
-        stamp = self.node.get_clock().now().to_msg()
-        self.pub_traj.publish(cv.stop_trajectory(self.q, self.names, self.frame, stamp))
+        self.pub_traj.publish(cv.stop_trajectory(self.q, self.names, self.frame, hold_s=self.p["stop_hold_s"]))
+        self.counts["stops"] += 1
         self.current = {"result": None, "msg": None, "t_pub": time.perf_counter(), "positions": self.q[None].copy()}
         info = dict(info or {"seq": self.seq, "reasons": [why]})
         info.update(stop=True, stop_reason=why)
@@ -444,6 +659,29 @@ class RoadmapServer:
         from std_msgs.msg import String
 
         self.pub_info.publish(String(data=json.dumps(info)))
+
+    def _take_fresh_obstacles(self) -> None:
+        """Obstacle poses that arrived while the planner was running go into the final check now (the planner sees
+        them in the next cycle): a trajectory is never published unchecked against a pose the server already has."""
+        with self._lock:
+            fresh = dict(self._pending["obstacles"])
+            fresh_t = {n: v for n, v in self._pending["targets"].items()}
+        changed = False
+        for name, (p, q) in fresh.items():
+            try:
+                self.safety_scene = self.safety_scene.with_obstacle_pose(name, p, q)
+                changed = True
+            except (KeyError, ValueError):
+                pass
+        for name, (p, q) in fresh_t.items():
+            try:
+                if self.safety_scene.target(name).obstacle:
+                    self.safety_scene = self.safety_scene.with_target_pose(name, p, q)
+                    changed = True
+            except (KeyError, ValueError):
+                pass
+        if changed:
+            self.safety.set_boxes(self.safety_scene.collision_boxes())
 
     def _unsafe(self, positions: np.ndarray) -> bool:
         """True when any configuration along ``positions`` (densified to the planner's edge resolution) collides
@@ -520,7 +758,7 @@ class RoadmapServer:
         e = e[(e >= 0).all(1)]
         snap = (self.safety_scene, self._rm_cams[keep, :3, 3].copy(), self._node_scores()[keep].copy(),
                 g.configs[ids[keep], :2].copy(), e)
-        self._side.submit(self._side_job, "roadmap markers", self._publish_roadmap_markers, *snap)
+        self._submit_side("roadmap markers", self._publish_roadmap_markers, *snap)
 
     def _publish_roadmap_markers(self, scene, cam_xyz, scores, base_xy, edges) -> None:
         from . import markers as mk
@@ -547,6 +785,27 @@ class RoadmapServer:
             ms = mk.scene_markers(scene, stamp) + mk.path_markers(self.frame, D[idx, :2], T[:, :3, 3],
                                                                              scores, stamp)
             self.pub_path_markers.publish(mk.marker_array(ms))
+
+    # ------------------------------------------------------------------------------------------------ diagnostics
+    def _diagnostics(self) -> None:
+        state = core.lifecycle_state(self.node)
+        if self.rp is None:
+            level, msg = core.DIAG_WARN, f"{state}: roadmap not ready"
+        elif not self.active:
+            level, msg = core.DIAG_WARN, f"{state}"
+        elif self.waiting:
+            level, msg = core.DIAG_WARN, self.waiting
+        else:
+            level, msg = core.DIAG_OK, "planning" if not self._idle.is_set() else "ready"
+        now = time.monotonic()
+        with self._lock:
+            rx = self._robot_rx
+            ages = {f"age_s {k}": now - t for k, t in self._input_t.items()}
+        vals = {"lifecycle": state, "roadmap_nodes": int(self.planner.n_roadmap_nodes) if self.planner else 0,
+                **self.counts, "last_latency_ms": self.last_latency_ms if self.last_latency_ms is not None else "",
+                "robot_state_age_s": (now - rx) if rx is not None else "never", **ages}
+        core.publish_diagnostics(self.pub_diag, self.node, [
+            core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def destroy(self) -> None:

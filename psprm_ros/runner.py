@@ -25,12 +25,47 @@ def self_check() -> dict:
     import psprm_core
     import psprm_ros
 
-    mods = ["rclpy", "std_msgs.msg", "geometry_msgs.msg", "sensor_msgs.msg", "trajectory_msgs.msg",
-            "visualization_msgs.msg", "std_srvs.srv", "psprm_ros.roadmap_server", "psprm_ros.perception_scorer",
-            "psprm_ros.replan_monitor", "psprm_ros.all_in_one", "psprm_ros.mocap_replay"]
+    mods = ["rclpy", "rclpy.lifecycle", "rclpy.action", "std_msgs.msg", "geometry_msgs.msg", "sensor_msgs.msg",
+            "nav_msgs.msg", "trajectory_msgs.msg", "visualization_msgs.msg", "diagnostic_msgs.msg", "lifecycle_msgs.msg",
+            "rosgraph_msgs.msg", "std_srvs.srv", "psprm_ros.roadmap_server", "psprm_ros.perception_scorer",
+            "psprm_ros.replan_monitor", "psprm_ros.robot_adapter", "psprm_ros.sim_robot", "psprm_ros.all_in_one",
+            "psprm_ros.mocap_replay", "psprm_ros.soak"]
     for m in mods:
         importlib.import_module(m)
-    return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods)}
+    from .adapters import import_follow_joint_trajectory
+
+    return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods),
+            "control_msgs": import_follow_joint_trajectory() is not None}
+
+
+def _raise_on_signals() -> None:
+    import signal
+
+    def handler(signum, frame):
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+def start_lifecycles(owners) -> list:
+    """Configure and activate every lifecycle node whose ``autostart`` parameter is true, each on its own thread
+    (the roadmap server's configure builds or loads the roadmap). Returns the threads."""
+    import threading
+
+    from .core import autostart
+
+    threads = []
+    for n in owners:
+        if not hasattr(n.node, "trigger_configure"):
+            continue
+        p = getattr(n, "p", {})
+        if not p.get("autostart", True):
+            continue
+        t = threading.Thread(target=autostart, args=(n,), name=f"autostart-{n.node.get_name()}", daemon=True)
+        t.start()
+        threads.append(t)
+    return threads
 
 
 #: Python's GIL switch interval in the node processes (default 0.005 s), see :func:`run_nodes`.
@@ -62,7 +97,13 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
     # the executor thread is busy with message callbacks (120 Hz mocap), every re-take can wait a full switch interval
     # (5 ms by default), which stretched a 0.5 s plan to 10-60 s in the demo. A shorter interval bounds that wait.
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
-    rclpy.init(args=argv)
+    # rclpy's own SIGINT handler shuts the context down at once, after which no node can publish: the adapter's stop
+    # on shutdown would be lost. Here SIGINT/SIGTERM end the spin instead; the nodes are destroyed (an adapter stops
+    # the robot) while the context is still up, then it is shut down.
+    from rclpy.signals import SignalHandlerOptions
+
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    _raise_on_signals()
     nodes = []
     executor = MultiThreadedExecutor(num_threads=max(2, opts.threads))
     try:
@@ -70,6 +111,7 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
             n = f()
             nodes.append(n)
             executor.add_node(n.node)
+        start_lifecycles(nodes)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

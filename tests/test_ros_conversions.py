@@ -93,3 +93,27 @@ def test_goal_candidates_round_trip(load_robot):
     msg.joint_names = msg.joint_names[:-1] + ["nope"]
     with pytest.raises(cv.InputError, match="missing joint"):
         cv.joint_trajectory_positions(msg, robot.joint_names)
+
+
+def test_trajectory_prepended_with_the_measured_start_stays_within_the_limits(load_robot):
+    """The server's published trajectory starts exactly at the measured state: a first point away from it gets a
+    connecting move whose finite-difference velocities stay within every joint's limit."""
+    robot = load_robot("stretch2")
+    q0 = robot.default_configuration()
+    q0[:3] = [1.0, 1.0, 0.2]
+    first = q0.copy()
+    first[robot.index("joint_head_pan")] += 0.8  # the planner re-aimed the head
+    first[robot.index("joint_lift")] += 0.05
+    P = np.array([first, first + 0.01])
+    msg = cv.configs_to_joint_trajectory(P, robot.joint_names, "map")
+    t_before = [cv.duration_to_sec(p.time_from_start) for p in msg.points]
+    shift = cv.prepend_start(msg, q0, robot.velocity, robot.acceleration, [2])
+    assert shift > 0 and len(msg.points) == 3
+    assert np.allclose(msg.points[0].positions, q0) and cv.duration_to_sec(msg.points[0].time_from_start) == 0.0
+    t_after = [cv.duration_to_sec(p.time_from_start) for p in msg.points[1:]]
+    assert np.allclose(np.array(t_after) - t_before, shift)
+    Q = cv.joint_trajectory_positions(msg, robot.joint_names)
+    v = np.abs(Q[1] - Q[0]) / t_after[0]
+    assert np.all(v <= robot.velocity + 1e-9)
+    # a trajectory already at the start is left alone
+    assert cv.prepend_start(msg, q0, robot.velocity, robot.acceleration, [2]) == 0.0 and len(msg.points) == 3

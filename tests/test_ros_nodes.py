@@ -1,6 +1,7 @@
 """ROS 2 node suite, in process: the three nodes on a MultiThreadedExecutor, poses and goals published like a mocap
-system, trajectories received and checked (collision-free under the latest obstacle poses, target in view), replans
-after the target turns and after an obstacle moves into the path, bad input answered with warnings."""
+system, a standing robot's /joint_states and /odom published by the test, trajectories received and checked against
+the poses the test itself sent (collision-free, target in view), replans after the target turns and after an
+obstacle moves into the path (a path around it, never a stop in its place), bad input answered with warnings."""
 
 from __future__ import annotations
 
@@ -27,7 +28,29 @@ from psprm_ros.probe import InProcessSuite  # noqa: E402
 
 N_NODES = 500
 PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,
-          "stale_timeout_s": 60.0, "publish_markers": True, "rescore_rate_hz": 5.0, "markers_period_s": 0.5}
+          "stale_timeout_s": 60.0, "publish_markers": True, "rescore_rate_hz": 5.0, "markers_period_s": 0.5,
+          "input_frames": ["odom"]}
+
+
+class Sent:
+    """The test's own record of the poses it published (what every collision judgement here is built from)."""
+
+    def __init__(self, scene):
+        self.scene = scene
+
+    def publish(self, suite, body, position, quat):
+        t = suite.probe.publish_pose(body, position, quat)
+        if body in self.scene.target_names:
+            self.scene = self.scene.with_target_pose(body, np.asarray(position, float), np.asarray(quat, float))
+        else:
+            self.scene = self.scene.with_obstacle_pose(body, np.asarray(position, float), np.asarray(quat, float))
+        return t
+
+
+def start_configuration(robot, scene):
+    from psprm_core.planning.factory import problem_configurations
+
+    return problem_configurations(robot, scene, scene.problem("south_to_either"))[0]
 
 
 def yaw_q(yaw: float) -> np.ndarray:
@@ -39,7 +62,12 @@ def suite(load_robot):
     with InProcessSuite(PARAMS, domain_id=random.randint(1, 200)) as s:
         assert s.server.ready.wait(180), "roadmap not ready"
         assert s.probe.wait_subscribers("/mocap/person_face/pose")
+        scene = load_scene(resolve_named("scene", "dynamic_person"))
+        robot = load_robot("stretch2")
+        s.state = s.probe.hold_robot_state(start_configuration(robot, scene), robot.joint_names)
+        s.sent = Sent(scene)
         yield s
+        s.state.stop()
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +108,7 @@ def test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(su
     scene, robot = world
     face = scene.target("person_face")
     n0 = len(suite.probe.trajectories)
-    suite.probe.publish_pose("person_face", face.center, face.quat)
+    suite.sent.publish(suite, "person_face", face.center, face.quat)
     suite.probe.publish_regions(["at_shelf", "at_cabinet"])
     msg = next_plan(suite, n0)
     assert list(msg.joint_names) == robot.joint_names and msg.header.frame_id == "map"
@@ -88,8 +116,26 @@ def test_goal_and_target_give_a_safe_trajectory_that_keeps_the_target_in_view(su
     t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
     assert np.all(np.diff(t) > 0) and np.allclose(msg.points[-1].velocities, 0.0)
     P = traj_positions(msg, robot.joint_names)
-    assert not collides(robot, scene, P).any()
+    assert not collides(robot, suite.sent.scene, P).any()
     assert in_view_fraction(robot, scene, cv.joint_trajectory_positions(msg, robot.joint_names)) >= 0.8
+    # the planned base route as nav_msgs/Path: the trajectory's base poses
+    from nav_msgs.msg import Path as PathMsg
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    paths = []
+    q = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    sub = suite.probe.node.create_subscription(PathMsg, "/psprm/base_path", paths.append, q)
+    try:
+        assert suite.probe.wait_for(lambda: paths, 5)
+        B = cv.joint_trajectory_positions(suite.probe.trajectories[-1][1], robot.joint_names)[:, :3]
+        xy = np.array([[p.pose.position.x, p.pose.position.y] for p in paths[-1].poses])
+        yaw = np.array([cv.yaw_of([p.pose.orientation.x, p.pose.orientation.y, p.pose.orientation.z,
+                                   p.pose.orientation.w]) for p in paths[-1].poses])
+        assert paths[-1].header.frame_id == "map" and xy.shape == (len(B), 2)
+        assert np.allclose(xy, B[:, :2], atol=1e-6)
+        assert np.allclose(np.remainder(yaw - B[:, 2] + np.pi, 2 * np.pi) - np.pi, 0.0, atol=1e-6)
+    finally:
+        suite.probe.node.destroy_subscription(sub)
     # the perception scorer re-scores the roadmap and the path
     assert suite.probe.wait_for(lambda: suite.probe.path_scores, 20)
 
@@ -103,13 +149,12 @@ def test_turning_target_gives_a_replanned_trajectory(suite, world):
     yaw = 0.3  # the person turns from west-south-west towards the cabinet (east)
     c = body.center[:2]
     face_c = np.r_[c + 0.06 * np.array([np.cos(yaw), np.sin(yaw)]), face.center[2]]
-    t_pub = suite.probe.publish_pose("person_face", face_c, yaw_q(yaw))
-    suite.probe.publish_pose("person_body", body.center, yaw_q(yaw))
+    t_pub = suite.sent.publish(suite, "person_face", face_c, yaw_q(yaw))
+    suite.sent.publish(suite, "person_body", body.center, yaw_q(yaw))
     msg = next_plan(suite, n0)
     info = suite.probe.wait_for(lambda: [i for t, i in suite.probe.infos if t >= t_pub and "success" in i], 10)
     assert info and any("target" in r for r in info[0]["reasons"]), info
-    turned = scene.with_target_pose("person_face", face_c, yaw_q(yaw)).with_obstacle_pose("person_body", body.center,
-                                                                                         yaw_q(yaw))
+    turned = suite.sent.scene
     P = traj_positions(msg, robot.joint_names)
     assert not collides(robot, turned, P).any()
     assert in_view_fraction(robot, turned, cv.joint_trajectory_positions(msg, robot.joint_names)) >= 0.8
@@ -131,20 +176,26 @@ def test_obstacle_moved_into_the_path_gives_a_trajectory_around_it(suite, world)
     k = cand[len(cand) // 2]
     box = scene.obstacle("person_body")
     center = np.array([xy[k, 0], xy[k, 1], box.center[2]])
-    blocked = scene.with_obstacle_pose("person_body", center, box.quat)
+    suite.sent.publish(suite, "person_body", center, box.quat)
+    blocked = suite.sent.scene
     assert collides(robot, blocked, P_old).any(), "the moved obstacle must block the old path"
-    suite.probe.publish_pose("person_body", center, box.quat)
     msg = next_plan(suite, n0)
     P = traj_positions(msg, robot.joint_names)
-    face = suite.server.safety_scene.target("person_face")
-    now = blocked.with_target_pose("person_face", face.center, face.quat)
-    assert not collides(robot, now, P).any()
-    if len(msg.points) == 1:  # a stop trajectory is the allowed alternative when nothing safe exists
-        assert np.allclose(msg.points[0].velocities, 0.0)
-    else:
-        assert np.linalg.norm(P[:, :2] - center[:2], axis=1).min() > 0.2
+    assert not collides(robot, blocked, P).any()
+    # a path around the obstacle (there is one: the room is open on both sides of it), not a stop
+    assert len(msg.points) > 1, "a stop trajectory was published instead of a path around the obstacle"
+    assert np.linalg.norm(P[:, :2] - center[:2], axis=1).min() > 0.2
+    goals = core_goals(robot, scene, ["at_shelf", "at_cabinet"])
+    end = cv.joint_trajectory_positions(msg, robot.joint_names)[-1]
+    assert np.min(np.linalg.norm(goals[:, :2] - end[:2], axis=1)) < 0.2, "the detour does not reach a goal"
     # put the person back where the scene has it
-    suite.probe.publish_pose("person_body", box.center, box.quat)
+    suite.sent.publish(suite, "person_body", box.center, box.quat)
+
+
+def core_goals(robot, scene, names):
+    from psprm_ros import core
+
+    return core.goal_region_configurations(robot, scene, names)
 
 
 def test_nan_and_unknown_frame_poses_warn_and_the_suite_keeps_serving(suite, world):
@@ -153,8 +204,8 @@ def test_nan_and_unknown_frame_poses_warn_and_the_suite_keeps_serving(suite, wor
     t0 = time.perf_counter()
     suite.probe.publish_pose("person_face", [np.nan, 3.2, 1.6], face.quat)
     assert suite.probe.wait_status("non-finite", t0, level="warning"), suite.probe.statuses[-5:]
-    suite.probe.publish_pose("person_face", face.center, face.quat, frame="odom")
-    assert suite.probe.wait_status("frame 'odom'", t0, level="warning")
+    suite.probe.publish_pose("person_face", face.center, face.quat, frame="camera_link")
+    assert suite.probe.wait_status("frame 'camera_link'", t0, level="warning")
     suite.probe.publish_pose("person_face", face.center, [0.0, 0.0, 0.0, 0.0])
     assert suite.probe.wait_status("zero quaternion", t0, level="warning")
     suite.probe.publish_goal(1.05, 3.2, np.inf)
@@ -167,7 +218,7 @@ def test_nan_and_unknown_frame_poses_warn_and_the_suite_keeps_serving(suite, wor
     suite.probe.publish_goal(6.9, 3.2, 0.0)
     msg = next_plan(suite, n0)
     assert len(msg.points) >= 1
-    assert not collides(robot, suite.server.safety_scene, traj_positions(msg, robot.joint_names)).any()
+    assert not collides(robot, suite.sent.scene, traj_positions(msg, robot.joint_names)).any()
 
 
 def test_stale_obstacle_stops_the_robot(load_robot):
@@ -177,6 +228,8 @@ def test_stale_obstacle_stops_the_robot(load_robot):
     with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("server", "monitor")) as s:
         assert s.server.ready.wait(180)
         assert s.probe.wait_subscribers("/mocap/person_body/pose")
+        robot = load_robot("stretch2")
+        state = s.probe.hold_robot_state(start_configuration(robot, scene), robot.joint_names)
         body = scene.obstacle("person_body")
         n0 = len(s.probe.trajectories)
         s.probe.publish_regions(["at_cabinet"])
@@ -187,6 +240,10 @@ def test_stale_obstacle_stops_the_robot(load_robot):
         stop = s.probe.wait_for(lambda: [m for t, m in s.probe.trajectories if t > t0 and len(m.points) == 1], 10)
         assert stop, "no stop trajectory"
         assert np.allclose(stop[0].points[0].velocities, 0.0)
+        # the stop a joint_trajectory_controller accepts: stamp 0 (start now), its point in the future
+        assert cv.stamp_to_sec(stop[0].header.stamp) == 0.0
+        assert cv.duration_to_sec(stop[0].points[0].time_from_start) > 0.0
+        state.stop()
 
 
 def test_server_keeps_the_last_safe_trajectory_when_a_goal_cannot_be_reached(suite, world):

@@ -35,10 +35,15 @@ def test_colcon_workspace_builds_and_installs_runnable_executables(tmp_path):
     assert r.returncode == 0, r.stdout[-2000:] + r.stderr[-2000:]
     install = tmp_path / "ws" / "install"
     lib = install / "psprm_ros" / "lib" / "psprm_ros"
-    exes = {"roadmap_server", "perception_scorer", "replan_monitor", "all_in_one", "mocap_replay", "latency_bench"}
+    exes = {"roadmap_server", "perception_scorer", "replan_monitor", "robot_adapter", "sim_robot", "all_in_one",
+            "mocap_replay", "latency_bench", "soak", "demo"}
     assert exes <= {p.name for p in lib.iterdir()}
     assert (install / "psprm_ros" / "share" / "ament_index" / "resource_index" / "packages" / "psprm_ros").is_file()
-    assert (install / "psprm_ros" / "share" / "psprm_ros" / "config" / "dynamic_person.yaml").is_file()
+    share = install / "psprm_ros" / "share" / "psprm_ros"
+    for robot, f in (("stretch2", "dynamic_person.yaml"), ("fetchlike", "fetchlike_nursing.yaml"),
+                     ("ur5_mobile", "ur5_mobile_blind_spot_alley.yaml")):
+        assert (share / "config" / f).is_file() and (share / "config" / "adapters" / f"{robot}.yaml").is_file()
+    assert (share / "config" / "psprm.rviz").is_file() and (share / "scenes" / "dynamic_person.yaml").is_file()
     site = next((install / "psprm_ros" / "lib").glob("python3*/site-packages"))
     # what `source install/setup.bash; ros2 run psprm_ros all_in_one --self-check` does: PYTHONPATH from the hook
     run_env = dict(os.environ, PYTHONPATH=str(site))
@@ -47,6 +52,13 @@ def test_colcon_workspace_builds_and_installs_runnable_executables(tmp_path):
     assert r.returncode == 0, r.stderr[-2000:]
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["ok"] and out["psprm_ros"].startswith(str(site))  # the installed copy, not the source tree
+    # the installed adapter configs are the ones found by name (share/ before the repository)
+    r = subprocess.run([sys.executable, "-c", "import json; from psprm_ros.adapters import resolve_adapter; "
+                        "print(json.dumps(str(resolve_adapter('stretch2'))))"],
+                       env=dict(run_env, AMENT_PREFIX_PATH=str(install / "psprm_ros")), capture_output=True,
+                       text=True, timeout=60, cwd=str(tmp_path))
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert json.loads(r.stdout.strip().splitlines()[-1]).startswith(str(share))
     r = subprocess.run([str(lib / "roadmap_server"), "--help"], env=run_env, capture_output=True, text=True,
                        timeout=60, cwd=str(tmp_path))
     assert r.returncode == 0 and "--ros-args" in r.stdout
@@ -56,7 +68,8 @@ def _start(script: str, domain: int):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), RMW_IMPLEMENTATION="rmw_fastrtps_cpp", PYTHONUNBUFFERED="1")
     # node-specific overrides: a plain "-p name:=value" does not beat the params file's per-node sections
     cmd = ["bash", str(ROOT / "scripts" / script), str(PARAMS_FILE), "-p", f"roadmap_server:n_nodes:={N_NODES}",
-           "-p", "replan_monitor:stale_timeout_s:=60.0", "-p", "roadmap_server:publish_markers:=false"]
+           "-p", "replan_monitor:stale_timeout_s:=60.0", "-p", "roadmap_server:publish_markers:=false",
+           "-p", "robot_adapter:interface:=topic"]
     return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
 
@@ -92,6 +105,13 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
     ex.add_node(probe.node)
     import threading
 
+    from trajectory_msgs.msg import JointTrajectory
+
+    from geometry_msgs.msg import Twist
+
+    cmds, twists = [], []
+    probe.node.create_subscription(JointTrajectory, "/stretch_controller/joint_trajectory", cmds.append, 10)
+    probe.node.create_subscription(Twist, "/stretch/cmd_vel", lambda m: twists.append((time.perf_counter(), m)), 50)
     stop = threading.Event()
     th = threading.Thread(target=_spin, args=(ex, stop), daemon=True)
     th.start()
@@ -103,6 +123,10 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
         assert probe.wait_subscribers("/mocap/person_face/pose", timeout=30)
         face = scene.target("person_face")
         probe.wait_subscribers("/psprm/goal_regions", timeout=10)
+        from psprm_core.planning.factory import problem_configurations
+
+        state = probe.hold_robot_state(problem_configurations(robot, scene, scene.problem("south_to_either"))[0],
+                                       robot.joint_names)  # the robot's /joint_states and /odom
         deadline = time.monotonic() + 90
         n0 = len(probe.trajectories)
         while time.monotonic() < deadline and len(probe.trajectories) <= n0:
@@ -120,6 +144,21 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
         p = np.r_[body.center[:2] + 0.06 * np.array([np.cos(yaw), np.sin(yaw)]), face.center[2]]
         probe.publish_pose("person_face", p, cv.yaw_quat(yaw))
         assert probe.wait_trajectory(n1, 60) is not None
+        # the adapter process turned the plan into the robot's controller command (its JointTrajectory topic)
+        assert cmds, "robot_adapter sent nothing to the stretch_controller topic"
+        assert set(cmds[-1].joint_names) == {"joint_lift", "wrist_extension", "joint_wrist_yaw", "joint_head_pan",
+                                             "joint_head_tilt"}
+        # stop on shutdown: after SIGTERM the adapter sends a zero twist and a hold before the process ends
+        n_cmds, t_term = len(cmds), time.perf_counter()
+        os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.1)
+        time.sleep(0.3)
+        assert [m for t, m in twists if t >= t_term and m.linear.x == 0.0 and m.angular.z == 0.0], \
+            "no zero twist at shutdown"
+        assert [m for m in cmds[n_cmds:] if len(m.points) == 1], "no hold trajectory at shutdown"
+        state.stop()
     finally:
         stop.set()  # the spin thread leaves before the executor, node and context go (no shutdown race)
         th.join(timeout=5.0)
@@ -129,6 +168,23 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
         code, out = _stop(proc)
     assert code in (0, -signal.SIGTERM, 128 + signal.SIGTERM), out[-3000:]
     assert "Traceback" not in out, out[-3000:]
+
+
+def test_package_declares_every_ros_package_its_nodes_import():
+    """Every ROS interface package imported by psprm_ros (``from X.msg|srv|action import``, rclpy, ament_index_python)
+    is an exec_depend of ros2_ws/src/psprm_ros/package.xml."""
+    import re
+    import xml.etree.ElementTree as ET
+
+    deps = {e.text for e in ET.parse(ROOT / "ros2_ws" / "src" / "psprm_ros" / "package.xml").getroot()
+            if e.tag == "exec_depend"}
+    used = set()
+    for f in (ROOT / "psprm_ros").glob("*.py"):
+        text = f.read_text()
+        used |= set(re.findall(r"^\s*from (\w+)\.(?:msg|srv|action) import", text, re.M))
+        used |= {m for m in ("rclpy", "ament_index_python") if re.search(rf"^\s*(from|import) {m}\b", text, re.M)}
+    assert used, "no imports found"
+    assert used <= deps, f"imported but not declared: {sorted(used - deps)}"
 
 
 def _spin(ex, stop) -> None:

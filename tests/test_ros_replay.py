@@ -117,3 +117,61 @@ def test_mocap_replay_executable_rejects_a_missing_file(tmp_path):
     r = subprocess.run([sys.executable, "-m", "psprm_ros.mocap_replay", str(tmp_path / "nope.csv")], cwd=str(ROOT),
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "not found" in r.stderr
+
+
+def test_keep_stamps_with_clock_is_coherent_with_use_sim_time(tmp_path):
+    """A rosbag recorded an hour ago: ``--keep-stamps`` publishes its recorded stamps; a monitor on wall time refuses
+    them as stale, one with ``use_sim_time`` driven by the replay's ``/clock`` forwards them."""
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.parameter import Parameter
+    from rclpy.qos import qos_profile_sensor_data
+
+    from psprm_ros.mocap_replay import Replayer
+    from psprm_ros.replan_monitor import ReplanMonitor
+
+    rec = load_recording(SHIPPED)
+    n = int(np.searchsorted(rec.times, 2.0))
+    t_rec = time.time() - 3600.0
+    short = Recording(times=rec.times[:n], body=rec.body[:n], bodies=rec.bodies, P=rec.P[:n], Q=rec.Q[:n],
+                      frames=rec.frames, t0=t_rec)
+    loaded = load_recording(save_rosbag(short, tmp_path / "bag"))
+    assert abs(loaded.t0 - t_rec) < 1e-3
+    results = {}
+    for sim_time in (False, True):
+        ctx = rclpy.Context()
+        ctx.init(domain_id=random.randint(1, 200))
+        over = [Parameter("use_sim_time", value=sim_time), Parameter("stale_timeout_s", value=60.0),
+                Parameter("relay_deadband_m", value=0.0), Parameter("relay_deadband_rad", value=0.0)]
+        mon = ReplanMonitor(context=ctx, parameter_overrides=over)
+        pub_node = rclpy.create_node("replay", context=ctx)
+        stamps, clocks = [], []
+        pub_node.create_subscription(PoseStamped, "/psprm/state/targets/person_face",
+                                     lambda m: stamps.append(cv.stamp_to_sec(m.header.stamp)), qos_profile_sensor_data)
+        pub_node.create_subscription(PoseStamped, "/mocap/person_face/pose",
+                                     lambda m: clocks.append(cv.stamp_to_sec(m.header.stamp)), qos_profile_sensor_data)
+        ex = MultiThreadedExecutor(num_threads=3, context=ctx)
+        ex.add_node(mon.node)
+        ex.add_node(pub_node)
+        th = threading.Thread(target=ex.spin, daemon=True)
+        th.start()
+        try:
+            from psprm_ros.core import autostart
+
+            assert autostart(mon)
+            rp = Replayer(pub_node, loaded, keep_stamps=True, clock=True)
+            time.sleep(0.5)
+            rp.start()
+            rp.join(10)
+            time.sleep(0.3)
+            results[sim_time] = (list(stamps), list(clocks), mon.counts["refused"])
+        finally:
+            ex.shutdown(timeout_sec=1.0)
+            mon.destroy()
+            ctx.try_shutdown()
+    fwd, seen, refused = results[True]
+    assert seen and abs(seen[0] - t_rec) < 0.1  # the recorded stamps, kept
+    assert fwd and refused == 0 and abs(fwd[-1] - (t_rec + short.times[-1])) < 0.1
+    fwd, seen, refused = results[False]
+    assert not fwd and refused > 0  # an hour old on the wall clock: stale

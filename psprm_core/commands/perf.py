@@ -3,7 +3,46 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
+import math
+import os
+import sys
+
+
+def _json_only(fn):
+    """With ``--json``, stdout carries the JSON object only: anything else written there while the benchmark runs
+    (pybullet's C-level URDF warnings included) goes to stderr, and non-finite numbers become null."""
+    def run(args):
+        if not getattr(args, "json", False):
+            return fn(args)
+        sys.stdout.flush()
+        saved = os.dup(1)
+        os.dup2(2, 1)
+        buf = io.StringIO()
+        try:
+            with contextlib.redirect_stdout(buf):
+                rc = fn(args)
+        finally:
+            sys.stdout.flush()
+            os.dup2(saved, 1)
+            os.close(saved)
+        for line in buf.getvalue().splitlines():
+            if line.strip():
+                print(json.dumps(_finite(json.loads(line)), allow_nan=False))
+        return rc
+    return run
+
+
+def _finite(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -16,7 +55,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--seed", type=int, default=0)
     k.add_argument("--threads", type=int, default=2)
     k.add_argument("--json", action="store_true", help="print one JSON object")
-    k.set_defaults(func=_kinematics)
+    k.set_defaults(func=_json_only(_kinematics))
     pl = ps.add_parser("planner", help="PS-PRM build time (incl. neural scoring, occlusion, collision) and query time")
     pl.add_argument("--scene", required=True)
     pl.add_argument("--planner", default="neural-psprm-line")
@@ -28,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--threads", type=int, default=2)
     pl.add_argument("--unaimed", action="store_true", help="ends not required to face the target (see benchmarks)")
     pl.add_argument("--json", action="store_true")
-    pl.set_defaults(func=_planner)
+    pl.set_defaults(func=_json_only(_planner))
     cp = ps.add_parser("compare", help="success over random problems and oracle-judged perception: PS-PRM vs the "
                                        "same roadmap with alpha = 0 (shortest path)")
     cp.add_argument("--scene", required=True)
@@ -42,7 +81,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cp.add_argument("--threads", type=int, default=2)
     cp.add_argument("--unaimed", action="store_true", help="ends not required to face the target (see benchmarks)")
     cp.add_argument("--json", action="store_true")
-    cp.set_defaults(func=_compare)
+    cp.set_defaults(func=_json_only(_compare))
     pp = ps.add_parser("preprocess", help="preprocessing of neural vs oracle PS-PRM (every edge scored at build): "
                                           "a measured ratio at --oracle-nodes, extrapolated to --nodes")
     pp.add_argument("--scene", default="home")
@@ -52,7 +91,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     pp.add_argument("--seed", type=int, default=0)
     pp.add_argument("--threads", type=int, default=2)
     pp.add_argument("--json", action="store_true")
-    pp.set_defaults(func=_preprocess)
+    pp.set_defaults(func=_json_only(_preprocess))
     tr = ps.add_parser("transfer", help="neural scorer vs the real detector on the planner's own roadmap nodes: "
                                         "rank correlation overall and by distance to the target")
     tr.add_argument("--scene", default="home")
@@ -64,7 +103,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     tr.add_argument("--checkpoints", default="", help="further surrogate checkpoints (comma-separated) scored on "
                                                       "the same views against the same oracle labels")
     tr.add_argument("--json", action="store_true")
-    tr.set_defaults(func=_transfer)
+    tr.set_defaults(func=_json_only(_transfer))
     vm = ps.add_parser("viewmap", help="where the real detector sees a target: the robot's camera aimed at it from a "
                                        "grid of base positions (share detected, mean confidence, the grid)")
     vm.add_argument("--scene", default="home")
@@ -76,7 +115,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     vm.add_argument("--extra-roll-deg", type=float, default=0.0,
                     help="roll the image about the line of sight (90: what a sideways camera shows the detector)")
     vm.add_argument("--json", action="store_true")
-    vm.set_defaults(func=_viewmap)
+    vm.set_defaults(func=_json_only(_viewmap))
     rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
                                       "until a verified path), and the cost of a full re-score")
     rp.add_argument("--scene", default="dynamic_person")
@@ -89,7 +128,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--seed", type=int, default=0)
     rp.add_argument("--threads", type=int, default=2)
     rp.add_argument("--json", action="store_true")
-    rp.set_defaults(func=_replan)
+    rp.set_defaults(func=_json_only(_replan))
 
 
 def _replan(args) -> int:

@@ -1,8 +1,10 @@
 """ament_python package of the psprm ROS 2 nodes.
 
-The sources live in the repository's top-level ``psprm_ros/`` folder; ``psprm_ros`` and ``config`` here are symlinks
-to it and to ``config/ros``, so colcon builds the same code the tests run. Executables are installed under
-``lib/psprm_ros/`` (setup.cfg), where ``ros2 run psprm_ros <executable>`` finds them.
+The sources live in the repository's top-level ``psprm_ros/`` folder; ``psprm_ros``, ``config`` and ``scenes`` here
+are symlinks to it, to ``config/ros`` and to ``config/scenes``, so colcon builds the same code the tests run.
+Executables are installed under ``lib/psprm_ros/`` (setup.cfg), where ``ros2 run psprm_ros <executable>`` finds them;
+params files, adapter configs, the RViz config and the scenes under ``share/psprm_ros/``, where the nodes look for
+them by name (``ament_index_python``) before the repository's folders.
 """
 
 from glob import glob
@@ -10,8 +12,8 @@ from glob import glob
 from setuptools import setup
 
 package_name = "psprm_ros"
-executables = ["roadmap_server", "perception_scorer", "replan_monitor", "all_in_one", "mocap_replay",
-               "latency_bench", "demo"]
+executables = ["roadmap_server", "perception_scorer", "replan_monitor", "robot_adapter", "sim_robot", "all_in_one",
+               "mocap_replay", "latency_bench", "soak", "demo"]
 
 setup(
     name=package_name,
@@ -20,7 +22,9 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
-        ("share/" + package_name + "/config", sorted(glob("config/*.yaml"))),
+        ("share/" + package_name + "/config", sorted(glob("config/*.yaml")) + sorted(glob("config/*.rviz"))),
+        ("share/" + package_name + "/config/adapters", sorted(glob("config/adapters/*.yaml"))),
+        ("share/" + package_name + "/scenes", sorted(glob("scenes/*.yaml"))),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

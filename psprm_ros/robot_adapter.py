@@ -1,0 +1,479 @@
+"""``robot_adapter``: executes the planned trajectories on a robot's own controllers (lifecycle node).
+
+    robot_adapter --ros-args --params-file config/ros/dynamic_person.yaml [-p robot_adapter:adapter:=stretch2]
+
+Subscribes to ``/psprm/trajectory`` (planning joints, scene frame), ``/joint_states`` and the base pose
+(``nav_msgs/Odometry``, or a mocap rigid body with a body -> base_link offset; poses in another frame go through
+the ``input_frames`` transforms). Each new trajectory is checked against the measured state (first point within
+each controller's ``start_tolerance``, the base within ``start_tolerance_m`` / ``_rad``); a mismatch stops the
+robot and requests a replan from the roadmap server (as MoveIt refuses a trajectory whose start is not the current
+state). An accepted trajectory goes to every controller of the adapter config (``config/ros/adapters/<robot>.yaml``,
+:mod:`psprm_ros.adapters`): a JointTrajectory topic or a FollowJointTrajectory action (control_msgs, imported only
+then), the exact joint set under the robot's names, stamped 0 or now + lead, at most one goal per
+``min_goal_interval_s``; the base follows the planned base path in closed loop from the measured pose at the
+adapter's ``rate_hz`` (Twist or TwistStamped on cmd_vel, within the base's velocity and acceleration limits;
+:mod:`psprm_ros.base_follower`). A one-point trajectory (the server's stop), a stale base pose or joint state, a
+deactivation and shutdown stop the robot: zero twist, a hold at the measured configuration with a positive
+time_from_start on every topic controller, and a cancel of every active action goal.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Optional
+
+import numpy as np
+
+from . import adapters as ad
+from . import conversions as cv
+from . import core
+from .base_follower import BaseFollower, BaseReference, Gains, Limits
+
+P = core.Param
+ADAPTER_PARAMS = {
+    "adapter": P("", "adapter config name (config/ros/adapters, or share/psprm_ros/config/adapters when installed) "
+                     "or YAML path ('' = the robot's name)", rebuild=True),
+    "interface": P("", "'' = each controller's interface from the adapter config; 'topic' = JointTrajectory topics "
+                       "for every controller (what sim_robot offers); 'action' = FollowJointTrajectory actions",
+                   rebuild=True),
+    "trajectory_topic": P(core.TRAJECTORY_TOPIC, "the planned trajectories", rebuild=True),
+    "base_pose_source": P("odom", "odom (nav_msgs/Odometry on odom_topic), pose (mocap PoseStamped on "
+                                  "robot_pose_topic) or joint_states", rebuild=True),
+    "odom_topic": P("/odom", "nav_msgs/Odometry of the base", rebuild=True),
+    "robot_pose_topic": P("", "mocap rigid body on the base (base_pose_source pose)", rebuild=True),
+    "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz", rebuild=True),
+    "base_body_offset.quat": P([0.0, 0.0, 0.0, 1.0], "... and quaternion (x, y, z, w)", rebuild=True),
+    "joint_states_topic": P("/joint_states", "sensor_msgs/JointState of the robot", rebuild=True),
+    "state_timeout_s": P(0.5, "a base pose or joint state older than this is stale: the robot stops", live=True,
+                         lo=0.01),
+    "max_pose_age_s": P(1.0, "refuse base poses whose stamp is older than this (0 = no check)", live=True, lo=0.0),
+    "replan_on_refusal": P(True, "request a replan (roadmap_server ~/plan) after refusing a trajectory", live=True),
+    "replan_request_interval_s": P(1.0, "at most one replan request per interval", live=True, lo=0.0),
+    "plan_service": P(f"/{core.SERVER_NAME}/plan", "std_srvs/Trigger of the roadmap server", rebuild=True),
+    "start_problem": P("", "scene problem whose start fills joints /joint_states does not carry"),
+    "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
+}
+
+
+class RobotAdapter:
+    def __init__(self, node_name: str = "robot_adapter", **node_kwargs):
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from diagnostic_msgs.msg import DiagnosticArray
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+        from trajectory_msgs.msg import JointTrajectory
+
+        from .frames import declare_frame_params
+
+        self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
+        self.log = node.get_logger()
+        self.spec = {**core.common_params(), **ADAPTER_PARAMS}
+        self.p = core.declare_params(node, self.spec)
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.frame = self.scene.frame
+        self.frames = declare_frame_params(node, self.frame)
+        self.names = list(self.robot.joint_names)
+        self.active = False
+        self.cfg: Optional[ad.AdapterConfig] = None
+        self.tracker = None
+        self.follower: Optional[BaseFollower] = None
+        self._lock = threading.RLock()
+        self._pubs: dict = {}  # controller -> JointTrajectory publisher
+        self._clients: dict = {}  # controller -> ActionClient
+        self._goal_handles: dict = {}  # controller -> active ClientGoalHandle
+        self._gates: dict = {}
+        self._pending: dict = {}  # controller -> (t, P, V, start_at) waiting for its goal interval
+        self._twist_pub = None
+        self._zero_sent = 0
+        self._last_replan_request = -1e9
+        self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0,
+                       "goals_deferred": 0, "twists": 0}
+        self.last_refusal = ""
+        self.last_state_problem = ""
+        self.max_tracking_error = np.zeros(2)  # (m, rad) over the current path
+        self.pub_status = node.create_publisher(String, "~/status", 10)
+        self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
+        self.cb = MutuallyExclusiveCallbackGroup()
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        node.create_subscription(JointTrajectory, self.p["trajectory_topic"], self._traj_cb, latched,
+                                 callback_group=self.cb)
+        node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, 10, callback_group=self.cb)
+        if self.robot.mobile and self.p["base_pose_source"] == "odom":
+            node.create_subscription(Odometry, self.p["odom_topic"], self._odom_cb, 10, callback_group=self.cb)
+        if self.robot.mobile and self.p["base_pose_source"] == "pose":
+            node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._pose_cb, qos_profile_sensor_data,
+                                     callback_group=self.cb)
+        from std_srvs.srv import Trigger
+
+        self.cli_plan = node.create_client(Trigger, self.p["plan_service"],
+                                           callback_group=MutuallyExclusiveCallbackGroup())
+        self._timer = None
+        node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
+                          callback_group=MutuallyExclusiveCallbackGroup())
+        core.install_param_callback(node, self.spec, self.p, self._apply_param)
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def on_configure(self, state) -> bool:
+        from geometry_msgs.msg import Twist, TwistStamped
+        from trajectory_msgs.msg import JointTrajectory
+
+        from .robot_state import RobotStateTracker, offset_from_params
+
+        cfg = ad.load_adapter(self.p["adapter"] or self.robot.name, self.robot)
+        if self.p["interface"]:
+            cfg = cfg.with_interface(self.p["interface"])
+        if cfg.base.mode == "stretch_translate_rotate":
+            raise ValueError("base.mode stretch_translate_rotate: its goals are built by "
+                             "psprm_ros.adapters.stretch_base_steps / stretch_base_command; this node drives the "
+                             "base with cmd_vel (Stretch's navigation mode)")
+        fjt = None
+        if any(c.interface == "action" for c in cfg.controllers):
+            fjt = ad.import_follow_joint_trajectory()
+            if fjt is None:
+                raise RuntimeError("control_msgs is not importable (it comes with the robot's ROS install: apt install "
+                                   "ros-jazzy-control-msgs); or set the parameter interface:=topic")
+        self.cfg = cfg
+        self._fjt = fjt
+        self.tracker = RobotStateTracker(
+            self.robot, self.frames, self.p["base_pose_source"], cfg.name_map(),
+            offset_from_params(self.p["base_body_offset.xyz"], self.p["base_body_offset.quat"]),
+            self.p["state_timeout_s"],
+            template=core.start_configuration(self.robot, self.scene, self.p["start_problem"]))
+        for c in cfg.controllers:
+            self._gates[c.name] = ad.GoalGate(c.min_goal_interval_s)
+            if c.interface == "topic":
+                self._pubs[c.name] = self.node.create_publisher(JointTrajectory, c.topic, 10)
+            else:
+                from rclpy.action import ActionClient
+
+                self._clients[c.name] = ActionClient(self.node, fjt, c.action, callback_group=self.cb)
+        b = cfg.base
+        if self.robot.mobile:
+            self._twist_pub = self.node.create_publisher(TwistStamped if b.stamped else Twist, b.topic, 10)
+            self.follower = BaseFollower(Limits.for_robot(self.robot, b), Gains(b.k_x, b.k_y, b.k_theta),
+                                         b.goal_tolerance_m, b.goal_tolerance_rad, b.settle_s, b.preview_s)
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+
+        # the follower runs on its own callback group: a burst of state messages never delays a control step
+        self._timer = self.node.create_timer(1.0 / b.rate_hz, self._tick,
+                                             callback_group=MutuallyExclusiveCallbackGroup())
+        self.status(f"configured: adapter {cfg.robot} ({len(cfg.controllers)} controllers: "
+                    f"{', '.join(f'{c.name} [{c.interface}]' for c in cfg.controllers)}; base {b.mode} on {b.topic})")
+        return True
+
+    def on_activate(self, state) -> bool:
+        self.active = True
+        self.status("active: executing trajectories")
+        self._request_replan("adapter activated")
+        return True
+
+    def on_deactivate(self, state) -> bool:
+        self.stop("adapter deactivated")
+        self.active = False
+        return True
+
+    def on_cleanup(self, state) -> bool:
+        with self._lock:
+            for pub in self._pubs.values():
+                self.node.destroy_publisher(pub)
+            for cl in self._clients.values():
+                cl.destroy()
+            if self._twist_pub is not None:
+                self.node.destroy_publisher(self._twist_pub)
+            if self._timer is not None:
+                self.node.destroy_timer(self._timer)
+            self._pubs, self._clients, self._gates, self._pending = {}, {}, {}, {}
+            self._twist_pub = self._timer = None
+            self.cfg = self.follower = None
+        return True
+
+    def on_shutdown(self, state) -> bool:
+        if self.cfg is not None:
+            self.stop("shutting down")
+        self.active = False
+        return True
+
+    def _apply_param(self, name: str, value) -> None:
+        if name == "state_timeout_s" and self.tracker is not None:
+            self.tracker.timeout_s = float(value)
+
+    # ------------------------------------------------------------------------------------------------ reporting
+    def status(self, text: str, level: str = "info") -> None:
+        core.report(self.log, self.pub_status, text, level)
+
+    def _now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def _diagnostics(self) -> None:
+        if self.cfg is None:
+            level, msg = core.DIAG_WARN, "not configured"
+        elif self.last_state_problem:
+            level, msg = core.DIAG_WARN, self.last_state_problem
+        elif self.last_refusal:
+            level, msg = core.DIAG_WARN, f"last refusal: {self.last_refusal}"
+        else:
+            level, msg = core.DIAG_OK, "following" if self.follower and not self.follower.done else "idle"
+        vals = {"lifecycle": core.lifecycle_state(self.node), **self.counts,
+                "max_tracking_error_m": float(self.max_tracking_error[0]),
+                "max_tracking_error_rad": float(self.max_tracking_error[1])}
+        core.publish_diagnostics(self.pub_diag, self.node, [
+            core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
+
+    # ------------------------------------------------------------------------------------------------ inputs
+    def _joints_cb(self, msg) -> None:
+        if self.tracker is None:
+            return
+        try:
+            with self._lock:
+                self.tracker.update_joints(msg, self._now())
+        except Exception as exc:
+            self.status(f"ignored joint state: {exc}", "warning")
+
+    def _odom_cb(self, msg) -> None:
+        if self.tracker is None:
+            return
+        try:
+            with self._lock:
+                self.tracker.update_odometry(msg, self._now(), self._now(), self.p["max_pose_age_s"])
+        except Exception as exc:
+            self.status(f"ignored odometry: {exc}", "warning")
+
+    def _pose_cb(self, msg) -> None:
+        if self.tracker is None:
+            return
+        try:
+            with self._lock:
+                self.tracker.update_pose(msg, self._now(), self._now(), self.p["max_pose_age_s"])
+        except Exception as exc:
+            self.status(f"ignored base pose: {exc}", "warning")
+
+    def _traj_cb(self, msg) -> None:
+        self.counts["trajectories"] += 1
+        if not self.active or self.cfg is None:  # an inactive adapter drives nothing (activation asks for a new plan)
+            return
+        try:
+            self.execute(msg)
+        except Exception as exc:  # never die on a message; a trajectory we cannot execute stops the robot
+            self.stop(f"cannot execute the trajectory: {exc}")
+
+    # ------------------------------------------------------------------------------------------------ execution
+    def measured(self) -> tuple:
+        with self._lock:
+            return self.tracker.state(self._now())
+
+    def execute(self, msg) -> bool:
+        """Check a planned trajectory against the measured state and send it to the controllers and the base."""
+        P = cv.joint_trajectory_positions(msg, self.names)
+        t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
+        q, why = self.measured()
+        if q is None:
+            self.stop(f"trajectory not executed: {why}")
+            return False
+        if len(P) <= 1:
+            self.stop("stop trajectory received")
+            return False
+        V = None
+        if all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
+            V = cv.joint_trajectory_positions(_Velocities(msg), self.names)
+        lead = max([c.lead_time_s for c in self.cfg.controllers] + [self.cfg.base.lead_time_s])
+        if self.robot.mobile:
+            # the robot drove on since the plan started from its state: splice at its progress, not back at the start
+            with self._lock:
+                vel = self.tracker.base_velocity.copy()
+            tau0 = ad.progress_offset(t, P, q, vel, lead, velocity_limits=self.robot.velocity)
+            if tau0 > 0:
+                t, P, V = ad.trim_from(t - t[0], P, V, tau0)
+                if len(t) <= 1:
+                    self.stop("the robot is already at the end of the new trajectory")
+                    return False
+        for c in self.cfg.controllers:
+            ok, joint, err = ad.check_start(c, self.names, P[0], q)
+            if not ok:
+                return self._refuse(f"first point {err:.3f} from the measured {joint} ({c.name}: tolerance "
+                                    f"{c.start_tolerance})")
+        if self.robot.mobile:
+            ok, what, err = ad.check_base_start(self.cfg.base, P[0, :3], q[:3])
+            if not ok:
+                return self._refuse(f"first point {err:.3f} from the measured {what}")
+        now = self._now()
+        start_at = now + lead
+        with self._lock:
+            for c in self.cfg.controllers:
+                item = (t, P, V, start_at)
+                out = self._gates[c.name].offer(item, now)
+                if out is None:
+                    self._pending[c.name] = item
+                    self.counts["goals_deferred"] += 1
+                else:
+                    self._pending.pop(c.name, None)
+                    self._send(c, *out, now=now)
+            if self.robot.mobile:
+                self.follower.set_path(BaseReference(t, P[:, :3]), start_at)
+                self.max_tracking_error = np.zeros(2)
+                self._zero_sent = 0
+        self.counts["executed"] += 1
+        self.last_refusal = ""
+        return True
+
+    def _send(self, c: ad.ControllerConfig, t, P, V, start_at: float, now: float) -> None:
+        cmd = ad.controller_command(c, self.names, t, P, V, now=now, start_at=start_at)
+        self._send_command(c, cmd)
+
+    def _send_command(self, c: ad.ControllerConfig, cmd: ad.Command) -> None:
+        if c.interface == "topic":
+            self._pubs[c.name].publish(ad.to_joint_trajectory(cmd))
+        else:
+            cl = self._clients[c.name]
+            if not cl.server_is_ready():
+                self.status(f"{c.name}: action server {c.action} not available", "warning")
+                return
+            goal = ad.fill_goal(self._fjt.Goal(), ad.action_goal_fields(cmd, c.goal_time_tolerance_s))
+            fut = cl.send_goal_async(goal)
+            fut.add_done_callback(lambda f, name=c.name: self._goal_response(name, f))
+        self.counts["goals_sent"] += 1
+
+    def _goal_response(self, name: str, fut) -> None:
+        try:
+            gh = fut.result()
+        except Exception as exc:
+            self.status(f"{name}: goal failed: {exc}", "warning")
+            return
+        if not gh.accepted:
+            self.status(f"{name}: goal rejected by the controller", "warning")
+            return
+        with self._lock:
+            self._goal_handles[name] = gh
+
+    def _refuse(self, why: str) -> bool:
+        self.counts["refused"] += 1
+        self.last_refusal = why
+        self.stop(f"trajectory refused: {why}")
+        self._request_replan(why)
+        return False
+
+    def _request_replan(self, why: str) -> None:
+        from std_srvs.srv import Trigger
+
+        if not self.p["replan_on_refusal"]:
+            return
+        now = time.monotonic()
+        if now - self._last_replan_request < self.p["replan_request_interval_s"] or not self.cli_plan.service_is_ready():
+            return
+        self._last_replan_request = now
+        fut = self.cli_plan.call_async(Trigger.Request())
+        fut.add_done_callback(_retrieve)
+
+    def stop(self, why: str) -> None:
+        """Stop every interface: zero twist, a hold at the measured configuration on every topic controller, cancel
+        every active action goal."""
+        if self.cfg is None:
+            return
+        q, _ = self.measured() if self.tracker is not None else (None, "")
+        now = self._now()
+        with self._lock:
+            self._pending.clear()
+            if self.follower is not None:
+                self.follower.stop()
+            self._publish_twist(0.0, 0.0)
+            for c in self.cfg.controllers:
+                if c.interface == "topic":
+                    if q is None and self.tracker is not None:
+                        q = self.tracker.q  # the last measured joints: hold there
+                    if q is not None:
+                        self._pubs[c.name].publish(ad.to_joint_trajectory(ad.hold_command(c, self.names, q)))
+                        self._gates[c.name].offer(None, now, urgent=True)
+                else:
+                    gh = self._goal_handles.pop(c.name, None)
+                    if gh is not None:
+                        gh.cancel_goal_async()
+        self.counts["stops"] += 1
+        self.status(f"robot stopped: {why}", "warning")
+
+    def _publish_twist(self, v: float, w: float) -> None:
+        if self._twist_pub is None:
+            return
+        from geometry_msgs.msg import Twist, TwistStamped
+
+        if self.cfg.base.stamped:
+            m = TwistStamped()
+            m.header.stamp = self.node.get_clock().now().to_msg()
+            m.header.frame_id = self.cfg.base.frame_id
+            tw = m.twist
+        else:
+            m = tw = Twist()
+        tw.linear.x, tw.angular.z = float(v), float(w)
+        self._twist_pub.publish(m)
+        self.counts["twists"] += 1
+
+    def _tick(self) -> None:
+        """Follower step (and goals released by their interval) at the base rate."""
+        if not self.active or self.cfg is None:
+            return
+        now = self._now()
+        with self._lock:
+            for c in self.cfg.controllers:
+                item = self._gates[c.name].due(now) if c.name in self._pending else None
+                if item is not None:
+                    self._pending.pop(c.name, None)
+                    self._send(c, *item, now=now)
+        if self.follower is None:
+            return
+        following = not self.follower.done
+        q, why = self.measured()
+        if q is None:
+            self.last_state_problem = why
+            if following:
+                self.stop(why)
+            return
+        self.last_state_problem = ""
+        with self._lock:
+            v, w = self.follower.command(now, q[:3])
+            if following:
+                e = self.follower.error
+                self.max_tracking_error = np.maximum(self.max_tracking_error, [np.hypot(e[0], e[1]), abs(e[2])])
+            if following or self._zero_sent < 3:  # after the end: a few zero twists, then quiet
+                self._publish_twist(v, w)
+                self._zero_sent = 0 if following else self._zero_sent + 1
+
+    def destroy(self) -> None:
+        try:
+            if self.active:
+                self.stop("node destroyed")
+        except Exception:
+            pass
+        self.node.destroy_node()
+
+
+def _retrieve(fut) -> None:
+    """Take a finished service call's result or exception (an unanswered call is cut off at shutdown)."""
+    try:
+        fut.result()
+    except Exception:
+        pass
+
+
+class _Velocities:
+    """A JointTrajectory view whose point positions are the velocities (for reordering them by name)."""
+
+    def __init__(self, msg):
+        self.joint_names = msg.joint_names
+        self.points = [_VP(p.velocities) for p in msg.points]
+
+
+class _VP:
+    def __init__(self, v):
+        self.positions = v
+
+
+def main(args=None) -> int:
+    from .runner import run_nodes
+
+    return run_nodes([RobotAdapter], args, description=__doc__, prog="robot_adapter")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

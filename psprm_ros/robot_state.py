@@ -1,0 +1,151 @@
+"""The robot's measured state: joints from ``sensor_msgs/JointState`` and the base pose from ``nav_msgs/Odometry`` or
+a motion-capture rigid body (``geometry_msgs/PoseStamped``), combined into a planning configuration.
+
+The joint names a robot publishes may differ from the planning names (Stretch: ``wrist_extension`` for the planning
+joint ``arm_extension``); the adapter config's name maps give the inverse mapping used here. A mocap body is not the
+robot's ``base_link``: ``body_offset`` is the pose of base_link in the body's frame. Poses in another frame than the
+scene's go through a :class:`~psprm_ros.frames.FrameTable`.
+
+:meth:`RobotStateTracker.state` gives the configuration only when the base pose (for a mobile robot) and the joints
+are fresh; otherwise ``None`` and the reason ("waiting for base pose", "base pose stale ..."), which the nodes report.
+No ROS import here: the update methods take message objects and read their fields.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional
+
+import numpy as np
+
+from . import conversions as cv
+from .frames import FrameTable, compose_pose
+
+BASE_SOURCES = ("odom", "pose", "joint_states")
+
+WAITING_FOR_BASE = "waiting for base pose"
+WAITING_FOR_JOINTS = "waiting for joint states"
+
+
+class RobotStateTracker:
+    """Latest measured joints and base pose (receipt times from the caller's monotonic clock).
+
+    Parameters
+    ----------
+    robot : RobotModel
+    frames : FrameTable
+    base_source : ``odom`` (nav_msgs/Odometry), ``pose`` (a mocap PoseStamped of a body on the base), or
+        ``joint_states`` (the base as planning joints ``base_x, base_y, base_theta`` in /joint_states)
+    name_map : robot joint name -> planning joint name (from the adapter config; planning and URDF names need none)
+    body_offset : (xyz, quat) pose of base_link in the mocap body's frame (``pose`` source)
+    timeout_s : a base pose or joint state older than this (receipt time) is stale
+    """
+
+    def __init__(self, robot, frames: FrameTable, base_source: str = "odom", name_map: Optional[dict] = None,
+                 body_offset: Optional[tuple] = None, timeout_s: float = 0.5, template: Optional[np.ndarray] = None):
+        if base_source not in BASE_SOURCES:
+            raise ValueError(f"base_pose_source must be one of {', '.join(BASE_SOURCES)}, got '{base_source}'")
+        self.robot, self.frames, self.base_source = robot, frames, base_source
+        self.name_map = dict(name_map or {})
+        self.body_offset = body_offset
+        self.timeout_s = float(timeout_s)
+        self.q = np.array(template if template is not None else robot.default_configuration(), float)
+        self.base: Optional[np.ndarray] = None  # (x, y, theta) in the scene frame
+        self.base_t: Optional[float] = None
+        self.joints_t: Optional[float] = None
+        self.base_velocity = np.zeros(2)  # (v, omega) from odometry when given
+
+    # ------------------------------------------------------------------------------------------------ updates
+    def update_joints(self, msg, t: float) -> list:
+        """``sensor_msgs/JointState`` -> planning joints (found names returned); raises InputError on bad input."""
+        renamed = _Renamed(msg, self.name_map)
+        q, found = cv.joint_state_to_planning(renamed, self.robot, template=self.q)
+        if self.robot.mobile and self.base_source != "joint_states":
+            q[:3] = self.q[:3]  # the base comes from its own source
+            found = [f for f in found if f not in ("base_x", "base_y", "base_theta")]
+        elif self.robot.mobile and {"base_x", "base_y", "base_theta"} <= set(found):
+            self.base, self.base_t = q[:3].copy(), t
+        self.q = q
+        if found:
+            self.joints_t = t
+        return found
+
+    def update_odometry(self, msg, t: float, now_sec: Optional[float] = None, max_age_s: float = 0.0) -> np.ndarray:
+        """``nav_msgs/Odometry`` -> base (x, y, theta) in the scene frame (``header.frame_id`` through the frame
+        table); raises InputError on a non-finite pose, an unknown frame or a stale stamp."""
+        p, q = _checked_pose(msg.pose.pose, msg.header, now_sec, max_age_s, "odometry")
+        p, q = self.frames.to_scene(msg.header.frame_id, p, q, "odometry")
+        tw = msg.twist.twist
+        v = np.array([tw.linear.x, tw.angular.z], float)
+        self.base_velocity = v if np.isfinite(v).all() else np.zeros(2)
+        return self._set_base(p, q, t)
+
+    def update_pose(self, msg, t: float, now_sec: Optional[float] = None, max_age_s: float = 0.0) -> np.ndarray:
+        """A mocap ``geometry_msgs/PoseStamped`` of the body on the base -> base (x, y, theta) in the scene frame
+        (the body -> base_link offset applied)."""
+        p, q = _checked_pose(msg.pose, msg.header, now_sec, max_age_s, "base pose")
+        p, q = self.frames.to_scene(msg.header.frame_id, p, q, "base pose")
+        if self.body_offset is not None:
+            p, q = compose_pose((p, q), self.body_offset)
+        return self._set_base(p, q, t)
+
+    def _set_base(self, p: np.ndarray, q: np.ndarray, t: float) -> np.ndarray:
+        base = np.array([p[0], p[1], cv.yaw_of(q)])
+        if self.base is not None:  # keep theta continuous with the last value (the planner unwraps it)
+            base[2] = self.base[2] + _wrap(base[2] - self.base[2])
+        self.base, self.base_t = base, t
+        return base
+
+    # ------------------------------------------------------------------------------------------------ output
+    def state(self, t: float) -> tuple:
+        """(configuration or None, reason): the configuration when the joints and (mobile robots) the base pose are
+        fresh at time ``t``."""
+        if self.robot.mobile:
+            if self.base_t is None:
+                return None, WAITING_FOR_BASE
+            age = t - self.base_t
+            if age > self.timeout_s:
+                return None, f"{WAITING_FOR_BASE}: the last one is {age:.2f} s old (max {self.timeout_s:.2f} s)"
+        if self.joints_t is None:
+            return None, WAITING_FOR_JOINTS
+        if t - self.joints_t > self.timeout_s:
+            return None, f"{WAITING_FOR_JOINTS}: the last one is {t - self.joints_t:.2f} s old"
+        q = self.q.copy()
+        if self.robot.mobile:
+            q[:3] = self.base
+        return q, "ok"
+
+
+class _Renamed:
+    """A JointState view with robot names mapped to planning names (the message itself is not changed)."""
+
+    def __init__(self, msg, name_map: dict):
+        self.name = [name_map.get(n, n) for n in msg.name]
+        self.position = msg.position
+        self.header = msg.header
+
+
+def _checked_pose(pose, header, now_sec, max_age_s, what) -> tuple:
+    p, q = cv.pose_to_numpy(pose)
+    if not (np.isfinite(p).all() and np.isfinite(q).all()):
+        raise cv.InputError(f"{what}: non-finite values (position {p.tolist()}, orientation {q.tolist()})")
+    n = float(np.linalg.norm(q))
+    if n < 1e-6:
+        raise cv.InputError(f"{what}: zero quaternion")
+    if now_sec is not None:
+        cv.check_stamp(cv.stamp_to_sec(header.stamp), now_sec, max_age_s, what)
+    return p, q / n
+
+
+def _wrap(a: float) -> float:
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def offset_from_params(xyz, quat) -> Optional[tuple]:
+    """(xyz, quat) parameters -> a pose, or None for the identity."""
+    xyz = np.asarray(xyz, float).reshape(3)
+    quat = np.asarray(quat, float).reshape(4)
+    quat = quat / np.linalg.norm(quat)
+    if np.allclose(xyz, 0) and np.allclose(quat, [0, 0, 0, 1]):
+        return None
+    return xyz, quat

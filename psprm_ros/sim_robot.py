@@ -1,0 +1,290 @@
+"""``sim_robot``: a kinematic simulation of a robot config behind the interfaces a real robot offers.
+
+    sim_robot --ros-args -p scene:=dynamic_person -p adapter:=stretch2 [-p start_problem:=south_to_either]
+              [-p mocap_topic:=/mocap/robot/pose]
+
+Subscribes to what the robot's controllers take, from its adapter config (``config/ros/adapters/<robot>.yaml``):
+one ``trajectory_msgs/JointTrajectory`` topic per controller (ros2_control joint_trajectory_controller rules: the
+exact joint set, strictly increasing times, stamp 0 = start now, a trajectory ending in the past refused, the robot
+blending from where it is to the first point) and the base's cmd_vel (``geometry_msgs/Twist`` or ``TwistStamped``
+per the adapter; zero after ``cmd_vel_timeout_s`` without a command). It integrates them within the robot config's
+limits (joint velocity and position limits; base linear/angular velocity and acceleration) and publishes
+``/joint_states`` (the robot's own joint names, plus the URDF joints they drive), ``/odom`` (``nav_msgs/Odometry``,
+frame ``odom``) and, when ``mocap_topic`` is set, a motion-capture style ``geometry_msgs/PoseStamped`` of a body on
+its base (frame ``mocap_frame``). It never reads psprm's own topics. Refused commands are counted and reported on
+``~/status``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from typing import Optional
+
+import numpy as np
+
+from . import conversions as cv
+from . import core
+from .adapters import AdapterConfig, ControllerConfig, load_adapter
+from .frames import compose_pose, invert_pose
+
+SIM_PARAMS = {
+    "adapter": "",  # adapter config name or path ("" = the robot's name)
+    "start_problem": "",  # scene problem whose start is the initial configuration ("" = the first one)
+    "initial_base": [0.0],  # (x, y, theta) overriding the problem's start base (one value = unset)
+    "rate_hz": 50.0,
+    "cmd_vel_timeout_s": 0.5,
+    "joint_states_topic": "/joint_states",
+    "odom_topic": "/odom",
+    "odom_frame": "odom",
+    "base_frame": "base_link",
+    "odom_origin.xyz": [0.0, 0.0, 0.0],  # pose of the odom frame in the scene frame
+    "odom_origin.quat": [0.0, 0.0, 0.0, 1.0],
+    "mocap_topic": "",  # "" = no mocap pose of the base
+    "mocap_frame": "world",
+    "mocap_rate_hz": 100.0,
+    "mocap_world.xyz": [0.0, 0.0, 0.0],  # pose of the mocap frame in the scene frame
+    "mocap_world.quat": [0.0, 0.0, 0.0, 1.0],
+    "mocap_body_offset.xyz": [0.0, 0.0, 0.0],  # pose of base_link in the mocap body's frame
+    "mocap_body_offset.quat": [0.0, 0.0, 0.0, 1.0],
+}
+
+
+class _Active:
+    """A joint trajectory being executed: planning indices, start time, knot times/positions (the robot's position at
+    acceptance prepended at time 0 when the first point lies in the future)."""
+
+    def __init__(self, idx, t_start, times, positions):
+        self.idx, self.t_start, self.times, self.positions = idx, t_start, times, positions
+
+    def desired(self, t: float) -> np.ndarray:
+        tau = t - self.t_start
+        if tau <= self.times[0]:
+            return self.positions[0]
+        if tau >= self.times[-1]:
+            return self.positions[-1]
+        return np.array([np.interp(tau, self.times, self.positions[:, j]) for j in range(self.positions.shape[1])])
+
+
+class SimModel:
+    """The simulation without ROS: ``accept_trajectory``, ``set_twist``, ``step``."""
+
+    def __init__(self, robot, adapter: AdapterConfig, q0: np.ndarray, cmd_vel_timeout_s: float = 0.5):
+        self.robot, self.adapter = robot, adapter
+        self.q = np.asarray(q0, float).copy()
+        self.v = np.zeros(2)  # base (v, omega) now
+        self.twist = np.zeros(2)
+        self.twist_t = -math.inf
+        self.cmd_vel_timeout_s = cmd_vel_timeout_s
+        self.active: dict = {}
+        self.accepted = {c.name: 0 for c in adapter.controllers}
+        self.rejected = {c.name: 0 for c in adapter.controllers}
+        self.twists = 0
+        self.last_reject = ""
+
+    def accept_trajectory(self, ctrl: ControllerConfig, joint_names, stamp_sec: float, points, now: float) -> tuple:
+        """(ok, reason). ``points``: list of (time_from_start, positions). The rules of ros2_control's
+        joint_trajectory_controller with ``allow_partial_joints_goal: false``."""
+        own = ctrl.robot_joints
+        names = list(joint_names)
+        if len(set(names)) != len(names) or set(names) != set(own):
+            return self._reject(ctrl, f"joint set {names} is not the controller's {own}")
+        idx_msg = [names.index(j) for j in own]
+        if not points:  # an empty trajectory: hold where the robot is
+            self.active.pop(ctrl.name, None)
+            self.accepted[ctrl.name] += 1
+            return True, "empty trajectory: holding"
+        t = np.array([p[0] for p in points], float)
+        try:
+            P = np.array([[p[1][i] for i in idx_msg] for p in points], float)
+        except (IndexError, TypeError):
+            return self._reject(ctrl, "a point has fewer positions than joints")
+        if not (np.isfinite(t).all() and np.isfinite(P).all()):
+            return self._reject(ctrl, "non-finite values")
+        if np.any(t < 0) or np.any(np.diff(t) <= 0):
+            return self._reject(ctrl, f"time_from_start not strictly increasing: {t[:5].tolist()}")
+        start = now if stamp_sec == 0.0 else stamp_sec
+        if start + t[-1] < now:
+            return self._reject(ctrl, f"trajectory ends {now - start - t[-1]:.3f} s in the past")
+        pidx = [self.robot.joint_names.index(j) for j in ctrl.joints]
+        if t[0] > 0:
+            t = np.r_[0.0, t]
+            P = np.vstack([self.q[pidx], P])
+        # a start in the past (not ended): sampled from the current time on, as a JTC does
+        self.active[ctrl.name] = _Active(pidx, start, t, P)
+        self.accepted[ctrl.name] += 1
+        return True, "ok"
+
+    def _reject(self, ctrl, why: str) -> tuple:
+        self.rejected[ctrl.name] += 1
+        self.last_reject = f"{ctrl.name}: {why}"
+        return False, why
+
+    def set_twist(self, v: float, w: float, now: float) -> None:
+        if not (math.isfinite(v) and math.isfinite(w)):
+            return
+        self.twist = np.array([v, w], float)
+        self.twist_t = now
+        self.twists += 1
+
+    def step(self, t: float, dt: float) -> None:
+        r = self.robot
+        for a in list(self.active.values()):
+            want = a.desired(t)
+            cur = self.q[a.idx]
+            vmax = r.velocity[a.idx]
+            self.q[a.idx] = np.clip(cur + np.clip(want - cur, -vmax * dt, vmax * dt), r.lower[a.idx], r.upper[a.idx])
+        if r.mobile:
+            b = r.config.base
+            target = self.twist if t - self.twist_t <= self.cmd_vel_timeout_s else np.zeros(2)
+            target = np.clip(target, [-b.linear_velocity, -b.angular_velocity], [b.linear_velocity, b.angular_velocity])
+            amax = np.array([b.linear_acceleration, b.angular_acceleration]) * dt
+            self.v = self.v + np.clip(target - self.v, -amax, amax)
+            v, w = self.v
+            th = self.q[2] + 0.5 * w * dt
+            self.q[0] += v * math.cos(th) * dt
+            self.q[1] += v * math.sin(th) * dt
+            self.q[2] += w * dt
+
+    def joint_state(self) -> tuple:
+        """(names, positions) as the robot publishes them: controller joints by their robot names, plus the URDF
+        joints they drive (e.g. Stretch's joint_arm_l0..l3)."""
+        names, pos = [], []
+        for c in self.adapter.controllers:
+            for j in c.joints:
+                names.append(c.robot_name(j))
+                pos.append(float(self.q[self.robot.joint_names.index(j)]))
+        vals = self.robot.urdf_joint_values(self.q)
+        for uj in self.robot.urdf_drives:
+            if uj not in names and uj not in self.robot.joint_names:
+                names.append(uj)
+                pos.append(float(vals[uj]))
+        return names, pos
+
+
+class SimRobotNode:
+    def __init__(self, node_name: str = "sim_robot", **node_kwargs):
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.node import Node
+        from rclpy.qos import qos_profile_sensor_data
+        from geometry_msgs.msg import PoseStamped, Twist, TwistStamped
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+        from trajectory_msgs.msg import JointTrajectory
+
+        self.node = node = Node(node_name, **node_kwargs)
+        self.log = node.get_logger()
+        self.p = core.declare_params(node, {**core.COMMON_PARAMS, **SIM_PARAMS})
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.adapter = load_adapter(self.p["adapter"] or self.robot.name, self.robot).with_interface("topic")
+        q0 = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
+        if len(self.p["initial_base"]) == 3:
+            q0[:3] = self.p["initial_base"]
+        self.model = SimModel(self.robot, self.adapter, q0, self.p["cmd_vel_timeout_s"])
+        self._lock = threading.Lock()
+        self.odom_origin = (np.array(self.p["odom_origin.xyz"], float), _unit(self.p["odom_origin.quat"]))
+        self.mocap_world = (np.array(self.p["mocap_world.xyz"], float), _unit(self.p["mocap_world.quat"]))
+        self.mocap_offset = (np.array(self.p["mocap_body_offset.xyz"], float),
+                             _unit(self.p["mocap_body_offset.quat"]))
+        cb = MutuallyExclusiveCallbackGroup()
+        for c in self.adapter.controllers:
+            node.create_subscription(JointTrajectory, c.topic, self._traj_cb(c), 10, callback_group=cb)
+        b = self.adapter.base
+        if self.robot.mobile and b.mode == "cmd_vel":
+            node.create_subscription(TwistStamped if b.stamped else Twist, b.topic, self._twist_cb(b.stamped), 10,
+                                     callback_group=cb)
+        self.pub_js = node.create_publisher(JointState, self.p["joint_states_topic"], 10)
+        self.pub_odom = node.create_publisher(Odometry, self.p["odom_topic"], 10)
+        self.pub_status = node.create_publisher(String, "~/status", 10)
+        self.pub_mocap = None
+        if self.p["mocap_topic"]:
+            self.pub_mocap = node.create_publisher(PoseStamped, self.p["mocap_topic"], qos_profile_sensor_data)
+            node.create_timer(1.0 / max(1.0, self.p["mocap_rate_hz"]), self._mocap,
+                              callback_group=MutuallyExclusiveCallbackGroup())
+        self._last_t: Optional[float] = None
+        node.create_timer(1.0 / max(1.0, self.p["rate_hz"]), self._step, callback_group=cb)
+
+    def _now(self) -> float:
+        return self.node.get_clock().now().nanoseconds * 1e-9
+
+    def status(self, text: str, level: str = "info") -> None:
+        core.report(self.log, self.pub_status, text, level)
+
+    def _traj_cb(self, ctrl: ControllerConfig):
+        def cb(msg):
+            try:
+                pts = [(cv.duration_to_sec(p.time_from_start), list(p.positions)) for p in msg.points]
+                with self._lock:
+                    ok, why = self.model.accept_trajectory(ctrl, msg.joint_names, cv.stamp_to_sec(msg.header.stamp),
+                                                           pts, self._now())
+            except Exception as exc:  # never die on a message
+                ok, why = False, f"malformed trajectory: {exc}"
+            if not ok:
+                self.status(f"{ctrl.name} refused a trajectory: {why}", "warning")
+        return cb
+
+    def _twist_cb(self, stamped: bool):
+        def cb(msg):
+            tw = msg.twist if stamped else msg
+            with self._lock:
+                self.model.set_twist(float(tw.linear.x), float(tw.angular.z), self._now())
+        return cb
+
+    def _step(self) -> None:
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+
+        t = self._now()
+        with self._lock:
+            dt = 0.0 if self._last_t is None else min(max(t - self._last_t, 0.0), 0.2)
+            self._last_t = t
+            self.model.step(t, dt)
+            q = self.model.q.copy()
+            v = self.model.v.copy()
+            names, pos = self.model.joint_state()
+        stamp = self.node.get_clock().now().to_msg()
+        js = JointState()
+        js.header.stamp = stamp
+        js.name, js.position = names, pos
+        self.pub_js.publish(js)
+        if self.robot.mobile:
+            p, qq = compose_pose(invert_pose(self.odom_origin), (np.array([q[0], q[1], 0.0]), cv.yaw_quat(q[2])))
+            od = Odometry()
+            od.header.stamp = stamp
+            od.header.frame_id = self.p["odom_frame"]
+            od.child_frame_id = self.p["base_frame"]
+            cv.numpy_to_pose(p, qq, od.pose.pose)
+            od.twist.twist.linear.x, od.twist.twist.angular.z = float(v[0]), float(v[1])
+            self.pub_odom.publish(od)
+
+    def _mocap(self) -> None:
+        with self._lock:
+            q = self.model.q.copy()
+        base = (np.array([q[0], q[1], 0.0]), cv.yaw_quat(q[2]))
+        body = compose_pose(base, invert_pose(self.mocap_offset))
+        p, qq = compose_pose(invert_pose(self.mocap_world), body)
+        self.pub_mocap.publish(cv.pose_stamped(p, qq, self.p["mocap_frame"], self.node.get_clock().now().to_msg()))
+
+    @property
+    def q(self) -> np.ndarray:
+        with self._lock:
+            return self.model.q.copy()
+
+    def destroy(self) -> None:
+        self.node.destroy_node()
+
+
+def _unit(q) -> np.ndarray:
+    q = np.asarray(q, float)
+    return q / np.linalg.norm(q)
+
+
+def main(args=None) -> int:
+    from .runner import run_nodes
+
+    return run_nodes([SimRobotNode], args, description=__doc__, prog="sim_robot")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())

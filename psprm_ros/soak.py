@@ -1,0 +1,365 @@
+"""``soak``: the closed loop under a long, hostile input stream.
+
+    python -m psprm_ros.soak [--duration 600] [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--out out]
+                             [--seed 0] [--json]
+
+Starts the suite (``run_all_in_one.sh``: server, scorer, monitor, robot adapter) and ``sim_robot`` as their own
+processes, then for ``--duration`` seconds streams the person (face + body) at 120 Hz from the shipped recording,
+looped, with:
+
+* dropouts: the stream stops for 0.2-1.2 s (longer than the monitor's stale timeout: the robot must stop);
+* NaN bursts: 10-60 poses with NaN positions;
+* wrong frames: bursts in an unknown frame (dropped) and in ``world`` (a known input frame: transformed, used);
+* goal spam: 5 s bursts of goals at 20 Hz (goal regions, goal poses, some in collision or outside the room);
+* an obstacle walking into the path: every ``--walk-every`` s the person walks (0.5 m/s) to a point of the robot's
+  current base path 1.2-2.5 m ahead of the robot, stays there, and walks back;
+
+while the robot drives between the two goal regions (the other one once it rests at one). It records every pose it
+sent (the true world), what the robot reported (/odom, /joint_states), every trajectory and plan, and the memory
+(RSS) of both processes. Reports trajectories published, executed configurations in collision with the true world
+(the person at that instant), pose -> trajectory latency percentiles, memory growth, and restarts (a process that
+exited or a lifecycle node that left the active state). One JSON object with ``--json`` (stdout carries it only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import conversions as cv
+from .demo import GOAL_REASONS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal
+
+
+def rss_mb(pid: int) -> float:
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return float("nan")
+
+
+class Stream:
+    """The hostile 120 Hz person stream (its own thread). Everything it sends that a correct mocap would also have
+    sent (finite, known frame) is the true world, logged with the send time."""
+
+    def __init__(self, probe, rec, scene, rng, record: Record, walk_every: float):
+        self.probe, self.rec, self.scene, self.rng, self.record = probe, rec, scene, rng, record
+        self.walk_every = walk_every
+        self.stop_ev = threading.Event()
+        self.counts = {"sent": 0, "dropout_s": 0.0, "dropouts": 0, "nan": 0, "unknown_frame": 0, "world_frame": 0,
+                       "walks": 0}
+        self.offset = np.zeros(2)  # walking displacement of the person (x, y)
+        self.walk = None  # (t0, start offset, target offset, phase)
+        self.path_xy = None  # the robot's latest base path (set by the main loop)
+        self.robot_xy = None
+
+    def start(self):
+        self.thread = threading.Thread(target=self.run, daemon=True, name="soak-stream")
+        self.thread.start()
+        return self
+
+    def _walk_offset(self, t: float) -> np.ndarray:
+        w = self.walk
+        if w is None:
+            return self.offset
+        t0, a, b, hold = w
+        d = float(np.linalg.norm(b - a))
+        go = d / 0.5  # walking at 0.5 m/s
+        if t < t0 + go:
+            return a + (b - a) * (t - t0) / max(go, 1e-6)
+        if t < t0 + go + hold:
+            return b
+        if t < t0 + 2 * go + hold:
+            return b + (a - b) * (t - t0 - go - hold) / max(go, 1e-6)
+        self.walk = None
+        return a
+
+    def _maybe_walk(self, t: float) -> None:
+        if self.walk is not None or self.path_xy is None or self.robot_xy is None:
+            return
+        P, r = self.path_xy, self.robot_xy
+        d = np.linalg.norm(P - r, axis=1)
+        k0 = int(np.argmin(d))
+        ahead = np.cumsum(np.r_[0.0, np.linalg.norm(np.diff(P[k0:], axis=0), axis=1)])
+        home = self.scene.obstacle("person_body").center[:2]
+        start = home + self.offset
+        # a point of the path 2-3.5 m ahead of the robot, reached on a line that keeps 1 m from the robot: the person
+        # steps into the robot's way in front of it, never onto the robot itself
+        ok = []
+        for k in np.nonzero((ahead > 2.0) & (ahead < 3.5))[0]:
+            tgt = P[k0 + k]
+            seg = tgt - start
+            f = np.clip(np.dot(r - start, seg) / max(float(np.dot(seg, seg)), 1e-9), 0.0, 1.0)
+            if np.linalg.norm(start + f * seg - r) >= 1.0 and np.linalg.norm(tgt - r) >= 1.5:
+                ok.append(tgt)
+        if not ok:
+            return
+        target = ok[int(self.rng.integers(0, len(ok)))]
+        self.walk = (t, self.offset.copy(), target - home, float(self.rng.uniform(3.0, 6.0)))
+        self.counts["walks"] += 1
+
+    def run(self):
+        rec, rng = self.rec, self.rng
+        t_start = time.monotonic()
+        next_walk = t_start + 10.0
+        i = 0
+        period = 1.0 / 120.0 / max(1, len(rec.bodies))
+        burst = None  # ("nan" | "frame" | "world", remaining samples)
+        while not self.stop_ev.is_set():
+            now = time.monotonic()
+            if now >= next_walk:
+                self._maybe_walk(now)
+                next_walk = now + self.walk_every
+            self.offset = self._walk_offset(now)
+            if rng.random() < 1.0 / (120 * 20):  # a dropout about every 20 s
+                d = float(rng.uniform(0.2, 1.2))
+                self.counts["dropouts"] += 1
+                self.counts["dropout_s"] += d
+                if self.stop_ev.wait(d):
+                    return
+                continue
+            if burst is None and rng.random() < 1.0 / (120 * 8):  # a burst about every 8 s
+                burst = [str(rng.choice(["nan", "frame", "world"])), int(rng.integers(10, 60))]
+            k = i % len(rec.times)
+            body = rec.bodies[int(rec.body[k])]
+            p = rec.P[k].copy()
+            q = rec.Q[k].copy()
+            p[:2] += self.offset
+            frame = "map"
+            if burst is not None:
+                if burst[0] == "nan":
+                    p[int(rng.integers(0, 3))] = np.nan
+                    self.counts["nan"] += 1
+                elif burst[0] == "frame":
+                    frame = "vicon"
+                    self.counts["unknown_frame"] += 1
+                else:
+                    frame = "world"  # identity transform in the params file: a good pose
+                    self.counts["world_frame"] += 1
+                burst[1] -= 1
+                if burst[1] <= 0:
+                    burst = None
+            self.probe.publish_pose(body, p, q, frame=frame)
+            if np.isfinite(p).all() and frame != "vicon":
+                self.record.on_sample(body, 0.0, p, q)
+            self.counts["sent"] += 1
+            i += 1
+            self.stop_ev.wait(max(0.0, period - (time.monotonic() - now)))
+
+    def stop(self):
+        self.stop_ev.set()
+        self.thread.join(2.0)
+
+
+def main(args=None) -> int:
+    argv = list(sys.argv if args is None else args)
+    ap = argparse.ArgumentParser(prog="soak", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--duration", type=float, default=600.0, help="seconds of hostile stream (default 600)")
+    ap.add_argument("--params", default=str(ROOT / "config" / "ros" / "dynamic_person.yaml"))
+    ap.add_argument("--recording", default=str(ROOT / "config" / "recordings" / "person_turning.csv"))
+    ap.add_argument("--nodes", type=int, default=3000)
+    ap.add_argument("--walk-every", type=float, default=40.0, help="the person walks into the path this often (s)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="out")
+    ap.add_argument("--json", action="store_true", help="print only the JSON object")
+    ap.add_argument("--domain-id", type=int, default=0)
+    a = ap.parse_args(argv[1:])
+    say = (lambda m: print(m, file=sys.stderr, flush=True)) if a.json else (lambda m: print(m, flush=True))
+    import logging
+
+    logging.basicConfig(level=logging.ERROR)
+    from psprm_core.paths import resolve_named
+    from psprm_core.robot import RobotModel
+    from psprm_core.scene import load_scene
+
+    from .recordings import load_recording
+
+    rng = np.random.default_rng(a.seed)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rec = load_recording(a.recording)
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    robot = RobotModel.load(scene.robot)
+    domain = a.domain_id or random.randint(100, 200)
+    loop = ClosedLoop(a.params, {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}, out, "soak",
+                      domain).start()
+    procs, probe = loop.procs, loop.probe
+    record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    diags: dict = {}
+    probe.node.create_subscription(DiagnosticArray, "/diagnostics",
+                                   lambda m: diags.update({s.name: (time.perf_counter(), s) for s in m.status}), 50)
+    wall_minus_perf = time.time() - time.perf_counter()
+    result = {}
+    stream = None
+    try:
+        ready = probe.wait_ready(timeout=1200)
+        if not ready:
+            raise RuntimeError("the suite did not become ready")
+        say(f"[soak] suite ready: {ready.split(': ', 1)[-1]}; streaming for {a.duration:.0f} s")
+        probe.wait_subscribers("/mocap/person_face/pose", timeout=30)
+        probe.wait_for(lambda: record.latest() is not None, 30)
+        mem = {n: [] for n in procs}
+        stream = Stream(probe, rec, scene, rng, record, a.walk_every).start()
+        goals = [g.name for g in scene.goals]
+        cur_goal = 1  # at_cabinet first
+        probe.publish_regions([goals[cur_goal]])
+        t0 = time.perf_counter()
+        next_mem, next_spam, next_report = t0, t0 + 15.0, t0 + 30.0
+        spam_until = 0.0
+        n_spam = 0
+        rest_since = None
+        reached = []
+        exits = {}
+        while time.perf_counter() - t0 < a.duration:
+            time.sleep(0.05)
+            now = time.perf_counter()
+            for n, p in procs.items():
+                if p.poll() is not None and n not in exits:
+                    exits[n] = p.returncode
+                    say(f"[soak] {n} exited with {p.returncode}")
+            last = record.latest()
+            with probe.cond:
+                lastt = [m for _, m in probe.trajectories if len(m.points) > 1]
+            if lastt:
+                stream.path_xy = cv.joint_trajectory_positions(lastt[-1], robot.joint_names)[:, :2]
+            if last is not None:
+                stream.robot_xy = last[1][:2]
+                g = at_goal(scene, last[1])
+                with record.lock:
+                    recent = [q[:3] for t, q in record.executed if t > last[0] - 1.0]
+                still = len(recent) > 5 and np.ptp(np.array(recent), axis=0).max() < 5e-3
+                if g == goals[cur_goal] and still:
+                    rest_since = rest_since or now
+                    if now - rest_since > 1.0:
+                        reached.append((round(now - t0, 1), g))
+                        cur_goal = 1 - cur_goal
+                        probe.publish_regions([goals[cur_goal]])
+                        rest_since = None
+                else:
+                    rest_since = None
+            if now >= next_spam:
+                spam_until = now + 5.0
+                next_spam = now + 45.0
+            if now < spam_until and int(now * 20) != int((now - 0.05) * 20):
+                n_spam += 1
+                r = rng.random()
+                if r < 0.4:
+                    probe.publish_regions([goals[int(rng.integers(0, 2))]])
+                elif r < 0.7:
+                    probe.publish_goal(float(rng.uniform(0.5, 7.5)), float(rng.uniform(0.5, 5.5)),
+                                       float(rng.uniform(-np.pi, np.pi)))
+                elif r < 0.85:
+                    probe.publish_goal(0.25, 3.2, np.pi)  # inside the shelf: refused
+                else:
+                    probe.publish_goal(12.0, -3.0, 0.0)  # outside the room: refused
+                if now + 0.05 >= spam_until:  # the burst ends: back to the current goal
+                    probe.publish_regions([goals[cur_goal]])
+            if now >= next_mem:
+                for n, p in procs.items():
+                    mem[n].append((now - t0, rss_mb(p.pid)))
+                next_mem = now + 10.0
+            if now >= next_report:
+                with probe.cond:
+                    nt = len(probe.trajectories)
+                say(f"[soak] t={now - t0:5.0f} s: {nt} trajectories, goals reached {len(reached)}, "
+                    f"stream {stream.counts['sent']} poses, RSS suite {mem['suite'][-1][1]:.0f} MB")
+                next_report = now + 30.0
+        stream.stop()
+        t_end = time.perf_counter()
+        result = report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
+                        wall_minus_perf)
+    finally:
+        if stream is not None:
+            stream.stop()
+        loop.close()
+    if result:
+        (out / "soak.json").write_text(json.dumps(result, indent=1))
+        if a.json:
+            print(json.dumps(result))
+        else:
+            for k, v in result.items():
+                say(f"  {k:34s} {v}")
+    return 0 if result and result["executed_collisions"] == 0 and result["restarts"] == 0 else 1
+
+
+def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
+           wall_minus_perf) -> dict:
+    import torch
+
+    from psprm_core.collision import CollisionChecker
+
+    with probe.cond:
+        trajs = [(t, m) for t, m in probe.trajectories if t0 <= t <= t_end]
+        infos = [(t, i) for t, i in probe.infos if t0 <= t <= t_end]
+        statuses = [(t, n, s) for t, n, s in probe.statuses if t0 <= t <= t_end]
+    lat = []
+    for t, info in infos:
+        if info.get("input_stamp") and info.get("success") and not info.get("stop") and not info.get("kept_last") \
+                and not any(r in GOAL_REASONS for r in info.get("reasons") or []):
+            if info.get("published_stamp"):  # the suite's: pose stamp to the trajectory's publication
+                lat.append((info["published_stamp"] - info["input_stamp"]) * 1e3)
+    lat = np.array(lat, float)
+    with record.lock:
+        ex = [(t, q) for t, q in record.executed if t0 <= t <= t_end]
+        poses = list(record.poses)
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    collided, k, cur = 0, 0, {}
+    version, checked_version = 0, -1
+    events = []
+    for t, q in ex:
+        while k < len(poses) and poses[k][0] <= t:
+            cur[poses[k][1]] = (poses[k][2], poses[k][3])
+            k += 1
+            version += 1
+        if version != checked_version:
+            checker.set_boxes(_scene_with(scene, cur).collision_boxes())
+            checked_version = version
+        hit = bool(checker.check(torch.as_tensor(q[None], dtype=torch.float32))[0])
+        collided += int(hit)
+        if hit and len(events) < 10:
+            body = cur.get("person_body", (np.full(3, np.nan), None))[0]
+            events.append({"t": round(t - t0, 2), "base": [round(float(v), 3) for v in q[:3]],
+                           "person": [round(float(v), 3) for v in body[:2]]})
+    growth = {}
+    for n, m in mem.items():
+        v = [x for _, x in m if np.isfinite(x)]
+        if len(v) >= 4:
+            first = float(np.median(v[: max(2, len(v) // 6)]))
+            last = float(np.median(v[-max(2, len(v) // 6):]))
+            growth[n] = {"first_mb": round(first, 1), "last_mb": round(last, 1), "growth_mb": round(last - first, 1),
+                         "max_mb": round(max(v), 1)}
+    left_active = sum(1 for _, n, s in statuses if "inactive" in s or "configure failed" in s)
+    errors = [s for _, n, s in statuses if s.startswith("error")]
+    pct = (lambda p: round(float(np.percentile(lat, p)), 1) if len(lat) else None)
+    return {
+        "duration_s": round(t_end - t0, 1), "trajectories_published": len(trajs),
+        "plans_ok": sum(1 for _, i in infos if i.get("success") and not i.get("stop")),
+        "stops": sum(1 for _, i in infos if i.get("stop")), "failed": sum(1 for _, i in infos if not i.get("success")),
+        "refused_unsafe": sum(1 for _, i in infos if "refused" in str(i.get("reason"))),
+        "goals_reached": len(reached), "executed_configurations": len(ex), "executed_collisions": int(collided),
+        "collision_events": events,
+        "latency_ms_p50": pct(50), "latency_ms_p90": pct(90), "latency_ms_p95": pct(95), "latency_ms_p99": pct(99),
+        "latency_ms_max": round(float(lat.max()), 1) if len(lat) else None, "latency_samples": int(len(lat)),
+        "memory": growth, "restarts": len(exits) + left_active, "process_exits": exits, "error_statuses": len(errors),
+        "first_errors": errors[:5], "stream": stream.counts, "goal_spam_messages": n_spam,
+        "adapter_refusals": sum(1 for _, n, s in statuses if n == "robot_adapter" and "refused" in s),
+        "adapter_refusal_examples": [s for _, n, s in statuses if n == "robot_adapter" and "refused" in s][:5],
+        "controller_refusals": sum(1 for _, n, s in statuses if n == "sim_robot" and "refused" in s),
+        "load_avg_1min": round(os.getloadavg()[0], 2), "cpus": os.cpu_count(),
+    }
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
