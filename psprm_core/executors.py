@@ -507,18 +507,20 @@ class Executor:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _start(self) -> None:
+    def _start(self, n_tasks: Optional[int] = None) -> None:
+        """Start the pool (at most ``n_tasks`` workers when that is known before the first run)."""
         if self._pool is not None or self._inline is not None:
             return
         s = self.settings
+        cap = (lambda n: n) if n_tasks is None else (lambda n: max(1, min(n, n_tasks)))
         if self.inline:
             self._inline = WorkerCache(s.cache_size)
             if self.init is not None:
                 self.init()
         elif s.backend == "local":
-            self._pool = _LocalPool(s.workers or DEFAULT_LOCAL_WORKERS, s, self.init)
+            self._pool = _LocalPool(cap(s.workers or DEFAULT_LOCAL_WORKERS), s, self.init)
         else:
-            self._pool = _RayPool(s.workers, s, self.init)
+            self._pool = _RayPool(None if s.workers is None else cap(s.workers), s, self.init)
 
     @property
     def workers(self) -> int:
@@ -554,7 +556,7 @@ class Executor:
             raise ValueError("task keys must be unique within a run")
         if not tasks:
             return
-        self._start()
+        self._start(len(tasks))
         if self._inline is not None:
             yield from self._run_inline(tasks, on_progress, on_start)
             return

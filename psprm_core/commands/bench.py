@@ -43,13 +43,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_bench)
 
 
-def add_backend_arguments(p: argparse.ArgumentParser, what: str) -> None:
-    """``--backend``, ``--workers``, ``--address``, ``--max-retries`` (psprm_core.executors)."""
+def add_backend_arguments(p: argparse.ArgumentParser, what: str, in_process: int = 1) -> None:
+    """``--backend``, ``--workers``, ``--address``, ``--max-retries`` (psprm_core.executors); ``--workers
+    in_process`` (or fewer) on the local backend runs the tasks in this process."""
     p.add_argument("--backend", choices=("local", "ray"), default="local",
                    help=f"where the tasks run: local worker processes, or actors on a Ray cluster ({what})")
     p.add_argument("--workers", type=int, default=None,
                    help="concurrent workers (default: 2 local processes; ray: one per CPU of the cluster at "
-                        "--address, 2 for a local cluster); local 1 runs in this process")
+                        f"--address, 2 for a local cluster); local {in_process} runs in this process")
     p.add_argument("--address", default=None,
                    help="ray: the cluster to use ('auto', HOST:6379, ray://HOST:10001); default: start a local "
                         "cluster for the run and stop it afterwards")
