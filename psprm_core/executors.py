@@ -28,7 +28,8 @@ Every task function is called as ``fn(cache, *args)`` with its worker's :class:`
 builds a roadmap, a policy or a detector once and reuses it for its later tasks. A task's ``affinity`` names what
 it needs (e.g. one planner instance): an idle worker is given a pending task of the affinity it ran last, else one of
 an affinity no other worker is on, so the tasks of one planner instance mostly run where it was built; once every
-remaining affinity has a worker, idle workers help with the largest one (building it again).
+remaining affinity has a worker, an idle worker helps where that saves most, unless building the affinity again
+would cost more than it saves (estimated from the measured times of workers' first and later tasks of it).
 
 Faults
 ------
@@ -451,12 +452,18 @@ class _RayPool:
 
 # ---- the driver ----------------------------------------------------------------------------------------------------
 class _Pending:
-    """Pending tasks grouped by affinity, in submission order; retried tasks go first in their group."""
+    """Pending tasks grouped by affinity, in submission order; retried tasks go first in their group.
+
+    The driver records how long tasks take (:meth:`record`): a worker's first task of an affinity includes the build,
+    its later ones do not; that gives per affinity an estimate of the build and of one task, used to decide whether an
+    idle worker should build an affinity another worker is on to help with its remaining tasks."""
 
     def __init__(self, tasks: Iterable[Task]):
         self.groups: OrderedDict = OrderedDict()
         for t in tasks:
             self.groups.setdefault(t.affinity, deque()).append(t)
+        self.first: dict = {}  # affinity -> seconds of workers' first task of it
+        self.later: dict = {}  # affinity -> seconds of the later ones
 
     def __len__(self) -> int:
         return sum(len(q) for q in self.groups.values())
@@ -464,17 +471,35 @@ class _Pending:
     def push_front(self, task: Task) -> None:
         self.groups.setdefault(task.affinity, deque()).appendleft(task)
 
+    def record(self, affinity: Hashable, seconds: float, first: bool) -> None:
+        if seconds == seconds:  # not NaN
+            (self.first if first else self.later).setdefault(affinity, []).append(float(seconds))
+
+    def _worth_helping(self, aff: Hashable) -> float:
+        """Remaining seconds of ``aff``'s pending tasks if another worker joins and builds it again (0: not worth
+        it; unknown costs count as worth it)."""
+        n = len(self.groups[aff])
+        if aff is None:
+            return float(n)
+        later, first = self.later.get(aff), self.first.get(aff)
+        if not later or not first:
+            return float(n)
+        task = sorted(later)[len(later) // 2]
+        build = max(0.0, sorted(first)[len(first) // 2] - task)
+        saved = n * task / 2.0  # the pending work split in two
+        return saved if saved > build else 0.0
+
     def pick(self, last: Hashable, claimed: set) -> Optional[Task]:
-        """The next task for a worker that last ran affinity ``last`` while others run ``claimed``."""
+        """The next task for a worker that last ran affinity ``last`` while others run ``claimed``: one of ``last``,
+        else of the first affinity nobody is on, else of the affinity where helping saves most (``None``: wait)."""
         if last in self.groups:
             return self._pop(last)
         for aff in self.groups:
             if aff is None or aff not in claimed:
                 return self._pop(aff)
-        if not self.groups:
-            return None
-        aff = max(self.groups, key=lambda a: len(self.groups[a]))  # all taken: help the largest
-        return self._pop(aff)
+        gains = {aff: self._worth_helping(aff) for aff in self.groups}
+        best = max(gains, key=gains.get, default=None)
+        return self._pop(best) if best is not None and gains[best] > 0 else None
 
     def _pop(self, aff: Hashable) -> Task:
         q = self.groups[aff]
@@ -587,6 +612,7 @@ class Executor:
         attempts: dict = {}
         running: dict = {}  # wid -> [task, progress reported]
         last: dict = {}  # wid -> affinity it ran last
+        seen: dict = {}  # wid -> affinities it ran (their builds are in its cache)
         quiet_since = time.monotonic()
         while len(pending) or running:
             for wid in pool.ids:
@@ -594,6 +620,8 @@ class Executor:
                     continue
                 claimed = {running[w][0].affinity for w in running}
                 task = pending.pick(last.get(wid), claimed)
+                if task is None:  # every pending affinity is on a worker, and building it again would not pay
+                    continue
                 attempts[task.key] = attempts.get(task.key, 0) + 1
                 last[wid] = task.affinity
                 running[wid] = [task, 0]
@@ -626,6 +654,7 @@ class Executor:
                 if kind == "died":
                     pool.replace(wid)
                     last.pop(wid, None)
+                    seen.pop(wid, None)
                     if on_progress is not None and reported:
                         on_progress(-reported)  # its progress is done again by the next attempt
                     n = attempts[task.key]
@@ -642,6 +671,8 @@ class Executor:
                     continue
                 if on_progress is not None and task.weight - reported > 0:
                     on_progress(task.weight - reported)
+                pending.record(task.affinity, secs, task.affinity not in seen.setdefault(wid, set()))
+                seen[wid].add(task.affinity)
                 if kind == "done":
                     yield Outcome(task.key, True, payload, "", attempts[task.key], where, secs)
                 else:

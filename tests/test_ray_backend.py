@@ -151,6 +151,27 @@ def test_workers_build_once_per_affinity(ray_cluster):
     assert closed == ["one", "two"]
 
 
+def test_an_idle_worker_helps_only_where_building_again_pays():
+    """All pending affinities have a worker: an idle one builds one again only when the split of its pending tasks
+    saves more than the build costs (from the recorded times of first tasks, which include the build, and later
+    ones)."""
+    from psprm_core.executors import _Pending
+
+    pending = _Pending([Task(("roadmap", i), square, (i,), affinity="roadmap") for i in range(4)] +
+                       [Task(("cheap", i), square, (i,), affinity="cheap") for i in range(4)])
+    assert pending.pick(None, set()).affinity == "roadmap"
+    assert pending.pick(None, {"roadmap"}).affinity == "cheap"
+    assert pending.pick(None, {"roadmap", "cheap"}).affinity == "roadmap"  # no times yet: help the largest
+    pending.record("roadmap", 301.0, first=True)  # a 300 s build, 1 s tasks: 2 pending tasks never pay for it
+    pending.record("roadmap", 1.0, first=False)
+    pending.record("cheap", 12.0, first=True)  # a 2 s build, 10 s tasks: even 1 pending task does (5 s saved)
+    pending.record("cheap", 10.0, first=False)
+    assert len(pending.groups["roadmap"]) == 2 and len(pending.groups["cheap"]) == 3
+    assert [pending.pick(None, {"roadmap", "cheap"}).affinity for _ in range(3)] == ["cheap"] * 3
+    assert pending.pick(None, {"roadmap", "cheap"}) is None  # only roadmap tasks left: wait for their worker
+    assert pending.pick("roadmap", {"cheap"}).affinity == "roadmap"  # the worker that built it takes them
+
+
 def test_bad_backend_settings_are_clear_errors():
     from psprm_core.errors import PsprmError
 
