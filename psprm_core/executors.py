@@ -294,13 +294,15 @@ class _LocalPool:
         conn.close()
         self._spawn(wid)
 
-    def close(self) -> None:
+    def close(self, graceful: bool = True) -> None:
+        """Stop the workers: let them finish (and release their caches), or at once (``graceful=False``: the run
+        was interrupted)."""
         for proc, conn in self.procs.values():
             try:
                 conn.send(None)
             except (BrokenPipeError, EOFError, OSError):
                 pass
-        deadline = time.monotonic() + 10.0
+        deadline = time.monotonic() + (10.0 if graceful else 0.0)
         for proc, conn in self.procs.values():
             proc.join(timeout=max(0.1, deadline - time.monotonic()))
             if proc.is_alive():
@@ -434,10 +436,10 @@ class _RayPool:
         except Exception:  # noqa: BLE001 - a failing new actor shows up as a death of its first task
             self.names[wid] = "?"
 
-    def close(self) -> None:
+    def close(self, graceful: bool = True) -> None:
         ray = self.ray
         try:
-            if self.actors:
+            if self.actors and graceful:
                 ray.wait([a.close.remote() for a in self.actors.values()], num_returns=len(self.actors), timeout=30)
             for a in self.actors.values():
                 ray.kill(a, no_restart=True)
@@ -529,8 +531,8 @@ class Executor:
     def __enter__(self) -> "Executor":
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(graceful=exc_type is None)
 
     def _start(self, n_tasks: Optional[int] = None) -> None:
         """Start the pool (at most ``n_tasks`` workers when that is known before the first run)."""
@@ -558,9 +560,10 @@ class Executor:
         self._start()
         return {} if self._pool is None else {w: self._pool.pid(w) for w in self._pool.ids}
 
-    def close(self) -> None:
+    def close(self, graceful: bool = True) -> None:
+        """Stop the pool (a local Ray cluster it started too); ``graceful=False`` does not wait for running tasks."""
         if self._pool is not None:
-            self._pool.close()
+            self._pool.close(graceful)
             self._pool = None
         if self._inline is not None:
             self._inline.close()
