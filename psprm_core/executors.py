@@ -347,8 +347,8 @@ def ray_init_kwargs(settings: BackendSettings, workers: int) -> dict:
     kw = dict(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
     if settings.address:
         kw["address"] = settings.address
-    else:
-        kw.update(num_cpus=int(workers), object_store_memory=LOCAL_RAY_OBJECT_STORE_BYTES)
+    else:  # "local": a new cluster, never one that `ray start` left on this machine (someone else's)
+        kw.update(address="local", num_cpus=int(workers), object_store_memory=LOCAL_RAY_OBJECT_STORE_BYTES)
     return kw
 
 

@@ -283,3 +283,31 @@ def test_labelling_on_ray_survives_a_killed_worker_and_matches_the_oracle(ray_cl
         oracle.close()
     assert np.array_equal(ds.scores, ref)
     assert ds.metadata["complete"]
+
+
+def test_cli_bench_and_dataset_on_ray(ray_cluster, tmp_path, capsys):
+    """``psprm bench --backend ray`` and ``psprm dataset --backend ray`` on the running cluster; ``--resume`` of a
+    finished run runs nothing and prints the same summary."""
+    from psprm_core.bench import JOURNAL_FILE
+    from psprm_core.cli import main
+
+    out = tmp_path / "bench"
+    args = ["bench", "--backend", "ray", "--scene", "home", "--planners", "post", "--problems", "2", "--targets", "tv",
+            "--max-frames", "2", "--seed", "3", "--out", str(out), "--no-progress", "--json"]
+    assert main(args) == 0
+    first = json.loads(capsys.readouterr().out)
+    journal = (out / JOURNAL_FILE).read_text()
+    assert first["post"]["problems"] == 2 and len(journal.splitlines()) == 3
+    assert main(args + ["--resume"]) == 0
+    again = json.loads(capsys.readouterr().out)
+    assert (out / JOURNAL_FILE).read_text() == journal  # nothing ran again
+    assert again == first  # the same rows, the same times
+
+    ds = tmp_path / "views"
+    assert main(["dataset", "--backend", "ray", "--workers", "1", "--scene", "surrogate_studio", "--targets", "tv",
+                 "--samples", "4", "--chunk", "2", "--out", str(ds)]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["samples"] == 4
+    meta = json.loads((ds / "metadata.json").read_text())
+    assert meta["complete"] and meta["chunks_done"] == 2
+    assert main(["dataset", "--backend", "local", "--address", "auto", "--out", str(ds)]) == 2  # a clear error
+    assert "needs --backend ray" in capsys.readouterr().err
