@@ -5,12 +5,21 @@ target, each one a short manoeuvre can leave (no boxed-in ends; :func:`psprm_cor
 spread round-robin over target groups (by default each scene
 target the surrogate knows; on ``nursing`` both nurses' faces together, the paper's two-face task).
 
-Each (planner, target group) pair is one task in a worker process (``ProcessPoolExecutor``, spawn, one torch
-thread): build/prepare once, plan every problem of the group with the per-problem time cap, and evaluate every
-executed path (:func:`evaluate_path`): camera frames rendered along ``dense`` at a fixed spacing, the oracle detector
-on each frame (detection rate: frames at or above the detector's calibrated threshold; mean confidence), and the
-maintained multi-object tracker `norfair` over the frames' detections (track rate: frames in which a confirmed track
-covers the target). A planner that raises (or a worker that dies) becomes failure rows, never a crashed benchmark.
+Each (planner, problem) pair is one task (:func:`run_task`) on a worker of the run's backend
+(:mod:`psprm_core.executors`: local worker processes, or actors on a Ray cluster; one torch thread each): the worker
+prepares the planner for the problem's target group and placement once and keeps it for its later problems, plans
+the problem with the per-problem time cap, and evaluates the executed path (:func:`evaluate_path`): camera frames
+rendered along ``dense`` at a fixed spacing, the oracle detector on each frame (detection rate: frames at or above
+the detector's calibrated threshold; mean confidence), and the maintained multi-object tracker `norfair` over the
+frames' detections (track rate: frames in which a confirmed track covers the target). Every problem is planned from
+the state the planner's preparation left (``reset``), so a row does not depend on which worker ran it or what it ran
+before: runs with the same seed give the same rows on any backend and worker count (up to the timings, and to
+planners that stop at a time cap). A planner that raises becomes a failure row; a task whose worker dies is run again
+(``max_retries``), then becomes a failure row; never a crashed benchmark.
+
+Every finished task is journalled in the output directory (``rows.jsonl``: a header with the configuration, then one
+line per task); ``resume`` (``psprm bench --resume``) skips the tasks an interrupted run of the same configuration
+finished.
 
 Scenario mode (``--scenario NAME``, :func:`scenario_problems`): the scene's named problem repeated as independent
 runs, the paper's Table III protocol ("100 independent runs" of one nursing scenario): every run has the same start
@@ -19,7 +28,7 @@ preprocessing is part of each run's time).
 
 Outputs (:func:`write_outputs`): ``results.csv`` (one row per planner and problem), ``table.md`` (the layout of the
 paper's Table II, or Table III for two-target groups), ``summary.json``, a bar chart per metric and a plot of example
-paths over the scene.
+paths over the scene (plus the journal ``rows.jsonl``, written while the run goes).
 """
 
 from __future__ import annotations
@@ -28,12 +37,8 @@ import csv
 import json
 import logging
 import math
-import multiprocessing as mp
-import queue as queue_mod
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
@@ -86,7 +91,7 @@ class BenchConfig:
     seed: int = 0
     out: str = "out/bench"
     timeout_s: float = 10.0
-    workers: int = 2
+    workers: Optional[int] = 2  # concurrent workers (local: <= 1 runs in this process; None: the backend's default)
     nodes: Optional[int] = None  # PS-PRM roadmap size (None: config/planners/psprm.yaml)
     oracle_nodes: Optional[int] = None  # roadmap size of the oracle PS-PRM variants (None: ``nodes``)
     frame_spacing: float = 0.5  # motion-cost units between evaluated camera frames
@@ -96,6 +101,10 @@ class BenchConfig:
     placements: int = 1  # target poses per group (the first K of each target's; paper: 5 per object)
     reference: bool = True  # judge the reference routes of every problem (headroom; :mod:`psprm_core.headroom`)
     planner_kwargs: dict = field(default_factory=dict)  # {planner: {setting: value}} (tests, tuning)
+    backend: str = "local"  # where the tasks run: "local" worker processes, or "ray" (psprm_core.executors)
+    address: Optional[str] = None  # ray: the cluster to use (None: a local one started for the run)
+    max_retries: int = 2  # times a task whose worker died is run again
+    resume: bool = False  # skip the tasks journalled in ``out`` by an earlier run of the same configuration
 
 
 # ---- problems ---------------------------------------------------------------------------------------------------------
@@ -419,34 +428,52 @@ def _worker_init() -> None:
     torch.set_num_threads(1)
 
 
-def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, keep_paths: int = 1) -> dict:
-    """Prepare one planner for one target group (at one placement) and run + evaluate its problems (in a worker
-    process).
-
-    Rows go to the queue ``q`` as ``("row", row)`` as soon as they exist (so a dying worker loses nothing done);
-    ``("start", planner, index)`` announces a problem. Returns {"rows": [...], "paths": [...], "prepare": {...}}.
-    """
-    import torch
-
-    torch.set_num_threads(1)
-    from .baselines import make_baseline
+def _placed_scene(scene_name: str, targets: Sequence[str], placement: int) -> tuple:
+    """(scene with the group's targets at ``placement``, robot, motion)."""
     from .motion import DiffDriveMotion
     from .paths import resolve_named
     from .robot import RobotModel
     from .scene import load_scene
 
+    scene = load_scene(resolve_named("scene", scene_name)).with_placement(list(targets), placement)
+    robot = RobotModel.load(scene.robot)
+    return scene, robot, DiffDriveMotion(robot)
+
+
+def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, keep_paths: int = 1,
+             cache=None) -> dict:
+    """Prepare one planner for one target group (at one placement) and run + evaluate its problems.
+
+    ``cache`` (a :class:`psprm_core.executors.WorkerCache`): the worker's cache; the scene, the prepared planner
+    (per planner, group, placement, build seed and settings) and the oracle come from it when an earlier task built
+    them, so a worker prepares each planner instance once. Before each problem a planner that can (``reset``) goes
+    back to the state its preparation left and numbers the query by the problem's index, so a row depends on the
+    problem alone, not on the problems the worker planned before it. Without a cache everything is built for this
+    call and released at its end.
+
+    Rows go to the queue ``q`` as ``("row", row)`` as soon as they exist; ``("start", planner, index)`` announces a
+    problem. Returns {"rows": [...], "paths": [...] (at most ``keep_paths`` successful paths), "prepares": [the
+    preparation records of the instances built in this call]}.
+    """
+    import torch
+
+    torch.set_num_threads(1)
+    from .baselines import make_baseline
+    from .executors import WorkerCache
+
     def emit(kind, payload):
         if q is not None:
             q.put((kind, payload))
 
-    rows, paths = [], []
+    own_cache = cache is None
+    cache = WorkerCache() if own_cache else cache
+    rows, paths, prepares = [], [], []
     placement = {int(p.get("placement", 0)) for p in problems}
     if len(placement) > 1:
         raise ValueError(f"one task, one placement: got {sorted(placement)}")
     placement = placement.pop() if placement else 0
-    scene = load_scene(resolve_named("scene", cfg["scene"])).with_placement(targets, placement)
-    robot = RobotModel.load(scene.robot)
-    motion = DiffDriveMotion(robot)
+    where = (cfg["scene"], tuple(targets), placement)
+    scene, robot, motion = cache.get("scene", where, lambda: _placed_scene(*where))
     base = base_name(planner)
     reference = planner == REFERENCE
     kw = dict(cfg.get("planner_kwargs", {}).get(REFERENCE_VARIANT if reference else planner, {}))
@@ -454,44 +481,53 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
         n = cfg.get("oracle_nodes") if base.startswith("psprm") and cfg.get("oracle_nodes") else cfg.get("nodes")
         if n:
             kw.setdefault("n_nodes", int(n))
+    settings_key = json.dumps(kw, sort_keys=True, default=str)
 
     def build(seed: int) -> tuple:
-        """(planner, prepare stats, preprocess seconds) or raises."""
+        """(planner or None, prepare stats, preprocess seconds, error or None); a planner that cannot be built
+        gives its error (cached like an instance, so that its other problems fail at once)."""
         t0 = time.perf_counter()
-        if reference:
-            from .headroom import ReferenceRoutes
+        try:
+            if reference:
+                from .headroom import ReferenceRoutes
 
-            p = ReferenceRoutes(scene, targets, robot=robot, seed=seed, variant=REFERENCE_VARIANT, **kw)
-        else:
-            p = make_baseline(base, scene, targets, robot=robot, seed=seed, **kw)
-        prep = dict(p.prepare())
+                p = ReferenceRoutes(scene, targets, robot=robot, seed=seed, variant=REFERENCE_VARIANT, **kw)
+            else:
+                p = make_baseline(base, scene, targets, robot=robot, seed=seed, **kw)
+            prep = dict(p.prepare())
+        except Exception as exc:  # a planner that cannot be built: its problems fail
+            log.error("%s could not be prepared: %s", planner, exc)
+            err = f"prepare failed: {type(exc).__name__}: {exc}"
+            prepares.append({"error": err})
+            return None, {"error": err}, float("nan"), err
         prep.setdefault("preprocess_s", time.perf_counter() - t0)
-        return p, prep, float(prep.get("preprocess_s", float("nan")))
+        prepares.append({k: v for k, v in prep.items() if isinstance(v, (int, float, str, bool))})
+        return p, prep, float(prep.get("preprocess_s", float("nan"))), None
 
-    # one instance for all problems, or (scenario runs) one per run seed, built when its first problem comes up
-    p, prep, pre, built_seed, build_error = None, {"preprocess_s": float("nan")}, float("nan"), None, None
-    oracle = checker = None
+    def oracle_of():
+        from .perception.oracle import Oracle
+
+        return cache.get("oracle", where, lambda: Oracle(scene, intrinsics=robot.config.intrinsics),
+                         close=lambda o: o.close())
+
+    # one instance per build seed (the bench's seed, or in scenario runs the run's), built when first needed
+    checker = None
     try:
         from .collision import CollisionChecker
-        from .perception.oracle import Oracle
 
         for prob in problems:
             seed = int(prob.get("run_seed", cfg["seed"]))
-            if seed != built_seed:
-                built_seed, p, build_error = seed, None, None
-                try:
-                    p, prep, pre = build(seed)
-                except Exception as exc:  # a planner that cannot be built: its problems fail
-                    log.error("%s could not be prepared: %s", planner, exc)
-                    build_error = f"prepare failed: {type(exc).__name__}: {exc}"
-                    prep = {"error": build_error}
+            p, prep, pre, build_error = cache.get("planner", (planner, *where, seed, settings_key),
+                                                  lambda: build(seed))
             if p is None:
                 row = _failure_row(planner, prob, build_error)
                 rows.append(row)
                 emit("row", row)
                 continue
-            if oracle is None:
-                oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
+            oracle = oracle_of()
+            reset = getattr(p, "reset", None)
+            if callable(reset):
+                reset(int(prob["index"]))
             emit("start", (planner, int(prob["index"])))
             if reference:
                 row = _reference_row(p, prob, oracle, robot, motion, cfg, placement, pre)
@@ -543,15 +579,22 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
             rows.append(row)
             emit("row", row)
     finally:
-        if oracle is not None:
-            oracle.close()
-    return {"rows": rows, "paths": paths, "prepare": {k: v for k, v in prep.items()
-                                                      if isinstance(v, (int, float, str, bool))}}
+        if own_cache:
+            cache.close()
+    return {"rows": rows, "paths": paths, "prepares": prepares}
+
+
+def bench_task(cache, planner: str, targets: list, problem: dict, cfg: dict, keep_path: bool) -> dict:
+    """The executor's task: one planner on one problem (:func:`run_task` with the worker's cache)."""
+    return run_task(planner, targets, [problem], cfg, keep_paths=int(keep_path), cache=cache)
 
 
 # ---- driver -----------------------------------------------------------------------------------------------------------
-def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
-    """Run every planner of ``cfg`` on the same problems; returns {"rows", "summary", "paths", "problems", ...}."""
+def run_bench(cfg: BenchConfig, progress: bool = True, on_start=None) -> dict:
+    """Run every planner of ``cfg`` on the same problems; returns {"rows", "summary", "paths", "problems", ...}.
+
+    ``on_start(key, worker)``: called when the task ``key`` = (planner, problem index) is sent to a worker
+    (``pid@host``; ``inline`` in this process)."""
     from .baselines import BASELINES, planner_names
     from .errors import PsprmError
     from .paths import resolve_named
@@ -580,19 +623,23 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
         groups = [problems[0]["targets"]]
     else:
         problems = make_problems(scene, robot, groups, cfg.problems, cfg.seed, cfg.placements)
-    by_group = {}  # one task per planner, target group and placement
+    by_group = {}  # one planner instance per planner, target group and placement (and run seed)
     for prob in problems:
         by_group.setdefault((tuple(prob["targets"]), int(prob.get("placement", 0))), []).append(prob)
     order = {n: i for i, n in enumerate(planner_names())}
     planners = sorted(dict.fromkeys(cfg.planners), key=lambda n: (order.get(base_name(n), 99), n))
     if cfg.reference:
         planners.append(REFERENCE)
-    tasks = [(pl, list(g), probs) for pl in planners for (g, _), probs in by_group.items()]
-    # the slow preparations first (oracle roadmaps, RL training) so they overlap with the rest
-    slow = {"psprm-line": 0, "psprm-frustum": 0, "rl-ppo": 1, REFERENCE: 1}
-    tasks.sort(key=lambda t: slow.get(base_name(t[0]), 2))
     cfgd = {k: v for k, v in asdict(cfg).items() if k != "planners"}
-    rows, paths, prepares = _run_tasks(tasks, cfgd, cfg.workers, progress, len(planners) * len(problems))
+    # one task per planner and problem; the slow preparations first (oracle roadmaps, RL training, the reference
+    # routes) so they overlap with the rest
+    slow = {"psprm-line": 0, "psprm-frustum": 0, "rl-ppo": 1, REFERENCE: 1}
+    tasks = []
+    for pl in sorted(planners, key=lambda n: slow.get(base_name(n), 2)):
+        for (g, k), probs in by_group.items():
+            for j, prob in enumerate(probs):
+                tasks.append(BenchTask(pl, list(g), prob, keep_path=j < EXAMPLE_PATH_CANDIDATES))
+    rows, paths, prepares = _run_tasks(tasks, cfgd, cfg, progress, planners, on_start=on_start)
     annotate_headroom(rows)
     summary = summarize(rows, planners)
     return {"config": {**cfgd, "planners": planners, "target_groups": groups}, "rows": rows, "summary": summary,
@@ -600,96 +647,163 @@ def run_bench(cfg: BenchConfig, progress: bool = True) -> dict:
             "scene": scene, "robot": robot}
 
 
-def _run_tasks(tasks: list, cfgd: dict, workers: int, progress: bool, total: int) -> tuple:
-    """Run tasks in worker processes (spawn); a dying worker becomes failure rows and the pool is restarted."""
+#: successful paths of the first problems of each planner instance kept for the example-path plot (the lowest
+#: problem index among them is drawn)
+EXAMPLE_PATH_CANDIDATES = 3
+#: the row journal in the output directory: one JSON line per finished task after a header with the configuration
+JOURNAL_FILE = "rows.jsonl"
+#: configuration fields that do not change the rows (a run may resume with other values)
+_RUN_ONLY_FIELDS = ("out", "workers", "backend", "address", "max_retries", "resume", "planners")
+
+
+@dataclass(frozen=True)
+class BenchTask:
+    """One (planner, problem) task of a run."""
+
+    planner: str
+    targets: list
+    problem: dict
+    keep_path: bool = False
+
+    @property
+    def key(self) -> tuple:
+        return (self.planner, int(self.problem["index"]))
+
+    @property
+    def affinity(self) -> tuple:
+        """The planner instance the task needs (what a worker builds once and keeps)."""
+        p = self.problem
+        return (self.planner, tuple(self.targets), int(p.get("placement", 0)), p.get("run_seed"))
+
+
+def backend_settings(cfg: BenchConfig):
+    """The :class:`~psprm_core.executors.BackendSettings` of a run: ``workers`` <= 1 on the local backend runs the
+    tasks in this process."""
+    from .executors import BackendSettings
+
+    workers = cfg.workers
+    if cfg.backend == "local" and workers is not None and workers <= 1:
+        workers = 0
+    return BackendSettings(backend=cfg.backend, workers=workers, address=cfg.address, max_retries=cfg.max_retries)
+
+
+def _journal_header(cfgd: dict) -> dict:
+    return json.loads(json.dumps({k: v for k, v in cfgd.items() if k not in _RUN_ONLY_FIELDS}, default=str))
+
+
+def read_journal(out_dir: str | Path, cfgd: dict) -> list:
+    """The task records of an earlier run of the same configuration in ``out_dir`` (``[]`` without a journal).
+
+    Raises
+    ------
+    PsprmError
+        The journal is of another configuration (the fields that differ are named).
+    """
+    from .errors import PsprmError
+
+    path = Path(out_dir) / JOURNAL_FILE
+    if not path.is_file():
+        return []
+    want = _journal_header(cfgd)
+    records = []
+    with open(path) as fh:
+        lines = fh.read().splitlines()
+    if not lines:
+        return []
+    try:
+        head = json.loads(lines[0]).get("config", {})
+    except json.JSONDecodeError:
+        raise PsprmError(f"{path}: not a bench journal (first line is not JSON)") from None
+    if head != want:
+        diff = sorted(k for k in set(head) | set(want) if head.get(k) != want.get(k))
+        raise PsprmError(f"{path} is the journal of a run with another configuration (differs in: "
+                         f"{', '.join(diff)}); use another --out, or run without --resume to start afresh")
+    for i, line in enumerate(lines[1:], 2):
+        try:
+            records.append(json.loads(line))
+        except json.JSONDecodeError:  # a line cut short by an interruption: its task runs again
+            log.warning("%s: line %d is incomplete; its task runs again", path, i)
+    return records
+
+
+def _run_tasks(tasks: list, cfgd: dict, cfg: BenchConfig, progress: bool, planners: Sequence[str],
+               on_start=None) -> tuple:
+    """Run the (planner, problem) tasks on the configured backend, journal every finished task in the output
+    directory (``--resume`` skips those already journalled) and return (rows, example paths, prepare records).
+
+    A task that fails as a whole (its worker died ``max_retries`` + 1 times, or it raised) becomes a failure row;
+    such rows are journalled as failed tasks, which a resumed run runs again.
+    """
     from tqdm import tqdm
+
+    from .executors import Executor, Task
 
     rows: dict = {}  # (planner, problem) -> row
     paths, prepares = [], []
-    bar = tqdm(total=total, desc="bench", unit="plan", disable=not progress, dynamic_ncols=True)
-    pending = list(tasks)
-    restarts = 0
-    ctx = mp.get_context("spawn")
-    with ctx.Manager() as manager:
-        q = manager.Queue()
-        while pending:
-            in_progress: dict = {}
-            broken = False
-
-            def drain():
-                while True:
-                    try:
-                        kind, payload = q.get_nowait()
-                    except queue_mod.Empty:
-                        return
-                    if kind == "start":
-                        in_progress[payload[0]] = payload[1]
-                    elif kind == "row":
-                        key = (payload["planner"], payload["problem"])
-                        if key not in rows:
-                            rows[key] = payload
-                            bar.update(1)
-                            bar.set_postfix_str(payload["planner"])
-
-            if workers <= 1 and restarts == 0:  # in-process (tests, debugging); still row-by-row
-                for pl, g, probs in pending:
-                    out = run_task(pl, g, probs, cfgd, q)
-                    drain()
-                    paths += out["paths"]
-                    prepares.append({"planner": pl, "targets": g, **_placement_of(probs), **out["prepare"]})
-                pending = []
-                break
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init) as ex:
-                futs = {ex.submit(run_task, pl, g, probs, cfgd, q): (pl, g, probs) for pl, g, probs in pending}
-                done_tasks = []
-                while futs:
-                    drain()
-                    finished = [f for f in futs if f.done()]
-                    if not finished:
-                        time.sleep(0.2)
-                        continue
-                    for f in finished:
-                        pl, g, probs = futs.pop(f)
-                        try:
-                            out = f.result()
-                            paths += out["paths"]
-                            prepares.append({"planner": pl, "targets": g, **_placement_of(probs), **out["prepare"]})
-                            done_tasks.append((pl, g, probs))
-                        except BrokenProcessPool:
-                            broken = True
-                        except Exception as exc:  # pragma: no cover - run_task catches planner errors itself
-                            log.error("task %s failed: %s", pl, exc)
-                            done_tasks.append((pl, g, probs))
-                            for prob in probs:
-                                rows.setdefault((pl, prob["index"]), _failure_row(pl, prob, f"task failed: {exc}"))
-                    if broken:
-                        break
-                drain()
-            if broken:
-                restarts += 1
-                # the problems being planned when the pool broke are failures; the rest is retried
-                for pl, idx in in_progress.items():
-                    if (pl, idx) not in rows:
-                        for _, g, probs in pending:
-                            for prob in probs:
-                                if prob["index"] == idx and _ == pl:
-                                    rows[(pl, idx)] = _failure_row(pl, prob, "worker process died")
-                                    bar.update(1)
-                new = []
-                for pl, g, probs in pending:
-                    left = [p for p in probs if (pl, p["index"]) not in rows]
-                    if left and (pl, g, probs) not in done_tasks:
-                        new.append((pl, g, left))
-                pending = new if restarts <= 5 else []
-                for pl, g, probs in ([] if restarts <= 5 else new):
-                    for prob in probs:
-                        rows.setdefault((pl, prob["index"]), _failure_row(pl, prob, "worker process died"))
+    done = {}
+    out = Path(cfg.out)
+    if cfg.resume:
+        for rec in read_journal(out, cfgd):
+            key = (rec["row"]["planner"], int(rec["row"]["problem"]))
+            if not rec.get("task_failed"):
+                done[key] = rec
             else:
-                pending = []
-        drain_rows = rows
-    bar.close()
-    out = sorted(drain_rows.values(), key=lambda r: (r["planner"], r["problem"]))
-    return out, paths, prepares
+                done.pop(key, None)
+    wanted = {t.key for t in tasks}
+    for key, rec in done.items():
+        if key in wanted:
+            rows[key] = rec["row"]
+            paths += rec.get("paths", [])
+            prepares += rec.get("prepares", [])
+    todo = [t for t in tasks if t.key not in rows]
+    if cfg.resume:
+        log.info("bench: %d of %d tasks already in %s; %d to run", len(rows), len(tasks), out / JOURNAL_FILE,
+                 len(todo))
+    out.mkdir(parents=True, exist_ok=True)
+    journal_path = out / JOURNAL_FILE
+    if not (cfg.resume and journal_path.is_file()):
+        journal_path.write_text(json.dumps({"config": _journal_header(cfgd)}) + "\n")
+    by_key = {t.key: t for t in todo}
+    bar = tqdm(total=len(tasks), initial=len(rows), desc="bench", unit="plan", disable=not progress,
+               dynamic_ncols=True)
+    ex_tasks = [Task(t.key, bench_task, (t.planner, t.targets, t.problem, cfgd, t.keep_path), affinity=t.affinity)
+                for t in todo]
+    try:
+        with open(journal_path, "a") as journal, Executor(backend_settings(cfg), init=_worker_init) as ex:
+            for res in ex.run(ex_tasks, on_start=on_start):
+                t = by_key[res.key]
+                if res.ok:
+                    value = res.value
+                    rec = {"row": value["rows"][0], "paths": value["paths"], "prepares": [
+                        {"planner": t.planner, "targets": t.targets, **_placement_of([t.problem]), **p}
+                        for p in value["prepares"]]}
+                else:
+                    why = res.error.strip().splitlines()[-1] if res.error.strip() else "unknown error"
+                    reason = (f"worker process died ({res.error})" if res.error.startswith("worker died")
+                              else f"task failed: {why}")
+                    log.error("bench task %s failed: %s", res.key, res.error)
+                    rec = {"row": _failure_row(t.planner, t.problem, reason), "paths": [], "prepares": [],
+                           "task_failed": True}
+                rec["worker"], rec["attempts"] = res.worker, res.attempts
+                journal.write(json.dumps(rec, default=_json_default) + "\n")
+                journal.flush()
+                rows[res.key] = rec["row"]
+                paths += rec["paths"]
+                prepares += rec["prepares"]
+                bar.update(1)
+                bar.set_postfix_str(t.planner)
+    finally:
+        bar.close()
+    out_rows = sorted(rows.values(), key=lambda r: (r["planner"], r["problem"]))
+    return out_rows, sorted(paths, key=lambda p: (p["planner"], p["problem"])), prepares
+
+
+def _json_default(v):
+    if isinstance(v, np.generic):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)
 
 
 def _placement_of(problems: list) -> dict:

@@ -2,7 +2,9 @@
 
 Follows the traps measured in ``/work/shared/notes/robots-and-planning-libs.md``: one goal state per solve, the RNG
 seeded with ``ou.RNG.setSeed`` before anything samples, a pure real-vector ambient space (the base as x, y, theta
-reals), Python validity checkers and motion validators only (no Python optimisation objective). The motion validator
+reals), Python validity checkers and motion validators only (no Python optimisation objective). OMPL's seed
+generator is re-seeded before every solve (:func:`reseed`), so that a solve's random streams depend on its seed
+alone, not on the solves the process ran before (a benchmark task gives the same path on any worker). The motion validator
 checks the *differential-drive* motion between two states (rotate, translate, rotate;
 :class:`~psprm_core.motion.DiffDriveMotion`), which is what the robot executes, instead of OMPL's straight line.
 """
@@ -28,15 +30,18 @@ def _ompl():
     return ob, og, ou
 
 
-_SEEDED: list = []
-
-
-def seed_once(seed: int) -> None:
-    """Seed OMPL's RNG once per process (OMPL ignores, and complains about, later re-seeding)."""
-    if not _SEEDED:
-        _, _, ou = _ompl()
+def reseed(seed: int) -> None:
+    """Seed OMPL's seed generator: the random number generators created after this (the next solve's planner,
+    samplers and path simplifier) draw their seeds from it, so a solve that creates all of its own is a function of
+    ``seed``. OMPL logs an error when it is re-seeded after its first use (generators that already exist keep their
+    streams; a solve uses none of those), which is silenced here."""
+    _, _, ou = _ompl()
+    level = ou.getLogLevel()
+    ou.setLogLevel(ou.LogLevel.LOG_NONE)
+    try:
         ou.RNG.setSeed(int(seed) + 1)  # OMPL rejects seed 0
-        _SEEDED.append(int(seed))
+    finally:
+        ou.setLogLevel(level)
 
 
 class ActiveSpace:
@@ -87,7 +92,7 @@ def rrt_connect(space: ActiveSpace, start: np.ndarray, goal: np.ndarray, state_v
     (waypoints (M, dof) or None, reason str, stats dict)
     """
     ob, og, ou = _ompl()
-    seed_once(seed)
+    reseed(seed)
     rv = ob.RealVectorStateSpace(space.n)
     b = ob.RealVectorBounds(space.n)
     for i in range(space.n):

@@ -9,6 +9,9 @@ the four PS-PRM variants, paper Table II) follows :class:`BenchPlanner`:
   *executed* configurations about every ``resolution`` (0.05 motion-cost units) along a motion the differential-drive
   base can follow (rotate, translate, rotate between consecutive waypoints, :mod:`psprm_core.motion`). Bad problems
   (start or goal in collision, timeout, unreachable) give ``success=False`` with a ``reason``, never an exception.
+* ``reset(query)`` (optional) returns the planner to the state ``prepare()`` left and numbers the next query, so that
+  a query's result depends on the query alone (the bench calls it before every problem; PS-PRM restores its roadmap,
+  the OMPL baselines number their per-query seeds).
 
 Planner classes are registered in :data:`psprm_core.baselines.BASELINES` and constructed as
 ``cls(name=..., scene=..., targets=[...], robot=None, seed=0, **settings_overrides)``.
@@ -65,6 +68,11 @@ class BenchPlanner(Protocol):
         """Plan from ``start`` (dof,) to one of ``goals`` ((dof,) or (G, dof)); ``dense`` is the executed motion
         (configurations every ~0.05 motion-cost units). Never raises for bad problems."""
         ...
+
+    # Optional: ``reset(query: int) -> None`` returns the planner to the state ``prepare()`` left (what queries
+    # change: lazily verified edges, repaired roadmap nodes, query counters) and numbers the next query, so that a
+    # query's result does not depend on the queries before it. The bench calls it before every problem (with the
+    # problem's index) when a planner has it; planners whose queries change nothing need none.
 
 
 @dataclass(frozen=True)
@@ -520,6 +528,12 @@ class ContextPlanner:
 
     def prepare(self) -> dict:
         return {"preprocess_s": 0.0}
+
+    def reset(self, query: int) -> None:
+        """Number the next query ``query`` (its OMPL solve is seeded with ``settings.seed + query + 1`` by the
+        baselines that vary their seed per query): a problem planned after ``reset(i)`` gives the same path whatever
+        the instance planned before."""
+        self._queries = int(query)
 
     def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
         """Check the problem (valid start and goals), keep the goals :meth:`_admissible` allows (a failure with its

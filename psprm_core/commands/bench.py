@@ -19,7 +19,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="output directory (default out/bench_<scene>)")
     p.add_argument("--timeout", type=float, default=10.0, help="per-problem planning time cap in s (paper: 60)")
-    p.add_argument("--workers", type=int, default=2, help="worker processes (1: run in this process)")
+    add_backend_arguments(p, "a task is one planner on one problem; each worker prepares a planner once per target "
+                             "group and placement and keeps it for its later problems")
+    p.add_argument("--resume", action="store_true",
+                   help="skip the (planner, problem) tasks an earlier run of the same configuration finished (its "
+                        "journal OUT/rows.jsonl); without it a run starts afresh")
     p.add_argument("--nodes", type=int, default=None, help="PS-PRM roadmap size (default: config/planners/psprm.yaml)")
     p.add_argument("--oracle-nodes", type=int, default=None, help="roadmap size of the oracle PS-PRM variants")
     p.add_argument("--targets", default=None,
@@ -44,9 +48,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_bench)
 
 
+def add_backend_arguments(p: argparse.ArgumentParser, what: str, in_process: int = 1) -> None:
+    """``--backend``, ``--workers``, ``--address``, ``--max-retries`` (psprm_core.executors); ``--workers
+    in_process`` (or fewer) on the local backend runs the tasks in this process."""
+    p.add_argument("--backend", choices=("local", "ray"), default="local",
+                   help=f"where the tasks run: local worker processes, or actors on a Ray cluster ({what})")
+    p.add_argument("--workers", type=int, default=None,
+                   help="concurrent workers (default: 2 local processes; ray: one per CPU of the cluster at "
+                        f"--address, 2 for a local cluster); local {in_process} runs in this process")
+    p.add_argument("--address", default=None,
+                   help="ray: the cluster to use ('auto', HOST:6379, ray://HOST:10001); default: start a local "
+                        "cluster for the run and stop it afterwards")
+    p.add_argument("--max-retries", type=int, default=2,
+                   help="times a task whose worker died is run again before it is reported as failed")
+
+
 def _bench(args) -> int:
     from ..baselines import parse_planner_settings, planner_names
-    from ..bench import BenchConfig, json_summary, run_bench, write_outputs
+    from ..bench import BenchConfig, backend_settings, json_summary, run_bench, write_outputs
     from ..errors import PsprmError
 
     names = planner_names() if args.planners == "all" else [s.strip() for s in args.planners.split(",") if s.strip()]
@@ -58,11 +77,14 @@ def _bench(args) -> int:
     if args.targets:
         groups = [[t.strip() for t in g.split(",") if t.strip()] for g in args.targets.split(";") if g.strip()]
     cfg = BenchConfig(scene=args.scene, planners=names, problems=args.problems, seed=args.seed,
-                      out=args.out or f"out/bench_{args.scene}", timeout_s=args.timeout, workers=args.workers,
+                      out=args.out or f"out/bench_{args.scene}", timeout_s=args.timeout,
+                      workers=args.workers if args.workers is not None or args.backend == "ray" else 2,
                       nodes=args.nodes, oracle_nodes=args.oracle_nodes, frame_spacing=args.frame_spacing,
                       max_frames=args.max_frames, target_groups=groups, scenario=args.scenario,
                       placements=args.placements, reference=not args.no_reference,
-                      planner_kwargs=parse_planner_settings(args.settings, names))
+                      planner_kwargs=parse_planner_settings(args.settings, names), backend=args.backend,
+                      address=args.address, max_retries=args.max_retries, resume=args.resume)
+    backend_settings(cfg).validate()
     res = run_bench(cfg, progress=not args.no_progress)
     files = write_outputs(res, cfg.out)
     if args.json:

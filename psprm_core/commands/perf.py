@@ -1,4 +1,4 @@
-"""``psprm perf``: benchmarks that print numbers (kinematics/collision now; planner and replanning later)."""
+"""``psprm perf``: benchmarks that print numbers (kinematics, planner, replanning, perception, execution backends)."""
 
 from __future__ import annotations
 
@@ -116,6 +116,26 @@ def register(sub: argparse._SubParsersAction) -> None:
                     help="roll the image about the line of sight (90: what a sideways camera shows the detector)")
     vm.add_argument("--json", action="store_true")
     vm.set_defaults(func=_json_only(_viewmap))
+    be = ps.add_parser("backends", help="execution backends (local processes, Ray): start-up and per-task dispatch "
+                                        "cost, PS-PRM reset cost, oracle seconds per labelled view; with --results "
+                                        "the per-task cost of each planner of a bench run and the projected hours "
+                                        "of the 2,500-problem protocol and a 100,000-view dataset on N nodes")
+    be.add_argument("--workers", type=int, default=2)
+    be.add_argument("--tasks", type=int, default=200, help="no-op tasks for the dispatch throughput")
+    be.add_argument("--nodes", type=int, default=3000, help="roadmap size for the reset cost")
+    be.add_argument("--views", type=int, default=5, help="views per studio target for the labelling cost")
+    be.add_argument("--address", default=None, help="a running Ray cluster (default: a local one)")
+    be.add_argument("--results", default=None, help="a bench run's results.csv or rows.jsonl: per-task costs and "
+                                                    "the projection")
+    be.add_argument("--cores", type=int, default=2, help="cores (workers) per node in the projection")
+    be.add_argument("--instances", type=int, default=None, help="planner instances per planner in the projection "
+                                                                "(default: the run's; the paper's protocol: 3 "
+                                                                "objects x 5 poses = 15)")
+    be.add_argument("--view-s", type=float, default=None, help="seconds per labelled view for the projection "
+                                                               "(default: measured)")
+    be.add_argument("--projection-only", action="store_true", help="only --results (no measurements)")
+    be.add_argument("--json", action="store_true")
+    be.set_defaults(func=_json_only(_backends))
     rp = ps.add_parser("replan", help="online replanning latency: target / obstacle / goal moves (update + re-search "
                                       "until a verified path), and the cost of a full re-score")
     rp.add_argument("--scene", default="dynamic_person")
@@ -129,6 +149,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--threads", type=int, default=2)
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=_json_only(_replan))
+
+
+def _backends(args) -> int:
+    from ..scaling import backend_overheads, projection_table, read_rows, task_costs
+
+    out = {}
+    if not args.projection_only:
+        out = backend_overheads(workers=args.workers, tasks=args.tasks, nodes=args.nodes, views=args.views,
+                                address=args.address)
+    if args.results:
+        costs = task_costs(read_rows(args.results))
+        out["task_costs"] = costs
+        view_s = args.view_s if args.view_s else (
+            float(sum(out["labelling"]["per_view_s"].values()) / len(out["labelling"]["per_view_s"]))
+            if "labelling" in out else 0.0)
+        over = out["ray"]["dispatch_ms_per_task"] / 1e3 if "ray" in out else 0.0
+        start = out["ray"]["start_s"] if "ray" in out else 0.0
+        out["projection_hours"] = projection_table(costs, view_s, cores=args.cores, overhead_s=over, start_s=start,
+                                                   instances=args.instances)
+        out["projection_inputs"] = {"per_view_s": view_s, "overhead_s": over, "start_s": start, "cores": args.cores}
+    print(json.dumps(out, indent=None if args.json else 2, default=float))
+    return 0
 
 
 def _replan(args) -> int:

@@ -8,6 +8,8 @@ import logging
 import time
 from pathlib import Path
 
+from .bench import add_backend_arguments
+
 log = logging.getLogger(__name__)
 
 STUDIO_DATASET = "psprm_core/data/surrogate_dataset"
@@ -26,7 +28,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--samples", type=int, default=20000, help="total labelled views (split evenly over targets)")
     d.add_argument("--out", default=STUDIO_DATASET)
     d.add_argument("--seed", type=int, default=0)
-    d.add_argument("--workers", type=int, default=2)
+    add_backend_arguments(d, "a task is one chunk; each worker builds its oracle once and keeps it", in_process=0)
     d.add_argument("--chunk", type=int, default=250, help="samples per chunk file (unit of resumption)")
     d.add_argument("--max-distance", type=float, default=4.0)
     d.add_argument("--source", choices=("studio", "roadmap"), default="studio",
@@ -65,6 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _dataset(args) -> int:
+    from ..executors import BackendSettings
     from ..paths import project_root, resolve_named
     from ..perception.dataset import OracleFactory, SamplingConfig, build_dataset
     from ..scene import load_scene
@@ -77,6 +80,9 @@ def _dataset(args) -> int:
         pass
     names = args.targets.split(",") if args.targets else scene.target_names
     targets = [scene.target(n) for n in names]
+    backend = BackendSettings(backend=args.backend, workers=args.workers, address=args.address,
+                              max_retries=args.max_retries)
+    backend.validate()
     t0 = time.perf_counter()
     if args.source == "roadmap":
         from ..perception.scene_views import roadmap_view_source, roadmap_views
@@ -92,13 +98,12 @@ def _dataset(args) -> int:
         source = roadmap_view_source(args.scene, args.planner, args.nodes, args.seed, per_target,
                                      args.edge_fraction, dist)
         out = build_dataset(args.out, targets, OracleFactory(str(path), {"intrinsics": robot.config.intrinsics}),
-                            seed=args.seed, chunk_size=args.chunk, workers=args.workers, samples=views,
-                            source=source)
+                            seed=args.seed, chunk_size=args.chunk, samples=views, source=source, backend=backend)
         args.samples = len(views["camera_poses"])
     else:
         out = build_dataset(args.out, targets, OracleFactory(str(path)), n_samples=args.samples,
                             sampling=SamplingConfig(distance=(0.4, args.max_distance)), seed=args.seed,
-                            chunk_size=args.chunk, workers=args.workers)
+                            chunk_size=args.chunk, backend=backend)
     print(json.dumps({"dataset": str(out), "samples": args.samples, "targets": names,
                       "seconds": round(time.perf_counter() - t0, 1)}))
     return 0

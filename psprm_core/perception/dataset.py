@@ -2,8 +2,9 @@
 
 The paper samples 50,000 camera transforms "where the object or human are in the field of view uniformly at
 random", renders each view and labels it with the perception model's score. This module does the sampling, runs a
-labelling function (the rendering oracle, or any ``score(pose_4x4, target_name) -> float``) in parallel worker
-processes, and stores the result in resumable chunks.
+labelling function (the rendering oracle, or any ``score(pose_4x4, target_name) -> float``) on parallel workers (one
+task per chunk on local worker processes or a Ray cluster, :mod:`psprm_core.executors`; each worker builds its scorer
+once), and stores the result in resumable chunks.
 
 Sampling (:func:`sample_camera_poses`), per target, in the target's frame:
 
@@ -40,11 +41,7 @@ import hashlib
 import json
 import logging
 import math
-import multiprocessing as mp
 import os
-import queue
-import time
-import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Optional, Sequence, Union
@@ -320,7 +317,8 @@ class OracleFactory:
     Parameters
     ----------
     scene_path : str
-        Scene YAML file (loaded in the worker).
+        Scene YAML file (loaded in the worker; a relative path that is not found from the worker's directory is
+        taken from the project's root, as the dataset's metadata records it).
     oracle_kwargs : dict
         Keyword arguments for ``Oracle(scene, **oracle_kwargs)`` (must be picklable).
     """
@@ -334,9 +332,14 @@ class OracleFactory:
         return f"Oracle(scene={self.scene_path}{extra})"
 
     def __call__(self) -> Any:
+        from ..paths import project_root
         from ..scene import load_scene
         from .oracle import Oracle
-        return Oracle(load_scene(self.scene_path), **self.oracle_kwargs)
+
+        path = Path(self.scene_path)
+        if not path.is_absolute() and not path.is_file():  # a project-relative path, on a worker started elsewhere
+            path = project_root() / path
+        return Oracle(load_scene(path), **self.oracle_kwargs)
 
 
 def _score_fn(scorer: Any) -> Callable[[np.ndarray, str], float]:
@@ -363,34 +366,27 @@ def _label_chunk(score: Callable, poses: np.ndarray, names: Sequence[str], repor
     return out
 
 
-def _worker_main(factory: Callable[[], Any], tasks, results, every: int) -> None:
-    """Worker process: build a scorer with ``factory()``, then label chunks until the ``None`` sentinel."""
+def _close_scorer(scorer: Any) -> None:
+    close = getattr(scorer, "close", None)
+    if callable(close):
+        close()
+
+
+def _factory_key(factory: Callable[[], Any]) -> Any:
+    """What identifies a scorer factory in a worker's cache: its pickle (equal factories share a scorer)."""
+    import pickle
+
     try:
-        scorer = factory()
-        score = _score_fn(scorer)
-    except BaseException:  # noqa: BLE001 - reported to the parent
-        results.put(("error", -1, traceback.format_exc()))
-        return
-    try:
-        while True:
-            task = tasks.get()
-            if task is None:
-                break
-            chunk_id, poses, names = task
-            try:
-                scores = _label_chunk(score, poses, names,
-                                      lambda k, c=chunk_id: results.put(("progress", c, k)), every)
-            except BaseException:  # noqa: BLE001
-                results.put(("error", chunk_id, traceback.format_exc()))
-                return
-            results.put(("chunk", chunk_id, scores))
-    finally:
-        close = getattr(scorer, "close", None)
-        if callable(close):
-            try:
-                close()
-            except Exception:  # noqa: BLE001
-                pass
+        return pickle.dumps(factory)
+    except Exception:  # noqa: BLE001 - an in-process factory that cannot be pickled (a lambda): itself
+        return ("object", id(factory))
+
+
+def label_task(cache, factory: Callable[[], Any], poses: np.ndarray, names: Sequence[str]) -> np.ndarray:
+    """The executor's task (:mod:`psprm_core.executors`): label one chunk's views with the worker's scorer (built by
+    ``factory()`` on the worker's first chunk and kept); progress is reported every 10 views."""
+    scorer = cache.get("scorer", _factory_key(factory), factory, close=_close_scorer)
+    return _label_chunk(_score_fn(scorer), poses, names, cache.report, 10)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -449,7 +445,8 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
                   chunk_size: int = 500, workers: int = 2, scorer_description: Optional[str] = None,
                   progress: bool = True, max_chunks: Optional[int] = None, start_method: str = "spawn",
                   worker_timeout: Optional[float] = None, samples: Optional[dict] = None,
-                  source: Optional[dict] = None) -> Path:
+                  source: Optional[dict] = None, backend=None,
+                  on_start: Optional[Callable[[int, str], None]] = None) -> Path:
     """Sample camera poses around the targets (or take given ones), label them with a scorer, and write a resumable
     chunked dataset.
 
@@ -483,7 +480,7 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
     start_method : {"spawn", "forkserver"}
         Multiprocessing start method (never ``fork``: scorers may hold GPU/GL contexts or torch threads).
     worker_timeout : float, optional
-        Abort if no result arrives for this many seconds.
+        Abort if no worker reports anything (a result or progress) for this many seconds.
     samples : dict, optional
         Views to label instead of sampled ones: ``camera_poses`` (N, 4, 4), ``target_index`` (N,) into ``targets``,
         and the parameters of :func:`view_parameters`. ``n_samples`` and ``sampling`` are then ignored; the dataset
@@ -491,6 +488,13 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
     source : dict, optional
         With ``samples``: how they were made (JSON-serialisable), recorded in the metadata as ``sampling`` (it
         identifies the configuration when resuming). A ``distance`` range there sets the viewpoint split's cells.
+    backend : psprm_core.executors.BackendSettings, optional
+        Where the chunks are labelled (one task per chunk; each worker builds its scorer once): local worker processes
+        or actors on a Ray cluster. Default: ``workers`` local processes with ``start_method``. A chunk whose worker
+        dies is labelled again (``max_retries``); a chunk that cannot be labelled is reported and the others go on
+        (``RuntimeError`` at the end, naming the chunks; the written ones stay).
+    on_start : callable, optional
+        ``on_start(chunk_id, worker)`` when a chunk is sent to a worker (``pid@host``, or ``inline``).
 
     Returns
     -------
@@ -573,79 +577,34 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
         meta["complete"] = meta["chunks_done"] == n_chunks
         _write_json(meta_path, meta)
 
+    from ..executors import BackendSettings, Executor, Task
+
+    if backend is None:
+        backend = BackendSettings(workers=max(0, int(workers)), start_method=start_method)
+    tasks = [Task(chunk_id, label_task, (scorer_factory, samples["camera_poses"][lo:hi],
+                                         list(target_names[samples["target_index"][lo:hi]])), weight=hi - lo)
+             for chunk_id, lo, hi in todo]
+    failed = {}
     try:
-        if workers <= 0:
-            scorer = scorer_factory()
-            score = _score_fn(scorer)
-            try:
-                for chunk_id, lo, hi in todo:
-                    names_lo_hi = target_names[samples["target_index"][lo:hi]]
-                    scores = _label_chunk(score, samples["camera_poses"][lo:hi], names_lo_hi,
-                                          bar.update if bar is not None else None, 10)
-                    finish(chunk_id, scores)
-            finally:
-                close = getattr(scorer, "close", None)
-                if callable(close):
-                    close()
-        else:
-            _run_workers(todo, samples, target_names, scorer_factory, min(workers, len(todo)), start_method, bar,
-                         finish, worker_timeout)
+        with Executor(backend) as ex:
+            for out in ex.run(tasks, on_progress=bar.update if bar is not None else None, on_start=on_start,
+                              idle_timeout=worker_timeout):
+                if out.ok:
+                    finish(out.key, out.value)
+                else:  # reported, and the other chunks go on; a later run labels it again
+                    failed[out.key] = out.error
+                    log.error("chunk %d could not be labelled (%d attempt(s)): %s", out.key, out.attempts,
+                              out.error.strip().splitlines()[-1] if out.error.strip() else "")
     finally:
         if bar is not None:
             bar.close()
+    if failed:
+        first = min(failed)
+        raise RuntimeError(f"{len(failed)} of {len(todo)} chunks could not be labelled (chunks "
+                           f"{sorted(failed)}; the {len(todo) - len(failed)} others are written, and a new run "
+                           f"labels only the missing ones); chunk {first}:\n{failed[first]}")
     log.info("dataset %s: %d/%d chunks labelled", out_dir, meta["chunks_done"], n_chunks)
     return out_dir
-
-
-def _run_workers(todo: list, samples: dict, target_names: np.ndarray, factory: Callable, workers: int,
-                 start_method: str, bar, finish: Callable[[int, np.ndarray], None], timeout: Optional[float]) -> None:
-    ctx = mp.get_context(start_method)
-    tasks = ctx.Queue()
-    results = ctx.Queue()
-    for chunk_id, lo, hi in todo:
-        tasks.put((chunk_id, samples["camera_poses"][lo:hi], list(target_names[samples["target_index"][lo:hi]])))
-    for _ in range(workers):
-        tasks.put(None)
-    # not daemonic: a scorer may need child processes of its own (renderers); cleaned up in the finally block
-    procs = [ctx.Process(target=_worker_main, args=(factory, tasks, results, 10)) for _ in range(workers)]
-    for p in procs:
-        p.start()
-    remaining = {chunk_id for chunk_id, _, _ in todo}
-    last = time.monotonic()
-    try:
-        while remaining:
-            try:
-                kind, chunk_id, payload = results.get(timeout=1.0)
-            except queue.Empty:
-                if timeout is not None and time.monotonic() - last > timeout:
-                    raise TimeoutError(f"no labelling result for {timeout:.0f} s") from None
-                if not any(p.is_alive() for p in procs):
-                    # a last result may still be in flight
-                    try:
-                        kind, chunk_id, payload = results.get(timeout=2.0)
-                    except queue.Empty:
-                        raise RuntimeError(f"all labelling workers exited with {len(remaining)} chunks left "
-                                           f"(exit codes {[p.exitcode for p in procs]})") from None
-                else:
-                    continue
-            last = time.monotonic()
-            if kind == "error":
-                where = "while building its scorer" if chunk_id < 0 else f"on chunk {chunk_id}"
-                raise RuntimeError(f"labelling worker failed {where}:\n{payload}")
-            if kind == "progress":
-                if bar is not None:
-                    bar.update(payload)
-                continue
-            finish(chunk_id, payload)
-            remaining.discard(chunk_id)
-    finally:
-        for p in procs:
-            if p.is_alive() and remaining:
-                p.terminate()
-        for p in procs:
-            p.join(timeout=5)
-        tasks.cancel_join_thread()
-        results.cancel_join_thread()
 
 
 # ------------------------------------------------------------------------------------------------------------------
