@@ -1110,9 +1110,12 @@ def _plots(result: dict, out: Path, multi: bool) -> dict:
 
 
 def json_summary(summary: dict) -> dict:
-    """The ``--json`` object: one entry per planner with the metric keys of Tables II-III (+ ``ratios``)."""
-    keys = ["success_rate", "det_rate", "mean_confidence", "track_rate", "path_length_rad", "preprocess_s", "plan_s",
-            "total_s", "det_rate_any", "det_rate_all", "problems", "successes"]
+    """The ``--json`` object: one entry per planner with the metric keys of Tables II-III, the strict detection rate
+    and the headroom keys (+ ``ratios``)."""
+    keys = ["success_rate", "det_rate", "det_rate_strict", "mean_confidence", "track_rate", "path_length_rad",
+            "median_path_length_rad", "preprocess_s", "plan_s", "total_s", "det_rate_any", "det_rate_all",
+            "headroom_captured", "headroom_problems", "unseeable_frame_rate", "best_det_rate", "problems",
+            "successes"]
 
     def clean(v):
         return None if isinstance(v, float) and not math.isfinite(v) else v

@@ -78,3 +78,16 @@ def test_bench_reference_routes_on_a_small_roadmap(tmp_path):
         assert 0.0 <= r["unseeable_frame_rate"] <= 1.0
     write_outputs(res, tmp_path)
     assert "headroom captured" in (tmp_path / "table.md").read_text()
+
+
+def test_json_summary_carries_the_headroom_keys():
+    """``psprm bench --json`` prints, per planner, headroom_captured and unseeable_frame_rate beside the others."""
+    from psprm_core.bench import json_summary
+
+    rows = [_row("post", 0, 0.4, 10.0, 2.0, 1.0), _row("neural-psprm-line", 0, 0.7, 12.0, 1.5, 0.5),
+            _row(REFERENCE, 0, 0.9, 15.0, 1.0, 0.8)]
+    annotate_headroom(rows)
+    js = json_summary(summarize(rows, ["post", "neural-psprm-line", REFERENCE]))
+    assert js["neural-psprm-line"]["headroom_captured"] == pytest.approx(0.6)
+    assert js["post"]["unseeable_frame_rate"] == pytest.approx(0.15)
+    assert js["neural-psprm-line"]["det_rate_strict"] == pytest.approx(0.35)
