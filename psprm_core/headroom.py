@@ -41,27 +41,31 @@ class ReferenceRoutes:
     def __init__(self, scene, targets: Sequence[str], robot=None, seed: int = 0, variant: str = "neural-psprm-line",
                  searches: Sequence[tuple] = SEARCHES, alternatives: int = ALTERNATIVES, penalty: float = PENALTY,
                  **overrides):
-        from .planning.factory import make_planner
+        from .baselines.psprm_adapter import PSPRMBenchPlanner
 
-        self.planner = make_planner(variant, scene, list(targets), robot=robot, seed=seed, **overrides)
+        self._bench = PSPRMBenchPlanner(variant, scene, list(targets), robot=robot, seed=seed, **overrides)
+        self.planner = self._bench.planner
         self.robot = self.planner.robot
         self.searches = list(searches)
         self.alternatives = int(alternatives)
         self.penalty = float(penalty)
-        self._built = False
 
     def prepare(self) -> dict:
-        stats = self.planner.build()
-        self._built = bool(stats.get("success", True))
-        return {k: v for k, v in stats.items() if isinstance(v, (int, float, bool, str))}
+        return self._bench.prepare()
+
+    def reset(self, query: int = 0) -> None:
+        """Back to the roadmap ``prepare()`` left (searches verify edges and re-weight the roadmap), so a problem's
+        routes do not depend on the problems searched before it."""
+        self._bench.reset(query)
 
     def routes(self, start: np.ndarray, goal: np.ndarray) -> list:
         """Distinct successful routes ``[(label, PlanResult), ...]`` from ``start`` to ``goal`` (configurations).
 
         Labels name the search (``motion@1.0``, ``eq2@0.8+shortcut``, ``alt2``). Routes with the same waypoints are
         given once. The planner's settings and weights are restored afterwards."""
-        if not self._built:
+        if not self._bench.built:
             return []
+        self._bench.queried()
         p = self.planner
         saved = p.settings
         out, seen, used_edges = [], set(), []

@@ -188,7 +188,8 @@ def _bench_cfg(tmp_path, backend, **kw):
     from psprm_core.bench import BenchConfig
 
     base = dict(scene="home", planners=["post", "neural-psprm-line"], problems=3, seed=3, nodes=300, max_frames=3,
-                frame_spacing=1.0, target_groups=[["tv"]], out=str(tmp_path / backend), workers=2, backend=backend)
+                frame_spacing=1.0, target_groups=[["tv"]], out=str(tmp_path / backend), workers=2, backend=backend,
+                reference=False)
     base.update(kw)
     return BenchConfig(**base)
 
@@ -292,7 +293,8 @@ def test_cli_bench_and_dataset_on_ray(ray_cluster, tmp_path, capsys):
     from psprm_core.cli import main
 
     out = tmp_path / "bench"
-    args = ["bench", "--backend", "ray", "--scene", "home", "--planners", "post", "--problems", "2", "--targets", "tv",
+    args = ["bench", "--backend", "ray", "--no-reference", "--scene", "home", "--planners", "post", "--problems", "2",
+            "--targets", "tv",
             "--max-frames", "2", "--seed", "3", "--out", str(out), "--no-progress", "--json"]
     assert main(args) == 0
     first = json.loads(capsys.readouterr().out)

@@ -79,6 +79,15 @@ class PSPRMBenchPlanner:
         vars(self.planner).update(copy.deepcopy(self._snapshot, self._shared_memo()))
         self._fresh = True
 
+    @property
+    def built(self) -> bool:
+        """Whether ``prepare()`` built a roadmap."""
+        return self._built
+
+    def queried(self) -> None:
+        """Note a query made on :attr:`planner` directly (the next :meth:`reset` restores the snapshot)."""
+        self._fresh = False
+
     def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
         t0 = time.perf_counter()
         if not self._built:
