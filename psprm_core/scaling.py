@@ -1,5 +1,5 @@
 """What the bench and the oracle labelling cost per task, what the execution backends add, and what a paper-scale job
-would take on N Ray nodes (``psprm perf backends``; numbers in ``docs/scaling.md``).
+would take on N Ray nodes (``psprm perf backends``).
 
 Measured here (:func:`backend_overheads`):
 
