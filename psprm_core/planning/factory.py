@@ -17,9 +17,9 @@ from .psprm import PSPRM, VARIANTS, PSPRMSettings
 
 log = logging.getLogger(__name__)
 
-#: alpha per scorer kind: the paper's 0.75 for the oracle; 0.95 for the surrogate with the motion-weighted objective
-#: (measured against 0.8 on the home and nursing benchmarks, docs/benchmarks.md "Perception gain")
-DEFAULT_ALPHA = {"oracle": 0.75, "neural": 0.95}
+#: alpha per scorer kind: the paper's (0.75 with the oracle, 0.8 with the surrogate). With ``objective: motion`` the
+#: benchmarks favour 0.95 (docs/benchmarks.md, "Perception gain"): pass ``alpha=0.95``.
+DEFAULT_ALPHA = {"oracle": 0.75, "neural": 0.8}
 
 
 def default_checkpoint() -> Path:
