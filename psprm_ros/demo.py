@@ -24,7 +24,6 @@ import argparse
 import json
 import math
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from . import conversions as cv
+from .probe import claim_domain_id
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -191,7 +191,7 @@ def main(args=None) -> int:
     rec = load_recording(a.recording)
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = RobotModel.load(scene.robot)
-    domain = a.domain_id or random.randint(100, 200)
+    domain = a.domain_id or claim_domain_id(100, 200)
     overrides = {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}
     if a.fresh_roadmap:
         overrides["roadmap_server:roadmap_file"] = "none"

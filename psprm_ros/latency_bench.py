@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import sys
 import time
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from . import conversions as cv
+from .probe import claim_domain_id
 
 HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]
 
@@ -138,7 +138,7 @@ def main(args=None) -> int:
 
     logging.basicConfig(level=logging.WARNING)
     log = (lambda *_: None) if a.json else (lambda m: print(m, file=sys.stderr))
-    out = run(a.params, a.nodes, a.changes, a.gap, a.timeout, a.domain_id or random.randint(100, 200), log,
+    out = run(a.params, a.nodes, a.changes, a.gap, a.timeout, a.domain_id or claim_domain_id(100, 200), log,
               threads=a.threads)
     print(json.dumps(out))
     return 0

@@ -14,6 +14,33 @@ from . import conversions as cv
 from . import core
 
 
+_claimed: list = []  # open lock files: a claimed domain stays ours until this process ends
+
+
+def claim_domain_id(lo: int = 1, hi: int = 200) -> int:
+    """A ROS_DOMAIN_ID no other process of this machine that asks the same way is using: a random id whose lock file
+    (``<tmp>/psprm-ros-domain-<id>.lock``, an exclusive non-blocking flock held until this process ends) could be
+    taken. Test suites run side by side on one machine otherwise share a random domain now and then, and one suite's
+    /odom or controller commands reach the other's nodes."""
+    import fcntl
+    import os
+    import random
+    import tempfile
+
+    ids = list(range(lo, hi + 1))
+    random.shuffle(ids)
+    for i in ids:
+        f = open(os.path.join(tempfile.gettempdir(), f"psprm-ros-domain-{i}.lock"), "a")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            f.close()
+            continue
+        _claimed.append(f)
+        return i
+    return random.randint(lo, hi)  # every id taken: fall back to chance
+
+
 class Probe:
     def __init__(self, frame: str = "map", mocap_prefix: str = "/mocap", node_name: str = "psprm_probe",
                  **node_kwargs):

@@ -39,9 +39,13 @@ def self_check() -> dict:
 
 
 def _raise_on_signals() -> None:
+    """SIGINT/SIGTERM end the spin once (KeyboardInterrupt); a repeated signal (a script's trap after the process
+    group's) is ignored, so that it cannot interrupt the nodes' shutdown (the adapter's stop) with a traceback."""
     import signal
 
     def handler(signum, frame):
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGINT, handler)

@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import random
 import sys
 import threading
 import time
@@ -35,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from . import conversions as cv
+from .probe import claim_domain_id
 from .demo import GOAL_REASONS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal
 
 
@@ -190,7 +190,7 @@ def main(args=None) -> int:
     rec = load_recording(a.recording)
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = RobotModel.load(scene.robot)
-    domain = a.domain_id or random.randint(100, 200)
+    domain = a.domain_id or claim_domain_id(100, 200)
     loop = ClosedLoop(a.params, {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}, out, "soak",
                       domain).start()
     procs, probe = loop.procs, loop.probe

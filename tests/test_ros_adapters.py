@@ -9,7 +9,6 @@ on /odom, and judges the base's tracking against the trajectory the test itself 
 from __future__ import annotations
 
 import math
-import random
 import sys
 import threading
 import time
@@ -23,6 +22,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 pytest.importorskip("rclpy")
+
+from psprm_ros.probe import claim_domain_id  # noqa: E402
 
 from psprm_core.planning.timing import time_parameterize  # noqa: E402
 from psprm_ros import adapters as ad  # noqa: E402
@@ -342,7 +343,7 @@ def test_adapter_drives_sim_robot_through_the_controllers_and_tracks_the_base(na
     cfg = ad.load_adapter(name, robot).with_interface("topic")
     params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
               "initial_base": [1.0, 1.0, 0.3], "input_frames": ["odom"]}
-    domain = random.randint(1, 200)
+    domain = claim_domain_id()
     # the simulated robot in its own process, as a robot is: its clock and integration do not wait for this one
     sim = start_sim_process(params, domain)
     with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:

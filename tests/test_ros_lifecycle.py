@@ -6,7 +6,6 @@ node does, one that needs a rebuild is refused with the reason."""
 
 from __future__ import annotations
 
-import random
 import sys
 import threading
 import time
@@ -24,7 +23,7 @@ pytest.importorskip("rclpy")
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
-from psprm_ros.probe import InProcessSuite  # noqa: E402
+from psprm_ros.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": 500, "seed": 0,
           "stale_timeout_s": 60.0, "publish_markers": False, "input_frames": ["odom"], "interface": "topic",
@@ -81,7 +80,7 @@ def test_lifecycle_transitions_from_a_client(load_robot):
     from trajectory_msgs.msg import JointTrajectory
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
-    with InProcessSuite(PARAMS, domain_id=random.randint(1, 200), nodes=("server", "monitor", "adapter", "sim"),
+    with InProcessSuite(PARAMS, domain_id=claim_domain_id(), nodes=("server", "monitor", "adapter", "sim"),
                         autostart=False) as s:
         srv = Services(s.probe.node)
         for n in ("roadmap_server", "replan_monitor", "robot_adapter"):
@@ -146,7 +145,7 @@ def test_live_parameters_change_behaviour_and_rebuild_parameters_are_refused(loa
     robot = load_robot("stretch2")
     # the robot stands still: no deviation trigger from the monitor
     with InProcessSuite(dict(PARAMS, relay_deadband_m=0.0, relay_deadband_rad=0.0, deviation_tolerance=1000.0),
-                        domain_id=random.randint(1, 200),
+                        domain_id=claim_domain_id(),
                         nodes=("server", "monitor")) as s:
         assert s.server.ready.wait(180)
         srv = Services(s.probe.node)

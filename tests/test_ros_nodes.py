@@ -5,7 +5,6 @@ obstacle moves into the path (a path around it, never a stop in its place), bad 
 
 from __future__ import annotations
 
-import random
 import sys
 import time
 from pathlib import Path
@@ -24,7 +23,7 @@ from psprm_core.collision import CollisionChecker  # noqa: E402
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
-from psprm_ros.probe import InProcessSuite  # noqa: E402
+from psprm_ros.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 N_NODES = 500
 PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,
@@ -59,7 +58,7 @@ def yaw_q(yaw: float) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def suite(load_robot):
-    with InProcessSuite(PARAMS, domain_id=random.randint(1, 200)) as s:
+    with InProcessSuite(PARAMS, domain_id=claim_domain_id()) as s:
         assert s.server.ready.wait(180), "roadmap not ready"
         assert s.probe.wait_subscribers("/mocap/person_face/pose")
         scene = load_scene(resolve_named("scene", "dynamic_person"))
@@ -225,7 +224,7 @@ def test_stale_obstacle_stops_the_robot(load_robot):
     """A separate suite whose monitor times out fast: the obstacle goes silent -> stop trajectory + warning."""
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     params = dict(PARAMS, stale_timeout_s=0.4, publish_markers=False)
-    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("server", "monitor")) as s:
+    with InProcessSuite(params, domain_id=claim_domain_id(), nodes=("server", "monitor")) as s:
         assert s.server.ready.wait(180)
         assert s.probe.wait_subscribers("/mocap/person_body/pose")
         robot = load_robot("stretch2")

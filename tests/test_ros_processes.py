@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import os
-import random
 import signal
 import subprocess
 import sys
@@ -22,7 +21,7 @@ if str(ROOT) not in sys.path:
 
 pytest.importorskip("rclpy")
 
-from psprm_ros.probe import Probe  # noqa: E402
+from psprm_ros.probe import Probe, claim_domain_id  # noqa: E402
 
 PARAMS_FILE = ROOT / "config" / "ros" / "dynamic_person.yaml"
 N_NODES = 500  # same small roadmap as tests/test_ros_nodes.py (cached after the first build)
@@ -102,7 +101,7 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")
-    domain = random.randint(1, 200)
+    domain = claim_domain_id()
     proc = _start(script, domain)
     ctx = rclpy.Context()
     ctx.init(domain_id=domain)

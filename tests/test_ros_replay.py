@@ -3,7 +3,6 @@ round trips, and replay at the recorded rate as PoseStamped topics with sensor-d
 
 from __future__ import annotations
 
-import random
 import sys
 import threading
 import time
@@ -17,6 +16,8 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 pytest.importorskip("rclpy")
+
+from psprm_ros.probe import claim_domain_id  # noqa: E402
 
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.recordings import Recording, load_recording, save_csv, save_rosbag  # noqa: E402
@@ -69,7 +70,7 @@ def test_replay_publishes_pose_stamped_at_the_recorded_rate(kind, tmp_path):
     path = save_csv(short, tmp_path / "r.csv") if kind == "csv" else save_rosbag(short, tmp_path / "bag")
     loaded = load_recording(path)
     ctx = rclpy.Context()
-    ctx.init(domain_id=random.randint(1, 200))
+    ctx.init(domain_id=claim_domain_id())
     pub_node = rclpy.create_node("replay", context=ctx)
     sub_node = rclpy.create_node("listener", context=ctx)
     got = {b: [] for b in rec.bodies}
@@ -141,7 +142,7 @@ def test_keep_stamps_with_clock_is_coherent_with_use_sim_time(tmp_path):
     results = {}
     for sim_time in (False, True):
         ctx = rclpy.Context()
-        ctx.init(domain_id=random.randint(1, 200))
+        ctx.init(domain_id=claim_domain_id())
         over = [Parameter("use_sim_time", value=sim_time), Parameter("stale_timeout_s", value=60.0),
                 Parameter("relay_deadband_m", value=0.0), Parameter("relay_deadband_rad", value=0.0)]
         mon = ReplanMonitor(context=ctx, parameter_overrides=over)

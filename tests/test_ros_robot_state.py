@@ -5,7 +5,6 @@ is checked against the test's own matrix product), a pose in an unknown frame is
 from __future__ import annotations
 
 import math
-import random
 import sys
 import threading
 import time
@@ -23,7 +22,7 @@ pytest.importorskip("rclpy")
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
-from psprm_ros.probe import InProcessSuite  # noqa: E402
+from psprm_ros.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 N_NODES = 500
 BASE = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,
@@ -60,7 +59,7 @@ def test_no_plan_without_a_fresh_base_pose(load_robot):
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")
     params = dict(BASE, input_frames=["odom"], robot_state_timeout_s=0.5)
-    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("server", "monitor")) as s:
+    with InProcessSuite(params, domain_id=claim_domain_id(), nodes=("server", "monitor")) as s:
         assert s.server.ready.wait(180)
         assert s.probe.wait_subscribers("/psprm/goal_regions")
         q = start_q(robot, scene)
@@ -121,7 +120,7 @@ def test_world_pose_is_transformed_into_the_map_and_an_unknown_frame_is_dropped(
     params = dict(BASE, input_frames=["world"], **{"input_frame.world.xyz": T_map_world[:3, 3].tolist(),
                                                    "input_frame.world.quat": wq.tolist()},
                   relay_deadband_m=0.0, relay_deadband_rad=0.0)
-    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("monitor",)) as s:
+    with InProcessSuite(params, domain_id=claim_domain_id(), nodes=("monitor",)) as s:
         assert s.probe.wait_subscribers("/mocap/person_face/pose")
         got, sub = _subscribe(s.probe.node, PoseStamped, "/psprm/state/targets/person_face", qos_profile_sensor_data)
         _wait_active(s.monitor)
@@ -167,7 +166,7 @@ def test_base_pose_from_a_mocap_body_with_its_offset(load_robot):
     params = dict(BASE, input_frames=["world"], base_pose_source="pose", robot_pose_topic="/mocap/robot/pose",
                   **{"input_frame.world.xyz": T_map_world[:3, 3].tolist(), "input_frame.world.quat": wq.tolist(),
                      "base_body_offset.xyz": T_body_base[:3, 3].tolist(), "base_body_offset.quat": [0, 0, 0, 1]})
-    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("monitor",)) as s:
+    with InProcessSuite(params, domain_id=claim_domain_id(), nodes=("monitor",)) as s:
         got, sub = _subscribe(s.probe.node, JointState, "/psprm/state/robot", qos_profile_sensor_data)
         _wait_active(s.monitor)
         T_map_base = yaw_matrix(3.0, 1.0, 0.0, 1.1)
@@ -200,7 +199,7 @@ def test_params_files_of_the_three_robots_configure_every_node(params_file, load
     from psprm_ros.core import autostart
 
     path = ROOT / "config" / "ros" / params_file
-    with InProcessSuite({"interface": "topic"}, domain_id=random.randint(1, 200), params_file=str(path),
+    with InProcessSuite({"interface": "topic"}, domain_id=claim_domain_id(), params_file=str(path),
                         nodes=("server", "scorer", "monitor", "adapter", "sim"), autostart=False) as s:
         robot = s.server.robot
         assert s.monitor.robot.name == s.adapter.robot.name == s.sim.robot.name == robot.name
@@ -233,7 +232,7 @@ def test_sim_robot_mocap_pose_of_its_base(load_robot):
     params = {"scene": "dynamic_person", "mocap_topic": "/mocap/robot/pose", "mocap_frame": "world",
               "mocap_world.xyz": T_map_world[:3, 3].tolist(), "mocap_world.quat": wq.tolist(),
               "mocap_body_offset.xyz": T_body_base[:3, 3].tolist(), "initial_base": [2.0, 1.5, 0.7]}
-    with InProcessSuite(params, domain_id=random.randint(1, 200), nodes=("sim",)) as s:
+    with InProcessSuite(params, domain_id=claim_domain_id(), nodes=("sim",)) as s:
         mocap, s1 = _subscribe(s.probe.node, PoseStamped, "/mocap/robot/pose", qos_profile_sensor_data)
         odom, s2 = _subscribe(s.probe.node, Odometry, "/odom")
         assert s.probe.wait_for(lambda: mocap and odom, 10)

@@ -6,7 +6,6 @@ the person into and out of the path, with forced faults among them."""
 
 from __future__ import annotations
 
-import random
 import sys
 import time
 from pathlib import Path
@@ -25,7 +24,7 @@ from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.reference import PybulletWorld  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
-from psprm_ros.probe import InProcessSuite  # noqa: E402
+from psprm_ros.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": 500, "seed": 0,
           "stale_timeout_s": 60.0, "publish_markers": False, "input_frames": ["odom"], "deviation_tolerance": 1000.0,
@@ -88,7 +87,7 @@ def suite(world):
     scene, robot = world
     from psprm_core.planning.factory import problem_configurations
 
-    with InProcessSuite(PARAMS, domain_id=random.randint(1, 200), nodes=("server", "monitor")) as s:
+    with InProcessSuite(PARAMS, domain_id=claim_domain_id(), nodes=("server", "monitor")) as s:
         assert s.server.ready.wait(180)
         assert s.probe.wait_subscribers("/mocap/person_body/pose")
         q = problem_configurations(robot, scene, scene.problem("south_to_either"))[0]
