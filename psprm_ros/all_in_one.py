@@ -1,5 +1,5 @@
 """``all_in_one``: ``roadmap_server``, ``perception_scorer``, ``replan_monitor`` and ``robot_adapter`` in one
-process on a MultiThreadedExecutor (the lowest pose-to-trajectory latency: no inter-process hop, one copy of the
+process, each on its own single-threaded executor (the lowest pose-to-trajectory latency: no inter-process hop, one copy of the
 core). The adapter drives the robot's controllers (``adapter`` parameter); set ``robot_adapter:autostart:=false`` to
 plan without executing.
 

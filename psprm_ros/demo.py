@@ -95,9 +95,9 @@ class ClosedLoop:
 
     def start(self, say=None) -> "ClosedLoop":
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor
 
         from .probe import Probe
+        from .spinning import NodeSpinner
 
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
         suite = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), self.params_file]
@@ -113,9 +113,9 @@ class ClosedLoop:
         self.ctx = rclpy.Context()
         self.ctx.init(domain_id=self.domain)
         self.probe = Probe(context=self.ctx)
-        self.ex = MultiThreadedExecutor(num_threads=3, context=self.ctx)
-        self.ex.add_node(self.probe.node)
-        threading.Thread(target=lambda: _spin(self.ex), daemon=True).start()
+        self.ex = NodeSpinner(self.ctx)
+        self.ex.add(self.probe.node)
+        self.ex.start()
         return self
 
     def close(self) -> None:
@@ -287,13 +287,6 @@ GOAL_REASONS = ("goal_received", "goal_changed", "no_plan", "plan requested")
 
 def _goal_triggered(row) -> bool:
     return any(r in GOAL_REASONS for r in (row.get("reasons") or []))
-
-
-def _spin(ex):
-    try:
-        ex.spin()
-    except Exception:
-        pass
 
 
 def _scene_with(scene, poses: dict):

@@ -2,8 +2,8 @@
 
     latency_bench [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--changes 60] [--gap 0.3] [--json]
 
-Starts roadmap_server, perception_scorer and replan_monitor plus a client node in one process (one
-MultiThreadedExecutor, the all-in-one configuration), loads the cached roadmap (or builds it once), plans a first
+Starts roadmap_server, perception_scorer and replan_monitor plus a client node in one process (each
+node on its own executor, the all-in-one configuration), loads the cached roadmap (or builds it once), plans a first
 trajectory, then publishes ``--changes`` target pose changes (the person turning through eight headings, each beyond
 the replan thresholds), one at a time, and measures for each the time from publishing the PoseStamped to receiving
 the replanned JointTrajectory. Prints one JSON object: median / p95 / mean / max latency, the core's replan time and
@@ -28,7 +28,7 @@ HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]
 
 
 def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float, domain_id: int,
-        log=print, threads: int = 4) -> dict:
+        log=print) -> dict:
     import torch
 
     from psprm_core.paths import resolve_named
@@ -40,7 +40,7 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
     # the benchmark's protocol: every target move beyond the thresholds replans at once
     overrides = {"n_nodes": int(n_nodes), "stale_timeout_s": 3600.0, "deviation_tolerance": 1000.0,
                  "replan_settings": "replan_reactive"}
-    with InProcessSuite(overrides, domain_id=domain_id, params_file=params_file, threads=threads,
+    with InProcessSuite(overrides, domain_id=domain_id, params_file=params_file,
                         nodes=("server", "scorer", "monitor")) as s:
         t0 = time.perf_counter()
         if not s.server.ready.wait(1800):
@@ -104,7 +104,7 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
             "server_receipt_to_publish_median_ms": med("latency_ms"), "apply_median_ms": med("apply_ms"),
             "triggers_median_ms": med("triggers_ms"), "core_replan_median_ms": med("replan_ms"),
             "msg_median_ms": med("msg_ms"), "final_check_median_ms": med("check_ms"),
-            "gap_s": gap, "torch_threads": torch.get_num_threads(), "executor_threads": threads, "cpus": os.cpu_count(),
+            "gap_s": gap, "torch_threads": torch.get_num_threads(), "cpus": os.cpu_count(),
             "load_avg_1min": _r(os.getloadavg()[0]),
         }
 
@@ -125,7 +125,6 @@ def main(args=None) -> int:
     ap.add_argument("--gap", type=float, default=0.3, help="pause after each received trajectory (s)")
     ap.add_argument("--timeout", type=float, default=20.0, help="max wait per trajectory (s)")
     ap.add_argument("--domain-id", type=int, default=0, help="ROS_DOMAIN_ID (default random 100..200)")
-    ap.add_argument("--threads", type=int, default=4, help="executor threads (default 4, as all_in_one)")
     ap.add_argument("--json", action="store_true", help="print only the JSON line")
     ap.add_argument("--self-check", action="store_true")
     a = ap.parse_args(remove_ros_args(argv)[1:])
@@ -138,8 +137,7 @@ def main(args=None) -> int:
 
     logging.basicConfig(level=logging.WARNING)
     log = (lambda *_: None) if a.json else (lambda m: print(m, file=sys.stderr))
-    out = run(a.params, a.nodes, a.changes, a.gap, a.timeout, a.domain_id or claim_domain_id(100, 200), log,
-              threads=a.threads)
+    out = run(a.params, a.nodes, a.changes, a.gap, a.timeout, a.domain_id or claim_domain_id(100, 200), log)
     print(json.dumps(out))
     return 0
 

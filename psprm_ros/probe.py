@@ -220,17 +220,17 @@ class StatePublisher:
 
 
 class InProcessSuite:
-    """The three nodes (or any subset) plus a :class:`Probe` in one rclpy context with a background
-    MultiThreadedExecutor: ``with InProcessSuite(params) as s: s.probe.publish_pose(...)``."""
+    """The three nodes (or any subset) plus a :class:`Probe` in one rclpy context, each node on its own
+    single-threaded executor (:class:`~psprm_ros.spinning.NodeSpinner`): ``with InProcessSuite(params) as s:
+    s.probe.publish_pose(...)``."""
 
     def __init__(self, params: dict, domain_id: Optional[int] = None, nodes=("server", "scorer", "monitor"),
-                 params_file: Optional[str] = None, threads: int = 6, autostart: bool = True):
+                 params_file: Optional[str] = None, autostart: bool = True):
         self.params, self.domain_id, self.which = params, domain_id, nodes
-        self.params_file, self.threads, self.autostart = params_file, threads, autostart
+        self.params_file, self.autostart = params_file, autostart
 
     def __enter__(self) -> "InProcessSuite":
         import rclpy
-        from rclpy.executors import MultiThreadedExecutor
         from rclpy.parameter import Parameter
 
         from .perception_scorer import PerceptionScorer
@@ -242,7 +242,9 @@ class InProcessSuite:
         self.context.init(args=args, domain_id=self.domain_id)
         overrides = [Parameter(k, value=v) for k, v in self.params.items()]
         kw = {"context": self.context, "parameter_overrides": overrides}
-        self.executor = MultiThreadedExecutor(num_threads=self.threads, context=self.context)
+        from .spinning import NodeSpinner
+
+        self.executor = NodeSpinner(self.context)
         self.nodes = []
         from .robot_adapter import RobotAdapter
         from .sim_robot import SimRobotNode
@@ -255,35 +257,25 @@ class InProcessSuite:
                 n = make[w](**kw)
                 setattr(self, w, n)
                 self.nodes.append(n)
-                self.executor.add_node(n.node)
+                self.executor.add(n.node)
             frame = self.server.frame if self.server else "map"
             self.probe = Probe(frame=frame, context=self.context)
-            self.executor.add_node(self.probe.node)
+            self.executor.add(self.probe.node)
         except Exception:
             self.__exit__(None, None, None)
             raise
-        self._thread = threading.Thread(target=self._spin, daemon=True)
-        self._thread.start()
+        self.executor.start()
         if self.autostart:
             from .runner import start_lifecycles
 
             start_lifecycles(self.nodes)
         return self
 
-    def _spin(self):
-        from rclpy.executors import ExternalShutdownException
-
-        try:
-            self.executor.spin()
-        except (ExternalShutdownException, Exception):
-            pass
-
     def __exit__(self, *exc) -> None:
         # stop spinning before destroying: a callback still running on the spin thread would otherwise hit a node
         # being destroyed ("cannot use Destroyable because destruction was requested", printed at exit)
-        self.executor.shutdown(timeout_sec=2.0)
-        if getattr(self, "_thread", None):
-            self._thread.join(timeout=5.0)
+        if getattr(self, "executor", None):
+            self.executor.shutdown(timeout_sec=2.0)
         for n in reversed(getattr(self, "nodes", [])):
             try:
                 n.destroy()

@@ -77,7 +77,8 @@ GIL_SWITCH_INTERVAL_S = 0.0005
 
 
 def run_nodes(factories: Sequence[Callable], args=None, description: str = "", prog: str = "") -> int:
-    """Start the nodes made by ``factories`` in one process (MultiThreadedExecutor) and spin until shut down."""
+    """Start the nodes made by ``factories`` in one process, each on its own single-threaded executor
+    (:class:`~psprm_ros.spinning.NodeSpinner`), and spin until shut down."""
     argv = list(sys.argv if args is None else args)
     from rclpy.utilities import remove_ros_args
 
@@ -87,14 +88,15 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
                                             "--ros-args --params-file config/ros/dynamic_person.yaml")
     parser.add_argument("--self-check", action="store_true",
                         help="import the nodes and message packages, print JSON and exit (no ROS start-up)")
-    parser.add_argument("--threads", type=int, default=4, help="executor threads (default 4)")
     opts = parser.parse_args(user)
     if opts.self_check:
         print(json.dumps(self_check()))
         return 0
 
     import rclpy
-    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException
+
+    from .spinning import NodeSpinner
 
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s", stream=sys.stderr)
     # The planner thread makes thousands of short torch calls per plan, each releasing and re-taking the GIL; while
@@ -109,14 +111,17 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     _raise_on_signals()
     nodes = []
-    executor = MultiThreadedExecutor(num_threads=max(2, opts.threads))
+    executor = NodeSpinner()
     try:
         for f in factories:
             n = f()
             nodes.append(n)
-            executor.add_node(n.node)
+            executor.add(n.node)
+        executor.start()
         start_lifecycles(nodes)
-        executor.spin()
+        executor.wait()
+        for name, exc in executor.errors:
+            raise exc
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # configuration errors (unknown scene, bad params file): one line, status 2
@@ -129,11 +134,13 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
         print(f"{parser.prog}: error: {exc}", file=sys.stderr)
         return 2
     finally:
+        # executors first (no callback may run on a node being destroyed), then the nodes (an adapter publishes its
+        # stop: the context is still up), then the context
+        executor.shutdown(timeout_sec=1.0)
         for n in reversed(nodes):
             try:
                 n.destroy()
             except Exception:
                 pass
-        executor.shutdown(timeout_sec=1.0)
         rclpy.try_shutdown()
     return 0

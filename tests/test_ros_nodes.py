@@ -1,4 +1,4 @@
-"""ROS 2 node suite, in process: the three nodes on a MultiThreadedExecutor, poses and goals published like a mocap
+"""ROS 2 node suite, in process: the three nodes on their own executors, poses and goals published like a mocap
 system, a standing robot's /joint_states and /odom published by the test, trajectories received and checked against
 the poses the test itself sent (collision-free, target in view), replans after the target turns and after an
 obstacle moves into the path (a path around it, never a stop in its place), bad input answered with warnings."""

@@ -84,13 +84,7 @@ def _stop(proc) -> tuple:
     return proc.returncode, out
 
 
-#: The three-process start (run_nodes.sh) fails about one run in two on a loaded 2-core machine (a replan or the
-#: shutdown stop not seen in time across the processes): run it with PSPRM_TEST_RUN_NODES=1 until that is understood.
-RUN_NODES = pytest.param("run_nodes.sh", marks=pytest.mark.skipif(
-    os.environ.get("PSPRM_TEST_RUN_NODES") != "1", reason="flaky under load; PSPRM_TEST_RUN_NODES=1 runs it"))
-
-
-@pytest.mark.parametrize("script", ["run_all_in_one.sh", RUN_NODES])
+@pytest.mark.parametrize("script", ["run_all_in_one.sh", "run_nodes.sh"])
 def test_script_started_nodes_answer_poses_from_another_process(script, load_robot):
     import rclpy
     from rclpy.executors import SingleThreadedExecutor

@@ -1121,11 +1121,11 @@ class PSPRM:
         self._compact()
         g = self.graph
         ids = g.valid_edge_ids()
-        self.settings = new
         c_m = g.edge_attribute("c_m")[ids]
         if new.objective == "eq2":
             c_m = np.clip(c_m, 0, 1)
-        g.set_weights(ids, self._weight(g.edge_attribute("c_p")[ids], c_m))
+        g.set_weights(ids, edge_weight(g.edge_attribute("c_p")[ids], c_m, new.alpha, new.objective))
+        self.settings = new  # last: a reader that sees the new settings sees the new weights
 
     @_one_thread
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
