@@ -320,3 +320,32 @@ def test_perception_biased_sampling(load_robot):
     assert means[0.5] > means[0.0] + 0.03, means
     with pytest.raises(ConfigError, match="biased_share"):
         PSPRMSettings(biased_share=1.5).validate()
+
+
+def test_make_planner_applies_overrides_and_the_shipped_settings(load_robot):
+    """Overrides of any setting reach the planner (biased_share included); the shipped YAML's objective picks the
+    alpha of DEFAULT_ALPHA unless alpha is given; oracle variants never bias their nodes; the mobile UR5 keeps
+    uniform nodes (its per-robot section)."""
+    import yaml
+
+    from psprm_core.paths import config_dir, resolve_named
+    from psprm_core.planning.factory import DEFAULT_ALPHA, make_planner
+    from psprm_core.scene import load_scene
+
+    shipped = yaml.safe_load((config_dir() / "planners" / "psprm.yaml").read_text())
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50, biased_share=0.3, objective="eq2")
+    assert p.settings.biased_share == 0.3 and p.settings.objective == "eq2"
+    assert p.settings.alpha == DEFAULT_ALPHA[("eq2", "neural")] == 0.8
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50)
+    assert p.settings.objective == shipped["objective"] and p.settings.shortcut == shipped["shortcut"]
+    assert p.settings.biased_share == shipped["biased_share"]
+    assert p.settings.alpha == DEFAULT_ALPHA[(shipped["objective"], "neural")]
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50, alpha=0.5)
+    assert p.settings.alpha == 0.5
+    p = make_planner("psprm-line", scene, ["tv"], robot=robot, n_nodes=50, biased_share=0.5)
+    assert p.settings.biased_share == 0.0
+    alley = load_scene(resolve_named("scene", "blind_spot_alley"))
+    p = make_planner("neural-psprm-line", alley, [alley.target_names[0]], robot=load_robot("ur5_mobile"), n_nodes=50)
+    assert p.settings.biased_share == shipped["robots"]["ur5_mobile"]["biased_share"] == 0.0

@@ -17,9 +17,10 @@ from .psprm import PSPRM, VARIANTS, PSPRMSettings
 
 log = logging.getLogger(__name__)
 
-#: alpha per scorer kind: the paper's (0.75 with the oracle, 0.8 with the surrogate). With ``objective: motion`` the
-#: benchmarks favour 0.95 (docs/benchmarks.md, "Perception gain"): pass ``alpha=0.95``.
-DEFAULT_ALPHA = {"oracle": 0.75, "neural": 0.8}
+#: alpha per objective and scorer kind: Eq. 2 the paper's (0.75 with the oracle, 0.8 with the surrogate); the
+#: motion-weighted objective 0.95 (docs/benchmarks.md, "Perception gain": measured with the surrogate).
+DEFAULT_ALPHA = {("eq2", "oracle"): 0.75, ("eq2", "neural"): 0.8, ("motion", "oracle"): 0.95,
+                 ("motion", "neural"): 0.95}
 
 
 def default_checkpoint() -> Path:
@@ -68,12 +69,12 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
         path = config_dir() / "planners" / "psprm.yaml"
         settings = PSPRMSettings.from_yaml(path, robot=robot.name) if path.is_file() else PSPRMSettings()
     alpha = overrides.pop("alpha", None)
+    settings = dataclasses.replace(settings, **{k: v for k, v in overrides.items() if v is not None})
     settings = dataclasses.replace(settings, constraint=constraint,
-                                   alpha=DEFAULT_ALPHA[kind] if alpha is None else alpha,
+                                   alpha=DEFAULT_ALPHA.get((settings.objective, kind), 0.8) if alpha is None else alpha,
                                    lazy_edges=settings.lazy_edges or kind == "oracle",
                                    # biased sampling scores thousands of extra samples: only with a cheap scorer
-                                   biased_share=settings.biased_share if kind != "oracle" else 0.0,
-                                   **{k: v for k, v in overrides.items() if v is not None})
+                                   biased_share=settings.biased_share if kind != "oracle" else 0.0)
     scorer = make_scorer(kind, scene, targets, robot.config.intrinsics, checkpoint, multi_mode)
     focus = np.mean([scene.target(t).center for t in targets], axis=0)
     planner = PSPRM(robot, scene, scorer, focus, settings, device=device)
