@@ -2,7 +2,8 @@
 # Check the tensor pipeline (FK, collision, neural scoring with occlusion, a PS-PRM build and query) on a torch
 # device against pybullet and the CPU: `bash scripts/check_device.sh` (cuda), `bash scripts/check_device.sh cuda:1`,
 # `bash scripts/check_device.sh cpu --torch-path` (the torch path on this CPU, compiled kernels off).
-# Prints one JSON line; exit 0 = every check passed, 1 = a check failed, 2 = the device is not available.
+# Prints one JSON line (CPU and device timings side by side); exit 0 = every check passed, or no CUDA here (it says
+# so: "checked": false), 1 = a check failed.
 # The project's environment carries a CPU build of torch; on a CUDA machine install the CUDA build of the same torch
 # version into .venv first (the requirements pin the version, the build is the machine's choice).
 set -euo pipefail
