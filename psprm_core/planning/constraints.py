@@ -50,12 +50,18 @@ class VisibilityConstraint:
         Frustum model: keep this much room around the point (e.g. the target's radius).
     min_distance : float
         The target must be at least this far in front of the camera (default: near plane + 0.2 m).
+    kinematics : object with ``camera_poses(q)`` and ``camera_jacobian(q)``, optional
+        Where the camera pose and its Jacobian come from: the robot model (default; small CPU batches then run the
+        compiled iteration) or e.g. :class:`~psprm_core.kinematics_pk.PKCameraKinematics` (always the torch
+        iteration).
     """
 
-    def __init__(self, robot: RobotModel, kind: str, target, margin: float = 0.0, min_distance: float | None = None):
+    def __init__(self, robot: RobotModel, kind: str, target, margin: float = 0.0, min_distance: float | None = None,
+                 kinematics=None):
         if kind not in ("line", "frustum"):
             raise ValueError(f"unknown visibility model '{kind}' (line or frustum)")
         self.robot = robot
+        self.kin = robot if kinematics is None else kinematics
         self.kind = kind
         self.intr: CameraIntrinsics = robot.config.intrinsics
         self.target = torch.as_tensor(target, dtype=torch.float64).reshape(3)
@@ -71,7 +77,7 @@ class VisibilityConstraint:
 
     def target_in_camera(self, q: torch.Tensor) -> torch.Tensor:
         """Target position in the optical frame (B, 3)."""
-        T = self.robot.camera_poses(q)
+        T = self.kin.camera_poses(q)
         p = self.target.to(q.device, q.dtype)
         return ((p - T[:, :3, 3]).unsqueeze(1) @ T[:, :3, :3]).squeeze(1)
 
@@ -105,7 +111,7 @@ class VisibilityConstraint:
         The line residual's third row (how far the target is short of the minimum distance) and the frustum
         residual (the largest face distance, Eq. of :meth:`frustum_distance`) differentiate where they are active
         and are flat elsewhere (the subgradient of the clamp / max)."""
-        T, W = self.robot.camera_jacobian(q)
+        T, W = self.kin.camera_jacobian(q)
         Rc, tc = T[:, :3, :3], T[:, :3, 3]
         p = self.target.to(q.device, q.dtype)
         pc = ((p - tc).unsqueeze(1) @ Rc).squeeze(1)
@@ -167,7 +173,7 @@ class VisibilityConstraint:
                                dtype=torch.long, device=q.device)
         if len(cols) == 0:
             return q.detach().clone(), self.error(q).detach() < settings.tolerance
-        if fastpath.applies(q):  # a few rows on the CPU: the same iteration, compiled
+        if self.kin is robot and fastpath.applies(q):  # a few rows on the CPU: the same iteration, compiled
             return fastpath.project(self, q, settings, lo, hi, cols.numpy())
         for _ in range(settings.max_iters):
             idx = torch.nonzero(active, as_tuple=True)[0]

@@ -123,6 +123,8 @@ class PSPRMSettings:
     heuristic: str = "auto"  # A* heuristic: hop (Eq. 3, the paper's) | distance (motion lower bound, for the motion
     # objective) | exact (cost-to-go from a compiled Dijkstra) | auto (hop for eq2, distance for motion)
     shortcut: bool = False  # shorten the found path where a direct motion is free, on the manifold and sees as well
+    kinematics: str = "native"  # camera FK + Jacobian of the Newton projection: native (the robot model; compiled
+    # kernels for small CPU batches) | pytorch_kinematics (psprm_core.kinematics_pk, always the torch path)
     shortcut_rounds: int = 2  # greedy shortcut passes over the path
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     smooth_timing: bool = True  # trajectories pass the knots of a base phase without stopping (timing.smooth)
@@ -178,6 +180,9 @@ class PSPRMSettings:
                                                    "auto)")
         if self.objective not in OBJECTIVES:
             raise ConfigError(source, "objective", f"unknown objective '{self.objective}' ({', '.join(OBJECTIVES)})")
+        if self.kinematics not in ("native", "pytorch_kinematics"):
+            raise ConfigError(source, "kinematics", f"unknown kinematics '{self.kinematics}' (native, "
+                                                    "pytorch_kinematics)")
         if self.sample_joints not in ("camera", "all"):
             raise ConfigError(source, "sample_joints", "must be 'camera' or 'all'")
         if not 0.0 <= self.alpha <= 1.0:
@@ -477,8 +482,13 @@ class PSPRM:
         self.motion = DiffDriveMotion(robot)
         self.checker = checker or CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace,
                                                    device=self.device)
+        kin = None
+        if settings.kinematics == "pytorch_kinematics":
+            from ..kinematics_pk import PKCameraKinematics
+
+            kin = PKCameraKinematics(robot, device=self.device)
         self.constraint = VisibilityConstraint(robot, settings.constraint, focus, margin=settings.frustum_margin,
-                                               min_distance=settings.min_view_distance)
+                                               min_distance=settings.min_view_distance, kinematics=kin)
         mask = camera_joint_mask(robot)
         mask[: robot.base_dof] = False
         self.track_cols = np.nonzero(mask)[0]  # joints that re-aim the camera along an edge
