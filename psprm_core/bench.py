@@ -148,7 +148,7 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
     PsprmError
         ``placements`` < 1, or a target of a group with fewer placements.
     """
-    from .benchmarks import random_problems
+    from .problems import random_problems
     from .collision import CollisionChecker
     from .errors import PsprmError
 
@@ -199,7 +199,7 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
         Unknown problem (the known names are listed), or a start or goal in collision.
     """
     from .baselines.base import aim_camera
-    from .benchmarks import aim_joints
+    from .problems import aim_joints
     from .collision import CollisionChecker
     from .errors import PsprmError
     from .planning.constraints import VisibilityConstraint

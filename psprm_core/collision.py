@@ -26,7 +26,8 @@ import numpy as np
 import torch
 
 from . import fastpath
-from .robot import RobotModel
+from .geometry import obb_overlap
+from .robot import RobotModel, load_acm
 
 log = logging.getLogger(__name__)
 
@@ -74,31 +75,6 @@ def point_box_sqdist(points: torch.Tensor, box_center: torch.Tensor, box_rot: to
     return (d * d).sum(-1)
 
 
-def obb_overlap(ca: torch.Tensor, Ra: torch.Tensor, ha: torch.Tensor, cb: torch.Tensor, Rb: torch.Tensor,
-                hb: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
-    """Separating-axis test for pairs of oriented boxes: (n,3), (n,3,3), (n,3) each -> overlap flags (n,).
-
-    Axes: the 3 face normals of A, the 3 of B, and the 9 cross products (Gottschalk, Lin, Manocha 1996).
-    ``eps`` is added to |R| to stay robust for near-parallel edges (conservative: may report touching boxes).
-    """
-    R = Ra.transpose(-1, -2) @ Rb  # B's axes in A's frame
-    t = (Ra.transpose(-1, -2) @ (cb - ca).unsqueeze(-1)).squeeze(-1)
-    AR = R.abs() + eps
-    sep = (t.abs() > ha + (AR * hb.unsqueeze(-2)).sum(-1)).any(-1)  # A's axes
-    tb = (t.unsqueeze(-2) @ R).squeeze(-2)
-    sep |= (tb.abs() > (AR * ha.unsqueeze(-1)).sum(-2) + hb).any(-1)  # B's axes
-    # the 9 edge-edge axes A_i x B_j at once, as (n, 3, 3) grids over (i, j); rolling an axis by -1 / -2 gives the
-    # entries at i+1 / i+2 (mod 3), e.g. R.roll(-1, 1)[:, i, j] = R[:, i+1, j]
-    def nxt(x, k, dim):
-        return x.roll(-k, dims=dim)
-
-    lhs = nxt(t, 2, 1).unsqueeze(-1) * nxt(R, 1, 1) - nxt(t, 1, 1).unsqueeze(-1) * nxt(R, 2, 1)
-    ra = nxt(ha, 1, 1).unsqueeze(-1) * nxt(AR, 2, 1) + nxt(ha, 2, 1).unsqueeze(-1) * nxt(AR, 1, 1)
-    rb = nxt(hb, 1, 1).unsqueeze(-2) * nxt(AR, 2, 2) + nxt(hb, 2, 1).unsqueeze(-2) * nxt(AR, 1, 2)
-    sep |= (lhs.abs() > ra + rb).flatten(1).any(-1)
-    return ~sep
-
-
 class CollisionChecker:
     """Batched validity checker for one robot in one scene.
 
@@ -118,7 +94,6 @@ class CollisionChecker:
 
     def __init__(self, robot: RobotModel, boxes: Iterable = (), allowed_pairs: Optional[set] = None,
                  workspace: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32, chunk: int = 16384):
-        from .reference import load_acm
 
         self.robot = robot
         self.device = torch.device(device)

@@ -285,7 +285,7 @@ def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
 # ---------------------------------------------------------------------------------------------- perception
 def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
     """Occlusion scores (B,) of camera positions (B, 3), as :meth:`OcclusionChecker.score` (Alg. 2, line 5)."""
-    from .perception.occlusion import _EPS_DIR
+    from .geometry import EPS_DIR as _EPS_DIR
 
     _, pts_local, centre_local, fat_half, c, R, h = _occlusion_arrays(occ)
     if len(c) == 0 or pts_local.shape[0] == 0:
@@ -439,7 +439,7 @@ def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
     """The surrogate and occlusion arrays of a single-target neural scorer (``NeuralScorer``: ``model``,
     ``target_pose``, ``class_name``, ``occ``, ``tau``) for :func:`check_score_knots` of cameras in ``dtype``, or None
     when the compiled scoring does not apply (another scorer, a model off the CPU or not float32)."""
-    from .perception.occlusion import _EPS_DIR
+    from .geometry import EPS_DIR as _EPS_DIR
 
     model = getattr(scorer, "model", None)
     if getattr(scorer, "name", None) != "neural" or model is None or getattr(model, "device", None) is None or \

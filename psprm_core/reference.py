@@ -17,7 +17,7 @@ import torch
 
 from .geometry import matrix_to_quat
 from .paths import cache_dir
-from .robot import RobotModel, image_roll
+from .robot import RobotModel, image_roll, load_acm
 from .urdf import resolve_mesh
 from .yamlio import load_yaml
 
@@ -55,19 +55,6 @@ def pybullet_urdf(robot: RobotModel) -> Path:
     tree.write(tmp)
     tmp.replace(out)
     return out
-
-
-def load_acm(robot: RobotModel) -> set:
-    """Allowed self-collision link pairs (frozensets) from the robot's ACM file; empty set if none is configured."""
-    cfg = robot.config.collision
-    if not cfg.acm_file:
-        return set()
-    path = Path(robot.config.source).parent / cfg.acm_file
-    if not path.is_file():
-        raise FileNotFoundError(f"{robot.config.source}: field 'collision.acm_file': {path} not found "
-                                f"(generate it with `psprm robot acm --robot {robot.name}`)")
-    data = load_yaml(path)
-    return {frozenset(p) for p in data.get("allowed_pairs", [])}
 
 
 class PybulletWorld:

@@ -338,6 +338,19 @@ class ElementModel:
     half: np.ndarray  # (E, 3) half extents (padding included)
 
 
+def load_acm(robot: RobotModel) -> set:
+    """Allowed self-collision link pairs (frozensets) from the robot's ACM file; empty set if none is configured."""
+    cfg = robot.config.collision
+    if not cfg.acm_file:
+        return set()
+    path = Path(robot.config.source).parent / cfg.acm_file
+    if not path.is_file():
+        raise ConfigError(robot.config.source, "collision.acm_file",
+                          f"{path} not found (generate it with `psprm robot acm --robot {robot.name}`)")
+    data = load_yaml(path)
+    return {frozenset(p) for p in data.get("allowed_pairs", [])}
+
+
 class RobotModel:
     """Kinematic + collision model of one robot. Build with :meth:`load`; cheap to query, heavy to build.
 

@@ -322,7 +322,7 @@ def _check_placements(path: str, targets: tuple, obstacles: tuple, workspace: np
         return  # nothing to check: no torch import for the common scene
     import torch
 
-    from .collision import obb_overlap
+    from .geometry import obb_overlap
 
     others_all = list(obstacles) + [t.as_box() for t in targets]
     lo, hi = workspace[:, 0] - 0.5, workspace[:, 1] + 0.5

@@ -134,7 +134,7 @@ def test_problems_are_aimed_collision_free_and_spread(home):
         assert (ctx.view_error(q, "line") < 0.03).all()  # pan/tilt face the target
     again = make_problems(scene, robot, [["tv"], ["potted_plant"]], 4, seed=3)
     assert all(np.allclose(a["start"], b["start"]) for a, b in zip(probs, again))
-    from psprm_core.benchmarks import can_move_away
+    from psprm_core.problems import can_move_away
 
     ends = torch.as_tensor(np.stack([p[k] for p in probs for k in ("start", "goal")]))
     assert can_move_away(robot, ctx.checker, ends, robot.default_configuration()).all()  # no boxed-in ends
@@ -191,7 +191,7 @@ def test_bench_builds_each_planner_at_each_placement(tmp_path, monkeypatch):
 def test_boxed_in_end_is_recognised(home):
     """Between the suitcase and the east wall, facing the suitcase: collision-free, but every turn or drive out of
     it collides (a home bench problem once started there; no planner solved it)."""
-    from psprm_core.benchmarks import can_move_away
+    from psprm_core.problems import can_move_away
     from psprm_core.collision import CollisionChecker
 
     scene, robot = home

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from psprm_core import fastpath
-from psprm_core.benchmarks import random_problems
+from psprm_core.problems import random_problems
 from psprm_core.collision import CollisionChecker
 from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer

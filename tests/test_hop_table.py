@@ -10,7 +10,7 @@ import pytest
 from scipy.sparse import csr_array
 from scipy.sparse.csgraph import shortest_path
 
-from psprm_core.benchmarks import random_problems
+from psprm_core.problems import random_problems
 from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning import graph_search, search_kernels

@@ -43,7 +43,8 @@ from ..collision import CollisionChecker
 from ..errors import ConfigError
 from ..motion import DiffDriveMotion
 from ..planning.constraints import ProjectionSettings, VisibilityConstraint
-from ..planning.psprm import PlanResult, camera_joint_mask
+from ..planning.constraints import camera_joint_mask
+from ..planning.psprm import PlanResult
 from ..robot import RobotModel
 from ..scene import Scene
 from ..yamlio import Fields, load_yaml

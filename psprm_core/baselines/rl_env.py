@@ -89,7 +89,7 @@ class ActivePerceptionEnv(gym.Env):
                  seed: int = 0, context=None):
         from ..planning.factory import make_scorer
         from .base import PlanningContext
-        from .rl_ppo import PPOSettings
+        from .rl_settings import PPOSettings
 
         super().__init__()
         self.settings = settings if settings is not None else PPOSettings()
@@ -243,7 +243,7 @@ class ActivePerceptionEnv(gym.Env):
     def problems(self) -> list:
         """The pool of (start, goal) pairs episodes are drawn from (generated on first use)."""
         if self._problems is None:
-            from ..benchmarks import random_problems
+            from ..problems import random_problems
 
             s = self.settings
             rng = np.random.default_rng(self._seed + 7919)

@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from .. import fastpath
+from ..geometry import EPS_DIR as _EPS_DIR
 from ..geometry import quat_to_matrix
 from ..scene import Box, Scene, Target
 
@@ -56,7 +57,6 @@ log = logging.getLogger(__name__)
 DEFAULT_TAU = 0.5
 #: Default number of ray-box pairs processed per chunk (bounds peak memory: ~40 bytes x this x a few temporaries).
 DEFAULT_CHUNK_ELEMENTS = 1 << 18
-_EPS_DIR = 1e-12
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -29,6 +29,19 @@ from ..geometry import wrap_angle
 from ..robot import RobotModel
 
 
+def camera_joint_mask(robot: RobotModel) -> np.ndarray:
+    """Planning joints that move the camera (base joints included)."""
+    chain, b = set(), robot.camera_body
+    while b > 0:
+        chain.add(b)
+        b = robot.parent_body[b]
+    mask = np.zeros(robot.dof, dtype=bool)
+    mask[: robot.base_dof] = True
+    for b in chain:
+        mask |= robot.drive_matrix[:, b] != 0
+    return mask
+
+
 @dataclass(frozen=True)
 class ProjectionSettings:
     tolerance: float = 0.02  # line: metres off the optical axis; frustum: metres outside the frustum
@@ -145,7 +158,6 @@ class VisibilityConstraint:
 
     def _camera_joints(self) -> np.ndarray:
         """Planning joints that move the camera (the only ones the constraint depends on)."""
-        from .psprm import camera_joint_mask
 
         return camera_joint_mask(self.robot)
 

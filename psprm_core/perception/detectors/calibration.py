@@ -1,7 +1,6 @@
 """Measure detector confidences on rendered views and choose each detector's "detected" threshold.
 
-Run ``psprm calibrate-detectors`` (or ``python -m psprm_core.perception.detectors.calibration``; a few minutes on 2
-cores) to reproduce the tables in ``docs/detectors.md``.
+Run ``psprm calibrate-detectors`` (a few minutes on 2 cores) to reproduce the tables in ``docs/detectors.md``.
 
 Method. For each appearance a single target stands alone at 1 m height (camera at the target's height, looking at
 it). *Positive* views should be detected: frontal and up to 40 deg off-axis, at the case's four distances, unoccluded. *Negative*
@@ -215,11 +214,3 @@ def report_lines(results: dict) -> list:
             lines.append(f"POOLED {name[len('pooled:'):]}: threshold {r['threshold']:.2f}  TPR {r['tpr']:.2f}  "
                          f"FPR {r['fpr']:.2f}  strict {r['strict']:.2f}  (n_pos={r['n_pos']}, n_neg={r['n_neg']})")
     return lines
-
-
-if __name__ == "__main__":  # pragma: no cover - the same as ``psprm calibrate-detectors``
-    import sys
-
-    from ...cli import main
-
-    raise SystemExit(main(["calibrate-detectors", *sys.argv[1:]]))

@@ -1,0 +1,97 @@
+"""The library's import structure: no import cycle inside ``psprm_core`` (counting the imports inside functions,
+which Python resolves late but a reader follows all the same), and the planning library never imports the
+evaluation modules (bench, perf commands, simulation, plots, the pybullet reference, the CLI). Read from the source
+files with ``ast``, not from what happens to be imported."""
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1] / "psprm_core"
+
+#: evaluation and tooling: they may import the library, never the other way round
+EVALUATION = {"psprm_core.bench", "psprm_core.benchmarks", "psprm_core.headroom", "psprm_core.scaling",
+              "psprm_core.simulation", "psprm_core.viz", "psprm_core.device_check", "psprm_core.reference",
+              "psprm_core.cli"}
+
+
+def _is_evaluation(m: str) -> bool:
+    return m in EVALUATION or m == "psprm_core.commands" or m.startswith("psprm_core.commands.")
+
+
+def _modules() -> dict:
+    out = {}
+    for p in ROOT.rglob("*.py"):
+        parts = list(p.relative_to(ROOT.parent).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        out[".".join(parts)] = p
+    return out
+
+
+def _graph() -> dict:
+    mods = _modules()
+    G = {m: set() for m in mods}
+    for m, p in mods.items():
+        package = m if p.name == "__init__.py" else m.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(p.read_text())):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = package.split(".")[: len(package.split(".")) - node.level + 1]
+                    mod = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    mod = node.module or ""
+                names = [mod] + [f"{mod}.{a.name}" for a in node.names]
+            G[m].update(n for n in names if n in mods and n != m)
+    return G
+
+
+def _cycles(G: dict) -> list:
+    index, low, stack, on, out, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in G[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(G):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_graph_reader_finds_a_planted_cycle():
+    G = _graph()
+    assert "psprm_core.planning.psprm" in G["psprm_core.planning.factory"]  # it reads real edges
+    G = {k: set(v) for k, v in G.items()}
+    G["psprm_core.geometry"].add("psprm_core.robot")  # robot imports geometry: a planted back edge
+    assert any("psprm_core.geometry" in c and "psprm_core.robot" in c for c in _cycles(G))
+
+
+def test_psprm_core_has_no_import_cycle():
+    assert _cycles(_graph()) == []
+
+
+def test_the_library_never_imports_the_evaluation_modules():
+    G = _graph()
+    bad = {m: sorted(t for t in ts if _is_evaluation(t)) for m, ts in G.items() if not _is_evaluation(m)}
+    assert {m: v for m, v in bad.items() if v} == {}
