@@ -581,17 +581,61 @@ def test_goal_hysteresis_needs_the_margin(replanner):
                 return cand[a][1], cand[ok[0]][1]
         raise AssertionError(f"no goal pair {lo}-{hi} cheaper among {len(cand)} roadmap goals")
 
+    commit = rp.settings.goal_commit_s
     for lo, hi, switch in ((0.02, 0.5 * margin, False), (2.0 * margin, 0.9, True)):
         current, other = pair(lo, hi)
         rp.set_robot_state(q)
         rp.set_goals(current)
-        first = rp.replan()
+        first = rp.replan(now=1000.0)
         assert first.success and same_config(first.dense[-1], current)
         rp.set_goals(np.stack([other, current]))
-        res = rp.replan()
+        res = rp.replan(now=1000.0 + commit + 1.0)  # after the goal's commitment: the margin decides
         assert res.success, res.reason
         chosen = other if switch else current
         assert same_config(res.dense[-1], chosen), f"gap {lo}-{hi} of the current cost: switch expected = {switch}"
+
+
+def test_a_chosen_goal_is_kept_for_the_commitment_unless_it_becomes_unreachable(replanner, world):
+    """Within ``goal_commit_s`` of choosing a goal, a much cheaper other goal does not take over (the test's own
+    single-goal plans say which is cheaper); after it, it does. A committed goal that the test blocks with an
+    obstacle (a box the test places on it) is given up at once, and the path returned is free of that box."""
+    scene, robot = world
+    rp = replanner
+    p = rp.planner
+    commit = rp.settings.goal_commit_s
+    assert commit > 0
+    q = rp.q
+    rng = np.random.default_rng(5)
+    ids = rng.choice(p.roadmap_node_ids(), 60, replace=False)
+    cand = [(float(r.cost), p.graph.configs[i].copy()) for i in ids
+            for r in [p.plan(q, p.graph.configs[i], timing=False)] if r.success]
+    cand.sort(key=lambda c: c[0])
+    cheap, dear = cand[0][1], cand[-1][1]
+    assert cand[-1][0] > 2 * cand[0][0]
+    rp.set_robot_state(q)
+    rp.set_goals(dear)
+    assert same_config(rp.replan(now=0.0).dense[-1], dear)
+    rp.set_goals(np.stack([cheap, dear]))
+    assert same_config(rp.replan(now=0.5 * commit).dense[-1], dear)  # committed
+    assert same_config(rp.replan(now=commit + 0.5).dense[-1], cheap)  # commitment over: the cheaper one
+    # committed to ``dear`` again, then ``dear`` is blocked: given up within the commitment
+    rp.set_goals(dear)
+    rp.replan(now=100.0)
+    rp.set_goals(np.stack([cheap, dear]))
+    base = dear[:2]
+    blocker = next(b for b in rp.scene.obstacles if b.name == "chair")
+    rp.update_obstacle("chair", [base[0], base[1], blocker.center[2]], blocker.quat)
+    res = rp.replan(now=100.0 + 0.2 * commit)
+    assert res.success, res.reason
+    assert same_config(res.dense[-1], cheap)
+    moved = rp.scene.obstacle("chair")
+    from psprm_core.reference import PybulletWorld
+
+    w = PybulletWorld(robot, [b for b in scene.collision_boxes() if b.name != "chair"] + [moved])
+    try:
+        assert not w.in_collision(res.dense).any()
+    finally:
+        w.close()
 
 
 def test_replan_runs_with_one_intra_op_thread(replanner, world, monkeypatch):

@@ -36,7 +36,7 @@ from ..motion import DiffDriveMotion
 from ..robot import RobotModel
 from ..scene import Scene
 from ..yamlio import Fields, load_yaml
-from .constraints import ProjectionSettings, VisibilityConstraint
+from .constraints import ProjectionSettings, VisibilityConstraint, camera_joint_mask
 from . import search_kernels
 from .graph import Roadmap
 from .graph_search import (OBJECTIVES, EdgeCheck, astar, edge_perception, edge_weight, lazy_astar, min_edge_cost,
@@ -443,19 +443,6 @@ class KnotStore:
     def get(self, ids: np.ndarray) -> tuple:
         idx = torch.as_tensor(np.asarray(ids, dtype=np.int64), device=self.data.device)
         return self.data[idx], self.interior[idx]
-
-
-def camera_joint_mask(robot: RobotModel) -> np.ndarray:
-    """Planning joints that move the camera (base joints included)."""
-    chain, b = set(), robot.camera_body
-    while b > 0:
-        chain.add(b)
-        b = robot.parent_body[b]
-    mask = np.zeros(robot.dof, dtype=bool)
-    mask[: robot.base_dof] = True
-    for b in chain:
-        mask |= robot.drive_matrix[:, b] != 0
-    return mask
 
 
 class PSPRM:

@@ -60,6 +60,9 @@ class ReplanSettings:
     score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
     goal_switch_margin: float = 0.2  # switch to another goal only when it is cheaper by this fraction of the current
     # plan's cost (a terminal cost on the other goals, one search)
+    goal_commit_s: float = 10.0  # keep a chosen goal this long (s, the caller's clock) before another may replace it;
+    # earlier only when no path reaches it (0: off). A person turning back and forth makes the cheapest goal alternate
+    # faster than the robot can drive to either
     min_interval_s: float = 1.0  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
@@ -155,6 +158,7 @@ class Replanner:
         self._progress = 0  # index into result.dense of the robot's position along the current path
         self._plan_score = float("nan")  # normalised predicted score of the current plan
         self._last_plan_time = -math.inf
+        self._goal_since = -math.inf  # when the current plan's goal was chosen (the clock of replan's ``now``)
         self._last_failed = False
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
         self.history: list = []  # one dict per replan: reasons, timings, success
@@ -329,7 +333,7 @@ class Replanner:
             for t in self.scene.targets:
                 self._target_ref[t.name] = (t.center.copy(), t.quat.copy())
             self._score_stale = False
-        res = p.plan(self.q, self.goals, goal_costs=self._goal_costs())
+        res = self._plan_goals(self._last_plan_time)
         rounds = 0
         while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds
                and self._repaired_nodes < self.settings.repair_budget_nodes):
@@ -341,7 +345,7 @@ class Replanner:
                              rng=rng)
                 self._repaired_nodes += got["added_nodes"]
                 info.setdefault("repair", []).append(got)
-            res = p.plan(self.q, self.goals, goal_costs=self._goal_costs())
+            res = self._plan_goals(self._last_plan_time)
         if res.success and res.dense is not None:
             bad = p.checker.check(torch.as_tensor(res.dense, dtype=torch.float32)).cpu().numpy()
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
@@ -357,7 +361,12 @@ class Replanner:
         self._last_failed = not res.success
         if res.success:
             self.result, self._progress = res, 0
-            self._goal_cfg = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
+            new_goal = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
+            old_goal = getattr(self, "_goal_cfg", None)
+            if new_goal is None or old_goal is None or old_goal.shape != new_goal.shape or \
+                    np.abs(old_goal - new_goal).max() >= 1e-6:
+                self._goal_since = self._last_plan_time
+            self._goal_cfg = new_goal
             self._plan_score = plan_score
             self._pending.clear()
             self._moved_obstacles.clear()
@@ -366,6 +375,29 @@ class Replanner:
             if self.result is not None and self.remaining_path_collides():
                 self.result = None  # the old plan is no longer safe: the caller must stop
         return res
+
+    def _committed_goal(self, now: float) -> Optional[np.ndarray]:
+        """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s``), else None."""
+        if (self.settings.goal_commit_s <= 0 or self.result is None or self.goals is None or len(self.goals) < 2
+                or now - self._goal_since >= self.settings.goal_commit_s):
+            return None
+        cur = getattr(self, "_goal_cfg", None)
+        if cur is None or cur.shape != self.goals.shape[1:]:
+            return None
+        same = np.abs(self.goals - cur).max(1) < 1e-6
+        return same if same.any() else None
+
+    def _plan_goals(self, now: float) -> PlanResult:
+        """One search over the candidate goals: only the committed goal while its commitment lasts (all of them if no
+        path reaches it), otherwise all with the switching margin (:meth:`_goal_costs`)."""
+        p = self.planner
+        keep = self._committed_goal(now)
+        if keep is not None:
+            res = p.plan(self.q, self.goals[keep])
+            if res.success:
+                res.goal_index = int(np.nonzero(keep)[0][res.goal_index]) if res.goal_index >= 0 else -1
+                return res
+        return p.plan(self.q, self.goals, goal_costs=self._goal_costs())
 
     def _goal_costs(self) -> Optional[np.ndarray]:
         """Goal hysteresis as terminal costs (one search): with several candidate goals, every goal but the current
