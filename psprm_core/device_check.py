@@ -109,7 +109,7 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
     are compared by cost, not node by node)."""
     import torch
 
-    from .benchmarks import random_problems
+    from .problems import random_problems
     from .collision import CollisionChecker
     from .planning.factory import make_planner, problem_configurations
     from .planning.replanner import Replanner, ReplanSettings
@@ -136,7 +136,10 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
     def judge(res, goals):
         dense = np.asarray(res.dense)
         out["path_collisions_pybullet"] += int(world.in_collision(dense).sum())
-        err = float(np.min(np.linalg.norm(np.atleast_2d(goals) - dense[-1], axis=1)))
+        diff = np.atleast_2d(goals) - dense[-1]
+        if robot.mobile:  # base heading: the same pose a turn apart
+            diff[:, 2] = (diff[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        err = float(np.min(np.linalg.norm(diff, axis=1)))
         out["path_goal_error_max"] = max(out["path_goal_error_max"], err)
 
     for a, b in probs:
