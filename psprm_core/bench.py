@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+from .errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -470,7 +471,7 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
     rows, paths, prepares = [], [], []
     placement = {int(p.get("placement", 0)) for p in problems}
     if len(placement) > 1:
-        raise ValueError(f"one task, one placement: got {sorted(placement)}")
+        raise InputError(f"one task, one placement: got {sorted(placement)}")
     placement = placement.pop() if placement else 0
     where = (cfg["scene"], tuple(targets), placement)
     scene, robot, motion = cache.get("scene", where, lambda: _placed_scene(*where))

@@ -11,6 +11,23 @@ class PsprmError(Exception):
     """Base class of all errors psprm raises for bad input or impossible requests."""
 
 
+class InputError(PsprmError, ValueError):
+    """A value passed to the library is unusable (wrong shape, out of range, unknown name); also a ``ValueError``,
+    so callers that catch that keep working."""
+
+
+class UnknownNameError(PsprmError, KeyError):
+    """A name that is not there: a scene's target, obstacle, goal region or problem, a robot's joint, a surrogate's
+    class. Also a ``KeyError``; its message is printed as written (not quoted as a key)."""
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class OutOfRangeError(PsprmError, IndexError):
+    """An index outside what exists (a target's placement, a class index). Also an ``IndexError``."""
+
+
 class ConfigError(PsprmError):
     """A configuration file (robot, scene, planner settings) is malformed or names something unknown.
 

@@ -50,6 +50,7 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 from multiprocessing.connection import wait as wait_ready
 from typing import Any, Callable, Hashable, Iterable, Iterator, Optional
+from .errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -581,7 +582,7 @@ class Executor:
         tasks = list(tasks)
         keys = [t.key for t in tasks]
         if len(set(keys)) != len(keys):
-            raise ValueError("task keys must be unique within a run")
+            raise InputError("task keys must be unique within a run")
         if not tasks:
             return
         self._start(len(tasks))

@@ -26,7 +26,7 @@ import torch
 
 from . import fastpath
 from .camera import CameraIntrinsics
-from .errors import ConfigError, RobotModelError
+from .errors import ConfigError, InputError, RobotModelError, UnknownNameError
 from .geometry import axis_angle_matrix_torch, make_transform, rpy_to_matrix
 from .paths import cache_dir, resolve_named
 from .urdf import Urdf, parse_urdf
@@ -309,7 +309,7 @@ def _geom_local_box(geom) -> tuple:
             raise RobotModelError(f"cannot load collision mesh {geom.mesh}: {exc}") from None
         v = np.asarray(mesh.vertices) * geom.scale
         return v.min(0), v.max(0)
-    raise ValueError(geom.kind)
+    raise InputError(geom.kind)
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -484,7 +484,7 @@ class RobotModel:
         q = self.default_configuration()
         for k, v in values.items():
             if k not in self.joint_names:
-                raise KeyError(f"robot '{self.name}' has no planning joint '{k}' (joints: {', '.join(self.joint_names)})")
+                raise UnknownNameError(f"robot '{self.name}' has no planning joint '{k}' (joints: {', '.join(self.joint_names)})")
             q[self.joint_names.index(k)] = v
         return q
 
@@ -583,7 +583,7 @@ class RobotModel:
     def _poses(self, q: torch.Tensor, only: Optional[list] = None) -> tuple:
         """Lists of world rotations (B, 3, 3) and translations (B, 3) per body (None outside ``only``)."""
         if q.dim() != 2 or q.shape[1] != self.dof:
-            raise ValueError(f"expected q of shape (B, {self.dof}), got {tuple(q.shape)}")
+            raise InputError(f"expected q of shape (B, {self.dof}), got {tuple(q.shape)}")
         T = self.tensors(q.device, q.dtype)
         B = q.shape[0]
         if self.mobile:

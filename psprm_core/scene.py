@@ -14,7 +14,7 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import ConfigError
+from .errors import ConfigError, OutOfRangeError, UnknownNameError
 from .geometry import quat_to_matrix, yaw_to_quat
 from .yamlio import Fields, load_yaml
 
@@ -114,7 +114,7 @@ class Target:
             Unknown placement (the number of placements is given).
         """
         if not 0 <= placement < self.n_placements:
-            raise IndexError(f"target '{self.name}' has {self.n_placements} placement(s) (0..{self.n_placements - 1}), "
+            raise OutOfRangeError(f"target '{self.name}' has {self.n_placements} placement(s) (0..{self.n_placements - 1}), "
                              f"not {placement}")
         if placement == 0:
             return self.center, self.quat
@@ -183,7 +183,7 @@ class Scene:
         for t in self.targets:
             if t.name == name:
                 return t
-        raise KeyError(f"scene '{self.name}' has no target '{name}' (targets: {', '.join(self.target_names)})")
+        raise UnknownNameError(f"scene '{self.name}' has no target '{name}' (targets: {', '.join(self.target_names)})")
 
     @property
     def target_names(self) -> list:
@@ -193,19 +193,19 @@ class Scene:
         for b in self.obstacles:
             if b.name == name:
                 return b
-        raise KeyError(f"scene '{self.name}' has no obstacle '{name}'")
+        raise UnknownNameError(f"scene '{self.name}' has no obstacle '{name}'")
 
     def goal(self, name: str) -> GoalRegion:
         for g in self.goals:
             if g.name == name:
                 return g
-        raise KeyError(f"scene '{self.name}' has no goal region '{name}'")
+        raise UnknownNameError(f"scene '{self.name}' has no goal region '{name}'")
 
     def problem(self, name: str) -> Problem:
         for p in self.problems:
             if p.name == name:
                 return p
-        raise KeyError(f"scene '{self.name}' has no problem '{name}'")
+        raise UnknownNameError(f"scene '{self.name}' has no problem '{name}'")
 
     def collision_boxes(self) -> list:
         """All boxes the robot must not touch: obstacles plus targets flagged as obstacles."""

@@ -14,6 +14,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
+from .errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -242,7 +243,7 @@ def plot_spheres_top(ax, centers, radii, **style):
     c = np.asarray(centers, dtype=float).reshape(-1, np.shape(centers)[-1] if np.ndim(centers) > 1 else 3)
     r = np.broadcast_to(np.asarray(radii, dtype=float), (len(c),))
     if not np.all(np.isfinite(c[:, :2])) or not np.all(np.isfinite(r)):
-        raise ValueError("sphere centres and radii must be finite")
+        raise InputError("sphere centres and radii must be finite")
     kw = dict(facecolor=(0.12, 0.47, 0.71, 0.15), edgecolor=(0.12, 0.47, 0.71, 0.8), linewidth=0.6, zorder=9)
     kw.update(style)
     coll = PatchCollection([Circle((float(x), float(y)), float(rr)) for (x, y), rr in zip(c[:, :2], r)], **kw)
@@ -274,7 +275,7 @@ def plot_roadmap_top(ax, nodes_xy, edges, **style):
     nodes = np.asarray(nodes_xy, dtype=float).reshape(-1, 2)
     e = np.asarray(edges, dtype=int).reshape(-1, 2)
     if len(e) and (e.min() < 0 or e.max() >= len(nodes)):
-        raise ValueError(f"edge indices must lie in [0, {len(nodes)}); got [{e.min()}, {e.max()}]")
+        raise InputError(f"edge indices must lie in [0, {len(nodes)}); got [{e.min()}, {e.max()}]")
     node_size = style.pop("node_size", 2.0)
     kw = dict(colors=[(0.45, 0.45, 0.45, 0.5)], linewidths=0.4, zorder=2.5)
     if "color" in style:
@@ -322,7 +323,7 @@ def plot_path_top(ax, xy, scores=None, cmap: str = "viridis", colorbar: bool = T
 
     p = np.asarray(xy, dtype=float).reshape(-1, 2)
     if len(p) == 0:
-        raise ValueError("empty path")
+        raise InputError("empty path")
     ends = dict(zorder=11, linestyle="none")
     if scores is None:
         (line,) = ax.plot(p[:, 0], p[:, 1], color="k", linewidth=linewidth, zorder=10, label=label)
@@ -330,9 +331,9 @@ def plot_path_top(ax, xy, scores=None, cmap: str = "viridis", colorbar: bool = T
     else:
         s = np.asarray(scores, dtype=float).reshape(-1)
         if len(s) != len(p):
-            raise ValueError(f"scores has {len(s)} entries for {len(p)} waypoints")
+            raise InputError(f"scores has {len(s)} entries for {len(p)} waypoints")
         if not np.all(np.isfinite(s)):
-            raise ValueError("scores must be finite")
+            raise InputError("scores must be finite")
         lo = min(0.0, float(s.min())) if vmin is None else vmin
         hi = max(1.0, float(s.max())) if vmax is None else vmax
         norm = Normalize(vmin=lo, vmax=hi)

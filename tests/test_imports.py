@@ -95,3 +95,33 @@ def test_the_library_never_imports_the_evaluation_modules():
     G = _graph()
     bad = {m: sorted(t for t in ts if _is_evaluation(t)) for m, ts in G.items() if not _is_evaluation(m)}
     assert {m: v for m, v in bad.items() if v} == {}
+
+
+def test_the_library_raises_its_own_errors_for_what_a_user_can_cause():
+    """No ``raise ValueError / KeyError / IndexError / FileNotFoundError`` left in psprm_core: a bad value, an unknown
+    name, an index out of range, a missing file are PsprmError subclasses (which are also the built-in type), so a
+    node or a CLI catches one family. Runtime failures of a computation (RuntimeError) are not input errors."""
+    banned = {"ValueError", "KeyError", "IndexError", "FileNotFoundError"}
+    found = []
+    for p in ROOT.rglob("*.py"):
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Raise) and isinstance(node.exc, ast.Call) and \
+                    isinstance(node.exc.func, ast.Name) and node.exc.func.id in banned:
+                found.append(f"{p.relative_to(ROOT.parent)}:{node.lineno} {node.exc.func.id}")
+    assert found == []
+
+
+def test_error_family_members_are_also_the_builtin_types():
+    from psprm_core.errors import InputError, OutOfRangeError, PsprmError, UnknownNameError
+    from psprm_core.paths import resolve_named
+    from psprm_core.scene import load_scene
+
+    scene = load_scene(resolve_named("scene", "home"))
+    try:
+        scene.target("mug")
+    except PsprmError as exc:
+        assert isinstance(exc, KeyError) and isinstance(exc, UnknownNameError)
+        assert str(exc).startswith("scene 'home' has no target 'mug'")  # printed as written, not quoted
+    else:
+        raise AssertionError("an unknown target raised nothing")
+    assert issubclass(InputError, ValueError) and issubclass(OutOfRangeError, IndexError)

@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from .. import fastpath
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -98,7 +99,7 @@ class ActivePerceptionEnv(gym.Env):
         self.scene, self.robot = scene, self.ctx.robot
         r = self.robot
         if not r.mobile:
-            raise ValueError(f"the RL baseline needs a differential-drive robot ('{r.name}' has a fixed base)")
+            raise InputError(f"the RL baseline needs a differential-drive robot ('{r.name}' has a fixed base)")
         self.targets = list(targets)
         self.scorer = make_scorer("geometric", scene, self.targets, r.config.intrinsics)
         self.focus = self.ctx.focus

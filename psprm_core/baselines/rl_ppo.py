@@ -37,6 +37,7 @@ import numpy as np
 import torch
 
 from .rl_settings import PPOSettings
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,7 @@ class PPOPlanner:
         from .base import PlanningContext, resolve_settings
 
         if scene is None or not targets:
-            raise ValueError("PPOPlanner needs a scene and at least one target")
+            raise InputError("PPOPlanner needs a scene and at least one target")
         self.name = name
         self.settings = settings = resolve_settings(PPOSettings, self.section, settings, seed=seed, **overrides)
         self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)

@@ -57,6 +57,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +183,7 @@ class TrajOptPlanner:
         from .base import PlanningContext, resolve_settings
 
         if scene is None or not targets:
-            raise ValueError("TrajOptPlanner needs a scene and at least one target")
+            raise InputError("TrajOptPlanner needs a scene and at least one target")
         self.name = name
         self.settings = settings = resolve_settings(TrajOptSettings, self.section, settings, seed=seed, **overrides)
         self.ctx = PlanningContext(scene, targets, robot=robot, resolution=settings.resolution)
@@ -503,7 +504,7 @@ class _Problem:
         self.cols = np.asarray(cols)
         self.nc = len(self.cols)
         if self.mobile and not np.array_equal(self.cols[:3], [0, 1, 2]):
-            raise ValueError("the base joints must be optimised")
+            raise InputError("the base joints must be optimised")
         self.start, self.goal = np.asarray(start, float), np.asarray(goal, float)
         c = self.cols
         w = np.ones(r.dof)

@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 from .bench import add_backend_arguments
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -258,4 +259,4 @@ def _scene_from_meta(meta: dict) -> str:
     desc = str(meta.get("scorer_description") or meta.get("scorer") or "")
     if "scene=" in desc:
         return Path(desc.split("scene=")[1].split(",")[0].rstrip(")")).stem  # resolved by name in config/scenes
-    raise ValueError("dataset metadata does not name its scene")
+    raise InputError("dataset metadata does not name its scene")

@@ -50,6 +50,7 @@ import numpy as np
 
 from ..camera import CameraIntrinsics
 from ..scene import Target
+from ..errors import ConfigError, InputError
 
 log = logging.getLogger(__name__)
 
@@ -94,18 +95,18 @@ class SamplingConfig:
         h0, h1 = self.camera_height
         a0, a1 = self.azimuth
         if not 0 < d0 <= d1:
-            raise ValueError(f"distance range must satisfy 0 < min <= max, got {self.distance}")
+            raise InputError(f"distance range must satisfy 0 < min <= max, got {self.distance}")
         if d0 < self.intrinsics.near or d1 > self.intrinsics.far:
-            raise ValueError(f"distance range {self.distance} must lie within the clipping range "
+            raise InputError(f"distance range {self.distance} must lie within the clipping range "
                              f"[{self.intrinsics.near}, {self.intrinsics.far}]")
         if not h0 <= h1:
-            raise ValueError(f"camera_height range must satisfy min <= max, got {self.camera_height}")
+            raise InputError(f"camera_height range must satisfy min <= max, got {self.camera_height}")
         if not a0 <= a1:
-            raise ValueError(f"azimuth range must satisfy min <= max, got {self.azimuth}")
+            raise InputError(f"azimuth range must satisfy min <= max, got {self.azimuth}")
         if not 0 <= self.image_margin < 0.5:
-            raise ValueError(f"image_margin must be in [0, 0.5), got {self.image_margin}")
+            raise InputError(f"image_margin must be in [0, 0.5), got {self.image_margin}")
         if not 0 <= self.roll_deg <= 180:
-            raise ValueError(f"roll_deg must be in [0, 180], got {self.roll_deg}")
+            raise InputError(f"roll_deg must be in [0, 180], got {self.roll_deg}")
 
     def to_dict(self) -> dict:
         return {"distance": [float(v) for v in self.distance], "camera_height": [float(v) for v in self.camera_height],
@@ -218,7 +219,7 @@ def sample_camera_poses(target: Target, n: int, config: SamplingConfig, rng: np.
     lo = np.maximum(config.camera_height[0], tz - reach)
     hi = np.minimum(config.camera_height[1], tz + reach)
     if np.any(lo > hi):
-        raise ValueError(f"target '{target.name}' at height {tz:.2f} m cannot be seen from camera heights "
+        raise InputError(f"target '{target.name}' at height {tz:.2f} m cannot be seen from camera heights "
                          f"{config.camera_height} at distances {config.distance}")
     h = lo + (hi - lo) * rng.uniform(size=n)
     u = rng.uniform(config.image_margin, 1 - config.image_margin, size=n) * intr.width
@@ -503,18 +504,18 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
         whether the dataset is complete.
     """
     if not targets:
-        raise ValueError("build_dataset needs at least one target")
+        raise InputError("build_dataset needs at least one target")
     names = [t.name for t in targets]
     if len(set(names)) != len(names):
-        raise ValueError(f"duplicate target names: {names}")
+        raise InputError(f"duplicate target names: {names}")
     if n_samples < 1 or chunk_size < 1:
-        raise ValueError("n_samples and chunk_size must be positive")
+        raise InputError("n_samples and chunk_size must be positive")
     if start_method == "fork":
-        raise ValueError("start_method 'fork' is not supported; use 'spawn' or 'forkserver'")
+        raise InputError("start_method 'fork' is not supported; use 'spawn' or 'forkserver'")
     if samples is not None:
         n_samples = int(len(samples["camera_poses"]))
         if n_samples < 1:
-            raise ValueError("samples holds no views")
+            raise InputError("samples holds no views")
         counts = [int(c) for c in np.bincount(samples["target_index"], minlength=len(targets))]
         sampling_dict = dict(source or {"source": "given poses"})
     else:
@@ -535,7 +536,7 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
         old_cfg = {k: old.get(k) for k in config}
         if old_cfg != json.loads(json.dumps(config)):
             diff = sorted(k for k in config if old_cfg.get(k) != json.loads(json.dumps(config[k])))
-            raise ValueError(f"{out_dir} holds a dataset with a different configuration (differs in: "
+            raise InputError(f"{out_dir} holds a dataset with a different configuration (differs in: "
                              f"{', '.join(diff)}); use another directory")
     description = _describe(scorer_factory, scorer_description)
     if meta_path.exists() and old.get("scorer") not in (None, description):
@@ -686,18 +687,18 @@ def load_dataset(path: Union[str, Path], allow_incomplete: bool = False) -> Perc
 
     Raises
     ------
-    FileNotFoundError
+    ConfigError
         No ``metadata.json`` in ``path``.
-    ValueError
+    InputError
         Chunks are missing and ``allow_incomplete`` is false.
     """
     path = Path(path)
     meta_path = path / METADATA_FILE
     if not meta_path.exists():
-        raise FileNotFoundError(f"no {METADATA_FILE} in {path}: not a perception dataset")
+        raise ConfigError(str(path), "", f"no {METADATA_FILE} in {path}: not a perception dataset")
     meta = json.loads(meta_path.read_text())
     if meta.get("format") != DATASET_FORMAT:
-        raise ValueError(f"{meta_path}: not a perception dataset (format={meta.get('format')!r})")
+        raise InputError(f"{meta_path}: not a perception dataset (format={meta.get('format')!r})")
     parts, missing = [], []
     for i in range(meta["n_chunks"]):
         p = _chunk_path(path, i)
@@ -707,10 +708,10 @@ def load_dataset(path: Union[str, Path], allow_incomplete: bool = False) -> Perc
         with np.load(p) as z:
             parts.append({k: z[k] for k in z.files})
     if missing and not allow_incomplete:
-        raise ValueError(f"dataset {path} is incomplete: {len(missing)} of {meta['n_chunks']} chunks missing "
+        raise InputError(f"dataset {path} is incomplete: {len(missing)} of {meta['n_chunks']} chunks missing "
                          f"(re-run the build to resume, or pass allow_incomplete=True)")
     if not parts:
-        raise ValueError(f"dataset {path} has no labelled chunks")
+        raise InputError(f"dataset {path} has no labelled chunks")
     cat = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     param_keys = ("distance", "azimuth", "height", "u", "v", "roll")
     return PerceptionDataset(camera_poses=cat["camera_poses"], target_index=cat["target_index"].astype(np.int64),
@@ -746,7 +747,7 @@ def split_by_viewpoint(azimuth: np.ndarray, distance: np.ndarray, fractions: Seq
     """
     fr = np.asarray(fractions, float)
     if fr.shape != (3,) or np.any(fr < 0) or fr.sum() <= 0:
-        raise ValueError(f"fractions must be three non-negative numbers, got {fractions}")
+        raise InputError(f"fractions must be three non-negative numbers, got {fractions}")
     fr = fr / fr.sum()
     cells = viewpoint_cells(azimuth, distance, n_azimuth_cells, n_distance_cells, distance_range)
     ids, counts = np.unique(cells, return_counts=True)

@@ -50,6 +50,7 @@ from .. import fastpath
 from ..geometry import EPS_DIR as _EPS_DIR
 from ..geometry import quat_to_matrix
 from ..scene import Box, Scene, Target
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -208,11 +209,11 @@ def target_sample_points(target: Union[Target, Box], shrink: float = 0.9, grid: 
     (M, 3) ndarray
     """
     if not 0 < shrink <= 1:
-        raise ValueError(f"shrink must be in (0, 1], got {shrink}")
+        raise InputError(f"shrink must be in (0, 1], got {shrink}")
     half = np.asarray(target.size, float) / 2 * shrink
     if grid is not None:
         if grid < 1:
-            raise ValueError(f"grid must be >= 1, got {grid}")
+            raise InputError(f"grid must be >= 1, got {grid}")
         ticks = np.linspace(-1, 1, grid) if grid > 1 else np.zeros(1)
         unit = np.stack(np.meshgrid(ticks, ticks, ticks, indexing="ij"), axis=-1).reshape(-1, 3)
     else:
@@ -276,7 +277,7 @@ def ray_hits(origins: torch.Tensor, ends: torch.Tensor, boxes: BoxTensors, count
         origins = origins.double()
     ends = torch.as_tensor(ends, dtype=origins.dtype, device=origins.device)
     if origins.shape != ends.shape or origins.shape[-1] != 3 or origins.dim() != 2:
-        raise ValueError(f"origins and ends must both be (R, 3); got {tuple(origins.shape)} and {tuple(ends.shape)}")
+        raise InputError(f"origins and ends must both be (R, 3); got {tuple(origins.shape)} and {tuple(ends.shape)}")
     r = origins.shape[0]
     out = torch.zeros(r, dtype=torch.bool, device=origins.device)
     if boxes.count == 0 or r == 0:
@@ -297,7 +298,7 @@ def camera_positions(cameras: torch.Tensor) -> torch.Tensor:
         return cameras[:, :3, 3]
     if cameras.dim() == 2 and cameras.shape[-1] == 3:
         return cameras
-    raise ValueError(f"expected camera positions (B, 3) or poses (B, 4, 4), got {tuple(cameras.shape)}")
+    raise InputError(f"expected camera positions (B, 3) or poses (B, 4, 4), got {tuple(cameras.shape)}")
 
 
 def occlusion_scores(cameras: torch.Tensor, target_points: torch.Tensor, boxes: BoxTensors, count_inside: bool = True,

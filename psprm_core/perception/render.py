@@ -26,6 +26,7 @@ from ..camera import CameraIntrinsics
 from ..geometry import matrix_to_quat, quat_to_matrix
 from ..scene import Box, Scene, Target
 from .appearance import Appearance, Part, get_appearance
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -182,7 +183,7 @@ class SceneRenderer:
         self._renderer_flag = p.ER_TINY_RENDERER
         self.renderer_name = "tiny"
         if renderer not in ("tiny", "egl", "auto"):
-            raise ValueError(f"renderer must be 'tiny', 'egl' or 'auto', not {renderer!r}")
+            raise InputError(f"renderer must be 'tiny', 'egl' or 'auto', not {renderer!r}")
         if renderer == "egl" or (renderer == "auto" and _gpu_device_present()):
             self._try_egl(required=renderer == "egl")
         a = self.intrinsics

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .dataset import view_parameters
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -65,9 +66,9 @@ def roadmap_views(scene, targets: Sequence[str], n_per_target: int, nodes: int =
     from .occlusion import OcclusionChecker
 
     if n_per_target < 1:
-        raise ValueError(f"n_per_target must be positive, got {n_per_target}")
+        raise InputError(f"n_per_target must be positive, got {n_per_target}")
     if not 0.0 <= edge_fraction <= 1.0:
-        raise ValueError(f"edge_fraction must be in [0, 1], got {edge_fraction}")
+        raise InputError(f"edge_fraction must be in [0, 1], got {edge_fraction}")
     robot = robot or RobotModel.load(scene.robot)
     rng = np.random.default_rng(seed)
     poses, tidx, origin, stats = [], [], [], {}

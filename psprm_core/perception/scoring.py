@@ -22,6 +22,7 @@ import torch
 
 from ..camera import CameraIntrinsics
 from ..scene import Scene
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -199,7 +200,7 @@ class MultiTargetScorer(Scorer):
     def __init__(self, scorers: Sequence[Scorer], centers: Sequence[np.ndarray], mode: str = "mean",
                  length: float = 1.0):
         if mode not in ("mean", "priority"):
-            raise ValueError(f"unknown multi-target mode '{mode}' (mean or priority)")
+            raise InputError(f"unknown multi-target mode '{mode}' (mean or priority)")
         self.scorers = list(scorers)
         self.centers = torch.as_tensor(np.stack(centers), dtype=torch.float64)
         self.mode = mode

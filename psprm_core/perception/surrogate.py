@@ -36,6 +36,7 @@ import torch
 from torch import nn
 
 from .. import fastpath
+from ..errors import InputError, OutOfRangeError, UnknownNameError
 
 log = logging.getLogger(__name__)
 
@@ -93,12 +94,12 @@ def relative_pose_features(camera_poses: TensorLike, target_pose: TensorLike) ->
     if cam.dim() == 2:
         cam = cam.unsqueeze(0)
     if cam.shape[-2:] != (4, 4):
-        raise ValueError(f"camera_poses must be (B, 4, 4), got {tuple(cam.shape)}")
+        raise InputError(f"camera_poses must be (B, 4, 4), got {tuple(cam.shape)}")
     if hasattr(target_pose, "rotation") and hasattr(target_pose, "center"):  # a Target or Box
         target_pose = target_pose_matrix(target_pose)
     tgt = _as_float_tensor(target_pose, like=cam)
     if tgt.shape[-2:] != (4, 4) or tgt.dim() not in (2, 3):
-        raise ValueError(f"target_pose must be (4, 4) or (B, 4, 4), got {tuple(tgt.shape)}")
+        raise InputError(f"target_pose must be (4, 4) or (B, 4, 4), got {tuple(tgt.shape)}")
     b = cam.shape[0]
     r_c = cam[:, :3, :3]
     # t = R_c^T (p_t - p_c); R_ct[:, :2] = R_c^T R_t[:, :2]  (elementwise sums / one GEMM: faster than tiny bmm's)
@@ -179,9 +180,9 @@ class PerceptionSurrogate(nn.Module):
                  metadata: Optional[dict] = None) -> None:
         super().__init__()
         if not classes:
-            raise ValueError("the surrogate needs at least one class")
+            raise InputError("the surrogate needs at least one class")
         if len(set(classes)) != len(classes):
-            raise ValueError(f"duplicate classes: {list(classes)}")
+            raise InputError(f"duplicate classes: {list(classes)}")
         self.classes = [str(c) for c in classes]
         self.derived = bool(derived)
         self.hidden = int(hidden)
@@ -218,12 +219,12 @@ class PerceptionSurrogate(nn.Module):
     def class_index(self, name: Union[str, int]) -> int:
         if isinstance(name, (int, np.integer)):
             if not 0 <= int(name) < len(self.classes):
-                raise IndexError(f"class index {name} out of range for {len(self.classes)} classes")
+                raise OutOfRangeError(f"class index {name} out of range for {len(self.classes)} classes")
             return int(name)
         try:
             return self.classes.index(str(name))
         except ValueError:
-            raise KeyError(f"surrogate was not trained on class '{name}' "
+            raise UnknownNameError(f"surrogate was not trained on class '{name}' "
                            f"(classes: {', '.join(self.classes)})") from None
 
     # ---- normalisation -------------------------------------------------------------------------------------------
@@ -232,7 +233,7 @@ class PerceptionSurrogate(nn.Module):
         """Set the per-feature mean/std buffers from un-normalised training features (N, F)."""
         f = torch.as_tensor(features, dtype=torch.float64)
         if f.shape[1] != self.n_pose_features:
-            raise ValueError(f"expected {self.n_pose_features} features, got {f.shape[1]}")
+            raise InputError(f"expected {self.n_pose_features} features, got {f.shape[1]}")
         self.feature_mean.copy_(f.mean(0).to(self.feature_mean))
         self.feature_std.copy_(f.std(0).clamp_min(1e-6).to(self.feature_std))
 
@@ -269,7 +270,7 @@ class PerceptionSurrogate(nn.Module):
             return class_name.to(device=self.device, dtype=torch.long)
         idx = torch.as_tensor([self.class_index(c) for c in class_name], dtype=torch.long, device=self.device)
         if idx.shape[0] != n:
-            raise ValueError(f"got {idx.shape[0]} class names for {n} camera poses")
+            raise InputError(f"got {idx.shape[0]} class names for {n} camera poses")
         return idx
 
     @torch.no_grad()
@@ -374,9 +375,9 @@ class PerceptionSurrogate(nn.Module):
     @classmethod
     def from_checkpoint(cls, ckpt: dict) -> "PerceptionSurrogate":
         if ckpt.get("format") != CHECKPOINT_FORMAT:
-            raise ValueError(f"not a perception surrogate checkpoint (format={ckpt.get('format')!r})")
+            raise InputError(f"not a perception surrogate checkpoint (format={ckpt.get('format')!r})")
         if int(ckpt.get("version", 0)) > CHECKPOINT_VERSION:
-            raise ValueError(f"checkpoint version {ckpt['version']} is newer than supported ({CHECKPOINT_VERSION})")
+            raise InputError(f"checkpoint version {ckpt['version']} is newer than supported ({CHECKPOINT_VERSION})")
         cfg = ckpt["config"]
         model = cls(cfg["classes"], derived=cfg["derived"], hidden=cfg["hidden"], layers=cfg["layers"],
                     metadata=ckpt.get("metadata", {}))

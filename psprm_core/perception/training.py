@@ -32,6 +32,7 @@ from torch import nn
 
 from .dataset import PerceptionDataset, load_dataset, split_dataset
 from .surrogate import PerceptionSurrogate, pose_features
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -131,7 +132,7 @@ def perception_metrics(pred, label, threshold: float = DEFAULT_THRESHOLD) -> dic
     """
     p, y = _np(pred).ravel(), _np(label).ravel()
     if p.shape != y.shape:
-        raise ValueError(f"pred and label differ in size: {p.shape} vs {y.shape}")
+        raise InputError(f"pred and label differ in size: {p.shape} vs {y.shape}")
     n = int(p.size)
     nan = float("nan")
     if n == 0:
@@ -235,7 +236,7 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
     """
     cfg = config or TrainConfig()
     if cfg.loss not in ("bce", "mse"):
-        raise ValueError(f"loss must be 'bce' or 'mse', got {cfg.loss!r}")
+        raise InputError(f"loss must be 'bce' or 'mse', got {cfg.loss!r}")
     old_threads = torch.get_num_threads()
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
@@ -247,7 +248,7 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
         model = PerceptionSurrogate(classes, derived=cfg.derived_features, hidden=cfg.hidden, layers=cfg.layers,
                                     metadata=metadata)
         if xf.shape[1] != model.n_pose_features:
-            raise ValueError(f"features have {xf.shape[1]} columns, model expects {model.n_pose_features}")
+            raise InputError(f"features have {xf.shape[1]} columns, model expects {model.n_pose_features}")
         model.fit_normalization(xf)
         model.to(device)
         xf, xc, y = xf.to(device), xc.to(device), y.to(device)
@@ -337,7 +338,7 @@ def pool_datasets(datasets: Sequence[Union[str, Path, PerceptionDataset]]) -> Pe
     """
     dss = [_as_dataset(d) for d in datasets]
     if not dss:
-        raise ValueError("pool_datasets needs at least one dataset")
+        raise InputError("pool_datasets needs at least one dataset")
     if len(dss) == 1:
         return dss[0]
     keys = set.intersection(*(set(d.params) for d in dss))
@@ -387,7 +388,7 @@ def train_surrogate(dataset: Union[str, Path, PerceptionDataset], out_path: Unio
     feats, cls, y = dataset_tensors(ds, cfg.derived_features)
     parts = {k: (feats[v], cls[v], y[v]) for k, v in splits.items()}
     if parts["train"][0].shape[0] == 0:
-        raise ValueError("the training split is empty")
+        raise InputError("the training split is empty")
     dhash = ds.content_hash()
     log.info("training surrogate on %d samples (val %d, test %d), classes %s, dataset %s", len(splits["train"]),
              len(splits["val"]), len(splits["test"]), ds.classes, dhash)
@@ -445,11 +446,11 @@ def evaluate_surrogate(model: Union[str, Path, PerceptionSurrogate], dataset: Un
         cfg = config or TrainConfig.from_dict(model.metadata.get("training", {}))
         splits = _splits(ds, cfg)
         if split not in splits:
-            raise ValueError(f"unknown split {split!r} (train, val, test, all)")
+            raise InputError(f"unknown split {split!r} (train, val, test, all)")
         ds = ds.subset(splits[split])
     missing = sorted({t.detector_class for t in ds.targets} - set(model.classes))
     if missing:
-        raise ValueError(f"model was not trained on classes {missing} (classes: {model.classes})")
+        raise InputError(f"model was not trained on classes {missing} (classes: {model.classes})")
     cls_names = [t.detector_class for t in ds.targets]
     cls = torch.as_tensor([model.class_index(cls_names[i]) for i in ds.target_index], dtype=torch.long)
     feats = pose_features(ds.camera_poses, ds.target_poses, model.derived).float()

@@ -27,6 +27,7 @@ from .. import fastpath
 from ..camera import CameraIntrinsics
 from ..geometry import wrap_angle
 from ..robot import RobotModel
+from ..errors import InputError
 
 
 def camera_joint_mask(robot: RobotModel) -> np.ndarray:
@@ -72,7 +73,7 @@ class VisibilityConstraint:
     def __init__(self, robot: RobotModel, kind: str, target, margin: float = 0.0, min_distance: float | None = None,
                  kinematics=None):
         if kind not in ("line", "frustum"):
-            raise ValueError(f"unknown visibility model '{kind}' (line or frustum)")
+            raise InputError(f"unknown visibility model '{kind}' (line or frustum)")
         self.robot = robot
         self.kin = robot if kinematics is None else kinematics
         self.kind = kind

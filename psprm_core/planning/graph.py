@@ -22,6 +22,7 @@ from dataclasses import dataclass
 from typing import Any, Iterable
 
 import numpy as np
+from ..errors import InputError, UnknownNameError
 
 logger = logging.getLogger(__name__)
 
@@ -264,13 +265,13 @@ class Roadmap:
         """
         if isinstance(configs_or_count, (int, np.integer)):
             if self._configs is not None:
-                raise ValueError("this Roadmap stores configurations: pass a (k, dof) array")
+                raise InputError("this Roadmap stores configurations: pass a (k, dof) array")
             k = int(configs_or_count)
             cfg = None
         else:
             cfg = np.asarray(configs_or_count, dtype=np.float64)
             if self._configs is None:
-                raise ValueError("this Roadmap was created with dof=None: pass a node count")
+                raise InputError("this Roadmap was created with dof=None: pass a node count")
             cfg = cfg.reshape(-1, self.dof)
             k = cfg.shape[0]
         start = self._n_nodes
@@ -348,18 +349,18 @@ class Roadmap:
         u = np.asarray(u, dtype=np.int64).reshape(-1)
         v = np.asarray(v, dtype=np.int64).reshape(-1)
         if u.shape != v.shape:
-            raise ValueError("u and v must have the same length")
+            raise InputError("u and v must have the same length")
         k = u.shape[0]
         w = _per_edge(0.0 if weights is None else weights, k)
         self._check_weights(w)
         if k == 0:
             return np.zeros(0, dtype=np.int64)
         if min(u.min(), v.min()) < 0 or max(u.max(), v.max()) >= self._n_nodes:
-            raise ValueError("edge endpoint out of range")
+            raise InputError("edge endpoint out of range")
         if (u == v).any():
-            raise ValueError("self loops are not allowed in the roadmap")
+            raise InputError("self loops are not allowed in the roadmap")
         if not (self._node_valid[u].all() and self._node_valid[v].all()):
-            raise ValueError("cannot connect a removed node")
+            raise InputError("cannot connect a removed node")
         attr_vals = {n: _per_edge(a, k) for n, a in attrs.items()}
         for name in attr_vals:
             self.add_edge_attribute(name)
@@ -491,7 +492,7 @@ class Roadmap:
         for i in range(len(p) - 1):
             e = self.edge_id(p[i], p[i + 1])
             if e is None:
-                raise KeyError(f"no valid edge between {p[i]} and {p[i + 1]}")
+                raise UnknownNameError(f"no valid edge between {p[i]} and {p[i + 1]}")
             out[i] = e
         return out
 
@@ -714,7 +715,7 @@ class Roadmap:
     @staticmethod
     def _check_weights(w: np.ndarray) -> None:
         if w.size and not (w >= 0).all():  # NaN compares false
-            raise ValueError("edge weights must be non-negative (Eq. 2 gives c in [0, 2])")
+            raise InputError("edge weights must be non-negative (Eq. 2 gives c in [0, 2])")
 
     @staticmethod
     def _as_ids(ids: Iterable[int] | np.ndarray | slice, n: int, what: str) -> np.ndarray:
@@ -722,7 +723,7 @@ class Roadmap:
             return np.arange(n, dtype=np.int64)[ids]
         arr = np.asarray(list(ids) if not isinstance(ids, np.ndarray) else ids, dtype=np.int64).reshape(-1)
         if arr.size and not (0 <= arr.min() and arr.max() < n):
-            raise ValueError(f"{what} id out of range")
+            raise InputError(f"{what} id out of range")
         return arr
 
     def __repr__(self) -> str:

@@ -36,6 +36,7 @@ import numpy as np
 
 from psprm_core.planning import search_kernels
 from psprm_core.planning.graph import Roadmap
+from ..errors import InputError
 
 logger = logging.getLogger(__name__)
 
@@ -108,7 +109,7 @@ def combined_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> Arr
         Edge weight in :math:`[0, 2]` (non-negative as required by the consistency proof, Eqs. 5-6).
     """
     if not 0.0 <= float(alpha) <= 1.0:
-        raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+        raise InputError(f"alpha must lie in [0, 1], got {alpha}")
     return 1.0 - alpha * p_edge + (1.0 - alpha) * c_motion
 
 
@@ -127,7 +128,7 @@ def motion_weighted(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> Arr
     (:func:`motion_heuristic`).
     """
     if not 0.0 <= float(alpha) <= 1.0:
-        raise ValueError(f"alpha must lie in [0, 1], got {alpha}")
+        raise InputError(f"alpha must lie in [0, 1], got {alpha}")
     return c_motion * ((1.0 - alpha) + alpha * (1.0 - p_edge))
 
 
@@ -138,7 +139,7 @@ def edge_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float, objective:
         return combined_weight(p_edge, c_motion, alpha)
     if objective == "motion":
         return motion_weighted(p_edge, c_motion, alpha)
-    raise ValueError(f"unknown objective {objective!r} (one of {', '.join(OBJECTIVES)})")
+    raise InputError(f"unknown objective {objective!r} (one of {', '.join(OBJECTIVES)})")
 
 
 def motion_heuristic(lower_bound: np.ndarray, alpha: float, scale: float) -> np.ndarray:
@@ -227,7 +228,7 @@ def _weights_array(graph: Roadmap, weights: ArrayLike | None) -> np.ndarray:
         weights = weights.detach().cpu().numpy()
     w = np.asarray(weights, dtype=np.float64).reshape(-1)
     if w.shape[0] != graph.n_edges:
-        raise ValueError(f"weights has {w.shape[0]} entries, the roadmap has {graph.n_edges} edge slots")
+        raise InputError(f"weights has {w.shape[0]} entries, the roadmap has {graph.n_edges} edge slots")
     return w
 
 
@@ -242,14 +243,14 @@ def _node_ids(graph: Roadmap, nodes: int | Iterable[int] | np.ndarray, what: str
     arr = np.unique(np.asarray(list(nodes) if not isinstance(nodes, (int, np.integer, np.ndarray)) else nodes,
                                dtype=np.int64).reshape(-1))
     if arr.size and (arr.min() < 0 or arr.max() >= graph.n_nodes):
-        raise ValueError(f"{what} node id out of range [0, {graph.n_nodes})")
+        raise InputError(f"{what} node id out of range [0, {graph.n_nodes})")
     return arr
 
 
 def _compiled(backend: Backend = "auto") -> bool:
     """Whether to run the numba kernels (``backend`` "auto" with numba importable) or the Python loops."""
     if backend not in ("auto", "python"):
-        raise ValueError(f"unknown search backend {backend!r}; use 'auto' or 'python'")
+        raise InputError(f"unknown search backend {backend!r}; use 'auto' or 'python'")
     return backend == "auto" and search_kernels.available()
 
 
@@ -272,7 +273,7 @@ def min_edge_cost(graph: Roadmap, weights: ArrayLike | None = None) -> float:
     if not np.isfinite(c):  # no finite edge (NaN weights are rejected when set)
         return 0.0
     if c < 0:
-        raise ValueError("edge weights must be non-negative for the hop heuristic (Eqs. 5-6)")
+        raise InputError("edge weights must be non-negative for the hop heuristic (Eqs. 5-6)")
     return c
 
 
@@ -316,7 +317,7 @@ def dijkstra(
         return dist, parent
     w = _weights_array(graph, weights)
     if np.any(w < 0):
-        raise ValueError("Dijkstra requires non-negative weights")
+        raise InputError("Dijkstra requires non-negative weights")
     csr = graph.csr()
     mat = _scipy_matrix(graph, w[csr.edge_ids])
     d, pred, _ = _sp_dijkstra(mat, directed=True, indices=src, return_predecessors=True, min_only=True)
@@ -474,10 +475,10 @@ def _resolve_heuristic(
             return hop_heuristic(graph, goals, w)
         if heuristic == "exact":  # cost-to-go from a compiled Dijkstra from the goals: perfect heuristic
             return dijkstra(graph, goals, w)[0]
-        raise ValueError(f"unknown heuristic {heuristic!r}; use 'hop', 'zero', 'exact' or an array")
+        raise InputError(f"unknown heuristic {heuristic!r}; use 'hop', 'zero', 'exact' or an array")
     h = np.asarray(heuristic, dtype=np.float64).reshape(-1)
     if h.shape[0] != graph.n_nodes:
-        raise ValueError("heuristic array must have one entry per node slot")
+        raise InputError("heuristic array must have one entry per node slot")
     return h
 
 
@@ -663,7 +664,7 @@ def astar(
     """
     start = int(start)
     if not 0 <= start < graph.n_nodes:
-        raise ValueError(f"start node {start} out of range [0, {graph.n_nodes})")
+        raise InputError(f"start node {start} out of range [0, {graph.n_nodes})")
     goal_ids = _node_ids(graph, goals, "goal")
     w_arr = _weights_array(graph, weights)
     w_list = None if _compiled(backend) else _weights_list(graph, weights)
@@ -774,7 +775,7 @@ def lazy_astar(
     """
     start = int(start)
     if not 0 <= start < graph.n_nodes:
-        raise ValueError(f"start node {start} out of range [0, {graph.n_nodes})")
+        raise InputError(f"start node {start} out of range [0, {graph.n_nodes})")
     goal_ids = _node_ids(graph, goals, "goal")
     w_arr = _weights_array(graph, weights).copy()
     w_list = None if _compiled(backend) else w_arr.tolist()
@@ -786,12 +787,12 @@ def lazy_astar(
     if not isinstance(heuristic, str):  # a fixed per-node heuristic, consistent for every weight verification gives
         fixed_h = np.asarray(heuristic, dtype=np.float64).reshape(-1)
         if fixed_h.shape[0] != graph.n_nodes:
-            raise ValueError("heuristic array must have one entry per node slot")
+            raise InputError("heuristic array must have one entry per node slot")
         heuristic = "fixed"
     use_hop = heuristic == "hop"
     use_exact = heuristic == "exact"
     if heuristic not in ("hop", "exact", "zero", "none", "dijkstra", "fixed"):
-        raise ValueError("lazy_astar supports heuristic 'hop', 'exact', 'zero' or a per-node array")
+        raise InputError("lazy_astar supports heuristic 'hop', 'exact', 'zero' or a per-node array")
     c_min = min_edge_cost(graph, w_arr) if use_hop else 0.0
     total_expanded = 0
     result = _fail("max_iterations is 0")
@@ -841,7 +842,7 @@ def lazy_astar(
         for e, val in (check.weights or {}).items():
             e, val = int(e), float(val)
             if not (val >= 0):
-                raise ValueError(f"verified weight of edge {e} must be non-negative, got {val}")
+                raise InputError(f"verified weight of edge {e} must be non-negative, got {val}")
             if val < w_arr[e]:
                 stale = True
                 decreased += float(w_arr[e]) - val

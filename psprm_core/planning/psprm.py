@@ -41,6 +41,7 @@ from . import search_kernels
 from .graph import Roadmap
 from .graph_search import (OBJECTIVES, EdgeCheck, astar, edge_perception, edge_weight, lazy_astar, min_edge_cost,
                            motion_heuristic)
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -1652,7 +1653,7 @@ class PSPRM:
             if goal_costs is not None and len(goal_ids) > 1:
                 tc = np.asarray(goal_costs, float).reshape(-1)
                 if tc.shape != (len(goals),) or not (np.isfinite(tc).all() and (tc >= 0).all()):
-                    raise ValueError(f"goal_costs must be {len(goals)} finite non-negative values")
+                    raise InputError(f"goal_costs must be {len(goals)} finite non-negative values")
                 sink = int(g.add_nodes(g.configs[goal_ids[0]][None])[0])
                 added_nodes.append(sink)
                 k_of = {int(n): k for k, n in enumerate(ids[1:])}

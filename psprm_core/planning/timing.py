@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
+from ..errors import InputError
 
 logger = logging.getLogger(__name__)
 
@@ -468,7 +469,7 @@ def _quiet_constraints() -> tuple[type, type]:
     class QuietVelocity(ta_con.JointVelocityConstraint):
         def _assert_valid_limits(self) -> None:
             if self.vlim.shape[1] != 2 or np.any(self.vlim[:, 0] >= self.vlim[:, 1]):
-                raise ValueError("bad velocity limits")
+                raise InputError("bad velocity limits")
             self._format_string = "    Velocity limit (psprm)\n"
 
     class QuietAcceleration(ta_con.JointAccelerationConstraint):
@@ -476,7 +477,7 @@ def _quiet_constraints() -> tuple[type, type]:
             ta_con.LinearConstraint.__init__(self)
             self.alim = np.array(alim, dtype=float)
             if self.alim.ndim != 2 or self.alim.shape[1] != 2 or np.any(self.alim[:, 0] >= self.alim[:, 1]):
-                raise ValueError("bad acceleration limits")
+                raise InputError("bad acceleration limits")
             self.dof = self.alim.shape[0]
             self.set_discretization_type(ta_con.DiscretizationType.Interpolation)
             self._format_string = "    Acceleration limit (psprm)\n"
@@ -703,18 +704,18 @@ def time_parameterize(
     """
     q_in = np.asarray(waypoints, dtype=np.float64)
     if q_in.ndim != 2 or q_in.shape[0] < 1:
-        raise ValueError("waypoints must be an (n, dof) array with n >= 1")
+        raise InputError("waypoints must be an (n, dof) array with n >= 1")
     n, dof = q_in.shape
     vmax_a = np.broadcast_to(np.asarray(vmax, dtype=np.float64), (dof,)).copy()
     amax_a = np.broadcast_to(np.asarray(amax, dtype=np.float64), (dof,)).copy()
     if np.any(~(vmax_a > 0)) or np.any(~(amax_a > 0)) or not (np.all(np.isfinite(vmax_a))
                                                              and np.all(np.isfinite(amax_a))):
-        raise ValueError("vmax and amax must be positive and finite")
+        raise InputError("vmax and amax must be positive and finite")
     if not dt > 0:
-        raise ValueError("dt must be positive")
+        raise InputError("dt must be positive")
     names = list(joint_names) if joint_names is not None else [f"q{j}" for j in range(dof)]
     if len(names) != dof:
-        raise ValueError("joint_names must have one name per dof")
+        raise InputError("joint_names must have one name per dof")
     continuous = set(int(j) for j in continuous_joints)
     if base_indices is not None:
         continuous.add(int(base_indices[2]))
@@ -722,7 +723,7 @@ def time_parameterize(
     if base_indices is not None and validate_base:
         problems = check_base_segments(q, base_indices, tol=base_tol)
         if problems:
-            raise ValueError("base path is not differential-drive feasible: " + "; ".join(problems[:5]))
+            raise InputError("base path is not differential-drive feasible: " + "; ".join(problems[:5]))
     if method == "toppra":
         try:
             import toppra  # noqa: F401
@@ -730,7 +731,7 @@ def time_parameterize(
             logger.warning("toppra is not installed: using the analytic time-optimal profile")
             method = "analytic"
     if method not in ("toppra", "analytic"):
-        raise ValueError(f"unknown method {method!r}")
+        raise InputError(f"unknown method {method!r}")
 
     qk, owner = _dedupe(q, duplicate_tol)
     q = qk[owner]  # waypoints merged as duplicates (closer than duplicate_tol) take their kept value exactly

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
+from ...errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -166,7 +167,7 @@ def calibrate(appearances: Optional[Sequence[str]] = None, measure=None) -> dict
     known = [c.appearance for c in DEFAULT_CASES]
     unknown = sorted(set(appearances or ()) - set(known))
     if unknown:
-        raise ValueError(f"unknown calibration case(s) {', '.join(unknown)} (known: {', '.join(known)})")
+        raise InputError(f"unknown calibration case(s) {', '.join(unknown)} (known: {', '.join(known)})")
     measure = measure or measure_case
     results, pooled = {}, {}
     for case in DEFAULT_CASES:

@@ -10,6 +10,7 @@ import numpy as np
 
 from .base import Detection, Detector, DetectorUnavailableError, nms, onnx_session
 from .locate import centerface_model_path
+from ...errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ class CenterFaceDetector(Detector):
     def detect(self, rgb: np.ndarray) -> List[Detection]:
         img = np.asarray(rgb)
         if img.ndim != 3 or img.shape[2] < 3:
-            raise ValueError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
+            raise InputError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
         img = img[..., :3]
         h, w = img.shape[:2]
         hn, wn = int(np.ceil(h / 32) * 32), int(np.ceil(w / 32) * 32)

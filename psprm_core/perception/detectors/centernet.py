@@ -14,6 +14,7 @@ import numpy as np
 
 from .base import Detection, Detector, nms, onnx_session
 from .locate import centernet_model_path
+from ...errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -95,7 +96,7 @@ class CenterNetDetector(Detector):
     def detect(self, rgb: np.ndarray) -> List[Detection]:
         img = np.asarray(rgb)
         if img.ndim != 3 or img.shape[2] < 3:
-            raise ValueError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
+            raise InputError(f"expected an (H, W, 3) RGB image, got shape {img.shape}")
         img = np.ascontiguousarray(img[..., :3].astype(np.uint8))
         h, w = img.shape[:2]
         parts = [self._run(img)]
