@@ -121,3 +121,30 @@ class Fields:
                 raise self.error(key, f"must be > 0: {value!r}")
             out.append(float(v))
         return tuple(out)
+
+
+def typed_value(f: Fields, key: str, default: Any, int_lo: int | None = 0, float_lo: float | None = 0.0) -> Any:
+    """``f[key]`` typed as a settings field whose default is ``default``: bool, int (>= ``int_lo``), float
+    (>= ``float_lo``) or str; a wrong type is a :class:`ConfigError` naming the file and the field."""
+    if isinstance(default, bool):
+        return f.bool(key)
+    if isinstance(default, int):
+        return f.int(key, lo=int_lo)
+    if isinstance(default, float):
+        return f.float(key, lo=float_lo)
+    return f.str(key)
+
+
+def dataclass_kwargs(cls, f: Fields, strict: bool = True, skip: Sequence[str] = (), signed: Sequence[str] = (),
+                     int_lo: int | None = 0, float_lo: float | None = 0.0) -> dict:
+    """The fields of settings dataclass ``cls`` present in ``f``, each typed by its default (:func:`typed_value`):
+    the one YAML-to-settings reader of the planner, replanner, baselines and ``--set`` settings. ``strict``: a key
+    that is not a field is an error (else ignored); ``skip``: fields the caller reads itself (nested settings);
+    ``signed``: float fields that may be negative."""
+    import dataclasses
+
+    fields = {fl.name: fl for fl in dataclasses.fields(cls)}
+    if strict:
+        f.check_keys(list(fields))
+    return {key: typed_value(f, key, fields[key].default, int_lo, None if key in signed else float_lo)
+            for key in f.data if key in fields and key not in skip}

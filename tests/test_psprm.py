@@ -349,3 +349,30 @@ def test_make_planner_applies_overrides_and_the_shipped_settings(load_robot):
     alley = load_scene(resolve_named("scene", "blind_spot_alley"))
     p = make_planner("neural-psprm-line", alley, [alley.target_names[0]], robot=load_robot("ur5_mobile"), n_nodes=50)
     assert p.settings.biased_share == shipped["robots"]["ur5_mobile"]["biased_share"] == 0.0
+
+
+def test_settings_files_are_read_by_one_typed_reader(tmp_path):
+    """PSPRMSettings and ReplanSettings YAML: values typed by each field's default, the file and field named in the
+    error; negative values only where a field is signed; unknown keys refused; the nested projection settings."""
+    from psprm_core.planning.replanner import ReplanSettings
+
+    good = tmp_path / "p.yaml"
+    good.write_text("n_nodes: 120\nedge_view_slack: -1.0\nshortcut: true\nprojection:\n  max_iters: 7\n"
+                    "  tolerance: 0.01\n")
+    s = PSPRMSettings.from_yaml(good)
+    assert (s.n_nodes, s.edge_view_slack, s.shortcut) == (120, -1.0, True)
+    assert (s.projection.max_iters, s.projection.tolerance) == (7, 0.01)
+    for text, field in (("n_nodes: many\n", "n_nodes"), ("max_edge_length: -2.0\n", "max_edge_length"),
+                        ("no_such_setting: 1\n", "no_such_setting"), ("projection:\n  max_iters: 0\n", "max_iters")):
+        bad = tmp_path / "bad.yaml"
+        bad.write_text(text)
+        with pytest.raises(ConfigError, match=field) as e:
+            PSPRMSettings.from_yaml(bad)
+        assert "bad.yaml" in str(e.value)
+    r = tmp_path / "r.yaml"
+    r.write_text("goal_commit_s: 3.5\nreplan_on_move: true\n")
+    rs = ReplanSettings.from_yaml(r)
+    assert (rs.goal_commit_s, rs.replan_on_move) == (3.5, True)
+    r.write_text("goal_commit_s: yes please\n")
+    with pytest.raises(ConfigError, match="goal_commit_s"):
+        ReplanSettings.from_yaml(r)

@@ -98,7 +98,7 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
     import yaml
 
     from ..errors import ConfigError
-    from ..yamlio import Fields
+    from ..yamlio import Fields, typed_value
 
     out: dict = {}
     for item in items:
@@ -123,8 +123,7 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
         default = fields[key].default
         f = Fields({key: value}, f"--set {name}")
         try:  # typed as the YAML settings files are (the field default's type)
-            value = (f.bool(key) if isinstance(default, bool) else f.int(key) if isinstance(default, int)
-                     else f.float(key) if isinstance(default, float) else f.str(key))
+            value = typed_value(f, key, default, int_lo=None, float_lo=None)
         except ConfigError:
             kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
             raise PsprmError(f"--set '{item}': {name}.{key} takes {kind}, got {raw.strip()!r}") from None

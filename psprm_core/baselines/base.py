@@ -47,7 +47,7 @@ from ..planning.constraints import camera_joint_mask
 from ..planning.psprm import PlanResult
 from ..robot import RobotModel
 from ..scene import Scene
-from ..yamlio import Fields, load_yaml
+from ..yamlio import Fields, dataclass_kwargs, load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -139,21 +139,7 @@ def settings_from_yaml(cls: Type[S], section: str, path: str | Path | None = Non
         for sec, strict in (("common", False), (section, True)):
             if data.get(sec) is None:
                 continue
-            f = Fields(data[sec], str(path), sec)
-            if strict:
-                f.check_keys(list(names))
-            for key in f.data:
-                if key not in names:
-                    continue
-                default = names[key].default
-                if isinstance(default, bool):
-                    kw[key] = f.bool(key)
-                elif isinstance(default, int):
-                    kw[key] = f.int(key, lo=0)
-                elif isinstance(default, float):
-                    kw[key] = f.float(key)
-                else:
-                    kw[key] = f.str(key)
+            kw.update(dataclass_kwargs(cls, Fields(data[sec], str(path), sec), strict=strict, float_lo=None))
     kw.update({k: v for k, v in overrides.items() if v is not None and k in names})
     unknown = [k for k, v in overrides.items() if v is not None and k not in names]
     if unknown:

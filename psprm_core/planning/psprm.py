@@ -35,7 +35,7 @@ from ..errors import ConfigError
 from ..motion import DiffDriveMotion
 from ..robot import RobotModel
 from ..scene import Scene
-from ..yamlio import Fields, load_yaml
+from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .constraints import ProjectionSettings, VisibilityConstraint, camera_joint_mask
 from . import search_kernels
 from .graph import Roadmap
@@ -149,25 +149,10 @@ class PSPRMSettings:
                 raise ConfigError(str(path), f"robots.{robot}", "expected a mapping of settings")
             data = {**data, **extra}
         f = Fields(data, str(path))
-        names = [fl.name for fl in dataclasses.fields(cls)]
-        f.check_keys(names)
-        kw = {}
-        for fl in dataclasses.fields(cls):
-            if not f.has(fl.name):
-                continue
-            if fl.name == "projection":
-                p = f.sub("projection")
-                p.check_keys([x.name for x in dataclasses.fields(ProjectionSettings)])
-                kw["projection"] = ProjectionSettings(**{k: p.float(k) if k != "max_iters" else p.int(k, lo=1)
-                                                         for k in p.data})
-            elif isinstance(fl.default, bool):
-                kw[fl.name] = f.bool(fl.name)
-            elif isinstance(fl.default, int):
-                kw[fl.name] = f.int(fl.name, lo=0)
-            elif isinstance(fl.default, float):
-                kw[fl.name] = f.float(fl.name, lo=None if fl.name in ("edge_view_slack", "sample_spread") else 0.0)
-            else:
-                kw[fl.name] = f.str(fl.name)
+        kw = dataclass_kwargs(cls, f, skip=("projection",), signed=("edge_view_slack", "sample_spread"))
+        if f.has("projection"):
+            p = f.sub("projection")
+            kw["projection"] = ProjectionSettings(**dataclass_kwargs(ProjectionSettings, p, float_lo=None, int_lo=1))
         kw.update({k: v for k, v in overrides.items() if v is not None})
         s = cls(**kw)
         s.validate(str(path))

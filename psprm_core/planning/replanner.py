@@ -36,7 +36,7 @@ import torch
 
 from .. import fastpath
 from ..errors import PsprmError
-from ..yamlio import Fields, load_yaml
+from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .psprm import PSPRM, PlanResult
 
 log = logging.getLogger(__name__)
@@ -84,21 +84,7 @@ class ReplanSettings:
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "ReplanSettings":
-        f = Fields(load_yaml(path), str(path))
-        f.check_keys([x.name for x in dataclasses.fields(cls)])
-        kw = {}
-        for fl in dataclasses.fields(cls):
-            if not f.has(fl.name):
-                continue
-            if isinstance(fl.default, bool):
-                kw[fl.name] = f.bool(fl.name)
-            elif isinstance(fl.default, str):
-                kw[fl.name] = f.str(fl.name)
-            elif isinstance(fl.default, int):
-                kw[fl.name] = f.int(fl.name, lo=0)
-            else:
-                kw[fl.name] = f.float(fl.name, lo=0.0)
-        return cls(**kw)
+        return cls(**dataclass_kwargs(cls, Fields(load_yaml(path), str(path))))
 
 
 def _rotation_angle(qa: np.ndarray, qb: np.ndarray) -> float:
