@@ -656,3 +656,20 @@ def test_replan_runs_with_one_intra_op_thread(replanner, world, monkeypatch):
         assert torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(old)
+
+
+def test_a_plan_made_below_score_min_is_retried_when_the_target_moves(replanner):
+    """A plan whose own predicted score was already below ``score_min`` is replanned once the target moves (another
+    route may see it now), not while it stands still, and at most once per ``min_interval_s``."""
+    rp = replanner
+    rp.settings = dataclasses.replace(rp.settings, score_min=0.99, score_drop=0.9)  # every plan is "low"
+    t0 = 1000.0
+    assert rp.replan(now=t0).success
+    assert rp._plan_score < rp.settings.score_min  # the precondition: a plan made below score_min
+    assert rp.needs_replan(now=t0 + 5.0) == []  # nothing moved
+    f = rp.scene.target("person_face")
+    assert rp.update_target("person_face", f.center + np.array([0.06, 0.0, 0.0]), f.quat)
+    assert rp.needs_replan(now=t0 + 0.5) == []  # within min_interval_s
+    assert rp.needs_replan(now=t0 + 5.0) == ["score_low_retry"]
+    assert rp.replan(now=t0 + 5.0).success
+    assert rp.needs_replan(now=t0 + 10.0) == []  # the move was taken into account

@@ -57,6 +57,7 @@ class ReplanSettings:
     replan_on_move: bool = False  # a target/obstacle move alone triggers a replan (default: it triggers the score and
     # collision checks, and those decide)
     score_min: float = 0.1  # replan when the normalised predicted mean score along the remaining path falls below this
+    # (and, for a plan made below it, whenever the target moved: another route may see it now)
     score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
     goal_switch_margin: float = 0.2  # switch to another goal only when it is cheaper by this fraction of the current
     # plan's cost (a terminal cost on the other goals, one search)
@@ -279,10 +280,15 @@ class Replanner:
         if not reasons and (self._pending & {"target_moved", "obstacle_moved"} or self._score_stale):
             # (scored only when it decides: with a reason already, the replan happens anyway)
             sc = self.path_score(normalized=True)
-            if sc < self.settings.score_min <= self._plan_score:  # fell below (a plan that was already low is kept)
+            if sc < self.settings.score_min <= self._plan_score:  # fell below
                 reasons.append("score_low")
             elif self._plan_score - sc > self.settings.score_drop:
                 reasons.append("score_drop")
+            elif (self._plan_score < self.settings.score_min and sc < self.settings.score_min
+                  and "target_moved" in self._pending):
+                # a plan made while nothing could be seen: look again once the target has moved (another route may
+                # see it now), at most once per min_interval_s
+                reasons.append("score_low_retry")
         return reasons
 
     # ---- planning ----------------------------------------------------------------------------------------------------
