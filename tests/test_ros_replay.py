@@ -58,7 +58,7 @@ def test_csv_and_rosbag_round_trip(tmp_path):
 def test_replay_publishes_pose_stamped_at_the_recorded_rate(kind, tmp_path):
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import MultiThreadedExecutor
+    from psprm_ros.spinning import NodeSpinner
     from rclpy.qos import qos_profile_sensor_data
 
     from psprm_ros.mocap_replay import Replayer
@@ -77,11 +77,10 @@ def test_replay_publishes_pose_stamped_at_the_recorded_rate(kind, tmp_path):
     for b in rec.bodies:
         sub_node.create_subscription(PoseStamped, f"/mocap/{b}/pose",
                                      lambda m, b=b: got[b].append((time.perf_counter(), m)), qos_profile_sensor_data)
-    ex = MultiThreadedExecutor(num_threads=2, context=ctx)
-    ex.add_node(pub_node)
-    ex.add_node(sub_node)
-    th = threading.Thread(target=ex.spin, daemon=True)
-    th.start()
+    ex = NodeSpinner(ctx)
+    ex.add(pub_node)
+    ex.add(sub_node)
+    ex.start()
     try:
         rp = Replayer(pub_node, loaded)
         deadline = time.monotonic() + 10
@@ -125,7 +124,7 @@ def test_keep_stamps_with_clock_is_coherent_with_use_sim_time(tmp_path):
     them as stale, one with ``use_sim_time`` driven by the replay's ``/clock`` forwards them."""
     import rclpy
     from geometry_msgs.msg import PoseStamped
-    from rclpy.executors import MultiThreadedExecutor
+    from psprm_ros.spinning import NodeSpinner
     from rclpy.parameter import Parameter
     from rclpy.qos import qos_profile_sensor_data
 
@@ -152,11 +151,10 @@ def test_keep_stamps_with_clock_is_coherent_with_use_sim_time(tmp_path):
                                      lambda m: stamps.append(cv.stamp_to_sec(m.header.stamp)), qos_profile_sensor_data)
         pub_node.create_subscription(PoseStamped, "/mocap/person_face/pose",
                                      lambda m: clocks.append(cv.stamp_to_sec(m.header.stamp)), qos_profile_sensor_data)
-        ex = MultiThreadedExecutor(num_threads=3, context=ctx)
-        ex.add_node(mon.node)
-        ex.add_node(pub_node)
-        th = threading.Thread(target=ex.spin, daemon=True)
-        th.start()
+        ex = NodeSpinner(ctx)
+        ex.add(mon.node)
+        ex.add(pub_node)
+        ex.start()
         try:
             from psprm_ros.core import autostart
 
