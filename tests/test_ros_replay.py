@@ -4,7 +4,6 @@ round trips, and replay at the recorded rate as PoseStamped topics with sensor-d
 from __future__ import annotations
 
 import sys
-import threading
 import time
 from pathlib import Path
 
