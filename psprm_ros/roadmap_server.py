@@ -68,6 +68,7 @@ LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
                "score_drop": "... or drops by more than this since the plan",
                "goal_switch_margin": "goal hysteresis (fraction of the current plan's cost)",
                "goal_commit_s": "keep a chosen goal this long (s) unless no path reaches it",
+               "final_approach_m": "no score-triggered replan within this base path length of the goal (m)",
                "min_interval_s": "at most one score/move-triggered replan per interval (s)"}
 PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
                         "n_nodes": "roadmap nodes", "seed": "roadmap sampling seed",

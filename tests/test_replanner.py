@@ -673,3 +673,25 @@ def test_a_plan_made_below_score_min_is_retried_when_the_target_moves(replanner)
     assert rp.needs_replan(now=t0 + 5.0) == ["score_low_retry"]
     assert rp.replan(now=t0 + 5.0).success
     assert rp.needs_replan(now=t0 + 10.0) == []  # the move was taken into account
+
+
+def test_no_score_triggered_replan_on_the_final_approach(replanner):
+    """Within ``final_approach_m`` of base path before the goal, a target move does not replan for perception (the
+    same move does when the approach check is off); the robot's position on the path is the test's own choice of
+    a configuration near the end of the dense path, and the remaining length is measured from it."""
+    rp = replanner
+    rp.settings = dataclasses.replace(rp.settings, score_min=0.99, score_drop=0.9)
+    t0 = 1000.0
+    res = rp.replan(now=t0)
+    assert res.success
+    d = res.dense
+    seg = np.linalg.norm(np.diff(d[:, :2], axis=0), axis=1)
+    tail = np.cumsum(seg[::-1])[::-1]  # base path length from each dense point to the goal
+    k = int(np.nonzero(tail < 0.5 * rp.settings.final_approach_m)[0][0])
+    assert tail[0] > rp.settings.final_approach_m  # the start is outside the approach
+    rp.set_robot_state(d[k])
+    f = rp.scene.target("person_face")
+    assert rp.update_target("person_face", f.center + np.array([0.06, 0.0, 0.0]), f.quat)
+    assert rp.needs_replan(now=t0 + 5.0) == []
+    rp.settings = dataclasses.replace(rp.settings, final_approach_m=0.0)
+    assert rp.needs_replan(now=t0 + 5.0) == ["score_low_retry"]

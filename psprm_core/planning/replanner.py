@@ -61,6 +61,8 @@ class ReplanSettings:
     score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
     goal_switch_margin: float = 0.2  # switch to another goal only when it is cheaper by this fraction of the current
     # plan's cost (a terminal cost on the other goals, one search)
+    final_approach_m: float = 1.0  # no score-triggered replan once the remaining base path is shorter than this (m):
+    # the robot finishes its approach; a collision or a new goal still replans
     goal_commit_s: float = 10.0  # keep a chosen goal this long (s, the caller's clock) before another may replace it;
     # earlier only when no path reaches it (0: off). A person turning back and forth makes the cheapest goal alternate
     # faster than the robot can drive to either
@@ -257,6 +259,13 @@ class Replanner:
         sc = self.planner.score_configs(q)
         return float((self.planner._normalized(sc) if normalized else sc).mean())
 
+    def _remaining_base_length(self) -> float:
+        """Length (m) of the base's path still ahead (inf for a robot without a mobile base)."""
+        rem = self.remaining()
+        if rem is None or not self.robot.mobile:
+            return math.inf
+        return float(np.linalg.norm(np.diff(rem[:, :2], axis=0), axis=1).sum()) if len(rem) > 1 else 0.0
+
     def needs_replan(self, now: Optional[float] = None) -> list:
         """Reasons to replan now ([] = keep the current plan). ``now``: the caller's clock (default: monotonic);
         apart from a collision or a goal change, at most one replan per ``min_interval_s``."""
@@ -277,7 +286,8 @@ class Replanner:
             return []
         if self.settings.replan_on_move:
             reasons += [r for r in ("target_moved", "obstacle_moved") if r in self._pending]
-        if not reasons and (self._pending & {"target_moved", "obstacle_moved"} or self._score_stale):
+        if not reasons and (self._pending & {"target_moved", "obstacle_moved"} or self._score_stale) \
+                and self._remaining_base_length() >= self.settings.final_approach_m:
             # (scored only when it decides: with a reason already, the replan happens anyway)
             sc = self.path_score(normalized=True)
             if sc < self.settings.score_min <= self._plan_score:  # fell below
