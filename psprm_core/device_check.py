@@ -208,10 +208,12 @@ def main(argv=None) -> int:
         print(json.dumps({"device": a.device, "checked": False, "ok": True,
                           "note": f"CUDA is not available to this torch build ({torch.__version__}): nothing checked"}))
         return 0
-    out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed)
+    from .commands.perf import print_json, stdout_to_stderr
+
+    with stdout_to_stderr():  # stdout carries the JSON object only
+        out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed)
     out["checked"] = True
-    sys.stdout.flush()
-    print("\n" + json.dumps(out))  # on a line of its own (pybullet's loader writes to stdout without a newline)
+    print_json(out)
     return 0 if out["ok"] else 1
 
 

@@ -11,26 +11,39 @@ import os
 import sys
 
 
+@contextlib.contextmanager
+def stdout_to_stderr():
+    """Everything written to stdout inside the block, by Python or by C code (pybullet's URDF warnings), goes to
+    stderr; what Python prints is collected in the yielded buffer instead."""
+    sys.stdout.flush()
+    saved = os.dup(1)
+    os.dup2(2, 1)
+    buf = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(buf):
+            yield buf
+    finally:
+        sys.stdout.flush()
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def print_json(obj) -> None:
+    """One JSON object on stdout, non-finite numbers as null."""
+    print(json.dumps(_finite(obj), allow_nan=False))
+
+
 def _json_only(fn):
     """With ``--json``, stdout carries the JSON object only: anything else written there while the benchmark runs
     (pybullet's C-level URDF warnings included) goes to stderr, and non-finite numbers become null."""
     def run(args):
         if not getattr(args, "json", False):
             return fn(args)
-        sys.stdout.flush()
-        saved = os.dup(1)
-        os.dup2(2, 1)
-        buf = io.StringIO()
-        try:
-            with contextlib.redirect_stdout(buf):
-                rc = fn(args)
-        finally:
-            sys.stdout.flush()
-            os.dup2(saved, 1)
-            os.close(saved)
+        with stdout_to_stderr() as buf:
+            rc = fn(args)
         for line in buf.getvalue().splitlines():
             if line.strip():
-                print(json.dumps(_finite(json.loads(line)), allow_nan=False))
+                print_json(json.loads(line))
         return rc
     return run
 
