@@ -28,6 +28,7 @@ import numpy as np
 import torch
 
 from .errors import RobotModelError
+from .robot import add_base_twists, image_roll
 
 
 class PKCameraKinematics:
@@ -38,8 +39,6 @@ class PKCameraKinematics:
             import pytorch_kinematics as pk
         except ImportError as exc:  # pragma: no cover - a pinned requirement
             raise RobotModelError(f"pytorch-kinematics is not installed: {exc}") from exc
-        from .robot import image_roll
-
         self.robot, self.device, self.dtype = robot, torch.device(device), dtype
         cfg, urdf = robot.config, robot.urdf
         try:
@@ -111,9 +110,5 @@ class PKCameraKinematics:
         v0 = v - torch.linalg.cross(w.transpose(1, 2), p.unsqueeze(1).expand(-1, q.shape[1], -1)).transpose(1, 2)
         W = torch.cat([w, v0], 1).transpose(1, 2).contiguous()  # (B, dof, 6)
         if self.robot.mobile:
-            W[:, 0, 3] += 1.0
-            W[:, 1, 4] += 1.0
-            W[:, 2, 2] += 1.0
-            W[:, 2, 3] += q[:, 1]
-            W[:, 2, 4] -= q[:, 0]
+            add_base_twists(W, q)
         return (T @ self.roll).to(q_in.device, q_in.dtype), W.to(q_in.device, q_in.dtype)

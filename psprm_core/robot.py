@@ -338,6 +338,16 @@ class ElementModel:
     half: np.ndarray  # (E, 3) half extents (padding included)
 
 
+def add_base_twists(W: torch.Tensor, q: torch.Tensor) -> None:
+    """Add a differential-drive base's world twists ``[omega, v0]`` to camera twists ``W`` (B, dof, 6) in place: x and
+    y are prismatic along the world axes, theta revolute about z through ``(x, y, 0)``."""
+    W[:, 0, 3] += 1.0
+    W[:, 1, 4] += 1.0
+    W[:, 2, 2] += 1.0
+    W[:, 2, 3] += q[:, 1]  # (x, y, 0) x e_z = (y, -x, 0)
+    W[:, 2, 4] -= q[:, 0]
+
+
 def load_acm(robot: RobotModel) -> set:
     """Allowed self-collision link pairs (frozensets) from the robot's ACM file; empty set if none is configured."""
     cfg = robot.config.collision
@@ -657,11 +667,7 @@ class RobotModel:
             # planning joint i drives body b with rate D[i, b]
             W = W + torch.einsum("ib,Bbk->Bik", tens["D"][:, idx], torch.cat([omega, v0], -1))
         if self.mobile:
-            W[:, 0, 3] += 1.0
-            W[:, 1, 4] += 1.0
-            W[:, 2, 2] += 1.0
-            W[:, 2, 3] += q[:, 1]  # (x, y, 0) x e_z = (y, -x, 0)
-            W[:, 2, 4] -= q[:, 0]
+            add_base_twists(W, q)
         return T, W
 
     def link_poses(self, q: torch.Tensor, links: list) -> torch.Tensor:
