@@ -147,6 +147,7 @@ class Replanner:
         self._progress = 0  # index into result.dense of the robot's position along the current path
         self._plan_score = float("nan")  # normalised predicted score of the current plan
         self._last_plan_time = -math.inf
+        self._goal_cfg: Optional[np.ndarray] = None  # the current plan's goal configuration
         self._goal_since = -math.inf  # when the current plan's goal was chosen (the clock of replan's ``now``)
         self._last_failed = False
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
@@ -364,7 +365,7 @@ class Replanner:
         if res.success:
             self.result, self._progress = res, 0
             new_goal = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
-            old_goal = getattr(self, "_goal_cfg", None)
+            old_goal = self._goal_cfg
             if new_goal is None or old_goal is None or old_goal.shape != new_goal.shape or \
                     np.abs(old_goal - new_goal).max() >= 1e-6:
                 self._goal_since = self._last_plan_time
@@ -383,8 +384,12 @@ class Replanner:
         if (self.settings.goal_commit_s <= 0 or self.result is None or self.goals is None or len(self.goals) < 2
                 or now - self._goal_since >= self.settings.goal_commit_s):
             return None
-        cur = getattr(self, "_goal_cfg", None)
-        if cur is None or cur.shape != self.goals.shape[1:]:
+        return self._current_goal_mask()
+
+    def _current_goal_mask(self) -> Optional[np.ndarray]:
+        """Mask (G,) of the candidate goals equal to the current plan's goal; None if none is."""
+        cur = self._goal_cfg
+        if cur is None or self.goals is None or cur.shape != self.goals.shape[1:]:
             return None
         same = np.abs(self.goals - cur).max(1) < 1e-6
         return same if same.any() else None
@@ -408,11 +413,8 @@ class Replanner:
         oscillate between goals). None when there is nothing to keep."""
         if self.result is None or self.goals is None or len(self.goals) < 2 or self.settings.goal_switch_margin <= 0:
             return None
-        cur = getattr(self, "_goal_cfg", None)
-        if cur is None:
-            return None
-        same = np.abs(self.goals - cur).max(1) < 1e-6
-        if not same.any() or not np.isfinite(self.result.cost):
+        same = self._current_goal_mask()
+        if same is None or not np.isfinite(self.result.cost):
             return None
         return np.where(same, 0.0, self.settings.goal_switch_margin * max(self.result.cost, 0.0))
 
