@@ -162,6 +162,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--threads", type=int, default=2)
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=_json_only(_replan))
+    dg = ps.add_parser("digest", help="fixed-seed plans and replans on every shipped scene, written to a file or "
+                                      "compared with an earlier one (identical paths, costs within --tol)")
+    dg.add_argument("--out", default=None, help="write the record here")
+    dg.add_argument("--against", default=None, help="compare with this earlier record (exit 1 on a difference)")
+    dg.add_argument("--scenes", default=None, help="comma-separated scene names (default: all shipped)")
+    dg.add_argument("--nodes", type=int, default=400)
+    dg.add_argument("--seed", type=int, default=3)
+    dg.add_argument("--tol", type=float, default=1e-6)
+    dg.set_defaults(func=_digest)
 
 
 def _backends(args) -> int:
@@ -184,6 +193,12 @@ def _backends(args) -> int:
         out["projection_inputs"] = {"per_view_s": view_s, "overhead_s": over, "start_s": start, "cores": args.cores}
     print(json.dumps(out, indent=None if args.json else 2, default=float))
     return 0
+
+
+def _digest(args) -> int:
+    from .digest import run
+
+    return run(args)
 
 
 def _replan(args) -> int:
