@@ -576,7 +576,7 @@ def interpolate(qa, qb, s, w_rot, mobile):  # pragma: no cover - compiled
 def pieces(a, b, resolution, max_steps, include_start, w_rot, mobile):  # pragma: no cover - compiled
     """Points every ``resolution`` (motion cost) on the straight joint-space pieces a[i] -> b[i] (theta the short
     way): n = ceil(length / resolution) steps clamped to [1, max_steps], points at k / n for k = 0 (or 1) .. n - 1.
-    Returns (piece index (P,), points (P, dof)) (PSPRM._pieces)."""
+    Returns (piece index (P,), points (P, dof)) (Edges.pieces)."""
     E, dof = a.shape
     n = np.empty(E, np.int64)
     total = 0
@@ -835,12 +835,12 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
                       chain, cam_body, cam_R, cam_t, tgt, derived, w1, b1, ws, bs, wo, bo,
                       has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir,
                       tau, mlp_rows):  # pragma: no cover - compiled
-    """The lazy verification of a few edges from their knots (E, M, dof), in one call (PSPRM._verify_edges):
+    """The lazy verification of a few edges from their knots (E, M, dof), in one call (Verification.verify_edges):
 
     - ``do_check`` (E,): collision flags of the interior knots and of the points every ``resolution`` on the
-      pieces between consecutive knots (PSPRM._knots_valid, dense);
+      pieces between consecutive knots (Edges.knots_valid, dense);
     - ``do_score`` (E,), for edges found free: the camera poses of the Eq. 1 points (both ends and the N interior
-      samples, PSPRM._eq1_cameras) and their raw surrogate scores (pose features, :func:`mlp`), zeroed where the
+      samples, Scoring.eq1_cameras) and their raw surrogate scores (pose features, :func:`mlp`), zeroed where the
       ray-cast occlusion score exceeds ``tau`` (Alg. 2, lines 4-7; NeuralScorer.score); the MLP runs on chunks of
       ``mlp_rows`` views, edge-aligned (the rows the compiled scorer takes per call).
 
@@ -849,7 +849,7 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
     E, M, dof = knots.shape
     N = interior.shape[1]
     free = np.ones(E, np.bool_)
-    # collision (PSPRM._knots_valid): the edges to check, their interior knots and then their dense pieces
+    # collision (Edges.knots_valid): the edges to check, their interior knots and then their dense pieces
     nck = 0
     for e in range(E):
         if do_check[e]:
@@ -938,7 +938,7 @@ def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, n_interp, w_rot, 
                  el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb,
                  eps, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh,
                  count_inside, eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
-    """A lazy search's verification of edges ``ids`` (E,) in one call (PSPRM._verify_edges): first the knots of the
+    """A lazy search's verification of edges ``ids`` (E,) in one call (Verification.verify_edges): first the knots of the
     ``compute`` ones (the query's connection edges, from their ends qa -> qb (C, dof), :func:`query_knots`) are
     written into the knot store (``store_k`` (cap, M, dof), ``store_i`` (cap, N): the planner's tensors), reversed
     where ``flip`` (C,) (the store keeps an edge's knots in its u -> v direction), then every edge is checked and

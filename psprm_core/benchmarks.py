@@ -246,7 +246,7 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
                                                        target)
     ids = p.roadmap_node_ids()
     sel = np.random.default_rng(seed).choice(ids, min(samples, len(ids)), replace=False)
-    cams = robot.camera_poses(p._t(p.graph.configs[sel]))
+    cams = robot.camera_poses(p.ctx.t(p.graph.configs[sel]))
     neural = p.scorer.score(cams).double().cpu().numpy()
     t0 = time.perf_counter()
     oracle = make_scorer("oracle", scene, [target], robot.config.intrinsics).score(cams).double().cpu().numpy()
@@ -396,13 +396,11 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
     vs. a plain shortest-path PRM on the same roadmap (alpha = 0, Eq. 2). Both search the roadmap alone: the
     path shortcuts are off, so the shortest-path paths are the roadmap's shortest. ``rows`` holds the per-problem
     record (start, goal, success, length, predicted score and the judged frames) the summaries are computed from."""
-    import dataclasses
 
     from .perception.oracle import Oracle
 
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
                                                            target, aimed=aimed)
-    p.settings = dataclasses.replace(p.settings, shortcut=False)  # this comparison is of the searches
     alpha = p.settings.alpha
     oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
     n_oracle = len(probs) if oracle_problems is None else min(oracle_problems, len(probs))
@@ -411,7 +409,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
         for i, (a, b) in enumerate(probs):
             for key, al in (("psprm", alpha), ("shortest", 0.0)):
                 p.set_alpha(al)
-                res = p.plan(a, b, timing=False)
+                res = p.plan(a, b, timing=False, options={"shortcut": False})  # this comparison is of the searches
                 row = {"success": res.success, "length": res.path_length, "predicted": res.mean_score,
                        "start": np.asarray(a, float).tolist(), "goal": np.asarray(b, float).tolist()}
                 if res.success and i < n_oracle:
@@ -488,8 +486,8 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     yaw0 = float(np.arctan2(tgt.rotation[1, 0], tgt.rotation[0, 0]))
     movable = [b.name for b in scene.obstacles if not b.name.startswith("wall") and b.name != body]
     out = {"scene": scene.name, "planner": planner, "target": target, "threads": threads,
-           "heuristic": p.settings.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
-           "build_s": stats.get("build_s"), "first_plan_ms": first.query_ms, "updates": updates}
+           "heuristic": rp.plan_options.get("heuristic", p.settings.heuristic), "n_nodes": stats.get("n_nodes"),
+           "n_edges": stats.get("n_edges"), "build_s": stats.get("build_s"), "first_plan_ms": first.query_ms, "updates": updates}
 
     def timed(kind: str, update) -> None:
         times, ok = [], 0

@@ -11,7 +11,7 @@ such call costs 1-10 ms of per-operator overhead, far more than its arithmetic. 
 * :func:`occlusion_scores`, :func:`pose_features`, :func:`surrogate_scores` - the neural score of Alg. 2
   (:class:`OcclusionChecker`, :meth:`PerceptionSurrogate.predict`);
 * :func:`motion_distance`, :func:`motion_interpolate`, :func:`pieces`, :func:`nearest`, :func:`edge_knot_seeds` - the
-  diff-drive metric and local motions (:class:`DiffDriveMotion`, ``PSPRM._pieces``, the query's nearest roadmap
+  diff-drive metric and local motions (:class:`DiffDriveMotion`, ``Edges.pieces``, the query's nearest roadmap
   nodes, the knots of Eq. 1 edges).
 
 The callers use them for CPU tensors outside autograd (:func:`applies`): batches of at most :data:`MAX_BATCH` rows
@@ -391,7 +391,7 @@ def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tens
 
 def pieces(motion, a: torch.Tensor, b: torch.Tensor, resolution: float, max_steps: int,
            include_start: bool) -> tuple:
-    """``PSPRM._pieces``: (piece index, points every ``resolution`` on the pieces a[i] -> b[i])."""
+    """``Edges.pieces``: (piece index, points every ``resolution`` on the pieces a[i] -> b[i])."""
     seg, pts = kernels().pieces(_f64(a), _f64(b), float(resolution), int(max_steps), bool(include_start),
                                 float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(seg), torch.from_numpy(pts).to(a.dtype)
@@ -466,7 +466,7 @@ def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
 
 def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.Tensor, interior: torch.Tensor,
                       do_check: np.ndarray, do_score: np.ndarray, resolution: float, max_steps: int) -> tuple:
-    """The lazy verification of a few edges in one compiled call (``PSPRM._verify_edges``): collision-free flags
+    """The lazy verification of a few edges in one compiled call (``Verification.verify_edges``): collision-free flags
     (E,) of their knots (E, M, dof) and dense pieces (where ``do_check``), and for the free ones (where
     ``do_score``) the camera poses (E, N + 2, 4, 4) of their Eq. 1 points and the raw scores (E, N + 2) of the
     neural scorer (``scorer_args`` from :func:`neural_args`; the MLP in chunks of whole edges within
@@ -504,7 +504,7 @@ def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.nd
                  n_interp: int, track: bool, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
                  max_iters: int, do_check: np.ndarray, do_score: np.ndarray, resolution: float,
                  max_steps: int) -> tuple:
-    """A lazy search's verification of edges ``ids`` in one compiled call (``PSPRM._verify_edges``): the knots of
+    """A lazy search's verification of edges ``ids`` in one compiled call (``Verification.verify_edges``): the knots of
     the ``compute`` ones from their ends ``qa``, ``qb`` (C, dof) float64 of the planner's values, written into the
     knot store's arrays ``store_k`` (cap, M, dof) / ``store_i`` (cap, N) (numpy views of its tensors; reversed where
     ``flip``), then :func:`check_score_knots` of all of them from the store. Returns numpy arrays (free (E,),

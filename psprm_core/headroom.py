@@ -10,7 +10,6 @@ them and of the planners' own paths is the problem's reference (:func:`psprm_cor
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 from typing import Sequence
 
@@ -67,7 +66,7 @@ class ReferenceRoutes:
             return []
         self._bench.queried()
         p = self.planner
-        saved = p.settings
+        saved = p.settings  # alpha and objective, restored with reweight
         out, seen, used_edges = [], set(), []
 
         def add(label, res):
@@ -83,20 +82,17 @@ class ReferenceRoutes:
         try:
             for objective, alpha in self.searches:
                 for shortcut in (False, True):
-                    p.settings = dataclasses.replace(saved, shortcut=shortcut)
                     p.reweight(alpha=alpha, objective=objective)
                     add(f"{objective}@{alpha:g}" + ("+shortcut" if shortcut else ""),
-                        p.plan(start, goal, timing=False))
+                        p.plan(start, goal, timing=False, options={"shortcut": shortcut}))
             for k in range(self.alternatives):
-                p.settings = dataclasses.replace(saved, shortcut=False)
                 p.reweight(alpha=1.0, objective="motion")
                 g = p.graph
                 e = np.unique(np.asarray([x for x in used_edges if g.edge_valid[x]], dtype=np.int64))
                 if len(e):
                     g.set_weights(e, g.weights[e] * self.penalty)
-                add(f"alt{k + 1}", p.plan(start, goal, timing=False))
+                add(f"alt{k + 1}", p.plan(start, goal, timing=False, options={"shortcut": False}))
         finally:
-            p.settings = saved
             p.reweight(alpha=saved.alpha, objective=saved.objective)
         return out
 

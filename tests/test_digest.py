@@ -24,3 +24,12 @@ def test_each_kind_of_change_is_flagged():
     new = copy.deepcopy(_record())
     new["scenes"][0]["edges"] = 31
     assert compare(new, _record())
+
+
+def test_durations_in_reasons_are_not_compared():
+    a, b = _record(), _record()
+    for r, t in ((a, "0.3"), (b, "0.4")):
+        r["scenes"][0]["plans"][0].update(success=False, reason=f"no way out ({t} s, 5.39 m)")
+    assert compare(a, b) == []
+    b["scenes"][0]["plans"][0]["reason"] = "no way out (0.4 s, 5.40 m)"
+    assert compare(a, b)

@@ -78,13 +78,13 @@ def test_dead_end_is_left_by_backing_out_then_turning(pocket, monkeypatch):
     scene, robot, p = pocket
     start, goal = _ends(robot)
     order = []
-    for name in ("_repair_query", "_escape_query"):
-        real = getattr(p, name)
-        monkeypatch.setattr(p, name, lambda *a, _r=real, _n=name, **k: order.append(_n) or _r(*a, **k))
-    assert not p._plan_once(start, goal, timing=False).success  # what the old planner had
+    for name in ("repair_query", "escape_query"):
+        real = getattr(p.pipeline.recovery, name)
+        monkeypatch.setattr(p.pipeline.recovery, name, lambda *a, _r=real, _n=name, **k: order.append(_n) or _r(*a, **k))
+    assert not p.pipeline.query.plan_once(start, goal, timing=False).success  # what the old planner had
     res = p.plan(start, goal)
     assert res.success, res.reason
-    assert order == ["_escape_query"] and "escape search" in res.reason
+    assert order == ["escape_query"] and "escape search" in res.reason
     W = res.waypoints
     assert np.allclose(W[0], start, atol=1e-5) and np.allclose(W[-1], goal, atol=1e-5)
     assert check_base_segments(W, (0, 1, 2), 1e-5) == []
@@ -114,16 +114,16 @@ def test_escape_is_off_and_never_runs_for_queries_that_succeed(pocket, monkeypat
     scene, robot, p = pocket
     start, goal = _ends(robot)
     calls = []
-    real = p._escape
-    monkeypatch.setattr(p, "_escape", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = p.pipeline.recovery.escape
+    monkeypatch.setattr(p.pipeline.recovery, "escape", lambda *a, **k: calls.append(1) or real(*a, **k))
     s0 = p.settings
     try:
-        p.settings = dataclasses.replace(s0, query_escape_s=0.0, query_untracked_fallback=False,
-                                         query_repair_failures=10**6)
+        p.update_settings(dataclasses.replace(s0, query_escape_s=0.0, query_untracked_fallback=False,
+                                              query_repair_failures=10**6))
         res = p.plan(start, goal, timing=False)
         assert not res.success and "reachable" in res.reason and not calls
     finally:
-        p.settings = s0
+        p.update_settings(s0)
     other = goal.copy()
     other[:3] = [4.0, 3.0, 1.0]
     res = p.plan(other, goal, timing=False)
@@ -141,16 +141,16 @@ def test_trapped_start_fails_with_a_clear_reason(load_robot):
     res = p.plan(start, goal, timing=False)
     assert not res.success
     assert res.reason.startswith("start is boxed in: no collision-free motion out of it was found"), res.reason
-    ends = p._t(np.stack([start, goal]))
+    ends = p.ctx.t(np.stack([start, goal]))
     ids, lab = p.components()
     t0 = time.perf_counter()
-    esc = p._escape(ends[0], ids[lab == np.argmax(np.bincount(lab))], np.random.default_rng(0), t0 + 10.0)
+    esc = p.pipeline.recovery.escape(ends[0], ids[lab == np.argmax(np.bincount(lab))], np.random.default_rng(0), t0 + 10.0)
     assert not esc.success and esc.explored == 1 and esc.tried > 0 and time.perf_counter() - t0 < 1.0
     assert esc.base_reach == 0.0
     # the open dead end's start is not boxed in: its escape search reaches out of it
     open_p = _planner(robot, _pocket_scene(), query_escape_s=0.3)
     ids, lab = open_p.components()
-    esc = open_p._escape(ends[0], ids[lab == np.argmax(np.bincount(lab))], np.random.default_rng(0),
+    esc = open_p.pipeline.recovery.escape(ends[0], ids[lab == np.argmax(np.bincount(lab))], np.random.default_rng(0),
                          time.perf_counter() + 5.0)
     assert esc.success and esc.explored > 1 and esc.base_reach > 2.0
 
@@ -164,23 +164,23 @@ def test_untracked_connection_is_kept_when_the_reaimed_one_collides(pocket):
     scene, robot, p = pocket
     start, goal = _ends(robot)
     wide = dict(extra_candidates={}, connect_k=200)
-    assert not p._plan_once(start, goal, timing=False, **wide).success
-    res = p._plan_once(start, goal, timing=False, untracked=True, **wide)
+    assert not p.pipeline.query.plan_once(start, goal, timing=False, **wide).success
+    res = p.pipeline.query.plan_once(start, goal, timing=False, untracked=True, **wide)
     assert res.success, res.reason
     assert np.allclose(res.waypoints[0], start, atol=1e-5) and _free(robot, scene, res.dense)
     assert check_base_segments(res.waypoints, (0, 1, 2), 1e-5) == []
     # the first edge's executed knots are its untracked local motion, and its re-aimed knots collide
-    a, b = p._t(start[None]), p._t(p.graph.configs[res.path_nodes[1]][None])
+    a, b = p.ctx.t(start[None]), p.ctx.t(p.graph.configs[res.path_nodes[1]][None])
     plain = p.edge_knots(a, b, track=False)[0][0].double().numpy()
     plain = plain[np.r_[True, np.abs(np.diff(plain, axis=0)).max(1) > 1e-7]]  # as the path drops repeated knots
     diff = res.waypoints[:len(plain)] - plain
     diff[:, 2] = np.angle(np.exp(1j * diff[:, 2]))  # headings: the same angle
     assert np.abs(diff).max() < 1e-5
     aimed, _ = p.edge_knots(a, b)
-    assert not bool(p._knots_valid(aimed)[0])
+    assert not bool(p.pipeline.edges.knots_valid(aimed)[0])
     # roadmap edges are never swapped for their untracked motion
     e = p.roadmap_edge_ids()[:5]
-    assert not p._untracked_query_edges(e, torch.zeros(len(e), dtype=torch.bool)).any()
+    assert not p.pipeline.verify.untracked_query_edges(e, torch.zeros(len(e), dtype=torch.bool)).any()
 
 
 def test_escape_settings_are_query_settings_and_validated(pocket, tmp_path):
@@ -188,12 +188,12 @@ def test_escape_settings_are_query_settings_and_validated(pocket, tmp_path):
     fp = p.fingerprint()
     s0 = p.settings
     try:
-        p.settings = dataclasses.replace(s0, query_escape_s=0.5, query_escape_nodes=10, query_escape_radius=1.0,
-                                         query_escape_step=0.2, query_escape_connect_k=2,
-                                         query_untracked_fallback=False)
+        p.update_settings(dataclasses.replace(s0, query_escape_s=0.5, query_escape_nodes=10, query_escape_radius=1.0,
+                                              query_escape_step=0.2, query_escape_connect_k=2,
+                                              query_untracked_fallback=False))
         assert p.fingerprint() == fp  # a saved roadmap stays valid
     finally:
-        p.settings = s0
+        p.update_settings(s0)
     for bad in (dict(query_escape_s=-1.0), dict(query_escape_s=float("nan")), dict(query_escape_step=0.0),
                 dict(query_escape_radius=-1.0), dict(query_escape_nodes=0), dict(query_escape_connect_k=0)):
         with pytest.raises(ConfigError):

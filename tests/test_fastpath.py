@@ -18,6 +18,9 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning import search_kernels
 from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
+from psprm_core.planning.pipeline import Pipeline
+from psprm_core.planning.state import PlannerContext
+from psprm_core.planning.verification import Verification
 from psprm_core.reference import sample_uniform
 from psprm_core.scene import load_scene
 
@@ -283,12 +286,14 @@ def test_motion_metric_interpolation_and_pieces_match_torch(name, load_robot):
     assert (m.distance(qa, qb) - ref_d).abs().max() < 1e-12
     assert (m.interpolate(qa, qb, s) - ref_i).abs().max() < 1e-12
     assert (m.distance(qa.float(), qb.float()) - ref_d).abs().max() < 1e-4  # float32 inputs, float32 result
-    planner = PSPRM.__new__(PSPRM)  # only the motion, robot and settings are needed by _pieces
-    planner.robot, planner.motion, planner.settings = robot, m, PSPRMSettings()
+    # only the motion, robot and settings are needed by the edges' pieces
+    ctx = PlannerContext(robot=robot, scene=None, scorer=None, settings=PSPRMSettings(), device=torch.device("cpu"),
+                         dtype=torch.float64, motion=m, checker=None, constraint=None, track_cols=np.zeros(0, int))
+    edges = Pipeline(ctx).edges
     for include_start in (True, False):
-        seg, pts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+        seg, pts = edges.pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
         with fastpath.disabled():
-            rseg, rpts = planner._pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+            rseg, rpts = edges.pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
         assert torch.equal(seg, rseg) and len(seg) > 1000
         assert (pts - rpts).abs().max() < 1e-12
 
@@ -300,8 +305,7 @@ def test_edge_knots_and_nearest_nodes_match_torch(name, load_robot):
     robot, scene = _robot_scene(name, load_robot)
     target = scene.target(scene.target_names[0]).center
     planner = PSPRM(robot, scene, GeometricScorer(scene, scene.target_names[0], robot.config.intrinsics), target,
-                    PSPRMSettings())
-    planner.dtype = torch.float64
+                    PSPRMSettings(), dtype=torch.float64)
     qa = torch.as_tensor(_configs(robot, scene, 40, 10), dtype=torch.float64)
     qb = torch.as_tensor(_configs(robot, scene, 40, 11), dtype=torch.float64)
     qb[:5, :2] = qa[:5, :2]  # turns in place: a drive corner at s = 0 or 1
@@ -339,11 +343,11 @@ def test_warm_up_loads_the_query_kernels(load_robot):
                 mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
             planner.warm_up()  # nothing compiled without numba
     # the first plan's trajectory timing (TOPP-RA) is loaded too: a three-knot drive is timed, within the limits
-    with mock.patch.object(planner, "_timed", wraps=planner._timed) as timed:
+    with mock.patch.object(planner.pipeline.trajectory, "timed", wraps=planner.pipeline.trajectory.timed) as timed:
         planner.warm_up()
     (W,), _ = timed.call_args
     assert timed.call_count == 1 and W.shape == (3, robot.dof)
-    traj = planner._timed(W)
+    traj = planner.pipeline.trajectory.timed(W)
     assert traj.times[-1] > 0 and np.allclose(traj.positions[-1], W[-1], atol=1e-6)
 
 
@@ -424,15 +428,14 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     robot, scene = _robot_scene("stretch2", load_robot)
     target = scene.target_names[0]
     scorer = _neural_scorer(scene, target)
-    planner = PSPRM(robot, scene, scorer, scene.target(target).center, PSPRMSettings())
-    planner.dtype = dtype
+    planner = PSPRM(robot, scene, scorer, scene.target(target).center, PSPRMSettings(), dtype=dtype)
     rng = np.random.default_rng(21)
     qa = torch.as_tensor(_configs(robot, scene, 1500, 20), dtype=dtype)
     qa = qa[planner.checker.valid(qa)][:90]
     qb = qa + torch.as_tensor(rng.normal(0, 0.15, qa.shape), dtype=dtype)  # short edges, some colliding
     kn, ki = planner.edge_knots(qa, qb)
     seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.n_interp)
-    assert torch.equal(kn, planner._track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
+    assert torch.equal(kn, planner.pipeline.edges.track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
     args = fastpath.neural_args(scorer, dtype)
     # a query's start and goal scores: one compiled call, the scorer's values
     assert torch.equal(planner.score_configs(qa[:fastpath.MLP_MAX_ROWS]),
@@ -443,9 +446,9 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
         free, cams, raw = fastpath.check_score_knots(planner.motion, planner.checker, robot, args, k, i,
                                                      np.ones(len(k), bool), np.ones(len(k), bool),
                                                      planner.settings.edge_resolution, 200)
-        assert np.array_equal(free, planner._knots_valid(k, dense=True).numpy())
+        assert np.array_equal(free, planner.pipeline.edges.knots_valid(k, dense=True).numpy())
         if free.any():
-            ref_cams = planner._eq1_cameras(k[free], i[free])
+            ref_cams = planner.pipeline.scoring.eq1_cameras(k[free], i[free])
             assert torch.equal(cams[free], ref_cams)
             ref = scorer.score(ref_cams.reshape(-1, 4, 4)).reshape(int(free.sum()), -1)
             assert torch.equal(raw[free].to(ref.dtype), ref)
@@ -470,7 +473,7 @@ def test_planner_same_paths_with_the_fused_verification_on_and_off(load_robot, t
     probs = random_problems(robot, scene, a.checker, 8, np.random.default_rng(6), robot.default_configuration(),
                             focus, aimed_only=True, aim_restarts=4)
     fused = []
-    real = PSPRM._verify_compiled
+    real = Verification.verify_compiled
 
     def spy(self, *args):
         out = real(self, *args)
@@ -479,9 +482,9 @@ def test_planner_same_paths_with_the_fused_verification_on_and_off(load_robot, t
 
     solved = 0
     for start, goal in probs:
-        with mock.patch.object(PSPRM, "_verify_compiled", spy):
+        with mock.patch.object(Verification, "verify_compiled", spy):
             ra = a.plan(start, goal, timing=False)
-        with mock.patch.object(PSPRM, "_verify_compiled", return_value=None):
+        with mock.patch.object(Verification, "verify_compiled", return_value=None):
             rb = b.plan(start, goal, timing=False)
         assert ra.success == rb.success
         if ra.success:

@@ -63,8 +63,8 @@ def test_query_hop_counts_are_the_hop_distances_and_keep_the_paths(load_robot):
     settings = PSPRMSettings(n_nodes=500, seed=2, query_repair_nodes=0)
     a = PSPRM(robot, scene, GeometricScorer(scene, target, robot.config.intrinsics), focus, settings)
     stats = a.build()
-    assert stats["success"] and a._hop_table is not None and stats["hop_table_s"] < stats["build_s"]
-    R, T = a._hop_table
+    assert stats["success"] and a.pipeline.rm.hop_table is not None and stats["hop_table_s"] < stats["build_s"]
+    R, T = a.pipeline.rm.hop_table
     assert T.shape == (R, R) and R == a.n_roadmap_nodes
     probs = random_problems(robot, scene, a.checker, 10, np.random.default_rng(3), robot.default_configuration(),
                             focus, aimed_only=True, aim_restarts=4)
@@ -82,7 +82,7 @@ def test_query_hop_counts_are_the_hop_distances_and_keep_the_paths(load_robot):
         assert graph_search.heuristic_consistency_gap(g, h, np.where(np.isfinite(w), w, np.inf)) <= 1e-9
         return real(g, start, goals, verify, **kw)
 
-    import psprm_core.planning.psprm as P
+    import psprm_core.planning.query as P
 
     results = []
     P.lazy_astar = spy
@@ -95,7 +95,7 @@ def test_query_hop_counts_are_the_hop_distances_and_keep_the_paths(load_robot):
     assert sum(exact for _, exact in seen) >= len(seen) // 2  # exact until edges are found colliding
     b = PSPRM(robot, scene, GeometricScorer(scene, target, robot.config.intrinsics), focus, settings)
     b.build()
-    b._hop_table = None  # the BFS heuristic
+    b.pipeline.rm.hop_table = None  # the BFS heuristic
     for (start, goal), ra in zip(probs, results):
         rb = b.plan(start, goal, timing=False)
         assert ra.success == rb.success
@@ -103,4 +103,4 @@ def test_query_hop_counts_are_the_hop_distances_and_keep_the_paths(load_robot):
             assert ra.cost == pytest.approx(rb.cost, rel=1e-9, abs=1e-12)
     assert sum(r.success for r in results) >= len(results) // 2
     a.grow(20, center=probs[0][0][:3])
-    assert a._query_hops([a.roadmap_node_ids()[0]], [0]) is None  # the roadmap grew: back to the BFS
+    assert a.pipeline.heuristics.query_hops([a.roadmap_node_ids()[0]], [0]) is None  # the roadmap grew: back to the BFS

@@ -181,7 +181,7 @@ def test_retired_query_edges_never_change_results(home):
     grown = planner.graph.n_nodes
     again = [planner.plan(a, b, timing=False).cost for a, b in probs]
     assert planner.graph.n_nodes > grown  # retired nodes are kept until compaction
-    planner._compact()
+    planner.pipeline.rm.compact()
     compacted = [planner.plan(a, b, timing=False).cost for a, b in probs]
     assert np.allclose(first, again) and np.allclose(first, compacted)
     assert planner.graph.node_valid[planner.n_roadmap_nodes:].sum() == 2 * len(probs)  # only the last queries'
@@ -224,7 +224,7 @@ def test_rebuilt_roadmap_connects_queries_to_its_own_nodes(load_robot):
     planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings(n_nodes=300, seed=3))
     planner.build(template=start)
     assert planner.plan(start, goals, timing=False).success
-    planner.settings = planner.settings.__class__(**{**planner.settings.__dict__, "seed": 4})
+    planner.update_settings(planner.settings.__class__(**{**planner.settings.__dict__, "seed": 4}))
     planner.build(template=start)
     res = planner.plan(start, goals, timing=False)
     assert res.success, res.reason
@@ -251,7 +251,7 @@ def test_perception_preserving_shortcuts(home):
             start, goals = problem_configurations(robot, scene, p)
             out = {}
             for sc in (False, True):
-                planner.settings = dataclasses.replace(saved, objective="motion", shortcut=sc)
+                planner.update_settings(dataclasses.replace(saved, objective="motion", shortcut=sc))
                 planner.reweight(alpha=0.8, objective="motion")
                 out[sc] = planner.plan(start, goals, timing=True)
                 assert out[sc].success, out[sc].reason
@@ -267,7 +267,7 @@ def test_perception_preserving_shortcuts(home):
             assert b.mean_score >= a.mean_score - 0.03, (a.mean_score, b.mean_score)
     finally:
         world.close()
-        planner.settings = saved
+        planner.update_settings(saved)
         planner.reweight(alpha=saved.alpha, objective=saved.objective)
     assert shorter >= 1
 

@@ -172,8 +172,8 @@ def test_lazy_rescore_verifies_the_path_edges(replanner, world):
     path_edges = g.edge_ids_of_path(res.path_nodes)
     assert (g.edge_attribute("verified")[path_edges] == 1.0).all()
     # the lazily verified c_p equals the Eq. 1 mean computed from scratch under the new target pose
-    knots, interior = p.edge_knots(p._t(g.configs[g.edge_u[path_edges]]), p._t(g.configs[g.edge_v[path_edges]]))
-    fresh = p._knots_perception(knots, interior).double().numpy()
+    knots, interior = p.edge_knots(p.ctx.t(g.configs[g.edge_u[path_edges]]), p.ctx.t(g.configs[g.edge_v[path_edges]]))
+    fresh = p.pipeline.scoring.knots_perception(knots, interior).double().numpy()
     assert np.allclose(g.edge_attribute("c_p")[path_edges], fresh, atol=1e-4)
     # most of the roadmap was NOT scored in full: the lazy update touched edges only with endpoint estimates
     assert (g.edge_attribute("verified")[p.roadmap_edge_ids()] == 0.0).mean() > 0.5
@@ -296,7 +296,7 @@ def test_knot_bounds_cache_gives_the_same_hits_as_full_kinematics(replanner):
     hits = 0
     for i in range(8):  # the same region revisited: from the second move on most knots are answered by the cache
         moved = dataclasses.replace(table, center=table.center + np.r_[rng.uniform(-1.0, 1.0, 2), 0.0])
-        got = p._knots_hit(e, [moved])
+        got = p.pipeline.dynamics.knots_hit(e, [moved])
         truth = p.checker.env_hits(inner, [moved]).reshape(len(e), -1).any(-1).numpy()
         np.testing.assert_array_equal(got, truth)
         hits += int(truth.sum())
@@ -307,7 +307,8 @@ def test_knot_bounds_cache_gives_the_same_hits_as_full_kinematics(replanner):
 
 
 def test_replan_heuristic_setting(replanner, tmp_path: Path):
-    assert replanner.planner.settings.heuristic == "exact"  # the replanner's default
+    assert replanner.plan_options["heuristic"] == "exact"  # the replanner's default, for its queries only
+    assert replanner.planner.settings.heuristic != "exact"  # the planner's own settings are left as they are
     with pytest.raises(PsprmError, match="heuristic"):
         ReplanSettings(heuristic="fast")
     f = tmp_path / "r.yaml"
@@ -389,7 +390,7 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     q, goals = replanner.q, replanner.goals
     n0 = p.n_roadmap_nodes
     assert p.plan(q, goals, timing=False).success and p.n_roadmap_nodes == n0
-    real = p._plan_once
+    real = p.pipeline.query.plan_once
     calls = []
 
     def first_fails(*a, **k):
@@ -398,7 +399,7 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
             return PlanResult(False, "no goal is reachable from start 0: different connected component", query_ms=1.0)
         return real(*a, **k)
 
-    monkeypatch.setattr(p, "_plan_once", first_fails)
+    monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
     res = p.plan(q, goals, timing=False)
     assert len(calls) == 2 and res.success and "local roadmap repair" in res.reason
     new = np.arange(n0, p.n_roadmap_nodes)
@@ -410,16 +411,16 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     on_line = (lateral < 1e-4) & (np.abs(np.angle(np.exp(1j * (cfg[:, 2] - q[2])))) < 1e-4)
     assert on_line.any() and (np.linalg.norm(d[on_line], axis=1) <= p.settings.query_repair_radius + 1e-6).all()
     assert p.checker.valid(torch.as_tensor(cfg, dtype=torch.float32)).all()
-    monkeypatch.setattr(p, "_plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
+    monkeypatch.setattr(p.pipeline.query, "plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
     assert not p.plan(q, goals).success and p.n_roadmap_nodes == n0 + len(new)  # other failures: no repair
     # a repair that fails is rolled back: its nodes are removed and the budget is not used up ...
     unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap")  # noqa: E731
-    monkeypatch.setattr(p, "_plan_once", unreachable)
-    kept, valid0 = p._repair_added, p.roadmap_node_ids()
-    p.settings = dataclasses.replace(p.settings, query_repair_failures=p._repair_failed + 2)
+    monkeypatch.setattr(p.pipeline.query, "plan_once", unreachable)
+    kept, valid0 = p.pipeline.rm.repair_added, p.roadmap_node_ids()
+    p.update_settings(dataclasses.replace(p.settings, query_repair_failures=p.pipeline.rm.repair_failed + 2))
     slots = p.n_roadmap_nodes
     assert not p.plan(q, goals).success
-    assert p.n_roadmap_nodes > slots and np.array_equal(p.roadmap_node_ids(), valid0) and p._repair_added == kept
+    assert p.n_roadmap_nodes > slots and np.array_equal(p.roadmap_node_ids(), valid0) and p.pipeline.rm.repair_added == kept
     # ... and after query_repair_failures of them, an unreachable goal grows nothing at all
     assert not p.plan(q, goals).success
     before = p.n_roadmap_nodes
@@ -427,11 +428,11 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
         assert not p.plan(q, goals).success
     assert p.n_roadmap_nodes == before and np.array_equal(p.roadmap_node_ids(), valid0)
     # the budget bounds what successful repairs keep
-    monkeypatch.setattr(p, "_plan_once", first_fails)
+    monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
     calls.clear()
-    p.settings = dataclasses.replace(p.settings, query_repair_failures=10**6, query_repair_budget=p._repair_added + 10)
+    p.update_settings(dataclasses.replace(p.settings, query_repair_failures=10**6, query_repair_budget=p.pipeline.rm.repair_added + 10))
     assert p.plan(q, goals, timing=False).success
-    assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p._repair_added <= p.settings.query_repair_budget
+    assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p.pipeline.rm.repair_added <= p.settings.query_repair_budget
 
 
 def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkeypatch):
@@ -440,7 +441,7 @@ def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkey
     ``query_wide_k = 0`` turns it off, and a success never reaches it."""
     p = replanner.planner
     q, goals = replanner.q, replanner.goals
-    real = p._plan_once
+    real = p.pipeline.query.plan_once
     calls = []
 
     def only_wide_succeeds(*a, **k):
@@ -449,24 +450,24 @@ def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkey
             return real(*a, **k)
         return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
 
-    monkeypatch.setattr(p, "_plan_once", only_wide_succeeds)
+    monkeypatch.setattr(p.pipeline.query, "plan_once", only_wide_succeeds)
     s0 = p.settings
     try:
-        p.settings = dataclasses.replace(s0, query_wide_k=150, query_repair_failures=10**6)
+        p.update_settings(dataclasses.replace(s0, query_wide_k=150, query_repair_failures=10**6))
         res = p.plan(q, goals, timing=False)
         assert res.success and "150 nearest" in res.reason and calls[-1] == ({}, 150)
         assert len(calls) >= 3  # the plain query and at least one repair came first
         assert res.query_ms >= 1.0 and np.isfinite(res.cost)
         calls.clear()
-        p.settings = dataclasses.replace(s0, query_wide_k=0, query_repair_failures=10**6)
+        p.update_settings(dataclasses.replace(s0, query_wide_k=0, query_repair_failures=10**6))
         assert not p.plan(q, goals, timing=False).success
         assert all(c != ({}, 150) for c in calls)
         # once the failed-repair cap is reached, a failing query is given up without repair or wide attempt
         calls.clear()
-        p.settings = dataclasses.replace(s0, query_wide_k=150, query_repair_failures=p._repair_failed)
+        p.update_settings(dataclasses.replace(s0, query_wide_k=150, query_repair_failures=p.pipeline.rm.repair_failed))
         assert not p.plan(q, goals, timing=False).success and len(calls) == 1
     finally:
-        p.settings = s0
+        p.update_settings(s0)
 
 
 def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, monkeypatch):
@@ -475,7 +476,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     a grown node already among the nearest is not connected twice."""
     p = replanner.planner
     q, goals = replanner.q, replanner.goals
-    real_once, real_add = p._plan_once, p._add_query_edges
+    real_once, real_add = p.pipeline.query.plan_once, p.pipeline.query.add_query_edges
     seen, calls = [], []
 
     def record(ua, vb, *a, **k):
@@ -489,8 +490,8 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
         seen.clear()
         return real_once(*a, **k)
 
-    monkeypatch.setattr(p, "_add_query_edges", record)
-    monkeypatch.setattr(p, "_plan_once", first_fails)
+    monkeypatch.setattr(p.pipeline.query, "add_query_edges", record)
+    monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
     k0 = p.settings.connect_k
     res = p.plan(q, goals, timing=False)
     assert res.success and len(calls) == 2
@@ -508,11 +509,11 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     # QUERY_FALLBACK_K nearest nodes, the repaired one all its query_repair_connect_k nearest, however long
     s0 = p.settings
     calls.clear()
-    p.settings = dataclasses.replace(s0, max_edge_length=1e-4)
+    p.update_settings(dataclasses.replace(s0, max_edge_length=1e-4))
     try:
         p.plan(q, goals, timing=False)
     finally:
-        p.settings = s0
+        p.update_settings(s0)
     ua = np.concatenate([u for u, _ in seen])
     vb = np.concatenate([v for _, v in seen])
     tried = set(vb[ua == int(ua.min())].tolist())
@@ -529,7 +530,7 @@ def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
     radius, and stops as soon as it succeeds; the grown nodes of earlier rounds stay candidates."""
     p = replanner.planner
     q, goals = replanner.q, replanner.goals
-    real_once, real_grow = p._plan_once, p.grow
+    real_once, real_grow = p.pipeline.query.plan_once, p.pipeline.builder.grow
     radii, extras = [], []
 
     def grow(n, **kw):
@@ -542,14 +543,14 @@ def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
             return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
         return real_once(*a, **k)
 
-    monkeypatch.setattr(p, "grow", grow)
-    monkeypatch.setattr(p, "_plan_once", fails_twice)
+    monkeypatch.setattr(p.pipeline.builder, "grow", grow)
+    monkeypatch.setattr(p.pipeline.query, "plan_once", fails_twice)
     s0 = p.settings
-    p.settings = dataclasses.replace(s0, query_repair_rounds=3, query_repair_budget=p._repair_added + 10_000)
+    p.update_settings(dataclasses.replace(s0, query_repair_rounds=3, query_repair_budget=p.pipeline.rm.repair_added + 10_000))
     try:
         res = p.plan(q, goals, timing=False)
     finally:
-        p.settings = s0
+        p.update_settings(s0)
     assert res.success and len(extras) == 3  # first query + two repaired ones
     ends = 1 + min(4, len(goals))
     r0 = s0.query_repair_radius

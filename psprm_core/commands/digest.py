@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 from pathlib import Path
 
 import numpy as np
@@ -74,8 +75,13 @@ def digest(scenes=SCENES, nodes: int = 400, seed: int = 3) -> dict:
     return {"nodes": nodes, "seed": seed, "scenes": [scene_digest(s, nodes, seed) for s in scenes]}
 
 
+def _reason(text: str) -> str:
+    """A reason without the durations it quotes ("... reached in 0.3 s"): they vary from run to run."""
+    return re.sub(r"\d+(\.\d+)? s\b", "<t> s", text)
+
+
 def compare(new: dict, old: dict, tol: float = 1e-6) -> list:
-    """Differences between two digests (empty when they agree)."""
+    """Differences between two digests (empty when they agree; durations quoted in reasons are not compared)."""
     diffs = []
     olds = {s["scene"]: s for s in old["scenes"]}
     for s in new["scenes"]:
@@ -87,7 +93,7 @@ def compare(new: dict, old: dict, tol: float = 1e-6) -> list:
             diffs.append(f"{s['scene']}: roadmap {s['nodes']}/{s['edges']} vs {o['nodes']}/{o['edges']}")
         for a, b in zip(s["plans"], o["plans"]):
             name = f"{s['scene']}/{a['problem']}"
-            if (a["success"], a["reason"], a.get("path")) != (b["success"], b["reason"], b.get("path")):
+            if (a["success"], _reason(a["reason"]), a.get("path")) != (b["success"], _reason(b["reason"]), b.get("path")):
                 diffs.append(f"{name}: {a['success']} {a['reason']!r} {a.get('path')} vs "
                              f"{b['success']} {b['reason']!r} {b.get('path')}")
                 continue

@@ -255,7 +255,7 @@ def hop_columns(nbr, deg, n, lo, hi, out):  # pragma: no cover - compiled
 
 @jit
 def query_hops(table, R, nbr, deg, eu, ev, goals):  # pragma: no cover - compiled
-    """A query's hop counts (rows of ``deg``,) to ``goals`` from a hop table (R, R) (PSPRM._query_hops): 0 at the
+    """A query's hop counts (rows of ``deg``,) to ``goals`` from a hop table (R, R) (Heuristics.query_hops): 0 at the
     goals, the other query nodes (ids >= R) by a BFS over the query's own edges ``(eu, ev)`` among them, each roadmap
     node 1 + the smallest table distance to a roadmap neighbour of a labelled query node plus that node's count, then
     lowered along the query's edges by FIFO label correcting (:func:`hops_decrease`)."""

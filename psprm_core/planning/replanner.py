@@ -23,7 +23,6 @@ checked densely against the latest obstacle poses before it is handed out.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import time
@@ -126,12 +125,10 @@ class Replanner:
         if planner.graph is None:
             raise PsprmError("the replanner needs a built or loaded roadmap (call planner.build() or load())")
         self.planner, self.settings = planner, settings
-        if settings.heuristic != "planner" and planner.settings.heuristic != settings.heuristic:
-            planner.settings = dataclasses.replace(planner.settings, heuristic=settings.heuristic)
-        if planner.settings.smooth_timing != settings.smooth_timing:
-            planner.settings = dataclasses.replace(planner.settings, smooth_timing=settings.smooth_timing)
-        if planner.settings.shortcut != settings.shortcut:
-            planner.settings = dataclasses.replace(planner.settings, shortcut=settings.shortcut)
+        # the replans' own query settings (the planner's settings are left as they are)
+        self.plan_options = {"smooth_timing": settings.smooth_timing, "shortcut": settings.shortcut}
+        if settings.heuristic != "planner":
+            self.plan_options["heuristic"] = settings.heuristic
         self.robot = planner.robot
         self.scene = planner.scene
         self.targets = list(targets or getattr(planner, "targets", None) or self.scene.target_names)
@@ -258,7 +255,7 @@ class Replanner:
         self._sync_scene()
         q = torch.as_tensor(rem[::step], dtype=torch.float32)
         sc = self.planner.score_configs(q)
-        return float((self.planner._normalized(sc) if normalized else sc).mean())
+        return float((self.planner.pipeline.scoring.normalized(sc) if normalized else sc).mean())
 
     def _remaining_base_length(self) -> float:
         """Length (m) of the base's path still ahead (inf for a robot without a mobile base)."""
@@ -400,11 +397,11 @@ class Replanner:
         p = self.planner
         keep = self._committed_goal(now)
         if keep is not None:
-            res = p.plan(self.q, self.goals[keep])
+            res = p.plan(self.q, self.goals[keep], options=self.plan_options)
             if res.success:
                 res.goal_index = int(np.nonzero(keep)[0][res.goal_index]) if res.goal_index >= 0 else -1
                 return res
-        return p.plan(self.q, self.goals, goal_costs=self._goal_costs())
+        return p.plan(self.q, self.goals, goal_costs=self._goal_costs(), options=self.plan_options)
 
     def _goal_costs(self) -> Optional[np.ndarray]:
         """Goal hysteresis as terminal costs (one search): with several candidate goals, every goal but the current

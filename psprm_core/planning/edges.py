@@ -1,0 +1,232 @@
+"""Edges: knots of a local motion (differential-drive corners and the N Eq. 1 samples), re-aiming of the camera
+joints at every interior knot (Alg. 1, line 7), dense collision checks between knots, and the knots kept in the knot
+store, so that what is checked and scored is what runs."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .. import fastpath
+from .state import Stage
+
+log = logging.getLogger(__name__)
+
+SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
+
+
+class Edges(Stage):
+    """Computes, checks and stores the knots of local motions."""
+
+    def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor, track: bool = True) -> tuple:
+        """Knots of the local motions qa -> qb (E, dof): (knots (E, M, dof), interior index (E, N)).
+
+        The base follows its differential-drive path (rotate, translate, rotate); the knots are the endpoints, the
+        two drive corners and the N Eq. 1 samples s = i / (N + 1), sorted along the motion, and at every interior
+        knot the non-base camera joints are re-projected onto the visibility manifold (a few Newton steps from the
+        interpolated value), so the camera keeps tracking the target along the edge. Consecutive knots always lie in
+        the same drive phase, so joint-space interpolation between them is a motion the base can execute.
+
+        ``track=False``: the *untracked* knots: the non-base joints are interpolated plainly (no re-aiming), i.e. the
+        knots lie on the local motion itself (the fallback of connection edges whose re-aimed version collides, and
+        the edges of the escape search).
+        """
+        E, n = qa.shape[0], self.ctx.settings.n_interp
+        dt, dev = qa.dtype, qa.device
+        if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: one call
+            ps = self.ctx.settings.projection
+            c = self.ctx
+            return fastpath.query_knots(c.motion, c.constraint, qa, qb, n, track, ps, c.lo, c.hi,
+                                        self.ctx.track_cols, self.ctx.settings.track_iters)
+        if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # bulk: compiled, in row chunks
+            knots, interior_idx = fastpath.edge_knot_seeds(self.ctx.motion, qa, qb, n)
+            return (self.track_knots(knots) if track else knots), interior_idx
+        if self.ctx.robot.mobile:
+            _, r1, d, r2 = self.ctx.motion._base_plan(qa, qb)
+            l1, l2, l3 = self.ctx.motion.w_rot * r1.abs(), d, self.ctx.motion.w_rot * r2.abs()
+            tot = (l1 + l2 + l3).clamp_min(1e-12)
+            corners = torch.stack([l1 / tot, (l1 + l2) / tot], -1)
+        else:
+            corners = torch.zeros(E, 0, dtype=dt, device=dev)
+        samples = (torch.arange(1, n + 1, dtype=dt, device=dev) / (n + 1)).expand(E, n)
+        s_all = torch.cat([torch.zeros(E, 1, dtype=dt, device=dev), samples, corners,
+                           torch.ones(E, 1, dtype=dt, device=dev)], -1)
+        order = torch.argsort(s_all, dim=-1, stable=True)
+        s_sorted = torch.gather(s_all, 1, order)
+        inv = torch.argsort(order, dim=-1)
+        interior_idx = inv[:, 1:1 + n]
+        M = s_all.shape[1]
+        knots = self.ctx.motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0),
+                                            s_sorted.reshape(-1))
+        knots = knots.reshape(E, M, -1)
+        return (self.track_knots(knots) if track else knots), interior_idx
+
+    def track_knots(self, knots: torch.Tensor) -> torch.Tensor:
+        """Knots (E, M, dof) with the non-base camera joints of the interior ones re-projected onto the visibility
+        manifold (``track_iters`` Gauss-Newton steps of Alg. 1, line 7, from the interpolated values)."""
+        E, M, dof = knots.shape
+        if len(self.ctx.track_cols) and M > 2:
+            inner = knots[:, 1:-1].reshape(-1, dof)
+            ps = dataclasses.replace(self.ctx.settings.projection, max_iters=self.ctx.settings.track_iters)
+            proj, _ = self.ctx.constraint.project(inner, ps, self.ctx.lo, self.ctx.hi, joints=self.ctx.track_cols)
+            knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
+        return knots
+
+    def query_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
+        """:meth:`edge_knots` of start/goal query edges, cached by their end configurations (the cache is cleared
+        with the knot store: new roadmap, new visibility focus). Misses are computed in one batch."""
+        cache = self.knots.query
+        A, B = qa.detach().cpu().numpy(), qb.detach().cpu().numpy()
+        keys = [a.tobytes() + b.tobytes() for a, b in zip(A, B)]
+        miss = [i for i, k in enumerate(keys) if k not in cache]
+        if miss:
+            kn, ki = self.edge_knots(qa[miss], qb[miss])
+            for j, i in enumerate(miss):
+                cache[keys[i]] = (kn[j], ki[j])
+        out = (torch.stack([cache[k][0] for k in keys]), torch.stack([cache[k][1] for k in keys]))
+        self.knots.trim_query_cache()
+        return out
+
+    def put_knots(self, edge_ids: np.ndarray, u_given: np.ndarray, knots: torch.Tensor,
+                   interior: torch.Tensor) -> None:
+        """Keep knots computed from ``u_given`` to the other end, flipped where the graph stores the edge the other
+        way round (the roadmap keeps undirected edges as (min id, max id))."""
+        edge_ids = np.asarray(edge_ids, dtype=np.int64)
+        flip = torch.as_tensor(self.rm.graph.edge_u[edge_ids] != np.asarray(u_given), device=knots.device)
+        M = knots.shape[1]
+        knots = torch.where(flip[:, None, None], knots.flip(1), knots)
+        interior = torch.where(flip[:, None], (M - 1 - interior).flip(1), interior)
+        self.knots.put(edge_ids, knots, interior)
+
+    def stored_knots(self, edge_ids: np.ndarray) -> torch.Tensor:
+        """Knots (E, M, dof) and Eq. 1 sample positions (E, N) of graph edges in their stored u -> v direction,
+        computed once and kept."""
+        g = self.rm.graph
+        edge_ids = np.asarray(edge_ids, dtype=np.int64)
+        miss = edge_ids[~self.knots.known(edge_ids)]
+        if len(miss) and self.qc.pending_knots is not None:  # the current query's own edges, from their ends
+            peids, ua, qa, qb = self.qc.pending_knots
+            sel = np.nonzero((peids[:, None] == miss[None, :]).any(1))[0]  # a few dozen x a few: cheaper than isin
+            if len(sel):
+                self.put_knots(peids[sel], ua[sel], *self.query_knots(qa[sel], qb[sel]))
+                miss = edge_ids[~self.knots.known(edge_ids)]
+        if len(miss):
+            miss = np.unique(miss)
+            qa, qb = self.ctx.t(g.configs[g.edge_u[miss]]), self.ctx.t(g.configs[g.edge_v[miss]])
+            self.knots.put(miss, *self.edge_knots(qa, qb))
+        return self.knots.get(edge_ids)
+
+    def knots_valid(self, knots: torch.Tensor, dense: bool = True) -> torch.Tensor:
+        """Collision-free flags (E,) of knot sequences: the knots, and with ``dense`` every ``edge_resolution``
+        between them (only for sequences whose knots are free)."""
+        E, M, dof = knots.shape
+        if dense and E <= SMALL_BATCH and M > 2:
+            # a few edges (a lazy search verifying its path): one checker call for the knots and the dense pieces,
+            # since a call's fixed cost dominates at this size (large batches check the knots first, as a filter)
+            inner = knots[:, 1:-1].reshape(-1, dof)
+            a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
+            seg, pts = self.pieces(a, b, max_steps=200, include_start=False)
+            bad = self.ctx.checker.check(torch.cat([inner, pts]))
+            ok = ~bad[:len(inner)].reshape(E, M - 2).any(-1)
+            seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
+            seg_ok[seg[bad[len(inner):]]] = False
+            return ok & seg_ok.reshape(E, M - 1).all(-1)
+        ok = self.ctx.checker.valid(knots[:, 1:-1].reshape(-1, dof)).reshape(E, M - 2).all(-1) if M > 2 else \
+            torch.ones(E, dtype=torch.bool, device=knots.device)
+        if not dense or not ok.any():
+            return ok
+        idx = torch.nonzero(ok, as_tuple=True)[0]
+        ok[idx] = self.dense_valid(knots[idx])
+        return ok
+
+    def dense_valid(self, knots: torch.Tensor) -> torch.Tensor:
+        """Collision-free flags (E,) of the straight pieces between consecutive knots (endpoints excluded)."""
+        E, M, dof = knots.shape
+        ok = torch.ones(E, dtype=torch.bool, device=knots.device)
+        a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
+        seg, pts = self.pieces(a, b, max_steps=200, include_start=False)
+        if len(seg):
+            bad = self.ctx.checker.check(pts)
+            seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
+            seg_ok[seg[bad]] = False
+            ok &= seg_ok.reshape(E, M - 1).all(-1)
+        return ok
+
+    def edges_valid(self, qa: torch.Tensor, qb: torch.Tensor, chunk: int = 4096,
+                     end_scores: Optional[tuple] = None) -> tuple:
+        """Valid flags (E,), Eq. 1 perception (E,) of local motions (NaN where invalid) and the knots of the valid
+        ones (V, M, dof). ``end_scores``: raw scores (E,) of ``qa`` and ``qb`` when known (the roadmap's node
+        scores), so that only the N interior samples of each edge are scored."""
+        ok = torch.zeros(qa.shape[0], dtype=torch.bool, device=self.ctx.device)
+        p = torch.full((qa.shape[0],), float("nan"), dtype=self.ctx.dtype, device=self.ctx.device)
+        kept, kept_i = [], []
+        for s0 in range(0, qa.shape[0], chunk):
+            a, b = qa[s0:s0 + chunk], qb[s0:s0 + chunk]
+            knots, interior = self.edge_knots(a, b)
+            v = self.knots_valid(knots, dense=not self.ctx.settings.lazy_collision)
+            if self.ctx.settings.edge_view_slack >= 0:
+                inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, knots.shape[-1]))
+                v &= self.ctx.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
+                                             slack=self.ctx.settings.edge_view_slack).reshape(v.shape[0], -1).all(-1)
+            ok[s0:s0 + chunk] = v
+            kept.append(knots[v])
+            kept_i.append(interior[v])
+            if not self.ctx.settings.lazy_edges and v.any():
+                ends = None if end_scores is None else \
+                    tuple(e[s0:s0 + chunk][v].to(self.ctx.device, self.ctx.dtype) for e in end_scores)
+                p[s0:s0 + chunk][v] = self.pl.scoring.knots_perception(knots[v], interior[v], ends=ends)
+        dof = self.ctx.robot.dof
+        if not kept:
+            return ok, p, (torch.zeros(0, 2, dof, dtype=self.ctx.dtype, device=self.ctx.device),
+                           torch.zeros(0, self.ctx.settings.n_interp, dtype=torch.long, device=self.ctx.device))
+        return ok, p, (torch.cat(kept), torch.cat(kept_i))
+
+    def knots_free(self, knots: torch.Tensor) -> torch.Tensor:
+        """Collision-free flags (E,) of the escape search's candidate edges, densely checked like
+        :meth:`knots_valid`, but always the knots first: most candidates collide, and their few knots are cheap."""
+        ok = self.knots_valid(knots, dense=False)
+        if ok.any():
+            idx = torch.nonzero(ok, as_tuple=True)[0]
+            ok[idx] = self.dense_valid(knots[idx])
+        return ok
+
+    def motion_distance(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
+        """:meth:`DiffDriveMotion.distance` of numpy batches (E, dof) in the planner's dtype, same dtype out."""
+        if len(qa) == 0:
+            return np.zeros(0, dtype=qa.dtype)
+        if self.ctx.device.type == "cpu" and fastpath.enabled() and len(qa) <= fastpath.MOTION_MAX_BATCH:
+            m = self.ctx.motion  # the compiled metric of DiffDriveMotion.distance, without the tensor round trip
+            d = fastpath.kernels().distance(qa.astype(np.float64), qb.astype(np.float64), float(m.w_rot),
+                                            bool(m.mobile))
+            return d.astype(qa.dtype)
+        d = self.ctx.motion.distance(torch.from_numpy(qa).to(self.ctx.device), torch.from_numpy(qb).to(self.ctx.device))
+        return d.cpu().numpy()
+
+    def densify(self, W: torch.Tensor) -> torch.Tensor:
+        """Configurations every ``edge_resolution`` along the piecewise-linear knot path ``W`` (K, dof)."""
+        if len(W) < 2:
+            return W
+        _, pts = self.pieces(W[:-1], W[1:], max_steps=1000, include_start=True)
+        return torch.cat([pts, W[-1:]])
+
+    def pieces(self, a: torch.Tensor, b: torch.Tensor, max_steps: int, include_start: bool) -> tuple:
+        """Points every ``edge_resolution`` on the straight pieces a[i] -> b[i] (theta interpolated the short way).
+
+        Each piece is split into n = ceil(length / resolution) steps (at most ``max_steps``); the points are at
+        fractions k / n for k = 0 .. n-1 (``include_start``) or k = 1 .. n-1. Returns (piece index, points).
+        """
+        if fastpath.motion_applies(a, b):  # CPU: one compiled pass (same lengths, same points)
+            return fastpath.pieces(self.ctx.motion, a, b, self.ctx.settings.edge_resolution, max_steps, include_start)
+        diff = b - a
+        if self.ctx.robot.mobile:
+            diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
+        n = torch.ceil(self.ctx.motion.distance(a, b) / self.ctx.settings.edge_resolution).long().clamp(1, max_steps)
+        count = n if include_start else n - 1
+        seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), count)
+        k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
+        frac = ((k + (0 if include_start else 1)).to(a.dtype) / n[seg].to(a.dtype)).unsqueeze(-1)
+        return seg, a[seg] + diff[seg] * frac

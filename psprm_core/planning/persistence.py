@@ -1,0 +1,71 @@
+"""Saving and loading a roadmap (``.npz``), keyed by a fingerprint of the robot, the scene geometry, the focus point and
+the settings that shape the roadmap."""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError
+from .graph import Roadmap
+from .settings import QUERY_SETTINGS
+from .state import Stage
+
+log = logging.getLogger(__name__)
+
+
+
+class Persistence(Stage):
+    """Saves and loads roadmaps."""
+
+    def fingerprint(self) -> str:
+        """Hash of the robot, scene geometry, focus point and settings the roadmap was built for."""
+        h = hashlib.sha256(self.ctx.robot.hash().encode())
+        for b in self.ctx.scene.collision_boxes():
+            h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
+        h.update(self.ctx.constraint.target.numpy().tobytes())
+        build = {k: v for k, v in dataclasses.asdict(self.ctx.settings).items() if k not in QUERY_SETTINGS}
+        h.update(json.dumps(build, sort_keys=True, default=str).encode())
+        return h.hexdigest()[:20]
+
+    def save(self, path: str | Path) -> Path:
+        self.rm.compact()
+        g = self.rm.graph
+        keep, e = self.rm.roadmap_node_ids(), self.rm.roadmap_edge_ids()
+        remap = np.full(g.n_nodes, -1, dtype=np.int64)
+        remap[keep] = np.arange(len(keep))
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        np.savez_compressed(path, configs=g.configs[keep], node_valid=np.ones(len(keep), dtype=bool),
+                            eu=remap[g.edge_u[e]], ev=remap[g.edge_v[e]],
+                            c_m=g.edge_attribute("c_m")[e], c_p=g.edge_attribute("c_p")[e],
+                            verified=g.edge_attribute("verified")[e], checked=g.edge_attribute("checked")[e],
+                            node_scores=self.rm.node_scores[keep], max_motion=self.rm.max_motion,
+                            score_scale=self.rm.score_scale,
+                            fingerprint=self.fingerprint(), stats=json.dumps(self.rm.stats))
+        return path
+
+    def load(self, path: str | Path, check: bool = True) -> None:
+        data = np.load(path, allow_pickle=False)
+        if check and str(data["fingerprint"]) != self.fingerprint():
+            raise ConfigError(str(path), "fingerprint", "roadmap was built for another robot, scene or settings")
+        g = Roadmap(dof=self.ctx.robot.dof, node_capacity=len(data["configs"]) + 64,
+                    edge_capacity=len(data["eu"]) + 1024)
+        g.add_nodes(data["configs"])
+        bad = np.nonzero(~data["node_valid"])[0]
+        w = self.pl.scoring.weight(data["c_p"], data["c_m"])
+        g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"], verified=data["verified"],
+                    checked=data["checked"])
+        if len(bad):
+            g.remove_nodes(bad)
+        self.rm.adopt(g, data["node_scores"], max_motion=float(data["max_motion"]),
+                      score_scale=float(data["score_scale"]),
+                      unverified=bool((data["verified"] < 0.5).any()) and not self.ctx.settings.lazy_edges)
+        self.knots.clear()
+        self.rm.stats = json.loads(str(data["stats"]))
+        self.pl.heuristics.build_hop_table()

@@ -1,0 +1,333 @@
+"""A query: connect start and goals to the roadmap (the connect_k nearest nodes under the motion metric, checked and
+scored like roadmap edges), search (A* or lazy A*), then the recovery stages when no goal is reachable."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from .. import fastpath
+from ..errors import InputError
+from .graph_search import astar, edge_perception, lazy_astar, min_edge_cost
+from .results import PlanResult
+from .settings import QUERY_OPTIONS
+from .state import NP_DTYPE, Stage, one_thread
+
+log = logging.getLogger(__name__)
+
+COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
+QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 max_edge_length is still tried with
+
+
+class Query(Stage):
+    """Connects a query to the roadmap and searches it."""
+
+    @one_thread
+    def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+             goal_costs: Optional[np.ndarray] = None, options: Optional[dict] = None) -> PlanResult:
+        """:meth:`plan_recovering` with the query's ``options``: settings of :data:`~.settings.QUERY_OPTIONS` that
+        this query uses instead of the planner's (a replanner's heuristic, timing and shortcut choice); the planner's
+        settings are not changed."""
+        qs = None
+        if options:
+            unknown = sorted(set(options) - set(QUERY_OPTIONS))
+            if unknown:
+                raise InputError(f"unknown query options {unknown} (choose from {', '.join(QUERY_OPTIONS)})")
+            qs = dataclasses.replace(self.ctx.settings, **options)
+            qs.validate("query options")
+        self.qc.settings = qs
+        try:
+            return self.plan_recovering(start, goals, timing, goal_costs)
+        finally:
+            self.qc.settings = None
+
+    def plan_recovering(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+                        goal_costs: Optional[np.ndarray] = None) -> PlanResult:
+        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see
+        :meth:`plan_once`.
+
+        When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next to a wall where the
+        base cannot turn), an escape search runs first (``query_escape_s`` > 0, below); if it does not succeed, the
+        roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
+        start and each goal (up to 4), half of them along its heading (reachable by driving straight), and the query
+        is repeated, connecting each end to every node grown for it and to its ``query_repair_connect_k`` nearest
+        nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The nodes of a repair
+        that succeeds stay in the roadmap, within ``query_repair_budget``; those of a repair that fails are removed
+        again, so that they do not use up the budget of later queries; after ``query_repair_failures`` such failed
+        repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
+        unreachable cannot make a long-running planner grow without end.
+
+        The two other stages (not once ``query_repair_failures`` is reached, like the repair):
+
+        - escape (``query_escape_s`` > 0), before the repair: a bounded RRT-like search of differential-drive motions
+          with the arm moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the
+          roadmap's largest component (:meth:`~.recovery.Recovery.escape`, ``query_escape_*``); its configurations and
+          densely checked edges join the query as query nodes and edges, scored (Eq. 1) like any other edge, and the
+          query is searched once more. An end it cannot get out of is named in the reason of a query that fails ("start
+          is boxed in: no collision-free motion out of it was found ..." when not one short motion out of it is free);
+        - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its
+          ``query_wide_k`` nearest roadmap nodes, however far (long connections, checked and scored like any other),
+          for ends whose few free motions lead beyond the repair's neighbours (a robot across a shelf aisle).
+
+        In the escape's and the wide query (``query_untracked_fallback``), a connection edge whose re-aimed knots
+        collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
+        interpolated plainly) when those are collision-free; the first query and the repaired ones are unchanged."""
+        res = self.plan_once(start, goals, timing, goal_costs)
+        if res.success or "reachable" not in res.reason or self.rm.graph is None:
+            return res
+        t0 = time.perf_counter()
+        s = self.ctx.settings
+        k = s.query_wide_k
+        # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
+        # and again): no escape, repair or wide attempt
+        escaped = None
+        out = res
+        if s.query_escape_s > 0 and self.rm.repair_failed < s.query_repair_failures:
+            escaped = self.pl.recovery.escape_query(start, goals, timing, goal_costs)
+            if escaped.success:
+                out = escaped
+        if not out.success:
+            out = self.pl.recovery.repair_query(start, goals, timing, goal_costs, res)
+        if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
+                and self.rm.repair_failed < s.query_repair_failures):
+            wide = self.plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
+                                   untracked=s.query_untracked_fallback)
+            if wide.success or "reachable" not in wide.reason:
+                out = wide
+                if wide.success:
+                    out.reason = f"ok after connecting to the {k} nearest roadmap nodes"
+        if not out.success and escaped is not None:  # the escape search says which end could not get out
+            out = escaped
+        out.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
+        return out
+
+    def nearest_ids(self, qq: torch.Tensor, pool: torch.Tensor, k: int) -> torch.Tensor:
+        """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
+        k = min(k, pool.shape[0])
+        if fastpath.motion_applies(qq, qq) and pool.device.type == "cpu" and k > 0:
+            if pool is self.rm.tensor_cache:  # the roadmap: its float64 copy is kept with it
+                if self.rm.tensor_f64 is None:
+                    self.rm.tensor_f64 = self.rm.tensor_numpy.astype(np.float64)
+                pool = self.rm.tensor_f64
+            return fastpath.nearest(self.ctx.motion, qq, pool, k)  # one compiled pass that skips far nodes early
+        d = self.ctx.motion.distance(qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
+        return d.reshape(len(qq), -1).topk(k, largest=False).indices
+
+    def plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+                   goal_costs: Optional[np.ndarray] = None, extra_candidates: Optional[dict] = None,
+                   connect_k: Optional[int] = None, untracked: bool = False,
+                   escapes: Optional[dict] = None) -> PlanResult:
+        """One query: connect start and goals to the roadmap and search (no repair).
+
+        ``connect_k`` (default: the setting): nearest roadmap nodes each end tries. ``extra_candidates``: roadmap node
+        ids tried in addition, per end (key 0: the start, 1 + k: goal k). ``untracked``: a connection edge whose
+        re-aimed knots collide is kept with its untracked knots when those are free
+        (:meth:`~.verification.Verification.untracked_query_edges`). ``escapes``: per end (same keys), the
+        :class:`EscapeResult` of the escape search, whose configurations and checked edges are added as query nodes and
+        edges.
+
+        ``goal_costs`` (G,), optional: a non-negative terminal cost added to the path cost (Eq. 2 units) of reaching
+        each goal, so one search picks the goal minimising path cost + terminal cost (the replanner's goal hysteresis).
+        The goals are joined to one virtual sink node by zero-length edges weighted c_min (Eq. 4) + terminal cost;
+        the common c_min offset leaves the choice unchanged and keeps the hop heuristic informative. The returned
+        ``cost`` is the path cost alone.
+        """
+        t0 = time.perf_counter()
+        if self.rm.graph is None:
+            return PlanResult(False, "roadmap not built")
+        start = np.asarray(start, float).reshape(-1)
+        goals = np.asarray(goals, float).reshape(-1, self.ctx.robot.dof)
+        # the query's small arrays stay numpy (rounded to the planner's dtype as torch would); only the batched
+        # work (metric, collision, scores) goes through the tensor paths
+        Q = np.vstack([start, goals]).astype(NP_DTYPE[self.ctx.dtype])
+        if not np.isfinite(Q).all():
+            return PlanResult(False, "start or goal contains NaN/inf")
+        qs = torch.from_numpy(Q).to(self.ctx.device)
+        if self.ctx.device.type == "cpu" and fastpath.enabled() and len(Q) <= fastpath.MAX_BATCH:
+            f = fastpath.check(self.ctx.checker, Q, detailed=True)  # CollisionChecker.check_detailed, compiled
+            det = {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
+        else:
+            det = {k: v.cpu().numpy() for k, v in self.ctx.checker.check_detailed(qs).items()}
+        bad = det["limits"] | det["environment"] | det["self"]
+        if bad[0]:
+            why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
+            return PlanResult(False, f"start configuration invalid ({why})")
+        if bad[1:].all():
+            return PlanResult(False, "every goal configuration is in collision or outside the limits")
+        g = self.rm.graph
+        added_nodes, added_edges = [], []
+        try:
+            self.qc.scorer_args = {}
+            ids = g.add_nodes(Q.astype(np.float64))
+            added_nodes = list(ids)
+            s_id, goal_ids = int(ids[0]), [int(i) for i, b in zip(ids[1:], bad[1:].tolist()) if not b]
+            rm_ids = self.rm.roadmap_node_ids()
+            rm, rm_np = self.rm.tensor(rm_ids), self.rm.tensor_numpy
+            # candidate edges of the start and every goal, plus start-goal, checked in one batch
+            queries = [(0, s_id)] + [(1 + k, int(gid)) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]
+            qq = Q[[i for i, _ in queries]]
+            # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
+            # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
+            kk = min(connect_k or self.ctx.settings.connect_k, rm.shape[0])
+            cand = self.nearest_ids(torch.from_numpy(qq).to(self.ctx.device), rm, kk).cpu().numpy()  # (Q, kk)
+            src = np.repeat(np.arange(len(queries)), kk)
+            dst = cand.reshape(-1)
+            qend = np.asarray([q for _, q in queries], dtype=np.int64)
+            # direct start -> goal motions last
+            qa = np.concatenate([qq[src], np.repeat(Q[:1], len(goal_ids), 0)])
+            qb = np.concatenate([rm_np[dst], g.configs[goal_ids].astype(Q.dtype).reshape(-1, Q.shape[1])])
+            u_ids = np.concatenate([qend[src], np.full(len(goal_ids), s_id, dtype=np.int64)])
+            v_ids = np.concatenate([rm_ids[dst], np.asarray(goal_ids, dtype=np.int64)])
+            dist = self.pl.edges.motion_distance(qa, qb)
+            within = dist <= 2 * self.ctx.settings.max_edge_length
+            # a start or goal far from the manifold (e.g. the arm folded away) has no roadmap node within 2 delta:
+            # it still gets its QUERY_FALLBACK_K nearest candidates (longer edges, checked like any other)
+            cand_d = dist[: len(src)].reshape(len(queries), kk)
+            lonely = ~within[: len(src)].reshape(len(queries), kk).any(1)
+            if extra_candidates is not None:
+                # a repaired query: the end sits where the roadmap is sparse (an aisle); a longer connection to one of
+                # its connect_k nearest nodes is a candidate like any other (checked and scored the same way)
+                within[:] = True
+            elif lonely.any():
+                nk = min(QUERY_FALLBACK_K, kk)
+                pick = np.argsort(cand_d[lonely], axis=1, kind="stable")[:, :nk] + np.nonzero(lonely)[0][:, None] * kk
+                within[pick.reshape(-1)] = True
+            if extra_candidates:
+                pos = {int(nid): i for i, nid in enumerate(rm_ids)}
+                taken = set(zip(u_ids[: len(src)].tolist(), v_ids[: len(src)].tolist()))
+                ex_q, ex_r = [], []
+                for qi, (k, qid) in enumerate(queries):
+                    for nid in np.asarray(extra_candidates.get(k, ()), dtype=np.int64).tolist():
+                        if nid in pos and (qid, nid) not in taken:
+                            ex_q.append(qi)
+                            ex_r.append(pos[nid])
+                            taken.add((qid, nid))
+                if ex_q:
+                    qa, qb = np.concatenate([qa, qq[ex_q]]), np.concatenate([qb, rm_np[ex_r]])
+                    u_ids = np.concatenate([u_ids, qend[ex_q]])
+                    v_ids = np.concatenate([v_ids, rm_ids[np.asarray(ex_r)]])
+                    within = np.concatenate([within, np.ones(len(ex_q), dtype=bool)])
+            near = np.nonzero(within)[0]
+            ta, tb = torch.from_numpy(qa[near]).to(self.ctx.device), torch.from_numpy(qb[near]).to(self.ctx.device)
+            if len(near) and self.ctx.settings.lazy_collision:
+                # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
+                # interior scores only for the edges the search wants to use (usually one at each end)
+                scores = self.rm.node_score_slots()
+                scores[ids] = self.pl.scoring.query_scores(Q)
+                ua, vb = u_ids[near], v_ids[near]
+                scale = self.rm.score_scale
+                pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
+                eids = self.add_query_edges(ua, vb, pe.astype(Q.dtype), verified=False,
+                                             dist=dist[near] if len(dist) == len(qa) else self.pl.edges.motion_distance(
+                                                 qa[near], qb[near]))  # extras: unknown
+                added_edges.extend(eids)
+                # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
+                # verifies it (usually one or two at each end): stored_knots() takes them from here
+                self.qc.pending_knots = (np.asarray(eids, dtype=np.int64), ua, ta, tb)
+                self.qc.pending_rows = {int(e): i for i, e in enumerate(eids)}
+                pa, pb = qa[near], qb[near]
+                self.qc.pending_np = ((pa, pb), ua, pa.astype(np.float64), pb.astype(np.float64))
+            elif len(near):
+                ok, pe, kn, ki = self.query_edges(ta, tb, untracked=untracked)
+                okn = ok.cpu().numpy()
+                if okn.any():
+                    keep = near[okn]
+                    ua = u_ids[keep]
+                    eids = self.add_query_edges(ua, v_ids[keep], pe[ok].cpu().numpy(),
+                                                 dist=self.pl.edges.motion_distance(qa[keep], qb[keep]))
+                    self.pl.edges.put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
+                    added_edges.extend(eids)
+            if escapes:
+                added_edges.extend(self.pl.recovery.add_escapes(escapes, dict(queries), added_nodes))
+            search_goals, sink_w = goal_ids, None
+            if goal_costs is not None and len(goal_ids) > 1:
+                tc = np.asarray(goal_costs, float).reshape(-1)
+                if tc.shape != (len(goals),) or not (np.isfinite(tc).all() and (tc >= 0).all()):
+                    raise InputError(f"goal_costs must be {len(goals)} finite non-negative values")
+                sink = int(g.add_nodes(g.configs[goal_ids[0]][None])[0])
+                added_nodes.append(sink)
+                k_of = {int(n): k for k, n in enumerate(ids[1:])}
+                c_min = min_edge_cost(g)
+                sink_w = {gid: c_min + tc[k_of[gid]] for gid in goal_ids}
+                se = g.add_edges(np.asarray(goal_ids), np.full(len(goal_ids), sink), np.asarray(list(sink_w.values())),
+                                 c_m=0.0, c_p=np.nan, verified=1.0, checked=1.0)  # nothing to verify: no motion
+                added_edges.extend(int(e) for e in se)
+                search_goals = [sink]
+            self.qc.untracked = bool(untracked)
+            if not goal_ids:
+                res = None
+            else:
+                heur = self.pl.heuristics.name
+                if heur == "distance":
+                    heur = self.pl.heuristics.distance(goal_ids, search_goals[0] if sink_w is not None else None)
+                if self.ctx.settings.lazy_edges or self.ctx.settings.lazy_collision or self.rm.unverified:
+                    hops = None
+                    if isinstance(heur, str) and heur == "hop":
+                        hops = self.pl.heuristics.query_hops(search_goals, added_edges)
+                    res = lazy_astar(g, s_id, search_goals, self.pl.verify.verify_edges, heuristic=heur,
+                                     apply_to_graph=True,
+                                     hops=hops)
+                else:
+                    res = astar(g, s_id, search_goals, heuristic=heur)
+            if res is None or not res.success:
+                return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
+                                  query_ms=(time.perf_counter() - t0) * 1e3)
+            path, cost, goal = res.path, res.cost, res.goal
+            if sink_w is not None:  # drop the virtual sink and its terminal edge
+                path, goal = path[:-1], path[-2]
+                cost -= sink_w[goal]
+            if self.qs.shortcut and len(path) > 2:
+                path, cost = self.pl.shortcut.shortcut_path(path, cost, added_edges)
+            result = self.pl.trajectory.finish(path, cost, timing)
+            result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == goal)[0][0])
+            result.query_ms = (time.perf_counter() - t0) * 1e3
+            return result
+        finally:
+            self.qc.pending_knots = None
+            self.qc.pending_rows, self.qc.pending_np = {}, None
+            self.qc.untracked = False
+            self.qc.scorer_args = None
+            # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
+            # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
+            if added_edges:
+                g.set_weights(np.asarray(added_edges), np.inf)
+            self.rm.dead_edges.extend(int(e) for e in added_edges)
+            self.rm.dead_nodes.extend(int(n) for n in added_nodes)
+            if len(self.rm.dead_nodes) >= 2 * COMPACT_EVERY:
+                self.rm.compact()
+
+    def add_query_edges(self, ua: np.ndarray, vb: np.ndarray, p: np.ndarray, dist: np.ndarray,
+                         verified: bool = True) -> list:
+        """Add query edges ``ua`` -> ``vb`` with their Eq. 1 perception ``p`` (E,) and motion cost ``dist`` (E,), both
+        numpy in the planner's dtype: validated and fully scored (``verified``), or unchecked with an endpoint
+        estimate (verified lazily by the search). The Eq. 2 weight is computed in that dtype, as on the roadmap."""
+        c_m = dist / np.asarray(self.rm.max_motion, dist.dtype)
+        if self.ctx.settings.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs all
+            c_m = np.clip(c_m, 0, 1)
+        w = self.pl.scoring.weight(p, c_m)
+        return list(self.rm.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),
+                                         c_m=c_m.astype(np.float64), c_p=p.astype(np.float64),
+                                         verified=float(verified), checked=float(verified)))
+
+    def query_edges(self, qa: torch.Tensor, qb: torch.Tensor, untracked: bool = False) -> tuple:
+        """Validity and Eq. 1 perception of query edges (always scored in full, never lazily); with ``untracked``,
+        edges whose re-aimed knots collide are tried with their untracked knots."""
+        knots, interior = self.pl.edges.query_knots(qa, qb)
+        ok = self.pl.edges.knots_valid(knots)
+        if untracked and not bool(ok.all()):
+            bad = torch.nonzero(~ok, as_tuple=True)[0]
+            kp, ip = self.pl.edges.edge_knots(qa[bad], qb[bad], track=False)
+            free = self.pl.edges.knots_valid(kp)
+            if free.any():
+                knots, interior = knots.clone(), interior.clone()
+                knots[bad[free]], interior[bad[free]] = kp[free], ip[free]
+                ok[bad[free]] = True
+        p = torch.zeros(qa.shape[0], dtype=self.ctx.dtype, device=self.ctx.device)
+        if ok.any():
+            p[ok] = self.pl.scoring.knots_perception(knots[ok], interior[ok])
+        return ok, p, knots, interior

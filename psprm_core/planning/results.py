@@ -1,0 +1,85 @@
+"""Outcomes of the planner: :class:`PlanResult` of a query (a reason instead of an exception) and
+:class:`EscapeResult` of the escape search from one query end."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Optional, Sequence
+
+import numpy as np
+import torch
+
+
+@dataclass
+class PlanResult:
+    """Outcome of a query (``success`` False comes with a ``reason``; never an exception for bad problems).
+
+    ``dense_scores`` (the planner's perception score along ``dense``) and their mean ``mean_score`` are a report, not
+    part of the search: they are computed on first access with ``score_fn`` (the planner's scorer, i.e. the scene at
+    that moment: read them before moving targets or obstacles) and are not included in ``query_ms``.
+    """
+
+    success: bool
+    reason: str = "ok"
+    path_nodes: list = field(default_factory=list)
+    waypoints: Optional[np.ndarray] = None  # (M, dof) roadmap path incl. diff-drive corners
+    dense: Optional[np.ndarray] = None  # (K, dof) configurations every ``edge_resolution`` along the path
+    trajectory: object = None  # timing.Trajectory
+    cost: float = float("inf")
+    path_length: float = float("nan")
+    query_ms: float = float("nan")
+    goal_index: int = -1
+    score_fn: Optional[Callable[[np.ndarray], np.ndarray]] = field(default=None, repr=False, compare=False)
+    _dense_scores: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
+
+    @property
+    def dense_scores(self) -> Optional[np.ndarray]:
+        """(K,) planner's perception score along ``dense`` (scored on first access)."""
+        if self._dense_scores is None and self.dense is not None and self.score_fn is not None:
+            self._dense_scores = np.asarray(self.score_fn(self.dense), dtype=float)
+            self.score_fn = None
+        return self._dense_scores
+
+    @property
+    def mean_score(self) -> float:
+        """Mean of :attr:`dense_scores` (NaN without a path)."""
+        ds = self.dense_scores
+        return float(ds.mean()) if ds is not None and len(ds) else float("nan")
+
+    def to_dict(self, joint_names: Sequence[str] | None = None) -> dict:
+        d = {"success": self.success, "reason": self.reason, "cost": self.cost,
+             "path_length_rad": self.path_length, "mean_perception_score": self.mean_score,
+             "query_ms": self.query_ms, "goal_index": self.goal_index, "n_waypoints": 0}
+        if self.waypoints is not None:
+            d["n_waypoints"] = int(len(self.waypoints))
+            d["waypoints"] = np.round(self.waypoints, 5).tolist()
+            if joint_names is not None:
+                d["joint_names"] = list(joint_names)
+        if self.trajectory is not None:
+            d["duration_s"] = float(self.trajectory.times[-1])
+        return d
+
+
+@dataclass
+class EscapeResult:
+    """Outcome of the escape search from one query end (:meth:`.recovery.Recovery.escape`).
+
+    ``configs`` (n, dof) are the configurations of the kept tree branches (the end itself excluded). ``tree`` lists
+    their edges as (a, b) indices into ``configs`` (-1: the end), ``conn`` the connections (a, roadmap node id); the
+    untracked knots (E, M, dof) and Eq. 1 sample positions (E, N) of both, in the a -> b direction, are the ones
+    that were collision-checked (densely) and are the ones executed.
+    """
+
+    configs: torch.Tensor
+    tree: list
+    tree_knots: tuple
+    conn: list
+    conn_knots: tuple
+    explored: int = 1  # configurations in the tree (the end included)
+    tried: int = 0  # motions tried from the tree (extensions)
+    seconds: float = 0.0
+    base_reach: float = 0.0  # m: farthest base position of the tree from the end's
+
+    @property
+    def success(self) -> bool:
+        return len(self.conn) > 0

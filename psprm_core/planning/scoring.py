@@ -1,0 +1,116 @@
+"""Perception scores of configurations and edges: the scorer on FK camera poses, Eq. 1 (the mean normalised score
+of both ends and the N interior samples of an edge) and the edge weight of the configured objective (Eq. 2 or
+the motion-weighted form)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .. import fastpath
+from .graph_search import edge_perception, edge_weight
+from .state import Stage
+
+log = logging.getLogger(__name__)
+
+
+
+class Scoring(Stage):
+    """Scores configurations and edges (Eq. 1) and weights edges (Eq. 2 / motion-weighted)."""
+
+    def neural_args(self, dtype: torch.dtype) -> Optional[tuple]:
+        """:func:`fastpath.neural_args` of the scorer, kept for the rest of a query (:meth:`~.query.Query.plan_once`
+        clears them: the scorer does not change during a query, but may between queries)."""
+        if self.qc.scorer_args is None:
+            return fastpath.neural_args(self.ctx.scorer, dtype)
+        if dtype not in self.qc.scorer_args:
+            self.qc.scorer_args[dtype] = fastpath.neural_args(self.ctx.scorer, dtype)
+        return self.qc.scorer_args[dtype]
+
+    def query_scores(self, Q: np.ndarray) -> np.ndarray:
+        """:meth:`score_configs` (float64 out) of a query's few configurations ``Q`` (numpy, planner's dtype)."""
+        if self.ctx.device.type == "cpu" and len(Q) <= fastpath.MLP_MAX_ROWS and fastpath.enabled():
+            args = self.neural_args(self.ctx.dtype)
+            if args is not None:
+                return fastpath.neural_config_scores(self.ctx.robot, args, Q).astype(np.float64)
+        return self.score_configs(torch.from_numpy(Q).to(self.ctx.device)).double().cpu().numpy()
+
+    def score_configs(self, q: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+        """Perception scores (B,) of configurations: FK -> camera poses -> scorer (a query's few configurations with
+        a neural scorer: one compiled call, the same values)."""
+        if q.shape[0] <= fastpath.MLP_MAX_ROWS and fastpath.applies(q):
+            args = self.neural_args(q.dtype)
+            if args is not None:
+                return fastpath.neural_config_scores(self.ctx.robot, args, q).to(self.ctx.dtype)
+        out = []
+        for s in range(0, q.shape[0], chunk):
+            qc = q[s:s + chunk]
+            out.append(self.ctx.scorer.score(self.ctx.robot.camera_poses(qc)).to(self.ctx.dtype))
+        return torch.cat(out) if out else torch.zeros(0, dtype=self.ctx.dtype, device=self.ctx.device)
+
+    def weight(self, p, c_m):
+        """Edge weight of the configured objective (:func:`~.graph_search.edge_weight`): Eq. 2 or the motion-weighted
+        form, from the Eq. 1 perception ``p`` and the normalised motion cost ``c_m`` (numpy or torch)."""
+        return edge_weight(p, c_m, self.ctx.settings.alpha, self.ctx.settings.objective)
+
+    def normalized(self, scores: torch.Tensor) -> torch.Tensor:
+        """Normalised perception score c_p in [0, 1] (scores divided by the roadmap's 99th-percentile node score)."""
+        return (scores * self.rm.score_scale).clamp(0.0, 1.0)
+
+    def eq1_cameras(self, knots: torch.Tensor, interior: torch.Tensor) -> torch.Tensor:
+        """Camera poses (E, N + 2, 4, 4) of an edge's Eq. 1 points: both ends and the N interior samples."""
+        E, M, dof = knots.shape
+        n = interior.shape[1]
+        pts = torch.cat([knots[:, :1], torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, dof)),
+                         knots[:, -1:]], 1)
+        return self.ctx.robot.camera_poses(pts.reshape(-1, dof)).reshape(E, n + 2, 4, 4)
+
+    def knots_perception(self, knots: torch.Tensor, interior: torch.Tensor,
+                          cams: Optional[torch.Tensor] = None, ends: Optional[tuple] = None) -> torch.Tensor:
+        """Eq. 1 from knots (or their cached Eq. 1 camera poses): mean normalised score of both ends and the N
+        interior samples. ``ends``: the raw scores (E,) of both ends when already known (only the interior samples
+        are then scored)."""
+        if ends is not None and cams is None:
+            E, M, dof = knots.shape
+            inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, dof)).reshape(-1, dof)
+            sc = self.ctx.scorer.score(self.ctx.robot.camera_poses(inner)).to(self.ctx.dtype).reshape(E, -1)
+            return edge_perception(self.normalized(ends[0]), self.normalized(ends[1]), self.normalized(sc))
+        if cams is None:
+            cams = self.eq1_cameras(knots, interior)
+        E, P = cams.shape[:2]
+        sc = self.normalized(self.ctx.scorer.score(cams.reshape(-1, 4, 4)).to(self.ctx.dtype).reshape(E, P))
+        return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1])
+
+    def stored_perception(self, edge_ids: np.ndarray) -> torch.Tensor:
+        """Eq. 1 of graph edges from their stored knots; camera poses are computed once and kept."""
+        knots, interior = self.pl.edges.stored_knots(edge_ids)
+        have = self.knots.known_cams(edge_ids)
+        if not have.all():
+            miss = np.unique(np.asarray(edge_ids)[~have])
+            k, i = self.knots.get(miss)
+            self.knots.put_cams(miss, self.eq1_cameras(k, i))
+        return self.knots_perception(knots, interior, cams=self.knots.cams[
+            torch.as_tensor(np.asarray(edge_ids, dtype=np.int64), device=knots.device)])
+
+    def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None) -> None:
+        """Re-weight every edge from its stored Eq. 1 perception and motion cost with a new ``alpha`` and/or objective
+        form (:data:`~.graph_search.OBJECTIVES`) without rebuilding; ``None`` keeps the current one."""
+        changes = {k: v for k, v in (("alpha", alpha), ("objective", objective)) if v is not None}
+        new = dataclasses.replace(self.ctx.settings, **changes)
+        new.validate()
+        self.rm.compact()
+        g = self.rm.graph
+        ids = g.valid_edge_ids()
+        c_m = g.edge_attribute("c_m")[ids]
+        if new.objective == "eq2":
+            c_m = np.clip(c_m, 0, 1)
+        g.set_weights(ids, edge_weight(g.edge_attribute("c_p")[ids], c_m, new.alpha, new.objective))
+        self.ctx.settings = new  # last: a reader that sees the new settings sees the new weights
+
+    def score_numpy(self, q: np.ndarray) -> np.ndarray:
+        """Perception scores of configurations given as numpy (the lazy report of :class:`PlanResult`)."""
+        return self.score_configs(self.ctx.t(q)).double().cpu().numpy()

@@ -1,0 +1,128 @@
+"""The state the planner's stages share, as explicit objects.
+
+- :class:`PlannerContext`: what a planner plans with (robot, scene, scorer, settings, device and dtype, the motion
+  model, the collision checker, the visibility constraint); the planner replaces its scene, settings or focus only
+  through its own verbs (``set_scene``, ``reweight``, ``set_focus``).
+- :class:`~.roadmap_state.RoadmapState`: the roadmap graph and everything kept with it (node scores, score scale,
+  retired query nodes, blocked nodes and edges, the hop table, caches).
+- :class:`~.knots.KnotStore`: the knots of the roadmap's edges.
+- :class:`QueryContext`: what one query keeps while it runs (its connection edges' pending knots, the compiled
+  scorer's arguments), cleared when it ends.
+
+Each stage (:class:`Stage`) reads these through the :class:`~.pipeline.Pipeline` that composes the stages.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass, field
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from .. import fastpath
+
+NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}  # the planner's dtype on the host
+
+
+@dataclass
+class PlannerContext:
+    """Robot, scene, scorer and settings of a planner, with the device and dtype of its batched work.
+
+    ``track_cols``: the non-base joints that re-aim the camera along an edge; ``lo``/``hi``: joint limits as tensors
+    (the base's x, y within the scene's workspace)."""
+
+    robot: object
+    scene: object
+    scorer: object
+    settings: object
+    device: torch.device
+    dtype: torch.dtype
+    motion: object
+    checker: object
+    constraint: object
+    track_cols: np.ndarray
+    lo: Optional[torch.Tensor] = None
+    hi: Optional[torch.Tensor] = None
+
+    def t(self, a) -> torch.Tensor:
+        """``a`` as a tensor in the planner's dtype on its device."""
+        return torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)
+
+
+@dataclass
+class QueryContext:
+    """Per-query state, reset by :meth:`clear` when a query ends.
+
+    ``pending_knots``: (edge ids, start ends, qa, qb) of the query's connection edges whose knots are not computed
+    yet (a lazy query computes them when the search first uses an edge); ``pending_rows``: their rows by edge id;
+    ``pending_np``: ((qa, qb) in the planner's dtype, start ends, qa, qb float64) as numpy; ``scorer_args``: the
+    compiled scorer's arguments by dtype; ``untracked``: connection edges may fall back to untracked knots;
+    ``settings``: the planner's settings with the query's own options (kept over the whole query, recovery stages
+    included; None outside a query)."""
+
+    pending_knots: Optional[tuple] = None
+    pending_rows: dict = field(default_factory=dict)
+    pending_np: Optional[tuple] = None
+    scorer_args: Optional[dict] = None
+    untracked: bool = False
+    settings: Optional[object] = None
+
+    def clear(self) -> None:
+        self.pending_knots, self.pending_rows, self.pending_np = None, {}, None
+        self.scorer_args, self.untracked = None, False
+
+
+class Stage:
+    """A stage of the planner's pipeline: reads the shared state objects and calls its sibling stages through
+    :attr:`pl`."""
+
+    def __init__(self, pl):
+        self.pl = pl  # the :class:`~.pipeline.Pipeline` this stage belongs to
+
+    @property
+    def ctx(self) -> PlannerContext:
+        return self.pl.ctx
+
+    @property
+    def rm(self):
+        return self.pl.rm
+
+    @property
+    def knots(self):
+        return self.pl.knots
+
+    @property
+    def qc(self) -> QueryContext:
+        return self.pl.qc
+
+    @property
+    def qs(self):
+        """The settings of the running query (the planner's, with the query's options), else the planner's."""
+        return self.qc.settings if self.qc.settings is not None else self.pl.ctx.settings
+
+
+def one_thread(method: Callable) -> Callable:
+    """Run a planner method (a query: small batches) with torch's intra-op parallelism off
+    (:func:`fastpath.one_thread`)."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with fastpath.one_thread(self.ctx.device):
+            return method(self, *args, **kwargs)
+
+    return run
+
+
+def large_batches(method: Callable) -> Callable:
+    """Run a planner method whose batches can be large (build, re-scoring, invalidation near moved obstacles, repair
+    growth) with the compiled kernels for any batch size, rows split over torch's thread count
+    (:func:`fastpath.bulk`; inside a query that is one thread)."""
+
+    @functools.wraps(method)
+    def run(self, *args, **kwargs):
+        with fastpath.bulk():
+            return method(self, *args, **kwargs)
+
+    return run

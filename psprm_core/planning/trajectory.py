@@ -1,0 +1,95 @@
+"""From a node path to a :class:`~.results.PlanResult`: the stored knots in traversal direction, the dense path
+every ``edge_resolution`` and the time-parameterised trajectory within the joint limits."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import torch
+
+from .. import fastpath
+from .results import PlanResult
+from .state import Stage
+
+log = logging.getLogger(__name__)
+
+
+
+class Trajectory(Stage):
+    """Turns node paths into checked waypoints and timed trajectories."""
+
+    def finish(self, path: list, cost: float, timing: bool) -> PlanResult:
+        if self.ctx.device.type == "cpu" and fastpath.enabled() and self.knots.data is not None:
+            return self.finish_numpy(path, cost, timing)
+        g = self.rm.graph
+        Q = self.ctx.t(g.configs[path])
+        if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
+            eids = g.edge_ids_of_path(path)
+            knots, _ = self.pl.edges.stored_knots(eids)
+            flip = torch.as_tensor(g.edge_u[eids] != np.asarray(path[:-1]), device=knots.device)
+            knots = torch.where(flip[:, None, None], knots.flip(1), knots)
+            W = torch.cat([Q[0:1], knots[:, 1:].reshape(-1, Q.shape[1])]).double()
+        else:
+            W = Q.double()
+        keep = torch.ones(len(W), dtype=torch.bool)
+        keep[1:] = (W[1:] - W[:-1]).abs().max(-1).values > 1e-7
+        W = W[keep]
+        dense = self.pl.edges.densify(W)
+        length = float(self.ctx.motion.distance(W[:-1], W[1:]).sum()) if len(W) > 1 else 0.0
+        traj = None
+        if timing and len(W) > 1:
+            traj = self.timed(W.numpy())
+        return PlanResult(True, "ok", path_nodes=list(path), waypoints=W.numpy(), dense=dense.numpy(),
+                          trajectory=traj, cost=float(cost), path_length=length, score_fn=self.pl.scoring.score_numpy)
+
+    def finish_numpy(self, path: list, cost: float, timing: bool) -> PlanResult:
+        """:meth:`finish` on the CPU with numpy and the compiled metric (a query's result: no torch calls)."""
+        g = self.rm.graph
+        Q = g.configs[path].astype(np.float32 if self.ctx.dtype == torch.float32 else np.float64)
+        if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
+            eids = g.edge_ids_of_path(path)
+            if not self.knots.known(eids).all():
+                self.pl.edges.stored_knots(eids)
+            knots = self.knots.data.numpy()[eids]
+            flip = g.edge_u[eids] != np.asarray(path[:-1])
+            knots[flip] = knots[flip, ::-1]
+            W = np.concatenate([Q[:1], knots[:, 1:].reshape(-1, Q.shape[1])]).astype(np.float64)
+        else:
+            W = Q.astype(np.float64)
+        keep = np.ones(len(W), dtype=bool)
+        keep[1:] = np.abs(W[1:] - W[:-1]).max(-1) > 1e-7
+        W = np.ascontiguousarray(W[keep])
+        m, K = self.ctx.motion, fastpath.kernels()
+        if len(W) > 1:
+            _, pts = K.pieces(W[:-1], W[1:], float(self.ctx.settings.edge_resolution), 1000, True, float(m.w_rot),
+                              bool(m.mobile))
+            dense = np.concatenate([pts, W[-1:]])
+            length = float(K.distance(W[:-1], W[1:], float(m.w_rot), bool(m.mobile)).sum())
+        else:
+            dense, length = W, 0.0
+        traj = self.timed(W) if timing and len(W) > 1 else None
+        return PlanResult(True, "ok", path_nodes=list(path), waypoints=W, dense=dense, trajectory=traj,
+                          cost=float(cost), path_length=length, score_fn=self.pl.scoring.score_numpy)
+
+    def timed(self, W: np.ndarray):
+        """Time-parameterised trajectory through the knots ``W`` (K, dof) within the joint limits
+        (:func:`~psprm_core.planning.timing.time_parameterize`). With ``smooth_timing`` on a mobile robot the knots of
+        each base phase are passed without stopping; those samples leave the checked straight pieces, so they are
+        collision-checked, and a smooth trajectory with any colliding sample is replaced by the stop-at-every-knot one
+        (which follows the checked pieces exactly)."""
+        from .timing import time_parameterize
+
+        r = self.ctx.robot
+        kw = dict(dt=0.05, joint_names=r.joint_names, continuous_joints=[i for i in range(r.dof) if r.continuous[i]],
+                  base_indices=(0, 1, 2) if r.mobile else None,
+                  base_linear_limits=(r.config.base.linear_velocity, r.config.base.linear_acceleration)
+                  if r.mobile else None, method="analytic")
+        if not (self.qs.smooth_timing and r.mobile and len(W) > 2):
+            return time_parameterize(W, r.velocity, r.acceleration, **kw)
+        traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, **kw)
+        curved = traj.off_segment_mask()  # samples off the checked straight pieces
+        if curved.any() and bool(self.ctx.checker.check(self.ctx.t(traj.positions[curved])).any()):
+            log.debug("smooth trajectory grazes an obstacle between knots: stopping at every knot instead")
+            return time_parameterize(W, r.velocity, r.acceleration, **kw)
+        return traj
