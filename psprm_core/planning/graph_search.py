@@ -1,16 +1,8 @@
-"""Edge weights (Eqs. 1-2) and graph searches (Dijkstra, hop BFS, A* with the hop heuristic of Eqs. 3-6).
+"""Graph searches of the roadmap: Dijkstra, A* and lazy A* with the hop heuristic of Eqs. 3-6.
 
-Paper, section "PRM construction and scoring":
-
-* Eq. 1, :func:`edge_perception`: :math:`c_p(q_u, q_v) = (c_p(q_u) + c_p(q_v) + \\sum_{i=1}^N c_p(q_i)) / (N + 2)`.
-* Eq. 2, :func:`combined_weight`: :math:`c(q_u, q_v) = 1 - \\alpha c_p(q_u, q_v) + (1 - \\alpha) c_m(q_u, q_v)`.
-* Eq. 3, :func:`astar` default heuristic: :math:`h(q) = H_{\\min}(q) \\cdot c^{\\min}` with :math:`H_{\\min}` the hop
-  distance to the goal set (:func:`hop_distances`, cached per goal set) and
-* Eq. 4, :func:`min_edge_cost`: :math:`c^{\\min} = \\min_{(u,v) \\in E} c(q_u, q_v)`.
-* Eqs. 5-6 show :math:`h(q_u) \\le c(q_u, q_v) + h(q_v)` (consistency) for non-negative weights, hence A* returns the
-  optimal cost; :func:`heuristic_consistency_gap` checks this numerically on every edge.
-* Beside Eq. 2, :func:`motion_weighted` charges the perception loss per unit of motion,
-  :math:`c = c_m ((1 - \\alpha) + \\alpha (1 - c_p))`, with the consistent heuristic :func:`motion_heuristic`.
+The edge weights (Eq. 1 :func:`edge_perception`, Eq. 2 :func:`combined_weight`, the motion-weighted form) are in
+:mod:`.objectives`, the hop heuristic and its consistency check (Eqs. 3-6) in :mod:`.hops`, the search results and
+shared helpers (Eq. 4 :func:`min_edge_cost`) in :mod:`.search_types`; all are re-exported here.
 
 :func:`lazy_astar` evaluates expensive edge data (perception scores of the interpolated configurations, collision
 checks) only for edges on candidate paths: it searches, asks a callback to verify the unverified edges of the path,
@@ -28,19 +20,23 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-from collections import deque
-from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Sequence, Union
+from typing import Any, Iterable, Union
 
 import numpy as np
 
-from psprm_core.planning import search_kernels
-from psprm_core.planning.graph import Roadmap
 from ..errors import InputError
+from . import search_kernels
+from .graph import Roadmap
+from .hops import heuristic_consistency_gap, hop_distances, hop_heuristic
+from .objectives import (_CMIN_SAFETY, OBJECTIVES, combined_weight, edge_perception, edge_weight, motion_heuristic,
+                         motion_weighted)
+from .search_types import (EdgeCheck, SearchResult, VerifyCallback, _compiled, _node_ids, _scipy_matrix,
+                           _weights_array, _weights_list, min_edge_cost, path_cost)
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "OBJECTIVES",
     "EdgeCheck",
     "SearchResult",
     "astar",
@@ -61,226 +57,6 @@ __all__ = [
 ArrayLike = Any  # numpy array, torch tensor or Python float
 HeuristicSpec = Union[str, np.ndarray]
 Backend = str  # "auto" (compiled when numba is available) or "python"
-_HOP_CACHE_SIZE = 16
-#: Relative shrink of :math:`c^{\min}` in Eq. 3 so that floating-point rounding cannot break Eqs. 5-6.
-_CMIN_SAFETY = 1.0 - 1e-12
-
-
-# ====================================================================== edge weights (Eqs. 1-2)
-def edge_perception(scores_u: ArrayLike, scores_v: ArrayLike, interior: ArrayLike | None = None) -> ArrayLike:
-    """Normalised perception score of edges, Eq. 1.
-
-    .. math:: c_p(q_u, q_v) = \\frac{c_p(q_u) + c_p(q_v) + \\sum_{i=1}^{N} c_p(q_i)}{N + 2}
-
-    Parameters
-    ----------
-    scores_u, scores_v : array-like, shape (E,)
-        Normalised perception scores :math:`c_p \\in [0, 1]` of the edge endpoints (numpy or torch).
-    interior : array-like, shape (E, N), optional
-        Scores of the :math:`N` interpolated intermediate configurations of each edge (``N`` may be 0);
-        same library as the endpoint scores.
-
-    Returns
-    -------
-    array-like, shape (E,)
-        :math:`c_p(q_u, q_v)`, same type (numpy / torch) as the inputs.
-    """
-    if interior is None:
-        return (scores_u + scores_v) / 2.0
-    n_interior = interior.shape[-1]
-    return (scores_u + scores_v + interior.sum(-1)) / float(n_interior + 2)
-
-
-def combined_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> ArrayLike:
-    """Combined PS-PRM edge weight, Eq. 2: :math:`c = 1 - \\alpha c_p + (1 - \\alpha) c_m`.
-
-    Parameters
-    ----------
-    p_edge : array-like
-        Normalised edge perception score :math:`c_p(q_u, q_v) \\in [0, 1]` (Eq. 1); numpy, torch or float.
-    c_motion : array-like
-        Normalised motion cost :math:`c_m(q_u, q_v) \\in [0, 1]`.
-    alpha : float
-        Trade-off :math:`\\alpha \\in [0, 1]` (1 = perception only, 0 = motion only).
-
-    Returns
-    -------
-    array-like
-        Edge weight in :math:`[0, 2]` (non-negative as required by the consistency proof, Eqs. 5-6).
-    """
-    if not 0.0 <= float(alpha) <= 1.0:
-        raise InputError(f"alpha must lie in [0, 1], got {alpha}")
-    return 1.0 - alpha * p_edge + (1.0 - alpha) * c_motion
-
-
-#: Edge-weight forms: ``eq2`` (the paper's Eq. 2) and ``motion`` (perception loss per unit of motion).
-OBJECTIVES = ("eq2", "motion")
-
-
-def motion_weighted(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> ArrayLike:
-    """Motion-weighted edge weight: :math:`c = c_m \left((1 - \alpha) + \alpha (1 - c_p)\right)`.
-
-    The perception loss :math:`1 - c_p` (Eq. 1) is charged per unit of motion, so a path's cost is
-    :math:`(1 - \alpha) L + \alpha U` with :math:`L` its motion length and :math:`U` the length along which the target is
-    not seen (both in units of the roadmap's longest edge). Unlike Eq. 2 it charges nothing per edge: the cost does not
-    grow with the hop count, and a long edge pays for every part of it that sees poorly. Every weight is at least
-    :math:`(1 - \alpha) c_m`, which makes a lower bound of the motion to the goal an admissible, consistent heuristic
-    (:func:`motion_heuristic`).
-    """
-    if not 0.0 <= float(alpha) <= 1.0:
-        raise InputError(f"alpha must lie in [0, 1], got {alpha}")
-    return c_motion * ((1.0 - alpha) + alpha * (1.0 - p_edge))
-
-
-def edge_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float, objective: str = "eq2") -> ArrayLike:
-    """Edge weight of the objective form ``objective`` (:data:`OBJECTIVES`): :func:`combined_weight` (Eq. 2) or
-    :func:`motion_weighted`."""
-    if objective == "eq2":
-        return combined_weight(p_edge, c_motion, alpha)
-    if objective == "motion":
-        return motion_weighted(p_edge, c_motion, alpha)
-    raise InputError(f"unknown objective {objective!r} (one of {', '.join(OBJECTIVES)})")
-
-
-def motion_heuristic(lower_bound: np.ndarray, alpha: float, scale: float) -> np.ndarray:
-    """Consistent A* heuristic of the :func:`motion_weighted` form: :math:`h(q) = (1 - \alpha) d(q) / s`.
-
-    ``lower_bound`` (n,): for each node a lower bound :math:`d(q)` of the motion cost of any path from it to the goal
-    set, which is a metric's distance to the nearest goal (so :math:`d(q_u) \le m(q_u, q_v) + d(q_v)` on every edge
-    whose motion cost is :math:`m`); ``scale`` the motion cost that :math:`c_m = 1` stands for. Every edge weighs at
-    least :math:`(1 - \alpha) m / s`, hence :math:`h(q_u) \le c(q_u, q_v) + h(q_v)` (Eqs. 5-6). ``inf`` stays
-    ``inf``. Shrunk by a relative 1e-12 against rounding, like Eq. 3."""
-    return np.asarray(lower_bound, dtype=np.float64) * ((1.0 - float(alpha)) / float(scale) * _CMIN_SAFETY)
-
-
-# ====================================================================== results
-@dataclass
-class SearchResult:
-    """Outcome of :func:`astar` / :func:`lazy_astar`.
-
-    Attributes
-    ----------
-    path : list of int
-        Node ids from the start to the reached goal (empty on failure).
-    cost : float
-        Sum of the edge weights along ``path`` (``inf`` on failure).
-    expanded : int
-        Nodes expanded (popped and closed), summed over all searches for :func:`lazy_astar`.
-    success : bool
-        Whether a path was found.
-    reason : str
-        Human-readable status (why it failed, or ``"ok"``).
-    edges : list of int
-        Edge ids along ``path``.
-    goal : int or None
-        The goal node reached.
-    iterations : int
-        Number of searches run (1 for :func:`astar`).
-    invalidated_edges : list of int
-        Edges the :func:`lazy_astar` callback rejected.
-    updated_edges : dict
-        ``{edge id: new weight}`` reported by the :func:`lazy_astar` callback.
-    verified_edges : list of int
-        Edges the :func:`lazy_astar` callback checked (accepted or rejected).
-    """
-
-    path: list[int]
-    cost: float
-    expanded: int
-    success: bool
-    reason: str
-    edges: list[int] = field(default_factory=list)
-    goal: int | None = None
-    iterations: int = 1
-    invalidated_edges: list[int] = field(default_factory=list)
-    updated_edges: dict[int, float] = field(default_factory=dict)
-    verified_edges: list[int] = field(default_factory=list)
-    g: np.ndarray | None = field(default=None, repr=False)  # compiled search: cost from the start of every node
-    closed: np.ndarray | None = field(default=None, repr=False)  # and which nodes it closed (g exact there)
-
-
-@dataclass
-class EdgeCheck:
-    """Answer of a :func:`lazy_astar` verification callback.
-
-    Attributes
-    ----------
-    invalid : sequence of int
-        Edge ids that must not be used (collision, invalid projection, ...).
-    weights : mapping int -> float, optional
-        Updated (verified) weights of some edges, e.g. Eq. 2 recomputed with the Eq. 1 perception score of the
-        interpolated configurations.  Edges passed to the callback and absent from both fields keep their weight.
-    """
-
-    invalid: Sequence[int] = ()
-    weights: Mapping[int, float] | None = None
-
-
-VerifyCallback = Callable[[np.ndarray, list[int]], Union[EdgeCheck, Iterable[int], None]]
-
-
-# ====================================================================== helpers
-def _weights_array(graph: Roadmap, weights: ArrayLike | None) -> np.ndarray:
-    """Edge weights indexed by edge id as float64 numpy (``None`` = the roadmap's own weights)."""
-    if weights is None:
-        return np.asarray(graph.weights)
-    if hasattr(weights, "detach"):  # torch tensor
-        weights = weights.detach().cpu().numpy()
-    w = np.asarray(weights, dtype=np.float64).reshape(-1)
-    if w.shape[0] != graph.n_edges:
-        raise InputError(f"weights has {w.shape[0]} entries, the roadmap has {graph.n_edges} edge slots")
-    return w
-
-
-def _weights_list(graph: Roadmap, weights: ArrayLike | None) -> list[float]:
-    """Edge weights as a Python list (cached for the roadmap's own weights)."""
-    if weights is None:
-        return graph.python_weights()
-    return _weights_array(graph, weights).tolist()
-
-
-def _node_ids(graph: Roadmap, nodes: int | Iterable[int] | np.ndarray, what: str) -> np.ndarray:
-    arr = np.unique(np.asarray(list(nodes) if not isinstance(nodes, (int, np.integer, np.ndarray)) else nodes,
-                               dtype=np.int64).reshape(-1))
-    if arr.size and (arr.min() < 0 or arr.max() >= graph.n_nodes):
-        raise InputError(f"{what} node id out of range [0, {graph.n_nodes})")
-    return arr
-
-
-def _compiled(backend: Backend = "auto") -> bool:
-    """Whether to run the numba kernels (``backend`` "auto" with numba importable) or the Python loops."""
-    if backend not in ("auto", "python"):
-        raise InputError(f"unknown search backend {backend!r}; use 'auto' or 'python'")
-    return backend == "auto" and search_kernels.available()
-
-
-def _scipy_matrix(graph: Roadmap, data: np.ndarray | None) -> Any:
-    """``scipy.sparse.csr_array`` of the valid edges (both directions); ``data`` per CSR entry (ones if None)."""
-    from scipy.sparse import csr_array
-
-    csr = graph.csr()
-    n = graph.n_nodes
-    vals = np.ones(csr.nnz, dtype=np.float64) if data is None else data
-    # Explicit zero entries are kept as zero-weight edges by scipy.sparse.csgraph (zero weights are legal, Eq. 2).
-    return csr_array((vals, csr.indices, csr.indptr), shape=(n, n))
-
-
-def min_edge_cost(graph: Roadmap, weights: ArrayLike | None = None) -> float:
-    """Minimum finite edge weight over the valid edges, Eq. 4 (0 when the roadmap has no finite edge)."""
-    w = _weights_array(graph, weights)
-    valid = np.asarray(graph.edge_valid)
-    c = float(np.min(w, where=valid, initial=np.inf)) if w.size else np.inf  # no copy of the weights
-    if not np.isfinite(c):  # no finite edge (NaN weights are rejected when set)
-        return 0.0
-    if c < 0:
-        raise InputError("edge weights must be non-negative for the hop heuristic (Eqs. 5-6)")
-    return c
-
-
-def path_cost(graph: Roadmap, path: Sequence[int], weights: ArrayLike | None = None) -> float:
-    """Sum of the weights along a node path (``KeyError`` when consecutive nodes are not connected)."""
-    w = _weights_array(graph, weights)
-    return float(w[graph.edge_ids_of_path(path)].sum()) if len(path) > 1 else 0.0
 
 
 # ====================================================================== all-nodes searches (compiled)
@@ -325,142 +101,6 @@ def dijkstra(
     parent[:] = np.where(pred < 0, -1, pred)
     # Removed source nodes have no edges; they still get distance 0 from scipy, which is right (they are sources).
     return dist, parent
-
-
-def hop_distances(graph: Roadmap, goals: int | Iterable[int] | np.ndarray, use_cache: bool = True) -> np.ndarray:
-    """Hop distance :math:`H_{\\min}(q)` of every node to the goal set (multi-source BFS), used by Eq. 3.
-
-    Parameters
-    ----------
-    graph : Roadmap
-    goals : int or iterable of int
-        Goal node(s) (a goal region).
-    use_cache : bool
-        Reuse the result for the same goal set (cached in ``graph.search_cache``, LRU of 16 goal sets).  Weight
-        updates keep it; node/edge additions (start/goal connection, repair) update it incrementally (hop distances
-        can only decrease, propagated from the new edges); removals keep it: the cached distances were exact on a
-        superset of the remaining edges, so they stay lower bounds of the true hop distances and differ by at most 1
-        across every remaining edge, i.e. Eq. 3 stays admissible and consistent (Eqs. 5-6), only less tight;
-        restorations trigger a full recomputation.
-
-    Returns
-    -------
-    np.ndarray
-        ``(n_nodes,)`` float64 minimum number of edges to reach any goal; ``inf`` when no goal is reachable (after
-        removals, a cached entry may be a finite lower bound for a node that has become unreachable).  The returned
-        array is shared with the cache and read-only.
-    """
-    g = _node_ids(graph, goals, "goal")
-    cache: dict[Any, Any] = graph.search_cache
-    key = ("hop", g.tobytes())
-    entry = cache.pop(key, None) if use_cache else None
-    if entry is not None and entry[0] == graph.restore_version:
-        _, n_cov, e_cov, hops = entry
-        if n_cov != graph.n_nodes or e_cov != graph.n_edges:
-            hops = _hops_after_additions(graph, hops, e_cov)
-    else:
-        hops = _hops_full(graph, g)
-    hops.flags.writeable = False
-    if use_cache:
-        hop_keys = [k for k in cache if isinstance(k, tuple) and k and k[0] == "hop"]
-        for k in [k for k in hop_keys if cache[k][0] != graph.restore_version]:
-            del cache[k]
-        hop_keys = [k for k in hop_keys if k in cache]
-        while len(hop_keys) >= _HOP_CACHE_SIZE:  # dicts keep insertion order: evict the least recently used
-            del cache[hop_keys.pop(0)]
-        cache[key] = (graph.restore_version, graph.n_nodes, graph.n_edges, hops)
-    return hops
-
-
-def _hops_full(graph: Roadmap, goal_ids: np.ndarray) -> np.ndarray:
-    """Multi-source unweighted shortest paths from the goals (numba BFS, else ``scipy.sparse.csgraph``)."""
-    from scipy.sparse.csgraph import dijkstra as _sp_dijkstra
-
-    n = graph.n_nodes
-    if goal_ids.size == 0 or n == 0:
-        return np.full(n, np.inf)
-    if _compiled():
-        nbr, _, deg = graph.array_adjacency()
-        return search_kernels.kernels().bfs_hops(nbr, deg, goal_ids.astype(np.int64), n)
-    hops = _sp_dijkstra(_scipy_matrix(graph, None), directed=True, indices=goal_ids, unweighted=True, min_only=True)
-    return np.array(hops, dtype=np.float64)
-
-
-def _hops_after_additions(graph: Roadmap, old: np.ndarray, e_cov: int) -> np.ndarray:
-    """Update hop distances after nodes/edges were only added: decrease propagation from the new edges."""
-    n = graph.n_nodes
-    valid = np.asarray(graph.edge_valid)
-    new = np.arange(e_cov, graph.n_edges)
-    new = new[valid[new]]
-    if _compiled():
-        nbr, _, deg = graph.array_adjacency()
-        hops_arr = np.full(max(n, deg.shape[0]), np.inf)
-        hops_arr[: old.shape[0]] = old
-        eu = np.ascontiguousarray(graph.edge_u[new])
-        ev = np.ascontiguousarray(graph.edge_v[new])
-        return search_kernels.kernels().hops_decrease(nbr, deg, hops_arr, eu, ev)[:n].copy()
-    hops = old.tolist() + [math.inf] * (n - old.shape[0])
-    nbrs, _ = graph.python_adjacency()
-    eu = np.asarray(graph.edge_u)[new].tolist()
-    ev = np.asarray(graph.edge_v)[new].tolist()
-    queue: deque[int] = deque()
-    for a, b in zip(eu, ev):
-        if hops[a] + 1 < hops[b]:
-            hops[b] = hops[a] + 1
-            queue.append(b)
-        elif hops[b] + 1 < hops[a]:
-            hops[a] = hops[b] + 1
-            queue.append(a)
-    while queue:  # FIFO label correcting: exact once no label decreases
-        u = queue.popleft()
-        hu = hops[u] + 1
-        for v in nbrs[u]:
-            if hu < hops[v]:
-                hops[v] = hu
-                queue.append(v)
-    return np.asarray(hops, dtype=np.float64)
-
-
-def hop_heuristic(
-    graph: Roadmap,
-    goals: int | Iterable[int] | np.ndarray,
-    weights: ArrayLike | None = None,
-    c_min: float | None = None,
-) -> np.ndarray:
-    """Per-node hop heuristic, Eq. 3: :math:`h(q) = H_{\\min}(q) \\cdot c^{\\min}` (``inf`` where no goal is reachable).
-
-    ``c_min`` defaults to Eq. 4 over the valid edges and is shrunk by a relative ``1e-12`` so that the consistency
-    inequality (Eqs. 5-6) also holds under floating-point rounding.
-    """
-    hops = hop_distances(graph, goals)
-    c = min_edge_cost(graph, weights) if c_min is None else float(c_min)
-    c *= _CMIN_SAFETY
-    if c > 0:
-        return hops * c  # inf stays inf
-    with np.errstate(invalid="ignore"):
-        h = hops * c
-    h[~np.isfinite(hops)] = np.inf
-    return h
-
-
-def heuristic_consistency_gap(
-    graph: Roadmap, h: np.ndarray, weights: ArrayLike | None = None
-) -> float:
-    """Largest violation :math:`\\max_{(u,v)} h(q_u) - c(q_u, q_v) - h(q_v)` over valid edges, both directions.
-
-    A value <= 0 means the heuristic is consistent (Eqs. 5-6).  Pairs where both ``h`` are ``inf`` are ignored.
-    """
-    w = _weights_array(graph, weights)
-    eids = graph.valid_edge_ids()
-    if eids.size == 0:
-        return -np.inf
-    u = np.asarray(graph.edge_u)[eids]
-    v = np.asarray(graph.edge_v)[eids]
-    hu, hv, we = h[u], h[v], w[eids]
-    with np.errstate(invalid="ignore"):
-        gaps = np.concatenate([hu - we - hv, hv - we - hu])
-    gaps = gaps[~np.isnan(gaps)]  # inf - inf
-    return float(gaps.max()) if gaps.size else -np.inf
 
 
 # ====================================================================== A*

@@ -50,7 +50,7 @@ class RoadmapState:
         """Connected components of the roadmap: (valid roadmap node ids, component label of each)."""
         from scipy.sparse.csgraph import connected_components
 
-        from .graph_search import _scipy_matrix
+        from .search_types import _scipy_matrix
 
         ids = self.roadmap_node_ids()
         _, lab = connected_components(_scipy_matrix(self.graph, None), directed=False)

@@ -10,7 +10,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .constraints import ProjectionSettings
-from .graph_search import OBJECTIVES
+from .objectives import OBJECTIVES
 
 
 # settings one query may override (PSPRM.plan's ``options``)
