@@ -259,7 +259,7 @@ def main(args=None) -> int:
         t_end = time.perf_counter()
         say(f"[demo] {'robot at rest at goal ' + reached if reached else 'goal NOT reached'} "
             f"{t_end - t_replay:.1f} s after the replay started")
-        result = analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_perf, say)
+        result = analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wall_minus_perf, say)
         result.update(reached_goal=bool(reached), goal=reached, first_plan_s=round(first_plan_s, 2),
                       ready_s=round(t_ready - t_start, 2), load_avg_1min=round(os.getloadavg()[0], 2),
                       cpus=os.cpu_count(), fresh_roadmap=bool(a.fresh_roadmap))
@@ -307,7 +307,7 @@ def person_at(record: Record, t: float) -> dict:
     return out
 
 
-def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_perf, say) -> dict:
+def analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wall_minus_perf, say) -> dict:
     import torch
 
     from psprm_core.collision import CollisionChecker
@@ -382,24 +382,31 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
     ts = np.arange(T[0], T[-1] + 1e-9, a.oracle_every) if len(T) else np.zeros(0)
     Qs = np.array([Q[min(np.searchsorted(T, t), len(T) - 1)] for t in ts]).reshape(-1, robot.dof)
     people = [person_at(record, t) for t in ts]
-    oracle, detected = [], []
+    # first plan only: where the robot would have been, had it executed the first trajectory without replanning,
+    # judged against the same replayed person at the same instants
+    ts0, Q0 = first_plan_samples(first, robot, t_first, a.oracle_every)
+    people0 = [person_at(record, t) for t in ts0]
+    oracle, detected, oracle0, detected0 = [], [], [], []
     if not a.no_oracle and len(ts):
         try:
             from psprm_core.perception.oracle import Oracle
 
-            with torch.no_grad():
-                cams = robot.camera_poses(torch.as_tensor(Qs, dtype=torch.float32)).double().numpy()
             t0 = time.perf_counter()
             with Oracle(scene, intrinsics=robot.config.intrinsics) as orc:
-                for i in range(len(ts)):
-                    for b, (p, q) in people[i].items():
-                        (orc.set_target_pose if b in scene.target_names else orc.set_obstacle_pose)(b, p, q)
-                    r = orc.score(cams[i], "person_face", keep_image=False)
-                    oracle.append(float(r.score))
-                    detected.append(bool(r.detected))
+                for views, who, score, det in ((Qs, people, oracle, detected), (Q0, people0, oracle0, detected0)):
+                    with torch.no_grad():
+                        cams = robot.camera_poses(torch.as_tensor(views, dtype=torch.float32)).double().numpy()
+                    for i in range(len(views)):
+                        for b, (p, q) in who[i].items():
+                            (orc.set_target_pose if b in scene.target_names else orc.set_obstacle_pose)(b, p, q)
+                        r = orc.score(cams[i], "person_face", keep_image=False)
+                        score.append(float(r.score))
+                        det.append(bool(r.detected))
             say(f"[demo] oracle: {len(ts)} rendered views along the executed motion scored by the face detector in "
                 f"{time.perf_counter() - t0:.1f} s: face detected in {np.mean(detected):.0%} of them, mean score "
-                f"{np.mean(oracle):.3f}")
+                f"{np.mean(oracle):.3f}; along the first plan alone ({len(ts0)} views, no replanning): "
+                f"{np.mean(detected0) if detected0 else float('nan'):.0%}, mean score "
+                f"{np.mean(oracle0) if oracle0 else float('nan'):.3f}")
         except Exception as exc:  # detectors not installed: report and continue without
             say(f"[demo] oracle evaluation skipped: {exc}")
     n_ok = sum(1 for r in rows if r["success"] and not r["stop"])
@@ -420,6 +427,9 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
         "executed_distance_m": round(dist, 3), "final_base": [round(float(v), 3) for v in Q[-1, :3]] if len(Q) else None,
         "oracle_detected_fraction": round(float(np.mean(detected)), 3) if detected else None,
         "oracle_mean": round(float(np.mean(oracle)), 4) if oracle else None, "oracle_views": len(oracle),
+        "first_plan_only_detected_fraction": round(float(np.mean(detected0)), 3) if detected0 else None,
+        "first_plan_only_oracle_mean": round(float(np.mean(oracle0)), 4) if oracle0 else None,
+        "first_plan_only_views": len(oracle0),
     }
     say(f"[demo] {n_ok} plans ({summary['replans']} replans), {summary['stops']} stops, {summary['failed']} failed; "
         f"pose->trajectory latency median {summary['pose_to_trajectory_ms_median']} ms, p95 "
@@ -432,6 +442,19 @@ def analyse(a, scene, robot, probe, record, first, t_replay, t_end, wall_minus_p
     except Exception as exc:  # the figure is a report, never a reason to lose the result
         say(f"[demo] figure failed: {exc}")
     return {**summary, "plans": rows, "oracle": oracle, "oracle_t": (ts - t_replay).tolist() if len(ts) else []}
+
+
+def first_plan_samples(first, robot, t_first: float, every: float) -> tuple:
+    """Instants (perf_counter, every ``every`` s from ``t_first`` to the end of the first trajectory) and the
+    configurations (K, dof) the first trajectory holds then (linear between its points): the motion of a robot that
+    executes its first plan and never replans."""
+    P = cv.joint_trajectory_positions(first, robot.joint_names)
+    tp = np.array([cv.duration_to_sec(p.time_from_start) for p in first.points], float)
+    tau = np.arange(0.0, tp[-1] + 1e-9, every) if len(tp) else np.zeros(0)
+    Q = np.stack([np.interp(tau, tp, P[:, j]) for j in range(P.shape[1])], -1) if len(tau) else P[:0]
+    if robot.mobile and len(tau):  # the heading the short way between points
+        Q[:, 2] = np.interp(tau, tp, np.unwrap(P[:, 2]))
+    return t_first + tau, Q
 
 
 def _figure(path, scene, record, first, robot, Q, T, ts, oracle, rows, t_replay) -> None:

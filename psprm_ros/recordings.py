@@ -176,12 +176,14 @@ def _yaw_quat(yaw, roll=0.0, pitch=0.0) -> np.ndarray:
                      cr * cp * cy + sr * sp * sy], -1)
 
 
-def person_turning(scene=None, duration: float = 20.0, rate: float = 120.0, period: float = 10.0,
-                   seed: int = 0) -> Recording:
-    """A standing person turning side to side around the scene's pose (``dynamic_person`` by default).
+def person_turning(scene=None, duration: float = 40.0, rate: float = 120.0, period: float = 20.0,
+                   amplitude: float = math.pi / 2, sharpness: float = 1.5, seed: int = 0) -> Recording:
+    """A standing person turning side to side around the scene's pose (``dynamic_person`` by default), at a human
+    pace.
 
-    The face turns between the scene's initial heading (west-south-west, towards the shelf) and east-north-east
-    (towards the cabinet) through south, with a dwell at each side (tanh-shaped profile, ``period`` s per cycle);
+    The face turns between west (towards the shelf) and east (towards the cabinet) through south (``amplitude`` rad
+    either side of south), with a dwell at each side (tanh-shaped profile of ``sharpness``, ``period`` s per cycle;
+    by default 180 deg in 10 s, at most about 47 deg/s);
     the head bobs and sways by about 1 cm, the body follows the face's yaw 0.15 s later with 80 % of its
     amplitude. Motion-capture noise: 0.4 mm position and 0.15 deg orientation jitter (Gaussian), plus dropped
     frames (0.5 % of samples, marker occlusion).
@@ -193,12 +195,11 @@ def person_turning(scene=None, duration: float = 20.0, rate: float = 120.0, peri
         scene = load_scene(resolve_named("scene", "dynamic_person"))
     rng = np.random.default_rng(seed)
     face, body = scene.target("person_face"), scene.obstacle("person_body")
-    yaw0 = math.atan2(face.facing[1], face.facing[0])  # 2.8 rad
     centre = -math.pi / 2  # facing south (towards the robot's start)
-    amp = (centre - (yaw0 - 2 * math.pi))  # from the initial heading through south
+    amp = float(amplitude)
     offset = float(np.linalg.norm((face.center - body.center)[:2]))
     t = np.arange(0.0, duration + 1e-9, 1.0 / rate)
-    k = 2.5
+    k = float(sharpness)
 
     def yaw_at(tt, a=1.0):
         return centre - a * amp * np.tanh(k * np.cos(2 * np.pi * tt / period)) / np.tanh(k)
@@ -243,7 +244,7 @@ def main(argv=None) -> int:
 
     ap = argparse.ArgumentParser(description="Regenerate the shipped recording config/recordings/person_turning.csv")
     ap.add_argument("--out", default="config/recordings/person_turning.csv")
-    ap.add_argument("--duration", type=float, default=20.0)
+    ap.add_argument("--duration", type=float, default=40.0)
     ap.add_argument("--rate", type=float, default=120.0)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--bag", default="", help="also write a rosbag2 directory here")
