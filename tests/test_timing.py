@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from psprm_core.planning.timing import (
+    ProfileCache,
     Trajectory,
     check_base_segments,
     max_limit_violation,
@@ -300,3 +301,23 @@ def test_pchip_curve_matches_scipy() -> None:
                 want = ref(s) if order == 0 else ref.derivative(order)(s)
                 np.testing.assert_allclose(ours(s, order), want, atol=1e-9 * max(1.0, np.abs(want).max()))
             np.testing.assert_allclose(ours(s, 0)[:, 2], np.interp(s, x, y[:, 2]), atol=1e-12)  # linear stays linear
+
+
+@pytest.mark.skipif(not _have_toppra(), reason="toppra missing")
+def test_profile_cache_gives_the_uncached_trajectories() -> None:
+    """A replanner's consecutive paths share their later phases: with a :class:`ProfileCache` those phases are not
+    profiled again, and every trajectory is the one computed without the cache (same samples, same times)."""
+    v, a = np.array([0.3, 0.3, 0.6, 1.0, 0.8]), np.array([0.4, 0.4, 1.0, 2.0, 1.5])
+    kw = dict(dt=0.02, base_indices=(0, 1, 2), base_linear_limits=(0.25, 0.35), method="analytic", smooth=True)
+    cache = ProfileCache(size=8)
+    for seed in range(4):
+        q = _reaiming_path(np.random.default_rng(seed), 0.3)
+        # the same route, then the same route from a start 0.2 m behind (its later phases are shared)
+        behind = q[:1] + [-0.2 * math.cos(0.3), -0.2 * math.sin(0.3), 0, 0, 0]
+        for path in (q, np.vstack([behind, q]), q):
+            ref = time_parameterize(path, v, a, **kw)
+            got = time_parameterize(path, v, a, profile_cache=cache, **kw)
+            np.testing.assert_array_equal(got.times, ref.times)
+            np.testing.assert_array_equal(got.positions, ref.positions)
+            np.testing.assert_array_equal(got.velocities, ref.velocities)
+    assert cache.hits > 0 and cache.misses > 0 and len(cache._data) <= 8

@@ -203,6 +203,43 @@ def _knot_times(s: np.ndarray, sd: np.ndarray) -> np.ndarray:
 
 
 # ====================================================================== public API
+class ProfileCache:
+    """The TOPP-RA profiles of smooth phases already timed, by the phase's exact waypoints and limits (least recently
+    used first out, at most ``size``), with the choice made for each (smooth, or stop by stop when that was faster).
+    Consecutive plans of a replanner share most of their route, hence most of their phases; a phase found here gets
+    the profile TOPP-RA gave it before (the same arrays) and the same choice."""
+
+    def __init__(self, size: int = 256):
+        from collections import OrderedDict
+
+        self.size = int(size)
+        self._data: "OrderedDict[bytes, tuple]" = OrderedDict()
+        self.hits = self.misses = 0
+
+    @staticmethod
+    def key(points: np.ndarray, v: np.ndarray, a: np.ndarray, n_grid: int) -> bytes:
+        p = np.ascontiguousarray(points, dtype=np.float64)
+        return b"".join([np.asarray(p.shape, np.int64).tobytes(), p.tobytes(), np.asarray(v, np.float64).tobytes(),
+                         np.asarray(a, np.float64).tobytes(), np.int64(n_grid).tobytes()])
+
+    def get(self, key: bytes):
+        got = self._data.get(key)
+        if got is None:
+            self.misses += 1
+            return None
+        self._data.move_to_end(key)
+        self.hits += 1
+        return got[0].copy(), got[1].copy(), got[2]
+
+    def put(self, key: bytes, s_knots: np.ndarray, sd_knots: np.ndarray, smooth_kept: bool) -> None:
+        """Keep a phase's profile and whether it was kept smooth (else timed stop by stop)."""
+        self._data[key] = (np.array(s_knots, dtype=np.float64), np.array(sd_knots, dtype=np.float64),
+                           bool(smooth_kept))
+        self._data.move_to_end(key)
+        while len(self._data) > self.size:
+            self._data.popitem(last=False)
+
+
 def time_parameterize(
     waypoints: np.ndarray,
     vmax: np.ndarray | Sequence[float],
@@ -219,6 +256,7 @@ def time_parameterize(
     collinear_tol: float = 1e-9,
     duplicate_tol: float = 1e-12,
     smooth: bool = False,
+    profile_cache: "ProfileCache | None" = None,
 ) -> Trajectory:
     """Time-parameterise a piecewise-linear joint path exactly (stop at corners, time-optimal straight runs), or with
     ``smooth`` through the waypoints of each base phase (stops only where the base changes its motion).
@@ -320,10 +358,19 @@ def time_parameterize(
             timed.append(run)
             continue
         v, a = _run_limits(run, vmax_a, amax_a, base_indices, base_linear_limits)
+        key = None if profile_cache is None else profile_cache.key(run.points, v, a, max(4, n_grid // 8))
+        hit = None if key is None else profile_cache.get(key)
+        if hit is not None and hit[2]:  # timed before, and kept smooth
+            run.s_knots, run.sd_knots = hit[0], hit[1]
+            timed.append(run)
+            continue
         straight = _split_runs(run.points, collinear_tol)
         for r in straight:
             r.s_knots, r.sd_knots = _profile_analytic(r, *_run_limits(r, vmax_a, amax_a, base_indices,
                                                                       base_linear_limits))
+        if hit is not None:  # timed before: stopping at its waypoints was faster
+            timed.extend(straight)
+            continue
         try:
             run.s_knots, run.sd_knots = _profile_curve(run, v, a, max(4, n_grid // 8), constraint_cache)
         except Exception as exc:  # toppra reports numerical failures in several ways
@@ -332,7 +379,10 @@ def time_parameterize(
             continue
         t_curve = float(_knot_times(run.s_knots, run.sd_knots)[-1])
         t_stops = sum(float(_knot_times(r.s_knots, r.sd_knots)[-1]) for r in straight)
-        if t_curve > SMOOTH_SLOWER_LIMIT * t_stops:  # sharp turns of the joints: stopping is faster
+        smooth_kept = not t_curve > SMOOTH_SLOWER_LIMIT * t_stops
+        if key is not None:
+            profile_cache.put(key, run.s_knots, run.sd_knots, smooth_kept)
+        if not smooth_kept:  # sharp turns of the joints: stopping is faster
             logger.debug("smooth phase %.2f s vs %.2f s stopping at its waypoints: stops kept", t_curve, t_stops)
             timed.extend(straight)
         else:

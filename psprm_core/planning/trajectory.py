@@ -11,6 +11,7 @@ import torch
 from .. import fastpath
 from .results import PlanResult
 from .state import Stage
+from .timing import ProfileCache, time_parameterize
 
 log = logging.getLogger(__name__)
 
@@ -18,6 +19,10 @@ log = logging.getLogger(__name__)
 
 class Trajectory(Stage):
     """Turns node paths into checked waypoints and timed trajectories."""
+
+    def __init__(self, pl):
+        super().__init__(pl)
+        self.profiles = ProfileCache()  # smooth phases timed before (a replanner's plans share most of them)
 
     def finish(self, path: list, cost: float, timing: bool) -> PlanResult:
         if self.ctx.device.type == "cpu" and fastpath.enabled() and self.knots.data is not None:
@@ -78,8 +83,6 @@ class Trajectory(Stage):
         each base phase are passed without stopping; those samples leave the checked straight pieces, so they are
         collision-checked, and a smooth trajectory with any colliding sample is replaced by the stop-at-every-knot one
         (which follows the checked pieces exactly)."""
-        from .timing import time_parameterize
-
         r = self.ctx.robot
         kw = dict(dt=0.05, joint_names=r.joint_names, continuous_joints=[i for i in range(r.dof) if r.continuous[i]],
                   base_indices=(0, 1, 2) if r.mobile else None,
@@ -87,7 +90,7 @@ class Trajectory(Stage):
                   if r.mobile else None, method="analytic")
         if not (self.qs.smooth_timing and r.mobile and len(W) > 2):
             return time_parameterize(W, r.velocity, r.acceleration, **kw)
-        traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, **kw)
+        traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, profile_cache=self.profiles, **kw)
         curved = traj.off_segment_mask()  # samples off the checked straight pieces
         if curved.any() and bool(self.ctx.checker.check(self.ctx.t(traj.positions[curved])).any()):
             log.debug("smooth trajectory grazes an obstacle between knots: stopping at every knot instead")
