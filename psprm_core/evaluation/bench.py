@@ -1,7 +1,7 @@
 """``psprm bench``: every planner on the same random problems, judged by the real detector (paper Tables II and III).
 
 Problems (:func:`make_problems`): random collision-free start and goal base poses with the camera joints aimed at the
-target, each one a short manoeuvre can leave (no boxed-in ends; :func:`psprm_core.benchmarks.random_problems`),
+target, each one a short manoeuvre can leave (no boxed-in ends; :func:`psprm_core.problems.random_problems`),
 spread round-robin over target groups (by default each scene
 target the surrogate knows; on ``nursing`` both nurses' faces together, the paper's two-face task).
 
@@ -44,7 +44,7 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
-from .errors import InputError
+from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -100,7 +100,8 @@ class BenchConfig:
     target_groups: Optional[list] = None  # [[target, ...], ...]; None: default_target_groups(scene)
     scenario: Optional[str] = None  # a scene problem's name: ``problems`` independent runs of it (Table III protocol)
     placements: int = 1  # target poses per group (the first K of each target's; paper: 5 per object)
-    reference: bool = True  # judge the reference routes of every problem (headroom; :mod:`psprm_core.headroom`)
+    # judge the reference routes of every problem (headroom; :mod:`psprm_core.evaluation.headroom`)
+    reference: bool = True
     planner_kwargs: dict = field(default_factory=dict)  # {planner: {setting: value}} (tests, tuning)
     backend: str = "local"  # where the tasks run: "local" worker processes, or "ray" (psprm_core.executors)
     address: Optional[str] = None  # ray: the cluster to use (None: a local one started for the run)
@@ -123,8 +124,8 @@ def default_target_groups(scene) -> list:
     if "nurse_1_face" in names and "nurse_2_face" in names:
         return [["nurse_1_face", "nurse_2_face"]]
     try:
-        from .perception.surrogate import load_surrogate
-        from .planning.factory import default_checkpoint
+        from ..perception.surrogate import load_surrogate
+        from ..planning.factory import default_checkpoint
 
         classes = set(load_surrogate(default_checkpoint()).classes)
     except Exception:  # pragma: no cover - no checkpoint: every target
@@ -141,7 +142,7 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
     Placement ``k`` moves every target of the group to its ``k``-th pose (:meth:`Scene.with_placement`; the paper's
     "five variations in the object's poses" per object); the problems of a placement are generated in that scene.
     Ends are collision-free, aimed at the group's centroid and not boxed in (a short turn or drive leaves them,
-    :func:`psprm_core.benchmarks.can_move_away`).
+    :func:`psprm_core.problems.can_move_away`).
     With ``placements=1`` every problem uses the targets' scene poses (placement 0).
 
     Raises
@@ -149,9 +150,9 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
     PsprmError
         ``placements`` < 1, or a target of a group with fewer placements.
     """
-    from .problems import random_problems
-    from .collision import CollisionChecker
-    from .errors import PsprmError
+    from ..problems import random_problems
+    from ..collision import CollisionChecker
+    from ..errors import PsprmError
 
     if placements < 1:
         raise PsprmError(f"placements must be at least 1, got {placements}")
@@ -199,12 +200,12 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
     PsprmError
         Unknown problem (the known names are listed), or a start or goal in collision.
     """
-    from .baselines.base import aim_camera
-    from .problems import aim_joints
-    from .collision import CollisionChecker
-    from .errors import PsprmError
-    from .planning.constraints import VisibilityConstraint
-    from .planning.factory import problem_configurations
+    from ..baselines.base import aim_camera
+    from ..problems import aim_joints
+    from ..collision import CollisionChecker
+    from ..errors import PsprmError
+    from ..planning.constraints import VisibilityConstraint
+    from ..planning.factory import problem_configurations
 
     try:
         prob = scene.problem(name)
@@ -268,7 +269,7 @@ def unseen_ends(arc: np.ndarray, seen: np.ndarray) -> tuple:
 
 
 def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
-    from .perception.oracle import box_iou
+    from ..perception.oracle import box_iou
 
     return float(box_iou(np.asarray(a, float).reshape(4), np.asarray(b, float).reshape(4)))
 
@@ -377,8 +378,9 @@ def _failure_row(planner: str, prob: dict, reason: str, preprocess_s: float = fl
     return row
 
 
-#: The pseudo-planner whose rows are each problem's best judged reference route (:mod:`psprm_core.headroom`), and the
-#: variant whose roadmap it searches (its ``--set`` settings apply to the reference too).
+#: The pseudo-planner whose rows are each problem's best judged reference route
+#: (:mod:`psprm_core.evaluation.headroom`), and the variant whose roadmap it searches (its ``--set`` settings apply to
+#: the reference too).
 REFERENCE = "reference"
 REFERENCE_VARIANT = "neural-psprm-line"
 
@@ -390,11 +392,11 @@ def base_name(planner: str) -> str:
 
 
 def _reference_row(ref, prob: dict, oracle, robot, motion, cfg: dict, placement: int, pre: float) -> dict:
-    """The reference row of one problem: every candidate route of ``ref`` (:class:`~psprm_core.headroom.
+    """The reference row of one problem: every candidate route of ``ref`` (:class:`~psprm_core.evaluation.headroom.
     ReferenceRoutes`) judged by the oracle; the row carries the best one's metrics (detection rate, then mean
     confidence), its label as ``route``, and the shortest unseen stretches at the start and the goal over all
     candidates."""
-    from .baselines.base import path_length
+    from ..baselines.base import path_length
 
     t1 = time.perf_counter()
     try:
@@ -431,10 +433,10 @@ def _worker_init() -> None:
 
 def _placed_scene(scene_name: str, targets: Sequence[str], placement: int) -> tuple:
     """(scene with the group's targets at ``placement``, robot, motion)."""
-    from .motion import DiffDriveMotion
-    from .paths import resolve_named
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..motion import DiffDriveMotion
+    from ..paths import resolve_named
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     scene = load_scene(resolve_named("scene", scene_name)).with_placement(list(targets), placement)
     robot = RobotModel.load(scene.robot)
@@ -459,8 +461,8 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
     import torch
 
     torch.set_num_threads(1)
-    from .baselines import make_baseline
-    from .executors import WorkerCache
+    from ..baselines import make_baseline
+    from ..executors import WorkerCache
 
     def emit(kind, payload):
         if q is not None:
@@ -506,7 +508,7 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
         return p, prep, float(prep.get("preprocess_s", float("nan"))), None
 
     def oracle_of():
-        from .perception.oracle import Oracle
+        from ..perception.oracle import Oracle
 
         return cache.get("oracle", where, lambda: Oracle(scene, intrinsics=robot.config.intrinsics),
                          close=lambda o: o.close())
@@ -514,7 +516,7 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
     # one instance per build seed (the bench's seed, or in scenario runs the run's), built when first needed
     checker = None
     try:
-        from .collision import CollisionChecker
+        from ..collision import CollisionChecker
 
         for prob in problems:
             seed = int(prob.get("run_seed", cfg["seed"]))
@@ -557,7 +559,7 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
             elif not res.success or res.dense is None or len(res.dense) == 0:
                 row = _failure_row(planner, prob, res.reason or "failed", pre, plan_s)
             else:
-                from .baselines.base import path_length
+                from ..baselines.base import path_length
 
                 t2 = time.perf_counter()
                 try:
@@ -596,11 +598,11 @@ def run_bench(cfg: BenchConfig, progress: bool = True, on_start=None) -> dict:
 
     ``on_start(key, worker)``: called when the task ``key`` = (planner, problem index) is sent to a worker
     (``pid@host``; ``inline`` in this process)."""
-    from .baselines import BASELINES, planner_names
-    from .errors import PsprmError
-    from .paths import resolve_named
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..baselines import BASELINES, planner_names
+    from ..errors import PsprmError
+    from ..paths import resolve_named
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     for name in cfg.planners:  # unknown names fail before any work; a missing module becomes failure rows
         if base_name(name) not in BASELINES or name == REFERENCE:
@@ -680,7 +682,7 @@ class BenchTask:
 def backend_settings(cfg: BenchConfig):
     """The :class:`~psprm_core.executors.BackendSettings` of a run: ``workers`` <= 1 on the local backend runs the
     tasks in this process."""
-    from .executors import BackendSettings
+    from ..executors import BackendSettings
 
     workers = cfg.workers
     if cfg.backend == "local" and workers is not None and workers <= 1:
@@ -700,7 +702,7 @@ def read_journal(out_dir: str | Path, cfgd: dict) -> list:
     PsprmError
         The journal is of another configuration (the fields that differ are named).
     """
-    from .errors import PsprmError
+    from ..errors import PsprmError
 
     path = Path(out_dir) / JOURNAL_FILE
     if not path.is_file():
@@ -737,7 +739,7 @@ def _run_tasks(tasks: list, cfgd: dict, cfg: BenchConfig, progress: bool, planne
     """
     from tqdm import tqdm
 
-    from .executors import Executor, Task
+    from ..executors import Executor, Task
 
     rows: dict = {}  # (planner, problem) -> row
     paths, prepares = [], []
