@@ -461,7 +461,7 @@ def _figure(path, scene, record, first, robot, Q, T, ts, oracle, rows, t_replay)
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from psprm_core import viz
+    from psprm_core.evaluation import viz
 
     fig = Figure(figsize=(14, 5.5), dpi=120)
     FigureCanvasAgg(fig)

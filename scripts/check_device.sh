@@ -12,4 +12,4 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 device="${1:-cuda}"
 shift || true
 cd "$root"
-exec "$root/.venv/bin/python" -m psprm_core.device_check --device "$device" "$@"
+exec "$root/.venv/bin/python" -m psprm_core.evaluation.device_check --device "$device" "$@"

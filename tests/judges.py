@@ -11,8 +11,8 @@ import numpy as np
 import torch
 
 from psprm_core.collision import CollisionChecker
+from psprm_core.evaluation.reference import PybulletWorld
 from psprm_core.paths import resolve_named
-from psprm_core.reference import PybulletWorld
 from psprm_core.scene import load_scene
 
 

@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from psprm_core import baselines
-from psprm_core.bench import (BenchConfig, default_target_groups, evaluate_path, frame_indices, json_summary,
-                              make_problems, run_bench, scenario_problems, summarize, track_flags, verify_success,
-                              write_outputs)
 from psprm_core.errors import PsprmError
+from psprm_core.evaluation.bench import (BenchConfig, default_target_groups, evaluate_path, frame_indices,
+                                         json_summary, make_problems, run_bench, scenario_problems, summarize,
+                                         track_flags, verify_success, write_outputs)
 from psprm_core.motion import DiffDriveMotion
 from psprm_core.paths import resolve_named
 from psprm_core.robot import RobotModel
@@ -384,7 +384,7 @@ def test_bench_rejects_claimed_successes_that_collide_or_miss_the_goal(tmp_path,
     """A planner's success is re-checked by the bench: a path through the table (pybullet confirms it collides), one
     that ends short of the goal, and one that jumps from start to goal are failure rows that say why; the honest Post
     planner on the same problems keeps its successes."""
-    from psprm_core.reference import PybulletWorld
+    from psprm_core.evaluation.reference import PybulletWorld
 
     scene, robot = home
     monkeypatch.setitem(baselines.BASELINES, "rejection", f"{__name__}:ClaimingPlanner")

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core.benchmarks import rotation_angle_error
 from psprm_core.collision import CollisionChecker, obb_overlap
-from psprm_core.reference import PybulletWorld, sample_uniform
+from psprm_core.evaluation.benchmarks import rotation_angle_error
+from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
 from psprm_core.scene import Box, load_scene
 from psprm_core.paths import resolve_named
 

@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_torch_path_passes_the_device_check_judged_by_pybullet():
-    from psprm_core.device_check import run
+    from psprm_core.evaluation.device_check import run
 
     out = run("cpu", torch_path=True, configs=600, nodes=300, queries=4, replans=2)
     assert out["torch_path"] and out["missed_collisions"] == 0

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 import torch
 
+from psprm_core.evaluation.reference import PybulletWorld
 from psprm_core.paths import resolve_named
 from psprm_core.perception.oracle import Oracle
 from psprm_core.perception.scoring import NeuralScorer, OracleScorer
 from psprm_core.perception.surrogate import load_surrogate
 from psprm_core.planning.factory import default_checkpoint, make_planner, problem_configurations
-from psprm_core.reference import PybulletWorld
 from psprm_core.scene import load_scene
 
 from judges import limit_ratios, same_config  # noqa: E402

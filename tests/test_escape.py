@@ -14,12 +14,12 @@ import torch
 
 from psprm_core.collision import CollisionChecker
 from psprm_core.errors import ConfigError
+from psprm_core.evaluation.reference import PybulletWorld
 from psprm_core.geometry import wrap_angle, yaw_to_quat
 from psprm_core.paths import config_dir
 from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.planning.timing import check_base_segments
-from psprm_core.reference import PybulletWorld
 from psprm_core.scene import Box, Scene, Target
 
 N_NODES = 400

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from psprm_core import fastpath
+from psprm_core.evaluation.reference import sample_uniform
 from psprm_core.problems import random_problems
 from psprm_core.collision import CollisionChecker
 from psprm_core.paths import resolve_named
@@ -21,7 +22,6 @@ from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.planning.pipeline import Pipeline
 from psprm_core.planning.state import PlannerContext
 from psprm_core.planning.verification import Verification
-from psprm_core.reference import sample_uniform
 from psprm_core.scene import load_scene
 
 ROBOT_SCENES = {"stretch2": "home", "fetchlike": "nursing", "ur5_mobile": "blind_spot_alley"}

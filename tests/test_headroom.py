@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from psprm_core.bench import (HEADROOM_MIN_GAIN, REFERENCE, BenchConfig, annotate_headroom, run_bench, summarize,
-                              unseen_ends, write_outputs)
+from psprm_core.evaluation.bench import (HEADROOM_MIN_GAIN, REFERENCE, BenchConfig, annotate_headroom, run_bench,
+                                         summarize, unseen_ends, write_outputs)
 
 
 def _row(planner, problem, det, length, head, tail, success=True):
@@ -82,7 +82,7 @@ def test_bench_reference_routes_on_a_small_roadmap(tmp_path):
 
 def test_json_summary_carries_the_headroom_keys():
     """``psprm bench --json`` prints, per planner, headroom_captured and unseeable_frame_rate beside the others."""
-    from psprm_core.bench import json_summary
+    from psprm_core.evaluation.bench import json_summary
 
     rows = [_row("post", 0, 0.4, 10.0, 2.0, 1.0), _row("neural-psprm-line", 0, 0.7, 12.0, 1.5, 0.5),
             _row(REFERENCE, 0, 0.9, 15.0, 1.0, 0.8)]

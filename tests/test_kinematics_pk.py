@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from psprm_core import fastpath
-from psprm_core.benchmarks import rotation_angle_error
+from psprm_core.evaluation.benchmarks import rotation_angle_error
+from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
 from psprm_core.kinematics_pk import PKCameraKinematics
-from psprm_core.reference import PybulletWorld, sample_uniform
 
 ROBOTS = ["stretch2", "fetchlike", "ur5_mobile"]
 WORKSPACE = np.array([[-3.0, -3.0], [3.0, 3.0]])

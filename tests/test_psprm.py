@@ -11,13 +11,13 @@ import pytest
 import torch
 
 from psprm_core.errors import ConfigError
+from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
 from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.planning.timing import check_base_segments
-from psprm_core.reference import PybulletWorld, sample_uniform
 from psprm_core.scene import load_scene
 
 from judges import limit_ratios  # noqa: E402

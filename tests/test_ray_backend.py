@@ -185,7 +185,7 @@ def test_bad_backend_settings_are_clear_errors():
 
 # ---- the bench -------------------------------------------------------------------------------------------------------
 def _bench_cfg(tmp_path, backend, **kw):
-    from psprm_core.bench import BenchConfig
+    from psprm_core.evaluation.bench import BenchConfig
 
     base = dict(scene="home", planners=["post", "neural-psprm-line"], problems=3, seed=3, nodes=300, max_frames=3,
                 frame_spacing=1.0, target_groups=[["tv"]], out=str(tmp_path / backend), workers=2, backend=backend,
@@ -202,7 +202,7 @@ def _without_timings(rows) -> dict:
 @pytest.fixture(scope="module")
 def local_run(tmp_path_factory):
     """The reference: the bench on the local backend's worker processes (rows, and the run's journal)."""
-    from psprm_core.bench import JOURNAL_FILE, run_bench
+    from psprm_core.evaluation.bench import JOURNAL_FILE, run_bench
 
     cfg = _bench_cfg(tmp_path_factory.mktemp("bench"), "local")
     res = run_bench(cfg, progress=False)
@@ -214,7 +214,7 @@ def test_bench_rows_are_the_same_on_local_processes_and_ray_with_a_worker_killed
     """A fixed-seed run gives the same rows (all but the measured times) on the local worker processes and on the Ray
     cluster, although the tasks land on other workers in another order, and although one actor is killed while it
     works: its task runs again on a new actor."""
-    from psprm_core.bench import JOURNAL_FILE, run_bench
+    from psprm_core.evaluation.bench import JOURNAL_FILE, run_bench
 
     local_rows, _ = local_run
     workers, killed = {}, []
@@ -237,8 +237,8 @@ def test_bench_rows_are_the_same_on_local_processes_and_ray_with_a_worker_killed
 def test_an_interrupted_bench_resumes_on_another_backend(local_run, ray_cluster, tmp_path):
     """The local run's journal, cut short as by an interruption (two tasks lost, one line half written), resumed on
     the Ray cluster: only the missing tasks run, and the rows are the local run's."""
-    from psprm_core.bench import JOURNAL_FILE, run_bench
     from psprm_core.errors import PsprmError
+    from psprm_core.evaluation.bench import JOURNAL_FILE, run_bench
 
     local_rows, journal = local_run
     lines = journal.read_text().splitlines()
@@ -289,8 +289,8 @@ def test_labelling_on_ray_survives_a_killed_worker_and_matches_the_oracle(ray_cl
 def test_cli_bench_and_dataset_on_ray(ray_cluster, tmp_path, capsys):
     """``psprm bench --backend ray`` and ``psprm dataset --backend ray`` on the running cluster; ``--resume`` of a
     finished run runs nothing and prints the same summary."""
-    from psprm_core.bench import JOURNAL_FILE
     from psprm_core.cli import main
+    from psprm_core.evaluation.bench import JOURNAL_FILE
 
     out = tmp_path / "bench"
     args = ["bench", "--backend", "ray", "--no-reference", "--scene", "home", "--planners", "post", "--problems", "2",

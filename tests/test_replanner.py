@@ -15,6 +15,7 @@ import torch
 
 from psprm_core.collision import CollisionChecker
 from psprm_core.errors import ConfigError, PsprmError
+from psprm_core.evaluation.simulation import PersonMotion, load_scenario, person_pose
 from psprm_core.geometry import yaw_to_quat
 from psprm_core.paths import config_dir, resolve_named
 from psprm_core.perception.scoring import GeometricScorer
@@ -22,7 +23,6 @@ from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
 from psprm_core.scene import load_scene
-from psprm_core.simulation import PersonMotion, load_scenario, person_pose
 
 from judges import Judge, SentPoses, limit_ratios, same_config, wrap  # noqa: E402
 
@@ -630,7 +630,7 @@ def test_a_chosen_goal_is_kept_for_the_commitment_unless_it_becomes_unreachable(
     assert res.success, res.reason
     assert same_config(res.dense[-1], cheap)
     moved = rp.scene.obstacle("chair")
-    from psprm_core.reference import PybulletWorld
+    from psprm_core.evaluation.reference import PybulletWorld
 
     w = PybulletWorld(robot, [b for b in scene.collision_boxes() if b.name != "chair"] + [moved])
     try:

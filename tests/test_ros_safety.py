@@ -20,8 +20,8 @@ if str(ROOT) not in sys.path:
 pytest.importorskip("rclpy")
 pytest.importorskip("pybullet")
 
+from psprm_core.evaluation.reference import PybulletWorld  # noqa: E402
 from psprm_core.paths import resolve_named  # noqa: E402
-from psprm_core.reference import PybulletWorld  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.probe import InProcessSuite, claim_domain_id  # noqa: E402

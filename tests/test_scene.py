@@ -354,7 +354,7 @@ def _pyplot_figures():
 
 
 def test_save_scene_figure(scene, tmp_path):
-    from psprm_core.viz import save_scene_figure
+    from psprm_core.evaluation.viz import save_scene_figure
 
     before = _pyplot_figures()
     out = save_scene_figure(scene, tmp_path / "fig" / f"{scene.name}.png")
@@ -364,8 +364,8 @@ def test_save_scene_figure(scene, tmp_path):
 
 
 def test_plot_helpers(tmp_path):
-    from psprm_core.viz import (box_footprint, new_figure, plot_path_top, plot_roadmap_top, plot_scene_top,
-                                plot_spheres_top, save_scene_figure)
+    from psprm_core.evaluation.viz import (box_footprint, new_figure, plot_path_top, plot_roadmap_top, plot_scene_top,
+                                           plot_spheres_top, save_scene_figure)
 
     scene = load_scene(SCENE_DIR / "cup_table.yaml")
     rng = np.random.default_rng(0)

@@ -80,7 +80,7 @@ class ActivePerceptionEnv(gym.Env):
     settings : PPOSettings, optional (:mod:`psprm_core.baselines.rl_ppo`; step sizes, reward weights, episode length)
     problems : list of (start, goal), optional
         Episodes draw their start and goal from this pool (default: ``settings.problems`` random collision-free
-        pairs from :func:`psprm_core.benchmarks.random_problems`, camera joints aimed at the target).
+        pairs from :func:`psprm_core.problems.random_problems`, camera joints aimed at the target).
     seed : int
     """
 

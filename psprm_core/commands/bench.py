@@ -65,7 +65,7 @@ def add_backend_arguments(p: argparse.ArgumentParser, what: str, in_process: int
 
 def _bench(args) -> int:
     from ..baselines import parse_planner_settings, planner_names
-    from ..bench import BenchConfig, backend_settings, json_summary, run_bench, write_outputs
+    from ..evaluation.bench import BenchConfig, backend_settings, json_summary, run_bench, write_outputs
     from ..errors import PsprmError
 
     names = planner_names() if args.planners == "all" else [s.strip() for s in args.planners.split(",") if s.strip()]

@@ -36,10 +36,10 @@ def run(args) -> int:
 
     from ..collision import CollisionChecker
     from ..paths import resolve_named
-    from ..reference import sample_uniform
+    from ..evaluation.reference import sample_uniform
     from ..robot import RobotModel
     from ..scene import load_scene
-    from ..viz import new_figure, plot_scene_top, plot_spheres_top
+    from ..evaluation.viz import new_figure, plot_scene_top, plot_spheres_top
 
     t0 = time.perf_counter()
     scene = load_scene(resolve_named("scene", args.scene))

@@ -174,7 +174,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _backends(args) -> int:
-    from ..scaling import backend_overheads, projection_table, read_rows, task_costs
+    from ..evaluation.scaling import backend_overheads, projection_table, read_rows, task_costs
 
     out = {}
     if not args.projection_only:
@@ -202,7 +202,7 @@ def _digest(args) -> int:
 
 
 def _replan(args) -> int:
-    from ..benchmarks import replan_benchmark
+    from ..evaluation.benchmarks import replan_benchmark
 
     _print(replan_benchmark(args.scene, args.planner, nodes=args.nodes, updates=args.updates, seed=args.seed,
                             threads=args.threads, target=args.target, heuristic=args.heuristic), args.json)
@@ -210,7 +210,7 @@ def _replan(args) -> int:
 
 
 def _kinematics(args) -> int:
-    from ..benchmarks import kinematics_benchmark
+    from ..evaluation.benchmarks import kinematics_benchmark
 
     _print(kinematics_benchmark(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads), args.json)
     return 0
@@ -226,7 +226,7 @@ def _print(res: dict, as_json: bool) -> None:
 
 
 def _planner(args) -> int:
-    from ..benchmarks import planner_benchmark
+    from ..evaluation.benchmarks import planner_benchmark
 
     _print(planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
                              threads=args.threads, target=args.target, heuristic=args.heuristic,
@@ -235,7 +235,7 @@ def _planner(args) -> int:
 
 
 def _compare(args) -> int:
-    from ..benchmarks import compare_with_shortest_path
+    from ..evaluation.benchmarks import compare_with_shortest_path
 
     res = compare_with_shortest_path(args.scene, args.planner, nodes=args.nodes, problems=args.problems,
                                      frames=args.frames, seed=args.seed, threads=args.threads, target=args.target,
@@ -245,7 +245,7 @@ def _compare(args) -> int:
 
 
 def _viewmap(args) -> int:
-    from ..benchmarks import detection_map
+    from ..evaluation.benchmarks import detection_map
 
     res = detection_map(args.scene, args.target, spacing=args.spacing, extra_roll_deg=args.extra_roll_deg,
                         placement=args.placement)
@@ -274,7 +274,7 @@ def _viewmap(args) -> int:
 
 
 def _transfer(args) -> int:
-    from ..benchmarks import surrogate_transfer
+    from ..evaluation.benchmarks import surrogate_transfer
 
     _print(surrogate_transfer(args.scene, args.target, samples=args.samples, nodes=args.nodes, seed=args.seed,
                               threads=args.threads, checkpoints=[c for c in args.checkpoints.split(",") if c]),
@@ -283,7 +283,7 @@ def _transfer(args) -> int:
 
 
 def _preprocess(args) -> int:
-    from ..benchmarks import preprocess_benchmark
+    from ..evaluation.benchmarks import preprocess_benchmark
 
     _print(preprocess_benchmark(args.scene, args.target, nodes=args.nodes, oracle_nodes=args.oracle_nodes,
                                 seed=args.seed, threads=args.threads), args.json)

@@ -96,7 +96,7 @@ def plot_plan(planner, res, path: str, title: str = "") -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    from ..viz import plot_path_top, plot_roadmap_top, plot_scene_top
+    from ..evaluation.viz import plot_path_top, plot_roadmap_top, plot_scene_top
 
     fig = Figure(figsize=(9, 10))
     FigureCanvasAgg(fig)

@@ -37,7 +37,7 @@ def _info(args) -> int:
 def _acm(args) -> int:
     import yaml
 
-    from ..reference import compute_acm
+    from ..evaluation.reference import compute_acm
     from ..robot import RobotModel
 
     r = RobotModel.load(args.robot)

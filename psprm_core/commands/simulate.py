@@ -24,7 +24,7 @@ def _run(args) -> int:
     from pathlib import Path
 
     from ..paths import resolve_named
-    from ..simulation import simulate
+    from ..evaluation.simulation import simulate
 
     path = Path(args.scenario)
     if not path.is_file():

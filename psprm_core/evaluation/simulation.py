@@ -39,9 +39,9 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .errors import ConfigError
-from .geometry import yaw_to_quat
-from .yamlio import Fields, load_yaml
+from ..errors import ConfigError
+from ..geometry import yaw_to_quat
+from ..yamlio import Fields, load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -249,7 +249,7 @@ def goal_configurations(robot, scene, specs, template: np.ndarray, aim=None) -> 
 
 # ---- episode ------------------------------------------------------------------------------------------------------
 def _aimer(planner):
-    from .planning.constraints import ProjectionSettings
+    from ..planning.constraints import ProjectionSettings
 
     def aim(Q: np.ndarray) -> np.ndarray:
         if len(planner.track_cols) == 0:
@@ -268,11 +268,11 @@ def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracl
 
     Returns a dict with the executed configurations, camera-frame times, oracle confidences and detections, the
     replanning log and summary numbers (see :func:`summarize`)."""
-    from .paths import resolve_named
-    from .planning.factory import make_planner
-    from .planning.replanner import Replanner
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..paths import resolve_named
+    from ..planning.factory import make_planner
+    from ..planning.replanner import Replanner
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     scene = load_scene(resolve_named("scene", scenario.scene))
     robot = RobotModel.load(scene.robot)
@@ -379,7 +379,7 @@ def judge_frames(ep: dict, oracle, target: str) -> None:
 
 def summarize(ep: dict) -> dict:
     """Summary numbers of an episode (the keys of ``psprm simulate --json``)."""
-    from .motion import DiffDriveMotion
+    from ..motion import DiffDriveMotion
 
     ex = ep["executed"]
     motion = DiffDriveMotion(ep["robot"])
@@ -443,15 +443,15 @@ def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optio
              threads: int = 2, nodes: Optional[int] = None, duration_s: Optional[float] = None) -> dict:
     """``psprm simulate``: run the scenario with replanning (and a static single plan on the same timeline), judge
     both with the oracle, return the summary (and write the figure)."""
-    from .perception.oracle import Oracle
+    from ..perception.oracle import Oracle
 
     torch.set_num_threads(threads)
     import tempfile
 
-    from .paths import resolve_named
-    from .planning.factory import make_planner
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..paths import resolve_named
+    from ..planning.factory import make_planner
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     sc = load_scenario(scenario_path)
     if nodes is not None:

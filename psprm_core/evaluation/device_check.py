@@ -1,7 +1,7 @@
 """Check the tensor pipeline on a device (``cuda``, ``cuda:1``, ``cpu``) against independent references.
 
-    python -m psprm_core.device_check --device cuda            # on a CUDA machine (scripts/check_device.sh)
-    python -m psprm_core.device_check --device cpu --torch-path   # here: the same torch code, CPU kernels off
+    python -m psprm_core.evaluation.device_check --device cuda  # on a CUDA machine (scripts/check_device.sh)
+    python -m psprm_core.evaluation.device_check --device cpu --torch-path  # here: the same torch code, CPU kernels off
 
 On a CPU the planner runs small batches through compiled numba kernels (:mod:`psprm_core.fastpath`); on any other
 device, and on the CPU with ``--torch-path``, every call takes the torch operators the paper's GPU pipeline uses.
@@ -36,16 +36,16 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynam
         seed: int = 0) -> dict:
     import torch
 
-    from . import fastpath
+    from .. import fastpath
     from .benchmarks import rotation_angle_error
-    from .collision import CollisionChecker
-    from .paths import resolve_named
-    from .perception.scoring import NeuralScorer
-    from .perception.surrogate import load_surrogate
-    from .planning.factory import default_checkpoint
+    from ..collision import CollisionChecker
+    from ..paths import resolve_named
+    from ..perception.scoring import NeuralScorer
+    from ..perception.surrogate import load_surrogate
+    from ..planning.factory import default_checkpoint
     from .reference import PybulletWorld, sample_uniform
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     dev = torch.device(device)
     scene = load_scene(resolve_named("scene", scene_name))
@@ -109,10 +109,10 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
     are compared by cost, not node by node)."""
     import torch
 
-    from .problems import random_problems
-    from .collision import CollisionChecker
-    from .planning.factory import make_planner, problem_configurations
-    from .planning.replanner import Replanner, ReplanSettings
+    from ..problems import random_problems
+    from ..collision import CollisionChecker
+    from ..planning.factory import make_planner, problem_configurations
+    from ..planning.replanner import Replanner, ReplanSettings
 
     def build(dev, ctx):
         with ctx():
@@ -190,7 +190,8 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m psprm_core.device_check", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m psprm_core.evaluation.device_check",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda", help="torch device (default cuda)")
     ap.add_argument("--torch-path", action="store_true", help="CPU: compiled kernels off (the path a GPU runs)")
     ap.add_argument("--scene", default="dynamic_person")
@@ -208,7 +209,7 @@ def main(argv=None) -> int:
         print(json.dumps({"device": a.device, "checked": False, "ok": True,
                           "note": f"CUDA is not available to this torch build ({torch.__version__}): nothing checked"}))
         return 0
-    from .commands.perf import print_json, stdout_to_stderr
+    from ..commands.perf import print_json, stdout_to_stderr
 
     with stdout_to_stderr():  # stdout carries the JSON object only
         out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed)

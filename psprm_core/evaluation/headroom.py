@@ -5,7 +5,8 @@ the roadmap the neural PS-PRM variant plans on (same settings and seed) and, for
 routes over it: searches with both objective forms (Eq. 2 and the motion-weighted one) at several alpha up to 1 (the
 route that only minimises what is not seen), with and without shortcutting, and alternative routes found by
 penalising the edges of the routes already found. ``psprm bench`` judges every candidate with the oracle; the best of
-them and of the planners' own paths is the problem's reference (:func:`psprm_core.bench.headroom_summary`).
+them and of the planners' own paths is the problem's reference
+(:func:`psprm_core.evaluation.bench_report.annotate_headroom`).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ class ReferenceRoutes:
     def __init__(self, scene, targets: Sequence[str], robot=None, seed: int = 0, variant: str = "neural-psprm-line",
                  searches: Sequence[tuple] = SEARCHES, alternatives: int = ALTERNATIVES, penalty: float = PENALTY,
                  **overrides):
-        from .baselines.psprm_adapter import PSPRMBenchPlanner
+        from ..baselines.psprm_adapter import PSPRMBenchPlanner
 
         self._bench = PSPRMBenchPlanner(variant, scene, list(targets), robot=robot, seed=seed, **overrides)
         self.planner = self._bench.planner

@@ -15,11 +15,11 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
-from .geometry import matrix_to_quat
-from .paths import cache_dir
-from .robot import RobotModel, image_roll, load_acm
-from .urdf import resolve_mesh
-from .yamlio import load_yaml
+from ..geometry import matrix_to_quat
+from ..paths import cache_dir
+from ..robot import RobotModel, image_roll, load_acm
+from ..urdf import resolve_mesh
+from ..yamlio import load_yaml
 
 log = logging.getLogger(__name__)
 
@@ -183,7 +183,7 @@ def compute_acm(robot: RobotModel, samples: int, seed: int = 0, always_fraction:
     allowed, checked = [], []
     import itertools
 
-    from .collision import CollisionChecker
+    from ..collision import CollisionChecker
 
     for a, b in itertools.combinations(sorted(links), 2):
         pr = frozenset((a, b))

@@ -10,7 +10,7 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
-from .problems import random_problems
+from ..problems import random_problems
 
 log = logging.getLogger(__name__)
 
@@ -44,11 +44,11 @@ def kinematics_benchmark(robot_name: str, scene_name: str, n: int = 10000, seed:
     the false-positive rate (torch in collision but pybullet free, over pybullet-free configurations) and the FK
     agreement with pybullet on ``fk_check`` configurations.
     """
-    from .collision import CollisionChecker
-    from .paths import resolve_named
+    from ..collision import CollisionChecker
+    from ..paths import resolve_named
     from .reference import PybulletWorld, sample_uniform
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
@@ -104,11 +104,11 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
     line-of-sight manifold with restarts, unconverged configurations dropped). ``aimed=False``: the camera joints
     are only pushed towards the target from the default pose (10 Gauss-Newton steps, converged or not); on the mobile
     UR5, whose whole arm aims the wrist camera, 9 in 10 such ends then lie off the visibility manifold."""
-    from .collision import CollisionChecker
-    from .paths import resolve_named
-    from .planning.factory import make_planner
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..collision import CollisionChecker
+    from ..paths import resolve_named
+    from ..planning.factory import make_planner
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
@@ -177,11 +177,11 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     """
     import dataclasses
 
-    from .paths import config_dir, resolve_named
-    from .planning.factory import make_scorer
-    from .planning.psprm import PSPRM, PSPRMSettings
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..paths import config_dir, resolve_named
+    from ..planning.factory import make_scorer
+    from ..planning.psprm import PSPRM, PSPRMSettings
+    from ..robot import RobotModel
+    from ..scene import load_scene
 
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
@@ -240,7 +240,7 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
     the per-view record (camera poses, neural and oracle scores) the correlations are computed from."""
     from scipy.stats import spearmanr
 
-    from .planning.factory import make_scorer
+    from ..planning.factory import make_scorer
 
     scene, robot, target, p, stats, _ = _built_planner(scene_name, "neural-psprm-line", nodes, 0, seed, threads,
                                                        target)
@@ -302,12 +302,12 @@ def detection_map(scene_name: str = "home", target: str | Sequence[str] | None =
     """
     import torch
 
-    from .errors import PsprmError
-    from .paths import resolve_named
-    from .perception.oracle import Oracle
-    from .perception.render import look_at_pose
-    from .robot import RobotModel, image_roll
-    from .scene import load_scene
+    from ..errors import PsprmError
+    from ..paths import resolve_named
+    from ..perception.oracle import Oracle
+    from ..perception.render import look_at_pose
+    from ..robot import RobotModel, image_roll
+    from ..scene import load_scene
 
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
@@ -397,7 +397,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
     path shortcuts are off, so the shortest-path paths are the roadmap's shortest. ``rows`` holds the per-problem
     record (start, goal, success, length, predicted score and the judged frames) the summaries are computed from."""
 
-    from .perception.oracle import Oracle
+    from ..perception.oracle import Oracle
 
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
                                                            target, aimed=aimed)
@@ -454,13 +454,13 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     """
     import dataclasses
 
-    from .collision import CollisionChecker
-    from .geometry import yaw_to_quat
-    from .paths import resolve_named
-    from .planning.factory import make_planner, problem_configurations
-    from .planning.replanner import Replanner, ReplanSettings
-    from .robot import RobotModel
-    from .scene import load_scene
+    from ..collision import CollisionChecker
+    from ..geometry import yaw_to_quat
+    from ..paths import resolve_named
+    from ..planning.factory import make_planner, problem_configurations
+    from ..planning.replanner import Replanner, ReplanSettings
+    from ..robot import RobotModel
+    from ..scene import load_scene
     from .simulation import PersonMotion, person_pose
 
     torch.set_num_threads(threads)
