@@ -8,6 +8,8 @@ import logging
 import numpy as np
 import torch
 
+from .. import fastpath
+
 from .state import Stage
 
 log = logging.getLogger(__name__)
@@ -24,57 +26,89 @@ class Shortcut(Stage):
         joined by one direct local motion that is shorter than the stretch it replaces, is
         collision-free (checked densely, like every edge), keeps every interior knot on the visibility manifold
         (|h_M| within the projection tolerance after re-aiming) and whose Eq. 1 perception is at least the
-        motion-weighted mean Eq. 1 perception of the replaced edges. Every candidate of a node is checked in one
-        batch. The shortcut edges join the query's edges (``added_edges``) with their knots stored, so the path that
-        runs is the one checked. Returns the new path and its cost."""
+        motion-weighted mean Eq. 1 perception of the replaced edges. The candidates of every node of the path are
+        checked in one batch per pass (:meth:`_candidates`), then taken greedily from the start. The shortcut edges
+        join the query's edges (``added_edges``) with their knots stored, so the path that runs is the one checked.
+        Returns the new path and its cost."""
         g = self.rm.graph
-        tol = float(self.ctx.settings.projection.tolerance)
+        checked: dict = {}  # (node, node) -> what _candidates found for that motion (later passes reuse it)
         for _ in range(max(1, self.qs.shortcut_rounds)):
-            eids = g.edge_ids_of_path(path)
-            cm = g.edge_attribute("c_m")[eids] * self.rm.max_motion  # motion cost of each edge
-            cp = g.edge_attribute("c_p")[eids]
-            arc = np.concatenate([[0.0], np.cumsum(cm)])
-            seen = np.concatenate([[0.0], np.cumsum(cm * np.nan_to_num(cp))])
-            out, i, changed = [path[0]], 0, False
-            while i < len(path) - 1:
-                later = np.arange(i + 2, len(path))
-                j = i + 1
-                if len(later):
-                    qa = np.repeat(g.configs[path[i]][None], len(later), 0)
-                    qb = g.configs[np.asarray(path)[later]]
-                    d = self.pl.edges.motion_distance(qa, qb)
-                    span = arc[later] - arc[i]
-                    need = (seen[later] - seen[i]) / np.maximum(span, 1e-12)  # mean Eq. 1 of the replaced edges
-                    # an existing edge between the two was the search's to take (and must not be overwritten)
-                    joined = np.asarray([g.edge_id(path[i], path[x]) is not None for x in later])
-                    # at most SHORTCUT_CANDIDATES of the farthest, within twice the roadmap's edge length
-                    cand = np.nonzero((d < span - 1e-9) & ~joined & (d <= 2 * self.rm.max_motion))[0]
-                    cand = cand[-SHORTCUT_CANDIDATES:]
-                    if len(cand):
-                        ta, tb = self.ctx.t(qa[cand]), self.ctx.t(qb[cand])
-                        kn, ki = self.pl.edges.edge_knots(ta, tb)
-                        M = kn.shape[1]
-                        on = self.ctx.constraint.error(kn[:, 1:-1].reshape(-1, kn.shape[-1])).reshape(len(cand), M - 2)
-                        ok = (on <= tol).all(-1) if M > 2 else torch.ones(len(cand), dtype=torch.bool)
-                        ok &= self.pl.edges.knots_valid(kn, dense=True)
-                        p = torch.zeros(len(cand), dtype=self.ctx.dtype, device=self.ctx.device)
-                        if ok.any():
-                            p[ok] = self.pl.scoring.knots_perception(kn[ok], ki[ok])
-                        good = ok.cpu().numpy() & (p.double().cpu().numpy() >= need[cand] - 1e-9)
-                        if good.any():
-                            m = int(np.nonzero(good)[0].max())
-                            jj = int(later[cand[m]])
-                            e = self.pl.query.add_query_edges(np.asarray([path[i]]), np.asarray([path[jj]]),
-                                                      p[m:m + 1].cpu().numpy(), d[cand[m]:cand[m] + 1])
-                            self.pl.edges.put_knots(np.asarray(e), np.asarray([path[i]]), kn[m:m + 1], ki[m:m + 1])
-                            added_edges.extend(e)
-                            out.append(path[jj])
-                            i, changed = jj, True
-                            continue
-                out.append(path[j])
-                i = j
-            path = out
+            path, changed = self._round(path, added_edges, checked)
             if not changed:
                 break
         eids = g.edge_ids_of_path(path)
         return path, float(g.weights[eids].sum())
+
+    def _candidates(self, path: list, checked: dict) -> tuple:
+        """Every shortcut candidate of ``path`` (per node, the :data:`SHORTCUT_CANDIDATES` farthest later nodes
+        within twice the roadmap's longest edge whose direct motion is shorter than the stretch it replaces, not
+        already joined by an edge), checked in one batch: (from, to) path positions, motion costs, whether each is
+        taken (on the manifold, collision-free, Eq. 1 not lower than the replaced edges' motion-weighted mean), and
+        the Eq. 1 perception, knots and Eq. 1 sample positions of each. ``checked`` keeps each motion's check by its
+        two nodes (a motion is checked once however many passes consider it)."""
+        g = self.rm.graph
+        tol = float(self.ctx.settings.projection.tolerance)
+        eids = g.edge_ids_of_path(path)
+        cm = g.edge_attribute("c_m")[eids] * self.rm.max_motion  # motion cost of each edge
+        cp = g.edge_attribute("c_p")[eids]
+        arc = np.concatenate([[0.0], np.cumsum(cm)])
+        seen = np.concatenate([[0.0], np.cumsum(cm * np.nan_to_num(cp))])
+        P = np.asarray(path)
+        src, dst, dist, need = [], [], [], []
+        for i in range(len(path) - 2):
+            later = np.arange(i + 2, len(path))
+            qa = np.repeat(g.configs[path[i]][None], len(later), 0)
+            d = self.pl.edges.motion_distance(qa, g.configs[P[later]])
+            span = arc[later] - arc[i]
+            # an existing edge between the two was the search's to take (and must not be overwritten)
+            joined = np.asarray([g.edge_id(path[i], path[x]) is not None for x in later])
+            cand = np.nonzero((d < span - 1e-9) & ~joined & (d <= 2 * self.rm.max_motion))[0][-SHORTCUT_CANDIDATES:]
+            src.extend([i] * len(cand))
+            dst.extend(later[cand].tolist())
+            dist.append(d[cand])
+            need.append((seen[later[cand]] - seen[i]) / np.maximum(span[cand], 1e-12))  # the replaced edges' mean
+        src, dst = np.asarray(src, dtype=np.int64), np.asarray(dst, dtype=np.int64)
+        if not len(src):
+            return src, dst, None, np.zeros(0, bool), None, None, None
+        dist, need = np.concatenate(dist), np.concatenate(need)
+        keys = list(zip(P[src].tolist(), P[dst].tolist()))
+        new = [k for k in dict.fromkeys(keys) if k not in checked]
+        if new:
+            a, b = np.asarray([k[0] for k in new]), np.asarray([k[1] for k in new])
+            with fastpath.bulk():  # a few hundred edges' knots and dense pieces: the compiled kernels at any size
+                kn, ki = self.pl.edges.edge_knots(self.ctx.t(g.configs[a]), self.ctx.t(g.configs[b]))
+                M = kn.shape[1]
+                on = self.ctx.constraint.error(kn[:, 1:-1].reshape(-1, kn.shape[-1])).reshape(len(new), M - 2)
+                ok = (on <= tol).all(-1) if M > 2 else torch.ones(len(new), dtype=torch.bool)
+                ok &= self.pl.edges.knots_valid(kn, dense=True)
+                p = torch.zeros(len(new), dtype=self.ctx.dtype, device=self.ctx.device)
+                if ok.any():
+                    p[ok] = self.pl.scoring.knots_perception(kn[ok], ki[ok])
+            for r, k in enumerate(new):
+                checked[k] = (bool(ok[r]), p[r:r + 1], kn[r:r + 1], ki[r:r + 1])
+        rows = [checked[k] for k in keys]
+        ok = np.asarray([r[0] for r in rows])
+        p, kn, ki = (torch.cat([r[j] for r in rows]) for j in (1, 2, 3))
+        good = ok & (p.double().cpu().numpy() >= need - 1e-9)
+        return src, dst, dist, good, p, kn, ki
+
+    def _round(self, path: list, added_edges: list, checked: dict) -> tuple:
+        """One greedy pass: from each kept node, the farthest taken candidate (:meth:`_candidates`), else the next
+        node. Returns the new path and whether it changed."""
+        src, dst, dist, good, p, kn, ki = self._candidates(path, checked)
+        out, i, changed = [path[0]], 0, False
+        while i < len(path) - 1:
+            mine = np.nonzero((src == i) & good)[0]
+            if len(mine):
+                m = int(mine[np.argmax(dst[mine])])
+                jj = int(dst[m])
+                e = self.pl.query.add_query_edges(np.asarray([path[i]]), np.asarray([path[jj]]),
+                                                  p[m:m + 1].cpu().numpy(), dist[m:m + 1])
+                self.pl.edges.put_knots(np.asarray(e), np.asarray([path[i]]), kn[m:m + 1], ki[m:m + 1])
+                added_edges.extend(e)
+                out.append(path[jj])
+                i, changed = jj, True
+                continue
+            out.append(path[i + 1])
+            i += 1
+        return out, changed
