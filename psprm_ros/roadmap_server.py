@@ -411,11 +411,9 @@ class RoadmapServer:
             done.set()
 
     def _apply_live(self, live: dict) -> None:
-        import dataclasses
-
         rp_changes = {k: v for k, v in live.items() if k in LIVE_REPLAN}
         if rp_changes and self.rp is not None:
-            self.rp.settings = dataclasses.replace(self.rp.settings, **rp_changes)
+            self.rp.update_settings(**rp_changes)
         a = live.get("alpha")
         if a is not None and a >= 0 and self.planner is not None and hasattr(self.planner, "set_alpha"):
             self.planner.set_alpha(float(a))

@@ -160,7 +160,7 @@ def test_random_dynamic_episodes_never_return_a_colliding_path(world):
 def test_lazy_rescore_verifies_the_path_edges(replanner, world):
     scene, robot = world
     rp = replanner
-    rp.settings = dataclasses.replace(rp.settings, replan_on_move=True)
+    rp.update_settings(replan_on_move=True)
     p = rp.planner
     motion = PersonMotion(target="person_face", body="person_body")
     pp = person_pose(scene, motion, 2.8 + 1.0)
@@ -233,7 +233,7 @@ def test_small_jitter_does_not_trigger(replanner):
 def test_goal_change_triggers_and_best_goal_wins(replanner, world):
     scene, robot = world
     rp = replanner
-    rp.settings = dataclasses.replace(rp.settings, goal_switch_margin=0.0)  # no hysteresis: the best goal wins
+    rp.update_settings(goal_switch_margin=0.0)  # no hysteresis: the best goal wins
     _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     rp.set_goals(goals[::-1])
     assert "goal_changed" in rp.needs_replan()
@@ -663,7 +663,7 @@ def test_a_plan_made_below_score_min_is_retried_when_the_target_moves(replanner)
     """A plan whose own predicted score was already below ``score_min`` is replanned once the target moves (another
     route may see it now), not while it stands still, and at most once per ``min_interval_s``."""
     rp = replanner
-    rp.settings = dataclasses.replace(rp.settings, score_min=0.99, score_drop=0.9)  # every plan is "low"
+    rp.update_settings(score_min=0.99, score_drop=0.9)  # every plan is "low"
     t0 = 1000.0
     assert rp.replan(now=t0).success
     assert rp._plan_score < rp.settings.score_min  # the precondition: a plan made below score_min
@@ -681,7 +681,7 @@ def test_no_score_triggered_replan_on_the_final_approach(replanner):
     same move does when the approach check is off); the robot's position on the path is the test's own choice of
     a configuration near the end of the dense path, and the remaining length is measured from it."""
     rp = replanner
-    rp.settings = dataclasses.replace(rp.settings, score_min=0.99, score_drop=0.9)
+    rp.update_settings(score_min=0.99, score_drop=0.9)
     t0 = 1000.0
     res = rp.replan(now=t0)
     assert res.success
@@ -694,5 +694,5 @@ def test_no_score_triggered_replan_on_the_final_approach(replanner):
     f = rp.scene.target("person_face")
     assert rp.update_target("person_face", f.center + np.array([0.06, 0.0, 0.0]), f.quat)
     assert rp.needs_replan(now=t0 + 5.0) == []
-    rp.settings = dataclasses.replace(rp.settings, final_approach_m=0.0)
+    rp.update_settings(final_approach_m=0.0)
     assert rp.needs_replan(now=t0 + 5.0) == ["score_low_retry"]

@@ -26,6 +26,7 @@ from __future__ import annotations
 import logging
 import math
 import time
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
@@ -124,11 +125,8 @@ class Replanner:
                  targets: Optional[Sequence[str]] = None):
         if planner.graph is None:
             raise PsprmError("the replanner needs a built or loaded roadmap (call planner.build() or load())")
-        self.planner, self.settings = planner, settings
-        # the replans' own query settings (the planner's settings are left as they are)
-        self.plan_options = {"smooth_timing": settings.smooth_timing, "shortcut": settings.shortcut}
-        if settings.heuristic != "planner":
-            self.plan_options["heuristic"] = settings.heuristic
+        self.planner = planner
+        self.update_settings(settings)
         self.robot = planner.robot
         self.scene = planner.scene
         self.targets = list(targets or getattr(planner, "targets", None) or self.scene.target_names)
@@ -150,6 +148,17 @@ class Replanner:
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
         self.history: list = []  # one dict per replan: reasons, timings, success
         self._collides_cache: Optional[tuple] = None  # (result, progress, planner scene, remaining path collides)
+
+    def update_settings(self, settings: Optional[ReplanSettings] = None, **changes) -> ReplanSettings:
+        """Adopt new settings (``settings``, else the current ones with ``changes``; validated as they are built) and
+        the query options the replans pass to the planner (:attr:`plan_options`: heuristic, smooth timing,
+        shortcuts; the planner's own settings are left as they are). Returns the settings now in use."""
+        new = dataclasses.replace(settings or self.settings, **changes)
+        options = {"smooth_timing": new.smooth_timing, "shortcut": new.shortcut}
+        if new.heuristic != "planner":
+            options["heuristic"] = new.heuristic
+        self.settings, self.plan_options = new, options
+        return new
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
     @staticmethod
