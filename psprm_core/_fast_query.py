@@ -11,6 +11,12 @@ from ._fast_motion import edge_knot_seeds, pieces
 from ._fast_projection import project
 from ._fast_scoring import mlp, occlusion, pose_features
 
+#: SHA-256 of the kernel modules this one imports from, directly or through them (their sources with this line
+#: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
+#: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
+#: too, or the cached kernels here would keep the old code.
+CALLEES_SHA256 = "aa398e422903717899b10b9fe3c538705df903b06b6ee64f4a1bf29d6b72b32f"
+
 
 # ---------------------------------------------------------------------------------------------- a query's edges
 @jit
