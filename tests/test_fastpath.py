@@ -492,3 +492,41 @@ def test_planner_same_paths_with_the_fused_verification_on_and_off(load_robot, t
             assert ra.path_nodes == rb.path_nodes and ra.cost == pytest.approx(rb.cost, rel=1e-6)
             assert np.array_equal(ra.waypoints, rb.waypoints)
     assert solved >= len(probs) // 2 and fused and all(fused)
+
+
+def test_kernel_modules_record_the_sources_of_the_kernels_they_call():
+    """numba's disk cache checks only the source file of the kernel it loads: every kernel module that imports from
+    other kernel modules records their SHA-256 (``CALLEES_SHA256``, over the modules it reaches through its imports,
+    with that line blanked), so that a change to a called kernel or to the decorator changes the caller's file too
+    and its cached kernels are compiled again."""
+    import ast
+    import hashlib
+    import importlib
+    import re
+    from pathlib import Path
+
+    root = Path(fastpath.__file__).parent
+    line = re.compile(r'^CALLEES_SHA256 = ".*"$', re.M)
+    files = {p.stem: p.read_text(encoding="utf-8") for p in root.glob("_fast_*.py") if p.stem != "_fast_numba"}  # numba: re-exports
+    imports = {m: {n.module for n in ast.walk(ast.parse(t)) if isinstance(n, ast.ImportFrom) and n.level == 1
+                   and n.module in files} for m, t in files.items()}
+
+    def reached(m, seen):
+        for c in imports[m] - seen:
+            seen.add(c)
+            reached(c, seen)
+        return seen
+
+    wrong = []
+    for m in sorted(files):
+        closure = sorted(reached(m, set()))
+        got = getattr(importlib.import_module(f"psprm_core.{m}"), "CALLEES_SHA256", None)
+        if not closure:
+            assert got is None, f"{m} imports no kernel module: no CALLEES_SHA256"
+            continue
+        h = hashlib.sha256()
+        for c in closure:
+            h.update(line.sub('CALLEES_SHA256 = ""', files[c]).encode())
+        if got != h.hexdigest():
+            wrong.append(f'{m}.py: CALLEES_SHA256 = "{h.hexdigest()}" (from {", ".join(closure)})')
+    assert not wrong, "set\n" + "\n".join(wrong)
