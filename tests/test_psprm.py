@@ -376,3 +376,34 @@ def test_settings_files_are_read_by_one_typed_reader(tmp_path):
     r.write_text("goal_commit_s: yes please\n")
     with pytest.raises(ConfigError, match="goal_commit_s"):
         ReplanSettings.from_yaml(r)
+
+
+def test_update_settings_refuses_the_visibility_model_and_remakes_changed_knots(home):
+    """The visibility model is fixed when a planner is made; a change of N (Eq. 1's interior samples) drops the
+    stored knots, so the path that runs has knots made with the new N, and pybullet finds it free."""
+    scene, robot, planner = home
+    saved = planner.settings
+    with pytest.raises(ConfigError, match="constraint"):
+        planner.update_settings(constraint="frustum" if saved.constraint == "line" else "line")
+    assert planner.settings == saved
+    world = PybulletWorld(robot, scene.collision_boxes())
+    try:
+        planner.update_settings(n_interp=saved.n_interp + 2)
+        start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
+        res = planner.plan(start, goals, timing=False)
+        assert res.success, res.reason
+        eids = planner.graph.edge_ids_of_path(res.path_nodes)
+        knots, interior = planner.stored_knots(eids)
+        assert interior.shape[1] == saved.n_interp + 2
+        assert not world.in_collision(res.dense).any()
+        # Eq. 1 of every edge that runs, from its knots, by this test's own FK and scorer: the weights the search
+        # used were made with the new N at the knots that run, not kept from the old ones
+        pts = torch.cat([knots[:, :1], torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, robot.dof)),
+                         knots[:, -1:]], 1)
+        raw = planner.scorer.score(robot.camera_poses(pts.reshape(-1, robot.dof))).reshape(len(eids), -1)
+        eq1 = (raw.double() * planner.score_scale).clamp(0, 1).mean(1).numpy()
+        np.testing.assert_allclose(planner.graph.edge_attribute("c_p")[eids], eq1, atol=1e-4)
+    finally:
+        world.close()
+        planner.update_settings(saved)
+    assert planner.plan(start, goals, timing=False).success

@@ -35,6 +35,10 @@ class Dynamics(Stage):
         """Move the point the visibility constraint aims at. Edges re-aim their camera joints at it, so every edge's
         knots are recomputed, re-checked and re-scored lazily when a search next uses it."""
         self.ctx.constraint.set_target(np.asarray(focus, float))
+        self.forget_knots()
+
+    def forget_knots(self) -> None:
+        """Drop every stored knot; every edge is re-checked and re-scored (Eq. 1) when a search next uses it."""
         self.knots.clear()
         g = self.rm.graph
         if g is not None:

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from ..collision import CollisionChecker
+from ..errors import ConfigError
 from ..motion import DiffDriveMotion
 from ..robot import RobotModel
 from ..scene import Scene
@@ -37,6 +38,12 @@ from .pipeline import Pipeline
 from .results import EscapeResult, PlanResult
 from .settings import QUERY_SETTINGS, VARIANTS, PSPRMSettings
 from .state import PlannerContext
+
+#: settings read when the planner is made (the visibility model): changing them needs a new planner
+CONSTRUCTION_SETTINGS = ("constraint", "kinematics", "frustum_margin", "min_view_distance")
+#: settings that shape the edges' knots, their checks or their Eq. 1 samples
+KNOT_SETTINGS = ("n_interp", "track_iters", "projection", "edge_resolution", "edge_view_slack", "lazy_collision",
+                 "lazy_edges")
 
 __all__ = ["PSPRM", "PSPRMSettings", "PlanResult", "EscapeResult", "QUERY_SETTINGS", "VARIANTS"]
 
@@ -147,18 +154,26 @@ class PSPRM:
         self.pipeline.scoring.reweight(alpha, objective)
 
     def update_settings(self, settings: Optional[PSPRMSettings] = None, **changes) -> PSPRMSettings:
-        """Adopt new settings (``settings``, else the current ones with ``changes``), validated; edges are re-weighted
-        when alpha or the objective change. Settings that shape the roadmap (not in :data:`QUERY_SETTINGS`: node
-        count, seed, edge length, ...) take effect at the next :meth:`build` (and change :meth:`fingerprint`);
-        queries use the new ones at once. Returns the settings now in use."""
-        new = dataclasses.replace(settings or self.settings, **changes)
+        """Adopt new settings (``settings``, else the current ones with ``changes``), validated. Queries use them at
+        once; edges are re-weighted when alpha or the objective change; when a setting that shapes the edges' knots
+        or checks changes (:data:`KNOT_SETTINGS`), every stored knot is dropped and every edge re-checked and
+        re-scored when a search next uses it (as after :meth:`set_focus`). The other roadmap settings (node count,
+        seed, neighbours, ...) take effect at the next :meth:`build` and change :meth:`fingerprint`. The visibility
+        model (:data:`CONSTRUCTION_SETTINGS`) is fixed when the planner is made: changing it raises
+        :class:`~psprm_core.errors.ConfigError`. Returns the settings now in use."""
+        old = self.settings
+        new = dataclasses.replace(settings or old, **changes)
         new.validate()
-        if (new.alpha, new.objective) != (self.settings.alpha, self.settings.objective) and self.graph is not None:
-            self.ctx.settings = dataclasses.replace(new, alpha=self.settings.alpha, objective=self.settings.objective)
+        fixed = [k for k in CONSTRUCTION_SETTINGS if getattr(new, k) != getattr(old, k)]
+        if fixed:
+            raise ConfigError("settings", ", ".join(fixed), "fixed when the planner is made: make a new planner")
+        self.ctx.settings = dataclasses.replace(new, alpha=old.alpha, objective=old.objective)
+        if self.graph is not None and any(getattr(new, k) != getattr(old, k) for k in KNOT_SETTINGS):
+            self.pipeline.dynamics.forget_knots()
+        if (new.alpha, new.objective) != (old.alpha, old.objective) and self.graph is not None:
             self.reweight(new.alpha, new.objective)
-        else:
-            self.ctx.settings = new
-        return self.ctx.settings
+        self.ctx.settings = new
+        return new
 
     def set_alpha(self, alpha: float) -> None:
         """Re-weight every edge with a new alpha (Eq. 2) without rebuilding (alpha = 0: shortest-path PRM)."""
