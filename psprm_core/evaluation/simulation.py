@@ -255,7 +255,7 @@ def _aimer(planner):
         if len(planner.track_cols) == 0:
             return Q
         qt = torch.as_tensor(Q, dtype=torch.float32)
-        out, ok = planner.constraint.project(qt, ProjectionSettings(max_iters=15), planner.ctx.lo, planner.ctx.hi,
+        out, ok = planner.constraint.project(qt, ProjectionSettings(max_iters=15), *planner.joint_bounds,
                                              joints=planner.track_cols)
         ok &= planner.checker.valid(out)  # keep the given joints where aiming fails or collides
         return torch.where(ok[:, None], out, qt).double().numpy()

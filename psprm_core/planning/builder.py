@@ -18,7 +18,6 @@ from .state import Stage, large_batches
 log = logging.getLogger(__name__)
 
 
-
 class Builder(Stage):
     """Builds and grows the roadmap."""
 
@@ -38,6 +37,10 @@ class Builder(Stage):
         return stats
 
     def build_roadmap(self, template: Optional[np.ndarray]) -> dict:
+        """Alg. 1 (see :meth:`build`): uniform (and perception-biased) manifold nodes, their scores and Eq. 1's
+        normalisation, neighbour edges checked and scored (Eq. 1, 2), the roadmap adopted, components bridged, the
+        hop table. Returns the build statistics (``success`` False with a ``reason`` when too few nodes were found).
+        """
         s = self.ctx.settings
         rng = np.random.default_rng(s.seed)
         torch.manual_seed(s.seed)
@@ -86,10 +89,10 @@ class Builder(Stage):
         g.add_nodes(Q.double().cpu().numpy())
         self.knots.clear()
         edge_ids = g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
-                    self.pl.scoring.weight(p_edge, c_m).double().cpu().numpy(),
-                    c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
-                    verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
-                    checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
+                               self.pl.scoring.weight(p_edge, c_m).double().cpu().numpy(),
+                               c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
+                               verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
+                               checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
         self.rm.adopt(g, node_scores.double().cpu().numpy(), max_motion=self.rm.max_motion,
                       score_scale=self.rm.score_scale)
         self.pl.edges.put_knots(edge_ids, eu.cpu().numpy(), *knots)

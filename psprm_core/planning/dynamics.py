@@ -4,7 +4,6 @@ they left."""
 
 from __future__ import annotations
 
-import logging
 import time
 from typing import Sequence
 
@@ -15,9 +14,6 @@ from ..collision import BoxTensors
 from ..scene import Scene
 from .graph_search import edge_perception
 from .state import Stage, large_batches
-
-log = logging.getLogger(__name__)
-
 
 
 class Dynamics(Stage):
@@ -115,8 +111,8 @@ class Dynamics(Stage):
             a, b = xy[g.edge_u[e]], xy[g.edge_v[e]]
             half = 0.5 * np.linalg.norm(b - a, axis=1)
             self.rm.index = {"node_ids": ids, "node_tree": cKDTree(xy[ids]), "edge_ids": e,
-                           "edge_tree": cKDTree(0.5 * (a + b)) if len(e) else None,
-                           "max_half": float(half.max()) if len(e) else 0.0, "reach": reach}
+                             "edge_tree": cKDTree(0.5 * (a + b)) if len(e) else None,
+                             "max_half": float(half.max()) if len(e) else 0.0, "reach": reach}
         return self.rm.index
 
     def near(self, boxes: Sequence, margin: float = 0.05) -> tuple:
@@ -198,7 +194,7 @@ class Dynamics(Stage):
         """
         g = self.rm.graph
         restored = self.restore_unblocked(old_boxes, margin) if old_boxes else {"restored_nodes": 0,
-                                                                                  "restored_edges": 0}
+                                                                                "restored_edges": 0}
         nodes, edges = self.near(boxes, margin)
         nodes = nodes[g.node_valid[nodes]]
         removed = np.zeros(0, dtype=np.int64)

@@ -5,7 +5,6 @@ store, so that what is checked and scored is what runs."""
 from __future__ import annotations
 
 import dataclasses
-import logging
 from typing import Optional
 
 import numpy as np
@@ -14,7 +13,6 @@ import torch
 from .. import fastpath
 from .state import Stage
 
-log = logging.getLogger(__name__)
 
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
@@ -92,7 +90,7 @@ class Edges(Stage):
         return out
 
     def put_knots(self, edge_ids: np.ndarray, u_given: np.ndarray, knots: torch.Tensor,
-                   interior: torch.Tensor) -> None:
+                  interior: torch.Tensor) -> None:
         """Keep knots computed from ``u_given`` to the other end, flipped where the graph stores the edge the other
         way round (the roadmap keeps undirected edges as (min id, max id))."""
         edge_ids = np.asarray(edge_ids, dtype=np.int64)
@@ -157,7 +155,7 @@ class Edges(Stage):
         return ok
 
     def edges_valid(self, qa: torch.Tensor, qb: torch.Tensor, chunk: int = 4096,
-                     end_scores: Optional[tuple] = None) -> tuple:
+                    end_scores: Optional[tuple] = None) -> tuple:
         """Valid flags (E,), Eq. 1 perception (E,) of local motions (NaN where invalid) and the knots of the valid
         ones (V, M, dof). ``end_scores``: raw scores (E,) of ``qa`` and ``qb`` when known (the roadmap's node
         scores), so that only the N interior samples of each edge are scored."""
@@ -170,8 +168,9 @@ class Edges(Stage):
             v = self.knots_valid(knots, dense=not self.ctx.settings.lazy_collision)
             if self.ctx.settings.edge_view_slack >= 0:
                 inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, knots.shape[-1]))
-                v &= self.ctx.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
-                                             slack=self.ctx.settings.edge_view_slack).reshape(v.shape[0], -1).all(-1)
+                seen = self.ctx.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
+                                                   slack=self.ctx.settings.edge_view_slack)
+                v &= seen.reshape(v.shape[0], -1).all(-1)
             ok[s0:s0 + chunk] = v
             kept.append(knots[v])
             kept_i.append(interior[v])

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import logging
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -15,7 +14,6 @@ from ..robot import RobotModel
 from ..scene import Scene
 from .psprm import PSPRM, VARIANTS, PSPRMSettings
 
-log = logging.getLogger(__name__)
 
 #: alpha per objective and scorer kind: Eq. 2 the paper's (0.75 with the oracle, 0.8 with the surrogate); the
 #: motion-weighted objective 0.95 (docs/benchmarks.md, "Perception gain": measured with the surrogate).

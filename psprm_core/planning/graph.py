@@ -24,7 +24,7 @@ from typing import Any, Iterable
 
 import numpy as np
 from ..errors import InputError, UnknownNameError
-from .graph_adjacency import _ARRAY_PATCH_LIMIT, _MIN_CAPACITY, _PATCH_LIMIT, AdjacencyViews, CSRAdjacency
+from .graph_adjacency import _ARRAY_PATCH_LIMIT, _MIN_CAPACITY, _PATCH_LIMIT, AdjacencyViews, CSRAdjacency  # noqa: F401
 
 __all__ = ["CSRAdjacency", "Roadmap"]
 

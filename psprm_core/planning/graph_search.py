@@ -388,8 +388,9 @@ def lazy_astar(
         when ``apply_to_graph`` is True.
     heuristic : {"hop", "exact", "zero"} or np.ndarray
         A per-node array is used as it is (it must stay consistent for the weights verification can give, e.g.
-        :func:`motion_heuristic`, a bound that holds for any perception score). The hop heuristic stays consistent across iterations: invalid edges get weight ``inf`` (hop distances on the
-        unchanged structure remain lower bounds) and :math:`c^{\\min}` (Eq. 4) is lowered when an update goes below it.
+        :func:`motion_heuristic`, a bound that holds for any perception score). The hop heuristic stays consistent
+        across iterations: invalid edges get weight ``inf`` (hop distances on the unchanged structure remain lower
+        bounds) and :math:`c^{\\min}` (Eq. 4) is lowered when an update goes below it.
         ``exact`` uses the true cost-to-go of the current working weights (one compiled multi-source Dijkstra from the
         goals), recomputed only after a verified weight went down; A* then expands little more than the path.
     max_iterations : int
@@ -401,7 +402,7 @@ def lazy_astar(
     backend : {"auto", "python"}
         As in :func:`astar`.
     hops : np.ndarray, optional
-        ``(n_nodes,)`` hop counts to the goals to scale by :math:`c^{\min}` (Eq. 3) instead of the BFS of
+        ``(n_nodes,)`` hop counts to the goals to scale by :math:`c^{\\min}` (Eq. 3) instead of the BFS of
         :func:`hop_distances`: any labelling that is 0 at the goals and changes by at most 1 along every edge of finite
         weight (a lower bound of the hop distance over those edges) keeps the heuristic consistent.
 

@@ -3,7 +3,6 @@ the motion lower bound of the motion-weighted objective."""
 
 from __future__ import annotations
 
-import logging
 from typing import Optional, Sequence
 
 import numpy as np
@@ -14,9 +13,16 @@ from . import search_kernels
 from .graph_search import motion_heuristic
 from .state import Stage
 
-log = logging.getLogger(__name__)
 
 HOP_TABLE_MAX_NODES = 5000  # roadmaps up to this many nodes keep all their hop distances (uint8, 25 MB at most)
+
+
+def resolve(settings) -> str:
+    """The A* heuristic of ``settings``, with ``auto`` resolved (hop for Eq. 2, distance for the motion-weighted
+    objective)."""
+    if settings.heuristic == "auto":
+        return "distance" if settings.objective == "motion" else "hop"
+    return settings.heuristic
 
 
 class Heuristics(Stage):
@@ -27,10 +33,11 @@ class Heuristics(Stage):
         node on the bulk worker threads, so that a query gets the hop counts of Eq. 3 from the table rows of its
         goals' neighbours (:meth:`query_hops`) instead of a BFS over the whole roadmap. Kept while the roadmap only
         loses edges (the table's counts are then lower bounds, and the heuristic stays consistent); roadmap nodes
-        added later (:meth:`~.builder.Builder.grow`) drop it, and queries go back to the BFS."""
+        added later (:meth:`~.builder.Builder.grow`) drop it, and queries go back to the BFS. Built when the
+        planner's own heuristic is hop (a query that asks for hop otherwise runs the BFS)."""
         self.rm.hop_table = None
         R = len(self.rm.is_roadmap)
-        if (self.rm.graph is None or not 2 <= R <= HOP_TABLE_MAX_NODES or self.name != "hop"
+        if (self.rm.graph is None or not 2 <= R <= HOP_TABLE_MAX_NODES or resolve(self.ctx.settings) != "hop"
                 or not search_kernels.available()):
             return
         nbr, _, deg = self.rm.graph.array_adjacency()
@@ -67,13 +74,10 @@ class Heuristics(Stage):
     def name(self) -> str:
         """The A* heuristic queries use: the setting, with ``auto`` resolved (hop for Eq. 2, distance for the
         motion-weighted objective)."""
-        h = self.qs.heuristic
-        if h == "auto":
-            return "distance" if self.qs.objective == "motion" else "hop"
-        return h
+        return resolve(self.qs)
 
     def distance(self, goal_ids: Sequence[int], sink: Optional[int]) -> np.ndarray:
-        """Per-node :func:`~.graph_search.motion_heuristic` to the goals ``goal_ids``: (1 - alpha) times the motion
+        """Per-node :func:`~.objectives.motion_heuristic` to the goals ``goal_ids``: (1 - alpha) times the motion
         lower bound |dxy| + ||d joints|| (every local motion costs at least that, :mod:`psprm_core.motion`) to the
         nearest goal, over the roadmap's longest edge; 0 at the virtual ``sink`` of a multi-goal query."""
         g = self.rm.graph

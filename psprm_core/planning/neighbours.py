@@ -3,7 +3,6 @@ Euclidean embedding of (x, y, heading, joints)), plus random long edges within t
 
 from __future__ import annotations
 
-import logging
 from typing import Optional
 
 import numpy as np
@@ -11,21 +10,20 @@ import torch
 
 from .state import Stage
 
-log = logging.getLogger(__name__)
-
-
 
 class Neighbours(Stage):
     """Finds candidate edges: k nearest neighbours plus random long edges within delta."""
 
     def embed(self, q: torch.Tensor) -> torch.Tensor:
+        """Euclidean embedding (x, y, w cos theta, w sin theta, joints) whose distances rank neighbour candidates
+        (w: the motion metric's weight of rotation); the configurations themselves for a fixed base."""
         if not self.ctx.robot.mobile:
             return q
         w = self.ctx.motion.w_rot
         return torch.cat([q[:, :2], w * torch.cos(q[:, 2:3]), w * torch.sin(q[:, 2:3]), q[:, 3:]], -1)
 
     def neighbours(self, A: torch.Tensor, B: torch.Tensor, k: int, exclude_self: bool = False, k_long: int = 0,
-                    rng: Optional[np.random.Generator] = None) -> tuple:
+                   rng: Optional[np.random.Generator] = None) -> tuple:
         """k nearest nodes of B for each row of A under the motion metric (candidates from a Euclidean embedding),
         plus ``k_long`` random nodes within ``max_edge_length`` (embedding distance). Returns unique undirected pairs
         (u in A, v in B) and their motion costs."""

@@ -70,13 +70,14 @@ OBJECTIVES = ("eq2", "motion")
 
 
 def motion_weighted(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float) -> ArrayLike:
-    """Motion-weighted edge weight: :math:`c = c_m \left((1 - \alpha) + \alpha (1 - c_p)\right)`.
+    """Motion-weighted edge weight: :math:`c = c_m \\left((1 - \\alpha) + \\alpha (1 - c_p)\\right)`.
 
     The perception loss :math:`1 - c_p` (Eq. 1) is charged per unit of motion, so a path's cost is
-    :math:`(1 - \alpha) L + \alpha U` with :math:`L` its motion length and :math:`U` the length along which the target is
-    not seen (both in units of the roadmap's longest edge). Unlike Eq. 2 it charges nothing per edge: the cost does not
-    grow with the hop count, and a long edge pays for every part of it that sees poorly. Every weight is at least
-    :math:`(1 - \alpha) c_m`, which makes a lower bound of the motion to the goal an admissible, consistent heuristic
+    :math:`(1 - \\alpha) L + \\alpha U` with :math:`L` its motion length and :math:`U` the length along which the
+    target is not seen (both in units of the roadmap's longest edge). Unlike Eq. 2 it charges nothing per edge: the
+    cost does not grow with the hop count, and a long edge pays for every part of it that sees poorly. Every weight
+    is at least
+    :math:`(1 - \\alpha) c_m`, which makes a lower bound of the motion to the goal an admissible, consistent heuristic
     (:func:`motion_heuristic`).
     """
     if not 0.0 <= float(alpha) <= 1.0:
@@ -95,11 +96,11 @@ def edge_weight(p_edge: ArrayLike, c_motion: ArrayLike, alpha: float, objective:
 
 
 def motion_heuristic(lower_bound: np.ndarray, alpha: float, scale: float) -> np.ndarray:
-    """Consistent A* heuristic of the :func:`motion_weighted` form: :math:`h(q) = (1 - \alpha) d(q) / s`.
+    """Consistent A* heuristic of the :func:`motion_weighted` form: :math:`h(q) = (1 - \\alpha) d(q) / s`.
 
     ``lower_bound`` (n,): for each node a lower bound :math:`d(q)` of the motion cost of any path from it to the goal
-    set, which is a metric's distance to the nearest goal (so :math:`d(q_u) \le m(q_u, q_v) + d(q_v)` on every edge
+    set, which is a metric's distance to the nearest goal (so :math:`d(q_u) \\le m(q_u, q_v) + d(q_v)` on every edge
     whose motion cost is :math:`m`); ``scale`` the motion cost that :math:`c_m = 1` stands for. Every edge weighs at
-    least :math:`(1 - \alpha) m / s`, hence :math:`h(q_u) \le c(q_u, q_v) + h(q_v)` (Eqs. 5-6). ``inf`` stays
+    least :math:`(1 - \\alpha) m / s`, hence :math:`h(q_u) \\le c(q_u, q_v) + h(q_v)` (Eqs. 5-6). ``inf`` stays
     ``inf``. Shrunk by a relative 1e-12 against rounding, like Eq. 3."""
     return np.asarray(lower_bound, dtype=np.float64) * ((1.0 - float(alpha)) / float(scale) * _CMIN_SAFETY)

@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -15,9 +14,6 @@ from ..errors import ConfigError
 from .graph import Roadmap
 from .settings import QUERY_SETTINGS
 from .state import Stage
-
-log = logging.getLogger(__name__)
-
 
 
 class Persistence(Stage):
@@ -34,6 +30,8 @@ class Persistence(Stage):
         return h.hexdigest()[:20]
 
     def save(self, path: str | Path) -> Path:
+        """Write the roadmap nodes and edges (without the retired query ones), their scores, Eq. 1's normalisation
+        and :meth:`fingerprint` to a compressed ``.npz``; returns its path."""
         self.rm.compact()
         g = self.rm.graph
         keep, e = self.rm.roadmap_node_ids(), self.rm.roadmap_edge_ids()
@@ -51,6 +49,8 @@ class Persistence(Stage):
         return path
 
     def load(self, path: str | Path, check: bool = True) -> None:
+        """Read a roadmap written by :meth:`save` (weights recomputed for the current alpha and objective); with
+        ``check``, a :class:`~psprm_core.errors.ConfigError` when its fingerprint is not this planner's."""
         data = np.load(path, allow_pickle=False)
         if check and str(data["fingerprint"]) != self.fingerprint():
             raise ConfigError(str(path), "fingerprint", "roadmap was built for another robot, scene or settings")

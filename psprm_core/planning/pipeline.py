@@ -28,7 +28,13 @@ class Pipeline:
     visibility manifold), ``neighbours`` (candidate edges), ``edges`` (knots, re-aiming, dense checks), ``scoring``
     (Eq. 1, Eq. 2), ``builder`` (Alg. 1, growth), ``heuristics`` (Eqs. 3-6), ``verify`` (lazy checks), ``query``
     (connection and search), ``shortcut`` (path shortcuts), ``recovery`` (escape, repair), ``trajectory`` (waypoints
-    and timing), ``dynamics`` (moved targets and obstacles), ``persistence`` (save, load)."""
+    and timing), ``dynamics`` (moved targets and obstacles), ``persistence`` (save, load).
+
+    Calls go downwards: ``builder``, ``query``, ``recovery``, ``shortcut`` and ``dynamics`` use the lower stages
+    (``sampling``, ``neighbours``, ``edges``, ``scoring``, ``heuristics``, ``verify``, ``trajectory``), which use
+    each other only for knots and scores (``edges`` <-> ``scoring``). ``query.plan`` runs one search
+    (``query.plan_once``) and, when no goal is reachable, the strategies of ``recovery``, which search again through
+    ``query.plan_once``."""
 
     def __init__(self, ctx: PlannerContext):
         self.ctx = ctx

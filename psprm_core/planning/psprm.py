@@ -104,7 +104,7 @@ class PSPRM:
 
     # ---- the roadmap -------------------------------------------------------------------------------------------------
     graph = property(lambda self: self.pipeline.rm.graph, doc="The roadmap (:class:`~.graph.Roadmap`), None before a "
-                                                               "build or load.")
+                     "build or load.")
     node_scores = property(lambda self: self.pipeline.rm.node_scores, doc="Raw perception score per node slot.")
     stats = property(lambda self: self.pipeline.rm.stats, doc="Statistics of the last build (or the loaded one's).")
     knots = property(lambda self: self.pipeline.knots, doc="The knot store of the roadmap's edges.")
@@ -116,6 +116,15 @@ class PSPRM:
     @property
     def heuristic_name(self) -> str:
         return self.pipeline.heuristics.name
+
+    @property
+    def joint_bounds(self) -> tuple:
+        """(lower, upper) joint limits as tensors in the planner's dtype (the base's x, y within the workspace)."""
+        return self.ctx.lo, self.ctx.hi
+
+    def normalized_scores(self, scores: torch.Tensor) -> torch.Tensor:
+        """Raw perception scores as Eq. 1's normalised c_p in [0, 1] (over this roadmap's 99th-percentile score)."""
+        return self.pipeline.scoring.normalized(scores)
 
     def roadmap_mask(self) -> np.ndarray:
         return self.pipeline.rm.roadmap_mask()

@@ -4,7 +4,6 @@ scored like roadmap edges), search (A* or lazy A*), then the recovery stages whe
 from __future__ import annotations
 
 import dataclasses
-import logging
 import time
 from typing import Optional, Sequence
 
@@ -18,7 +17,6 @@ from .results import PlanResult
 from .settings import QUERY_OPTIONS
 from .state import NP_DTYPE, Stage, one_thread
 
-log = logging.getLogger(__name__)
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
 QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 max_edge_length is still tried with
@@ -33,14 +31,14 @@ class Query(Stage):
         """:meth:`plan_recovering` with the query's ``options``: settings of :data:`~.settings.QUERY_OPTIONS` that
         this query uses instead of the planner's (a replanner's heuristic, timing and shortcut choice); the planner's
         settings are not changed."""
-        qs = None
+        settings = None
         if options:
             unknown = sorted(set(options) - set(QUERY_OPTIONS))
             if unknown:
                 raise InputError(f"unknown query options {unknown} (choose from {', '.join(QUERY_OPTIONS)})")
-            qs = dataclasses.replace(self.ctx.settings, **options)
-            qs.validate("query options")
-        self.qc.settings = qs
+            settings = dataclasses.replace(self.ctx.settings, **options)
+            settings.validate("query options")
+        self.qc.settings = settings
         try:
             return self.plan_recovering(start, goals, timing, goal_costs)
         finally:
@@ -96,7 +94,7 @@ class Query(Stage):
         if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
                 and self.rm.repair_failed < s.query_repair_failures):
             wide = self.plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
-                                   untracked=s.query_untracked_fallback)
+                                  untracked=s.query_untracked_fallback)
             if wide.success or "reachable" not in wide.reason:
                 out = wide
                 if wide.success:
@@ -119,9 +117,9 @@ class Query(Stage):
         return d.reshape(len(qq), -1).topk(k, largest=False).indices
 
     def plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
-                   goal_costs: Optional[np.ndarray] = None, extra_candidates: Optional[dict] = None,
-                   connect_k: Optional[int] = None, untracked: bool = False,
-                   escapes: Optional[dict] = None) -> PlanResult:
+                  goal_costs: Optional[np.ndarray] = None, extra_candidates: Optional[dict] = None,
+                  connect_k: Optional[int] = None, untracked: bool = False,
+                  escapes: Optional[dict] = None) -> PlanResult:
         """One query: connect start and goals to the roadmap and search (no repair).
 
         ``connect_k`` (default: the setting): nearest roadmap nodes each end tries. ``extra_candidates``: roadmap node
@@ -147,12 +145,12 @@ class Query(Stage):
         Q = np.vstack([start, goals]).astype(NP_DTYPE[self.ctx.dtype])
         if not np.isfinite(Q).all():
             return PlanResult(False, "start or goal contains NaN/inf")
-        qs = torch.from_numpy(Q).to(self.ctx.device)
+        q_t = torch.from_numpy(Q).to(self.ctx.device)
         if self.ctx.device.type == "cpu" and fastpath.enabled() and len(Q) <= fastpath.MAX_BATCH:
             f = fastpath.check(self.ctx.checker, Q, detailed=True)  # CollisionChecker.check_detailed, compiled
             det = {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
         else:
-            det = {k: v.cpu().numpy() for k, v in self.ctx.checker.check_detailed(qs).items()}
+            det = {k: v.cpu().numpy() for k, v in self.ctx.checker.check_detailed(q_t).items()}
         bad = det["limits"] | det["environment"] | det["self"]
         if bad[0]:
             why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
@@ -167,14 +165,14 @@ class Query(Stage):
             added_nodes = list(ids)
             s_id, goal_ids = int(ids[0]), [int(i) for i, b in zip(ids[1:], bad[1:].tolist()) if not b]
             rm_ids = self.rm.roadmap_node_ids()
-            rm, rm_np = self.rm.tensor(rm_ids), self.rm.tensor_numpy
+            rm_q, rm_np = self.rm.tensor(rm_ids), self.rm.tensor_numpy
             # candidate edges of the start and every goal, plus start-goal, checked in one batch
             queries = [(0, s_id)] + [(1 + k, int(gid)) for k, gid in enumerate(ids[1:]) if int(gid) in goal_ids]
             qq = Q[[i for i, _ in queries]]
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
-            kk = min(connect_k or self.ctx.settings.connect_k, rm.shape[0])
-            cand = self.nearest_ids(torch.from_numpy(qq).to(self.ctx.device), rm, kk).cpu().numpy()  # (Q, kk)
+            kk = min(connect_k or self.ctx.settings.connect_k, rm_q.shape[0])
+            cand = self.nearest_ids(torch.from_numpy(qq).to(self.ctx.device), rm_q, kk).cpu().numpy()  # (Q, kk)
             src = np.repeat(np.arange(len(queries)), kk)
             dst = cand.reshape(-1)
             qend = np.asarray([q for _, q in queries], dtype=np.int64)
@@ -223,7 +221,7 @@ class Query(Stage):
                 scale = self.rm.score_scale
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
                 eids = self.add_query_edges(ua, vb, pe.astype(Q.dtype), verified=False,
-                                             dist=dist[near] if len(dist) == len(qa) else self.pl.edges.motion_distance(
+                                            dist=dist[near] if len(dist) == len(qa) else self.pl.edges.motion_distance(
                                                  qa[near], qb[near]))  # extras: unknown
                 added_edges.extend(eids)
                 # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
@@ -239,7 +237,7 @@ class Query(Stage):
                     keep = near[okn]
                     ua = u_ids[keep]
                     eids = self.add_query_edges(ua, v_ids[keep], pe[ok].cpu().numpy(),
-                                                 dist=self.pl.edges.motion_distance(qa[keep], qb[keep]))
+                                                dist=self.pl.edges.motion_distance(qa[keep], qb[keep]))
                     self.pl.edges.put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
             if escapes:
@@ -288,12 +286,10 @@ class Query(Stage):
             result.query_ms = (time.perf_counter() - t0) * 1e3
             return result
         finally:
-            self.qc.pending_knots = None
-            self.qc.pending_rows, self.qc.pending_np = {}, None
-            self.qc.untracked = False
-            self.qc.scorer_args = None
+            self.qc.clear()
             # retire the query's nodes and edges: blocking the edges (weight inf) is a weight change, which keeps
-            # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in _compact
+            # the adjacency lists and the hop-distance caches; removal (a full rebuild) is batched in
+            # RoadmapState.compact
             if added_edges:
                 g.set_weights(np.asarray(added_edges), np.inf)
             self.rm.dead_edges.extend(int(e) for e in added_edges)
@@ -302,7 +298,7 @@ class Query(Stage):
                 self.rm.compact()
 
     def add_query_edges(self, ua: np.ndarray, vb: np.ndarray, p: np.ndarray, dist: np.ndarray,
-                         verified: bool = True) -> list:
+                        verified: bool = True) -> list:
         """Add query edges ``ua`` -> ``vb`` with their Eq. 1 perception ``p`` (E,) and motion cost ``dist`` (E,), both
         numpy in the planner's dtype: validated and fully scored (``verified``), or unchecked with an endpoint
         estimate (verified lazily by the search). The Eq. 2 weight is computed in that dtype, as on the roadmap."""
@@ -311,8 +307,8 @@ class Query(Stage):
             c_m = np.clip(c_m, 0, 1)
         w = self.pl.scoring.weight(p, c_m)
         return list(self.rm.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),
-                                         c_m=c_m.astype(np.float64), c_p=p.astype(np.float64),
-                                         verified=float(verified), checked=float(verified)))
+                                            c_m=c_m.astype(np.float64), c_p=p.astype(np.float64),
+                                            verified=float(verified), checked=float(verified)))
 
     def query_edges(self, qa: torch.Tensor, qb: torch.Tensor, untracked: bool = False) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily); with ``untracked``,

@@ -33,10 +33,9 @@ class Recovery(Stage):
     """Escape search and local roadmap repair for unreachable query ends."""
 
     def escape_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
-                      goal_costs: Optional[np.ndarray]) -> PlanResult:
-        """The escape stage of :meth:`~.query.Query.plan`: an :meth:`escape` search from each end (start, up to 4 goals)
-        to the
-        roadmap's largest component within ``query_escape_s`` in total, then the query with the found
+                     goal_costs: Optional[np.ndarray]) -> PlanResult:
+        """The escape stage of :meth:`~.query.Query.plan`: an :meth:`escape` search from each end (start, up to 4
+        goals) to the roadmap's largest component within ``query_escape_s`` in total, then the query with the found
         configurations and edges added. Ends with a direct connection need no tree (their connections are added)."""
         s = self.ctx.settings
         t0 = time.perf_counter()
@@ -69,7 +68,7 @@ class Recovery(Stage):
                     why.append(f"{name}: the escape search found no way to the roadmap's largest component "
                                f"({esc.explored} configurations reached in {esc.seconds:.1f} s{where})")
         res = self.pl.query.plan_once(start, goals, timing, goal_costs, untracked=s.query_untracked_fallback,
-                              escapes={k: e for k, e in escapes.items() if e.success})
+                                      escapes={k: e for k, e in escapes.items() if e.success})
         if res.success:
             n = sum(len(e.configs) for e in escapes.values())
             res.reason = f"ok after an escape search ({n} intermediate configurations)"
@@ -80,7 +79,7 @@ class Recovery(Stage):
 
     @large_batches
     def escape(self, q0: torch.Tensor, targets: np.ndarray, rng: np.random.Generator,
-                deadline: float) -> EscapeResult:
+               deadline: float) -> EscapeResult:
         """Bounded RRT-like escape search from a query end ``q0`` (dof,) to the roadmap nodes ``targets``.
 
         For ends the first query could not connect (a mobile manipulator boxed in between shelves, facing a wall,
@@ -108,7 +107,7 @@ class Recovery(Stage):
             if len(targets) == 0:
                 return EscapeResult(q0[None][:0], [], no_knots(self.ctx), [], no_knots(self.ctx),
                                     seconds=time.perf_counter() - t0)
-        rm = self.ctx.t(self.rm.graph.configs[targets])
+        rm_q = self.ctx.t(self.rm.graph.configs[targets])
         lo = np.where(np.isfinite(r.lower), r.lower, -np.pi)
         hi = np.where(np.isfinite(r.upper), r.upper, np.pi)
         if r.mobile:
@@ -121,17 +120,17 @@ class Recovery(Stage):
         def connect(new_idx: np.ndarray) -> list:
             """Free connections (tree index, target index, knots, interior) of tree nodes ``new_idx``."""
             qn = T[torch.as_tensor(new_idx, device=self.ctx.device)]
-            pool = torch.arange(len(rm), device=self.ctx.device)
+            pool = torch.arange(len(rm_q), device=self.ctx.device)
             if r.mobile:  # the motion cost is at least the base's xy distance: farther nodes are no candidates
-                pool = torch.nonzero((torch.cdist(qn[:, :2], rm[:, :2]) <= 2 * s.max_edge_length).any(0),
+                pool = torch.nonzero((torch.cdist(qn[:, :2], rm_q[:, :2]) <= 2 * s.max_edge_length).any(0),
                                      as_tuple=True)[0]
                 if len(pool) == 0:
                     return []
-            cand = pool[self.pl.query.nearest_ids(qn, rm[pool], s.query_escape_connect_k).to(self.ctx.device)]
+            cand = pool[self.pl.query.nearest_ids(qn, rm_q[pool], s.query_escape_connect_k).to(self.ctx.device)]
             kk = cand.shape[1]
             src = torch.arange(len(qn), device=self.ctx.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
-            qa, qb = qn[src], rm[dst]
+            qa, qb = qn[src], rm_q[dst]
             d = self.ctx.motion.distance(qa, qb)
             near = torch.nonzero(d <= 2 * s.max_edge_length, as_tuple=True)[0]
             if len(near) == 0:
@@ -304,7 +303,7 @@ class Recovery(Stage):
         return eids
 
     def repair_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
-                      goal_costs: Optional[np.ndarray], res: PlanResult) -> PlanResult:
+                     goal_costs: Optional[np.ndarray], res: PlanResult) -> PlanResult:
         """The local roadmap repair of :meth:`~.query.Query.plan` after the failed query ``res``."""
         s = self.ctx.settings
         ends = _ends(start, goals, self.ctx.robot.dof)
@@ -321,7 +320,7 @@ class Recovery(Stage):
                 if n <= 0:
                     break
                 out = self.pl.builder.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius * 1.5 ** r,
-                                rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)
+                                           rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)
                 added += out["added_nodes"]
                 self.rm.repair_added += out["added_nodes"]
                 grown[k] = np.concatenate([grown.get(k, np.zeros(0, dtype=np.int64)), out["node_ids"]])
@@ -329,7 +328,7 @@ class Recovery(Stage):
             # valid edges beyond the connect_k nearest nodes; the nodes grown on its heading line are reachable by
             # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
             again = self.pl.query.plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
-                                    connect_k=max(s.connect_k, s.query_repair_connect_k))
+                                            connect_k=max(s.connect_k, s.query_repair_connect_k))
             if again.success or "reachable" not in again.reason:
                 break
         if again is None:

@@ -264,7 +264,7 @@ class Replanner:
         self._sync_scene()
         q = torch.as_tensor(rem[::step], dtype=torch.float32)
         sc = self.planner.score_configs(q)
-        return float((self.planner.pipeline.scoring.normalized(sc) if normalized else sc).mean())
+        return float((self.planner.normalized_scores(sc) if normalized else sc).mean())
 
     def _remaining_base_length(self) -> float:
         """Length (m) of the base's path still ahead (inf for a robot without a mobile base)."""
@@ -347,7 +347,8 @@ class Replanner:
         while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds
                and self._repaired_nodes < self.settings.repair_budget_nodes):
             rounds += 1
-            centers = [b.center[:2] for b in self._moved_obstacles.values()] + [self.q[:2]] + [g[:2] for g in self.goals]
+            centers = ([b.center[:2] for b in self._moved_obstacles.values()] + [self.q[:2]]
+                       + [g[:2] for g in self.goals])
             rng = np.random.default_rng(len(self.history) * 7 + rounds)
             for c in centers:
                 got = p.grow(self.settings.repair_nodes, center=np.asarray(c), radius=self.settings.repair_radius_m,

@@ -95,11 +95,12 @@ class RoadmapState:
         if self.tensor_key != key:
             self.tensor_numpy = self.graph.configs[ids].astype(NP_DTYPE[self.ctx.dtype])  # the same values, host copy
             self.tensor_cache = torch.from_numpy(self.tensor_numpy).to(self.ctx.device)
-            self.tensor_f64 = None  # float64 of the same values, made when first needed (_nearest_ids)
+            self.tensor_f64 = None  # float64 of the same values, made when first needed (Query.nearest_ids)
             self.tensor_key = key
         return self.tensor_cache
 
     def node_score_slots(self) -> np.ndarray:
+        """The raw node scores, one per node slot (extended with NaN for slots added since, e.g. query nodes)."""
         g = self.graph
         if len(self.node_scores) < g.n_nodes:
             self.node_scores = np.concatenate([self.node_scores, np.full(g.n_nodes - len(self.node_scores), np.nan)])

@@ -15,11 +15,13 @@ from .state import Stage
 log = logging.getLogger(__name__)
 
 
-
 class Sampling(Stage):
     """Draws roadmap nodes: uniform on the manifold, or perception-biased."""
 
     def sample(self, n: int, rng: np.random.Generator, template: np.ndarray) -> torch.Tensor:
+        """``n`` uniform configurations (not yet projected): the base over the scene's workspace and any heading, the
+        other joints within their limits (within ``sample_spread`` of ``template`` when set); with ``sample_joints``
+        "camera" the joints that do not move the camera stay at ``template``."""
         r = self.ctx.robot
         lo, hi = r.lower.copy(), r.upper.copy()
         if r.mobile:
@@ -46,7 +48,7 @@ class Sampling(Stage):
         return q[self.ctx.checker.valid(q)]
 
     def biased_nodes(self, Q: torch.Tensor, scores: torch.Tensor, n: int, rng: np.random.Generator,
-                      template: np.ndarray, t0: float) -> tuple:
+                     template: np.ndarray, t0: float) -> tuple:
         """Perception-biased sampling: ``n`` more manifold nodes, each manifold sample kept with probability equal to
         its normalised score (its score over the 99th-percentile score of the uniform nodes, at most 1), so that
         regions with good predicted views (the surrogate with occlusion) are dense enough to route through; at most

@@ -5,7 +5,6 @@ the motion-weighted form)."""
 from __future__ import annotations
 
 import dataclasses
-import logging
 from typing import Optional
 
 import numpy as np
@@ -14,9 +13,6 @@ import torch
 from .. import fastpath
 from .graph_search import edge_perception, edge_weight
 from .state import Stage
-
-log = logging.getLogger(__name__)
-
 
 
 class Scoring(Stage):
@@ -70,7 +66,7 @@ class Scoring(Stage):
         return self.ctx.robot.camera_poses(pts.reshape(-1, dof)).reshape(E, n + 2, 4, 4)
 
     def knots_perception(self, knots: torch.Tensor, interior: torch.Tensor,
-                          cams: Optional[torch.Tensor] = None, ends: Optional[tuple] = None) -> torch.Tensor:
+                         cams: Optional[torch.Tensor] = None, ends: Optional[tuple] = None) -> torch.Tensor:
         """Eq. 1 from knots (or their cached Eq. 1 camera poses): mean normalised score of both ends and the N
         interior samples. ``ends``: the raw scores (E,) of both ends when already known (only the interior samples
         are then scored)."""

@@ -3,7 +3,6 @@ it is shorter, collision-free, stays on the visibility manifold and its Eq. 1 sc
 
 from __future__ import annotations
 
-import logging
 
 import numpy as np
 import torch
@@ -12,7 +11,6 @@ from .. import fastpath
 
 from .state import Stage
 
-log = logging.getLogger(__name__)
 
 SHORTCUT_CANDIDATES = 8  # later path nodes a shortcut from one node tries at most (the farthest ones)
 

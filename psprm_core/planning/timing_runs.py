@@ -10,7 +10,6 @@ from typing import Any
 import numpy as np
 
 
-
 @dataclass
 class _Run:
     """A straight, rest-to-rest run of the path, parameterised by joint-space arc length ``s``."""

@@ -16,7 +16,6 @@ from .timing import ProfileCache, time_parameterize
 log = logging.getLogger(__name__)
 
 
-
 class Trajectory(Stage):
     """Turns node paths into checked waypoints and timed trajectories."""
 
@@ -25,6 +24,9 @@ class Trajectory(Stage):
         self.profiles = ProfileCache()  # smooth phases timed before (a replanner's plans share most of them)
 
     def finish(self, path: list, cost: float, timing: bool) -> PlanResult:
+        """The :class:`~.results.PlanResult` of a node path: the stored knots of its edges in traversal direction as
+        waypoints (what was checked is what runs), the dense path every ``edge_resolution``, its length and (with
+        ``timing``) the timed trajectory."""
         if self.ctx.device.type == "cpu" and fastpath.enabled() and self.knots.data is not None:
             return self.finish_numpy(path, cost, timing)
         g = self.rm.graph

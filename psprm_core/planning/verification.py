@@ -3,7 +3,6 @@ scores when first used; colliding ones leave the roadmap."""
 
 from __future__ import annotations
 
-import logging
 from typing import Callable, Optional
 
 import numpy as np
@@ -11,11 +10,8 @@ import torch
 
 from .. import fastpath
 from .graph_search import EdgeCheck, edge_perception
+from .edges import SMALL_BATCH
 from .state import NP_DTYPE, Stage
-
-log = logging.getLogger(__name__)
-
-SMALL_BATCH = 64  # edges verified in one compiled call at most
 
 
 class Verification(Stage):
@@ -40,7 +36,7 @@ class Verification(Stage):
         if self.qc.untracked and not bool(ok.all()):
             ok |= self.untracked_query_edges(todo, ok)
         return self.record(todo, ok.cpu().numpy(),
-                                         lambda m: self.pl.scoring.stored_perception(todo[m]).double().cpu().numpy())
+                           lambda m: self.pl.scoring.stored_perception(todo[m]).double().cpu().numpy())
 
     def record(self, todo: np.ndarray, ok: np.ndarray, perception: Callable) -> EdgeCheck:
         """Write a verification of edges ``todo`` into the roadmap: all are checked now, the colliding ones (``ok``
@@ -94,7 +90,7 @@ class Verification(Stage):
                 rows = rows[~hit]
         store.reserve(int(todo.max()) + 1)
         _, ua, qa, qb = self.qc.pending_np if len(rows) else (None, rows, np.zeros((0, self.ctx.robot.dof)),
-                                                            np.zeros((0, self.ctx.robot.dof)))
+                                                              np.zeros((0, self.ctx.robot.dof)))
         cid = todo[compute]
         flip = g.edge_u[cid] != ua[rows]
         do_check, do_score = chk[todo] < 0.5, ver[todo] < 0.5
@@ -109,8 +105,8 @@ class Verification(Stage):
 
         def perception(mask: np.ndarray) -> np.ndarray:  # Eq. 1 from the kernel's raw scores; camera poses kept
             self.knots.put_cams(todo[mask], cams[mask])
-            # _normalized in the planner's dtype (numpy rounds like torch: a float32 array times a Python float stays
-            # float32), Eq. 1 in numpy (its sum may round differently from torch's in the last bit)
+            # Scoring.normalized in the planner's dtype (numpy rounds like torch: a float32 array times a Python float
+            # stays float32), Eq. 1 in numpy (its sum may round differently from torch's in the last bit)
             sc = raw[mask].astype(NP_DTYPE[self.ctx.dtype], copy=False) * self.rm.score_scale
             sc = np.clip(sc, 0.0, 1.0)
             return edge_perception(sc[:, 0], sc[:, -1], sc[:, 1:-1]).astype(np.float64)
