@@ -134,7 +134,7 @@ class Builder(Stage):
         except Exception as exc:  # the warm-up must never stop a build; the first plan then loads TOPP-RA itself
             log.debug("trajectory timing warm-up failed: %s", exc)
         warm_up_search()
-        if c.device.type != "cpu" or not fastpath.available():
+        if not c.backend.compiled:
             return time.perf_counter() - t0
         q = c.t(np.stack([self.rm.template, self.rm.template]))
         qb = q.clone()

@@ -4,13 +4,11 @@ store, so that what is checked and scored is what runs."""
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Optional
 
 import numpy as np
 import torch
 
-from .. import fastpath
 from .state import Stage
 
 
@@ -33,46 +31,12 @@ class Edges(Stage):
         knots lie on the local motion itself (the fallback of connection edges whose re-aimed version collides, and
         the edges of the escape search).
         """
-        E, n = qa.shape[0], self.ctx.settings.n_interp
-        dt, dev = qa.dtype, qa.device
-        if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: one call
-            ps = self.ctx.settings.projection
-            c = self.ctx
-            return fastpath.query_knots(c.motion, c.constraint, qa, qb, n, track, ps, c.lo, c.hi,
-                                        self.ctx.track_cols, self.ctx.settings.track_iters)
-        if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # bulk: compiled, in row chunks
-            knots, interior_idx = fastpath.edge_knot_seeds(self.ctx.motion, qa, qb, n)
-            return (self.track_knots(knots) if track else knots), interior_idx
-        if self.ctx.robot.mobile:
-            _, r1, d, r2 = self.ctx.motion._base_plan(qa, qb)
-            l1, l2, l3 = self.ctx.motion.w_rot * r1.abs(), d, self.ctx.motion.w_rot * r2.abs()
-            tot = (l1 + l2 + l3).clamp_min(1e-12)
-            corners = torch.stack([l1 / tot, (l1 + l2) / tot], -1)
-        else:
-            corners = torch.zeros(E, 0, dtype=dt, device=dev)
-        samples = (torch.arange(1, n + 1, dtype=dt, device=dev) / (n + 1)).expand(E, n)
-        s_all = torch.cat([torch.zeros(E, 1, dtype=dt, device=dev), samples, corners,
-                           torch.ones(E, 1, dtype=dt, device=dev)], -1)
-        order = torch.argsort(s_all, dim=-1, stable=True)
-        s_sorted = torch.gather(s_all, 1, order)
-        inv = torch.argsort(order, dim=-1)
-        interior_idx = inv[:, 1:1 + n]
-        M = s_all.shape[1]
-        knots = self.ctx.motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0),
-                                            s_sorted.reshape(-1))
-        knots = knots.reshape(E, M, -1)
-        return (self.track_knots(knots) if track else knots), interior_idx
+        return self.ctx.backend.edge_knots(qa, qb, track)
 
     def track_knots(self, knots: torch.Tensor) -> torch.Tensor:
         """Knots (E, M, dof) with the non-base camera joints of the interior ones re-projected onto the visibility
         manifold (``track_iters`` Gauss-Newton steps of Alg. 1, line 7, from the interpolated values)."""
-        E, M, dof = knots.shape
-        if len(self.ctx.track_cols) and M > 2:
-            inner = knots[:, 1:-1].reshape(-1, dof)
-            ps = dataclasses.replace(self.ctx.settings.projection, max_iters=self.ctx.settings.track_iters)
-            proj, _ = self.ctx.constraint.project(inner, ps, self.ctx.lo, self.ctx.hi, joints=self.ctx.track_cols)
-            knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
-        return knots
+        return self.ctx.backend.track_knots(knots)
 
     def query_knots(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """:meth:`edge_knots` of start/goal query edges, cached by their end configurations (the cache is cleared
@@ -197,13 +161,7 @@ class Edges(Stage):
         """:meth:`DiffDriveMotion.distance` of numpy batches (E, dof) in the planner's dtype, same dtype out."""
         if len(qa) == 0:
             return np.zeros(0, dtype=qa.dtype)
-        if self.ctx.device.type == "cpu" and fastpath.enabled() and len(qa) <= fastpath.MOTION_MAX_BATCH:
-            m = self.ctx.motion  # the compiled metric of DiffDriveMotion.distance, without the tensor round trip
-            d = fastpath.kernels().distance(qa.astype(np.float64), qb.astype(np.float64), float(m.w_rot),
-                                            bool(m.mobile))
-            return d.astype(qa.dtype)
-        d = self.ctx.motion.distance(torch.from_numpy(qa).to(self.ctx.device), torch.from_numpy(qb).to(self.ctx.device))
-        return d.cpu().numpy()
+        return self.ctx.backend.motion_distance(qa, qb)
 
     def densify(self, W: torch.Tensor) -> torch.Tensor:
         """Configurations every ``edge_resolution`` along the piecewise-linear knot path ``W`` (K, dof)."""
@@ -218,14 +176,4 @@ class Edges(Stage):
         Each piece is split into n = ceil(length / resolution) steps (at most ``max_steps``); the points are at
         fractions k / n for k = 0 .. n-1 (``include_start``) or k = 1 .. n-1. Returns (piece index, points).
         """
-        if fastpath.motion_applies(a, b):  # CPU: one compiled pass (same lengths, same points)
-            return fastpath.pieces(self.ctx.motion, a, b, self.ctx.settings.edge_resolution, max_steps, include_start)
-        diff = b - a
-        if self.ctx.robot.mobile:
-            diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
-        n = torch.ceil(self.ctx.motion.distance(a, b) / self.ctx.settings.edge_resolution).long().clamp(1, max_steps)
-        count = n if include_start else n - 1
-        seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), count)
-        k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
-        frac = ((k + (0 if include_start else 1)).to(a.dtype) / n[seg].to(a.dtype)).unsqueeze(-1)
-        return seg, a[seg] + diff[seg] * frac
+        return self.ctx.backend.pieces(a, b, max_steps, include_start)

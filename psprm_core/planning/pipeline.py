@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from .backend import backend_for
 from .builder import Builder
 from .dynamics import Dynamics
 from .edges import Edges
@@ -38,6 +39,8 @@ class Pipeline:
 
     def __init__(self, ctx: PlannerContext):
         self.ctx = ctx
+        if ctx.backend is None:
+            ctx.backend = backend_for(ctx)
         self.rm = RoadmapState(ctx)
         self.knots = KnotStore()
         self.qc = QueryContext()

@@ -10,7 +10,6 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from .. import fastpath
 from ..errors import InputError
 from .graph_search import astar, edge_perception, lazy_astar, min_edge_cost
 from .results import PlanResult
@@ -107,14 +106,15 @@ class Query(Stage):
     def nearest_ids(self, qq: torch.Tensor, pool: torch.Tensor, k: int) -> torch.Tensor:
         """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
         k = min(k, pool.shape[0])
-        if fastpath.motion_applies(qq, qq) and pool.device.type == "cpu" and k > 0:
-            if pool is self.rm.tensor_cache:  # the roadmap: its float64 copy is kept with it
-                if self.rm.tensor_f64 is None:
-                    self.rm.tensor_f64 = self.rm.tensor_numpy.astype(np.float64)
-                pool = self.rm.tensor_f64
-            return fastpath.nearest(self.ctx.motion, qq, pool, k)  # one compiled pass that skips far nodes early
-        d = self.ctx.motion.distance(qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
-        return d.reshape(len(qq), -1).topk(k, largest=False).indices
+        # the roadmap: its float64 copy is kept with it
+        pool_f64 = self._roadmap_f64 if pool is self.rm.tensor_cache else None
+        return self.ctx.backend.nearest(qq, pool, k, pool_f64)
+
+    def _roadmap_f64(self) -> np.ndarray:
+        """The roadmap tensor cache's configurations as float64 numpy (made when first needed)."""
+        if self.rm.tensor_f64 is None:
+            self.rm.tensor_f64 = self.rm.tensor_numpy.astype(np.float64)
+        return self.rm.tensor_f64
 
     def plan_once(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
                   goal_costs: Optional[np.ndarray] = None, extra_candidates: Optional[dict] = None,
@@ -145,12 +145,7 @@ class Query(Stage):
         Q = np.vstack([start, goals]).astype(NP_DTYPE[self.ctx.dtype])
         if not np.isfinite(Q).all():
             return PlanResult(False, "start or goal contains NaN/inf")
-        q_t = torch.from_numpy(Q).to(self.ctx.device)
-        if self.ctx.device.type == "cpu" and fastpath.enabled() and len(Q) <= fastpath.MAX_BATCH:
-            f = fastpath.check(self.ctx.checker, Q, detailed=True)  # CollisionChecker.check_detailed, compiled
-            det = {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
-        else:
-            det = {k: v.cpu().numpy() for k, v in self.ctx.checker.check_detailed(q_t).items()}
+        det = self.ctx.backend.check_detailed(Q)
         bad = det["limits"] | det["environment"] | det["self"]
         if bad[0]:
             why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])

@@ -29,19 +29,17 @@ class Scoring(Stage):
 
     def query_scores(self, Q: np.ndarray) -> np.ndarray:
         """:meth:`score_configs` (float64 out) of a query's few configurations ``Q`` (numpy, planner's dtype)."""
-        if self.ctx.device.type == "cpu" and len(Q) <= fastpath.MLP_MAX_ROWS and fastpath.enabled():
-            args = self.neural_args(self.ctx.dtype)
-            if args is not None:
-                return fastpath.neural_config_scores(self.ctx.robot, args, Q).astype(np.float64)
+        sc = self.ctx.backend.few_scores(Q, self.neural_args)
+        if sc is not None:
+            return sc.astype(np.float64)
         return self.score_configs(torch.from_numpy(Q).to(self.ctx.device)).double().cpu().numpy()
 
     def score_configs(self, q: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
         """Perception scores (B,) of configurations: FK -> camera poses -> scorer (a query's few configurations with
         a neural scorer: one compiled call, the same values)."""
-        if q.shape[0] <= fastpath.MLP_MAX_ROWS and fastpath.applies(q):
-            args = self.neural_args(q.dtype)
-            if args is not None:
-                return fastpath.neural_config_scores(self.ctx.robot, args, q).to(self.ctx.dtype)
+        sc = self.ctx.backend.few_scores(q, self.neural_args)
+        if sc is not None:
+            return sc.to(self.ctx.dtype)
         out = []
         for s in range(0, q.shape[0], chunk):
             qc = q[s:s + chunk]

@@ -31,7 +31,7 @@ class PlannerContext:
     """Robot, scene, scorer and settings of a planner, with the device and dtype of its batched work.
 
     ``track_cols``: the non-base joints that re-aim the camera along an edge; ``lo``/``hi``: joint limits as tensors
-    (the base's x, y within the scene's workspace)."""
+    (the base's x, y within the scene's workspace); ``backend``: the :mod:`.backend` chosen for the device."""
 
     robot: object
     scene: object
@@ -45,6 +45,7 @@ class PlannerContext:
     track_cols: np.ndarray
     lo: Optional[torch.Tensor] = None
     hi: Optional[torch.Tensor] = None
+    backend: object = None  # where the stages' batched operations run (:mod:`.backend`), set by the pipeline
 
     def t(self, a) -> torch.Tensor:
         """``a`` as a tensor in the planner's dtype on its device."""

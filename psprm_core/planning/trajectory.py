@@ -8,9 +8,8 @@ import logging
 import numpy as np
 import torch
 
-from .. import fastpath
 from .results import PlanResult
-from .state import Stage
+from .state import NP_DTYPE, Stage
 from .timing import ProfileCache, time_parameterize
 
 log = logging.getLogger(__name__)
@@ -27,38 +26,13 @@ class Trajectory(Stage):
         """The :class:`~.results.PlanResult` of a node path: the stored knots of its edges in traversal direction as
         waypoints (what was checked is what runs), the dense path every ``edge_resolution``, its length and (with
         ``timing``) the timed trajectory."""
-        if self.ctx.device.type == "cpu" and fastpath.enabled() and self.knots.data is not None:
-            return self.finish_numpy(path, cost, timing)
         g = self.rm.graph
-        Q = self.ctx.t(g.configs[path])
-        if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
-            eids = g.edge_ids_of_path(path)
-            knots, _ = self.pl.edges.stored_knots(eids)
-            flip = torch.as_tensor(g.edge_u[eids] != np.asarray(path[:-1]), device=knots.device)
-            knots = torch.where(flip[:, None, None], knots.flip(1), knots)
-            W = torch.cat([Q[0:1], knots[:, 1:].reshape(-1, Q.shape[1])]).double()
-        else:
-            W = Q.double()
-        keep = torch.ones(len(W), dtype=torch.bool)
-        keep[1:] = (W[1:] - W[:-1]).abs().max(-1).values > 1e-7
-        W = W[keep]
-        dense = self.pl.edges.densify(W)
-        length = float(self.ctx.motion.distance(W[:-1], W[1:]).sum()) if len(W) > 1 else 0.0
-        traj = None
-        if timing and len(W) > 1:
-            traj = self.timed(W.numpy())
-        return PlanResult(True, "ok", path_nodes=list(path), waypoints=W.numpy(), dense=dense.numpy(),
-                          trajectory=traj, cost=float(cost), path_length=length, score_fn=self.pl.scoring.score_numpy)
-
-    def finish_numpy(self, path: list, cost: float, timing: bool) -> PlanResult:
-        """:meth:`finish` on the CPU with numpy and the compiled metric (a query's result: no torch calls)."""
-        g = self.rm.graph
-        Q = g.configs[path].astype(np.float32 if self.ctx.dtype == torch.float32 else np.float64)
+        Q = g.configs[path].astype(NP_DTYPE[self.ctx.dtype])
         if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
             eids = g.edge_ids_of_path(path)
             if not self.knots.known(eids).all():
                 self.pl.edges.stored_knots(eids)
-            knots = self.knots.data.numpy()[eids]
+            knots = self.knots.data[torch.as_tensor(eids, device=self.knots.data.device)].cpu().numpy()
             flip = g.edge_u[eids] != np.asarray(path[:-1])
             knots[flip] = knots[flip, ::-1]
             W = np.concatenate([Q[:1], knots[:, 1:].reshape(-1, Q.shape[1])]).astype(np.float64)
@@ -67,14 +41,7 @@ class Trajectory(Stage):
         keep = np.ones(len(W), dtype=bool)
         keep[1:] = np.abs(W[1:] - W[:-1]).max(-1) > 1e-7
         W = np.ascontiguousarray(W[keep])
-        m, K = self.ctx.motion, fastpath.kernels()
-        if len(W) > 1:
-            _, pts = K.pieces(W[:-1], W[1:], float(self.ctx.settings.edge_resolution), 1000, True, float(m.w_rot),
-                              bool(m.mobile))
-            dense = np.concatenate([pts, W[-1:]])
-            length = float(K.distance(W[:-1], W[1:], float(m.w_rot), bool(m.mobile)).sum())
-        else:
-            dense, length = W, 0.0
+        dense, length = self.ctx.backend.dense_path(W)
         traj = self.timed(W) if timing and len(W) > 1 else None
         return PlanResult(True, "ok", path_nodes=list(path), waypoints=W, dense=dense, trajectory=traj,
                           cost=float(cost), path_length=length, score_fn=self.pl.scoring.score_numpy)

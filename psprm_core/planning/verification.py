@@ -68,7 +68,7 @@ class Verification(Stage):
         scorer, a GPU, a large batch, the untracked fallback)."""
         g = self.rm.graph
         store = self.knots
-        if (self.qc.untracked or len(todo) > SMALL_BATCH or self.ctx.device.type != "cpu" or store.data is None
+        if (self.qc.untracked or len(todo) > SMALL_BATCH or not self.ctx.backend.fused or store.data is None
                 or store.data.shape[1] <= 2 or not fastpath.applies(store.data[:1])):
             return None
         args = self.pl.scoring.neural_args(self.ctx.dtype)
