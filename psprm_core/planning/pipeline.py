@@ -2,6 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ..errors import InputError
 from .backend import backend_for
 from .builder import Builder
 from .dynamics import Dynamics
@@ -16,7 +23,9 @@ from .roadmap_state import RoadmapState
 from .sampling import Sampling
 from .scoring import Scoring
 from .shortcut import Shortcut
-from .state import PlannerContext, QueryContext
+from .results import PlanResult
+from .settings import QUERY_OPTIONS
+from .state import PlannerContext, QueryContext, one_thread
 from .trajectory import Trajectory
 from .verification import Verification
 
@@ -33,9 +42,9 @@ class Pipeline:
 
     Calls go downwards: ``builder``, ``query``, ``recovery``, ``shortcut`` and ``dynamics`` use the lower stages
     (``sampling``, ``neighbours``, ``edges``, ``scoring``, ``heuristics``, ``verify``, ``trajectory``), which use
-    each other only for knots and scores (``edges`` <-> ``scoring``). ``query.plan`` runs one search
+    each other only for knots and scores (``edges`` <-> ``scoring``). :meth:`plan` runs one search
     (``query.plan_once``) and, when no goal is reachable, the strategies of ``recovery``, which search again through
-    ``query.plan_once``."""
+    ``query.plan_once``: ``recovery`` calls ``query``, never the other way round."""
 
     def __init__(self, ctx: PlannerContext):
         self.ctx = ctx
@@ -57,3 +66,82 @@ class Pipeline:
         self.trajectory = Trajectory(self)
         self.dynamics = Dynamics(self)
         self.persistence = Persistence(self)
+
+    @one_thread
+    def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+             goal_costs: Optional[np.ndarray] = None, options: Optional[dict] = None) -> PlanResult:
+        """:meth:`plan_recovering` with the query's ``options``: settings of :data:`~.settings.QUERY_OPTIONS` that
+        this query uses instead of the planner's (a replanner's heuristic, timing and shortcut choice); the planner's
+        settings are not changed."""
+        settings = None
+        if options:
+            unknown = sorted(set(options) - set(QUERY_OPTIONS))
+            if unknown:
+                raise InputError(f"unknown query options {unknown} (choose from {', '.join(QUERY_OPTIONS)})")
+            settings = dataclasses.replace(self.ctx.settings, **options)
+            settings.validate("query options")
+        self.qc.settings = settings
+        try:
+            return self.plan_recovering(start, goals, timing, goal_costs)
+        finally:
+            self.qc.settings = None
+
+    def plan_recovering(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
+                        goal_costs: Optional[np.ndarray] = None) -> PlanResult:
+        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see
+        :meth:`~.query.Query.plan_once`.
+
+        When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next to a wall where the
+        base cannot turn), an escape search runs first (``query_escape_s`` > 0, below); if it does not succeed, the
+        roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
+        start and each goal (up to 4), half of them along its heading (reachable by driving straight), and the query
+        is repeated, connecting each end to every node grown for it and to its ``query_repair_connect_k`` nearest
+        nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The nodes of a repair
+        that succeeds stay in the roadmap, within ``query_repair_budget``; those of a repair that fails are removed
+        again, so that they do not use up the budget of later queries; after ``query_repair_failures`` such failed
+        repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
+        unreachable cannot make a long-running planner grow without end.
+
+        The two other stages (not once ``query_repair_failures`` is reached, like the repair):
+
+        - escape (``query_escape_s`` > 0), before the repair: a bounded RRT-like search of differential-drive motions
+          with the arm moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the
+          roadmap's largest component (:meth:`~.recovery.Recovery.escape`, ``query_escape_*``); its configurations and
+          densely checked edges join the query as query nodes and edges, scored (Eq. 1) like any other edge, and the
+          query is searched once more. An end it cannot get out of is named in the reason of a query that fails ("start
+          is boxed in: no collision-free motion out of it was found ..." when not one short motion out of it is free);
+        - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its
+          ``query_wide_k`` nearest roadmap nodes, however far (long connections, checked and scored like any other),
+          for ends whose few free motions lead beyond the repair's neighbours (a robot across a shelf aisle).
+
+        In the escape's and the wide query (``query_untracked_fallback``), a connection edge whose re-aimed knots
+        collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
+        interpolated plainly) when those are collision-free; the first query and the repaired ones are unchanged."""
+        res = self.query.plan_once(start, goals, timing, goal_costs)
+        if res.success or "reachable" not in res.reason or self.rm.graph is None:
+            return res
+        t0 = time.perf_counter()
+        s = self.ctx.settings
+        k = s.query_wide_k
+        # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
+        # and again): no escape, repair or wide attempt
+        escaped = None
+        out = res
+        if s.query_escape_s > 0 and self.rm.repair_failed < s.query_repair_failures:
+            escaped = self.recovery.escape_query(start, goals, timing, goal_costs)
+            if escaped.success:
+                out = escaped
+        if not out.success:
+            out = self.recovery.repair_query(start, goals, timing, goal_costs, res)
+        if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
+                and self.rm.repair_failed < s.query_repair_failures):
+            wide = self.query.plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
+                                  untracked=s.query_untracked_fallback)
+            if wide.success or "reachable" not in wide.reason:
+                out = wide
+                if wide.success:
+                    out.reason = f"ok after connecting to the {k} nearest roadmap nodes"
+        if not out.success and escaped is not None:  # the escape search says which end could not get out
+            out = escaped
+        out.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
+        return out

@@ -151,11 +151,11 @@ class PSPRM:
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
              goal_costs: Optional[np.ndarray] = None, options: Optional[dict] = None) -> PlanResult:
         """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)), with the
-        recovery stages when no goal is reachable (:meth:`.query.Query.plan`). ``goal_costs`` (G,): terminal costs
+        recovery stages when no goal is reachable (:meth:`.pipeline.Pipeline.plan`). ``goal_costs`` (G,): terminal costs
         added per goal; ``options``: settings of :data:`~.settings.QUERY_OPTIONS` for this query only (e.g.
         ``{"heuristic": "exact", "shortcut": False}``). Never raises for a bad problem: the result's ``reason`` says
         what failed."""
-        return self.pipeline.query.plan(start, goals, timing, goal_costs, options)
+        return self.pipeline.plan(start, goals, timing, goal_costs, options)
 
     def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None) -> None:
         """Re-weight every edge with a new ``alpha`` and/or objective without rebuilding

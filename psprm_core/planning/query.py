@@ -3,7 +3,6 @@ scored like roadmap edges), search (A* or lazy A*), then the recovery stages whe
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Optional, Sequence
 
@@ -13,8 +12,7 @@ import torch
 from ..errors import InputError
 from .graph_search import astar, edge_perception, lazy_astar, min_edge_cost
 from .results import PlanResult
-from .settings import QUERY_OPTIONS
-from .state import NP_DTYPE, Stage, one_thread
+from .state import NP_DTYPE, Stage
 
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
@@ -24,84 +22,6 @@ QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 ma
 class Query(Stage):
     """Connects a query to the roadmap and searches it."""
 
-    @one_thread
-    def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
-             goal_costs: Optional[np.ndarray] = None, options: Optional[dict] = None) -> PlanResult:
-        """:meth:`plan_recovering` with the query's ``options``: settings of :data:`~.settings.QUERY_OPTIONS` that
-        this query uses instead of the planner's (a replanner's heuristic, timing and shortcut choice); the planner's
-        settings are not changed."""
-        settings = None
-        if options:
-            unknown = sorted(set(options) - set(QUERY_OPTIONS))
-            if unknown:
-                raise InputError(f"unknown query options {unknown} (choose from {', '.join(QUERY_OPTIONS)})")
-            settings = dataclasses.replace(self.ctx.settings, **options)
-            settings.validate("query options")
-        self.qc.settings = settings
-        try:
-            return self.plan_recovering(start, goals, timing, goal_costs)
-        finally:
-            self.qc.settings = None
-
-    def plan_recovering(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
-                        goal_costs: Optional[np.ndarray] = None) -> PlanResult:
-        """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see
-        :meth:`plan_once`.
-
-        When no goal is reachable (a start or goal whose connecting edges all collide, e.g. next to a wall where the
-        base cannot turn), an escape search runs first (``query_escape_s`` > 0, below); if it does not succeed, the
-        roadmap is repaired locally: ``query_repair_nodes`` manifold nodes are grown around the
-        start and each goal (up to 4), half of them along its heading (reachable by driving straight), and the query
-        is repeated, connecting each end to every node grown for it and to its ``query_repair_connect_k`` nearest
-        nodes. Up to ``query_repair_rounds`` rounds, each with 1.5 times the previous radius. The nodes of a repair
-        that succeeds stay in the roadmap, within ``query_repair_budget``; those of a repair that fails are removed
-        again, so that they do not use up the budget of later queries; after ``query_repair_failures`` such failed
-        repairs (their removed node slots stay allocated) a failing query is no longer repaired, so a goal that stays
-        unreachable cannot make a long-running planner grow without end.
-
-        The two other stages (not once ``query_repair_failures`` is reached, like the repair):
-
-        - escape (``query_escape_s`` > 0), before the repair: a bounded RRT-like search of differential-drive motions
-          with the arm moving (turn in place, drive or back up, joints interpolated, untracked) from each end to the
-          roadmap's largest component (:meth:`~.recovery.Recovery.escape`, ``query_escape_*``); its configurations and
-          densely checked edges join the query as query nodes and edges, scored (Eq. 1) like any other edge, and the
-          query is searched once more. An end it cannot get out of is named in the reason of a query that fails ("start
-          is boxed in: no collision-free motion out of it was found ..." when not one short motion out of it is free);
-        - wide (``query_wide_k`` > 0), when the escape and the repair did not succeed: each end tries its
-          ``query_wide_k`` nearest roadmap nodes, however far (long connections, checked and scored like any other),
-          for ends whose few free motions lead beyond the repair's neighbours (a robot across a shelf aisle).
-
-        In the escape's and the wide query (``query_untracked_fallback``), a connection edge whose re-aimed knots
-        collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
-        interpolated plainly) when those are collision-free; the first query and the repaired ones are unchanged."""
-        res = self.plan_once(start, goals, timing, goal_costs)
-        if res.success or "reachable" not in res.reason or self.rm.graph is None:
-            return res
-        t0 = time.perf_counter()
-        s = self.ctx.settings
-        k = s.query_wide_k
-        # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
-        # and again): no escape, repair or wide attempt
-        escaped = None
-        out = res
-        if s.query_escape_s > 0 and self.rm.repair_failed < s.query_repair_failures:
-            escaped = self.pl.recovery.escape_query(start, goals, timing, goal_costs)
-            if escaped.success:
-                out = escaped
-        if not out.success:
-            out = self.pl.recovery.repair_query(start, goals, timing, goal_costs, res)
-        if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
-                and self.rm.repair_failed < s.query_repair_failures):
-            wide = self.plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
-                                  untracked=s.query_untracked_fallback)
-            if wide.success or "reachable" not in wide.reason:
-                out = wide
-                if wide.success:
-                    out.reason = f"ok after connecting to the {k} nearest roadmap nodes"
-        if not out.success and escaped is not None:  # the escape search says which end could not get out
-            out = escaped
-        out.query_ms = (res.query_ms or 0.0) + (time.perf_counter() - t0) * 1e3
-        return out
 
     def nearest_ids(self, qq: torch.Tensor, pool: torch.Tensor, k: int) -> torch.Tensor:
         """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
@@ -236,7 +156,7 @@ class Query(Stage):
                     self.pl.edges.put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
             if escapes:
-                added_edges.extend(self.pl.recovery.add_escapes(escapes, dict(queries), added_nodes))
+                added_edges.extend(self.add_escapes(escapes, dict(queries), added_nodes))
             search_goals, sink_w = goal_ids, None
             if goal_costs is not None and len(goal_ids) > 1:
                 tc = np.asarray(goal_costs, float).reshape(-1)
@@ -322,3 +242,33 @@ class Query(Stage):
         if ok.any():
             p[ok] = self.pl.scoring.knots_perception(knots[ok], interior[ok])
         return ok, p, knots, interior
+
+    def add_escapes(self, escapes: dict, end_node: dict, added_nodes: list) -> list:
+        """Add the escape searches' configurations (as query nodes, appended to ``added_nodes``) and their checked
+        edges (scored with Eq. 1 on their stored untracked knots) to the graph; returns the new edge ids."""
+        g = self.rm.graph
+        eids = []
+        for k, esc in escapes.items():
+            if k not in end_node or not esc.success:
+                continue
+            nid = np.zeros(0, dtype=np.int64)
+            if len(esc.configs):
+                nid = np.asarray(g.add_nodes(esc.configs.double().cpu().numpy()), dtype=np.int64)
+                added_nodes.extend(int(n) for n in nid)
+                scores = self.rm.node_score_slots()
+                scores[nid] = self.pl.scoring.score_configs(esc.configs).double().cpu().numpy()
+
+            def node(i):
+                return end_node[k] if i < 0 else int(nid[i])
+
+            for pairs, (kn, ki), rm_end in ((esc.tree, esc.tree_knots, False), (esc.conn, esc.conn_knots, True)):
+                if not pairs:
+                    continue
+                ua = np.asarray([node(a) for a, _ in pairs])
+                vb = np.asarray([b if rm_end else node(b) for _, b in pairs])
+                p = self.pl.scoring.knots_perception(kn, ki).cpu().numpy()
+                d = self.pl.edges.motion_distance(kn[:, 0].cpu().numpy(), kn[:, -1].cpu().numpy())
+                new = self.add_query_edges(ua, vb, p, d, verified=True)
+                self.pl.edges.put_knots(np.asarray(new), ua, kn, ki)
+                eids.extend(new)
+        return eids

@@ -34,7 +34,7 @@ class Recovery(Stage):
 
     def escape_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
                      goal_costs: Optional[np.ndarray]) -> PlanResult:
-        """The escape stage of :meth:`~.query.Query.plan`: an :meth:`escape` search from each end (start, up to 4
+        """The escape stage of :meth:`~.pipeline.Pipeline.plan`: an :meth:`escape` search from each end (start, up to 4
         goals) to the roadmap's largest component within ``query_escape_s`` in total, then the query with the found
         configurations and edges added. Ends with a direct connection need no tree (their connections are added)."""
         s = self.ctx.settings
@@ -272,39 +272,10 @@ class Recovery(Stage):
             i = j
         return out
 
-    def add_escapes(self, escapes: dict, end_node: dict, added_nodes: list) -> list:
-        """Add the escape searches' configurations (as query nodes, appended to ``added_nodes``) and their checked
-        edges (scored with Eq. 1 on their stored untracked knots) to the graph; returns the new edge ids."""
-        g = self.rm.graph
-        eids = []
-        for k, esc in escapes.items():
-            if k not in end_node or not esc.success:
-                continue
-            nid = np.zeros(0, dtype=np.int64)
-            if len(esc.configs):
-                nid = np.asarray(g.add_nodes(esc.configs.double().cpu().numpy()), dtype=np.int64)
-                added_nodes.extend(int(n) for n in nid)
-                scores = self.rm.node_score_slots()
-                scores[nid] = self.pl.scoring.score_configs(esc.configs).double().cpu().numpy()
-
-            def node(i):
-                return end_node[k] if i < 0 else int(nid[i])
-
-            for pairs, (kn, ki), rm_end in ((esc.tree, esc.tree_knots, False), (esc.conn, esc.conn_knots, True)):
-                if not pairs:
-                    continue
-                ua = np.asarray([node(a) for a, _ in pairs])
-                vb = np.asarray([b if rm_end else node(b) for _, b in pairs])
-                p = self.pl.scoring.knots_perception(kn, ki).cpu().numpy()
-                d = self.pl.edges.motion_distance(kn[:, 0].cpu().numpy(), kn[:, -1].cpu().numpy())
-                new = self.pl.query.add_query_edges(ua, vb, p, d, verified=True)
-                self.pl.edges.put_knots(np.asarray(new), ua, kn, ki)
-                eids.extend(new)
-        return eids
 
     def repair_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
                      goal_costs: Optional[np.ndarray], res: PlanResult) -> PlanResult:
-        """The local roadmap repair of :meth:`~.query.Query.plan` after the failed query ``res``."""
+        """The local roadmap repair of :meth:`~.pipeline.Pipeline.plan` after the failed query ``res``."""
         s = self.ctx.settings
         ends = _ends(start, goals, self.ctx.robot.dof)
         added, grown, again = 0, {}, None

@@ -72,7 +72,7 @@ class QueryContext:
 
     def clear(self) -> None:
         """End of one search attempt (:meth:`~.query.Query.plan_once`): everything but ``settings``, which
-        :meth:`~.query.Query.plan` holds over the whole query and its recovery stages."""
+        :meth:`~.pipeline.Pipeline.plan` holds over the whole query and its recovery stages."""
         self.pending_knots, self.pending_rows, self.pending_np = None, {}, None
         self.scorer_args, self.untracked = None, False
 
