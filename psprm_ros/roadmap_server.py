@@ -68,6 +68,7 @@ LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
                "score_drop": "... or drops by more than this since the plan",
                "goal_switch_margin": "goal hysteresis (fraction of the current plan's cost)",
                "goal_commit_s": "keep a chosen goal this long (s) unless no path reaches it",
+               "goal_commit_growth": "each goal switch multiplies the next commitment by this (>= 1)",
                "final_approach_m": "no score-triggered replan within this base path length of the goal (m)",
                "min_interval_s": "at most one score/move-triggered replan per interval (s)"}
 PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
@@ -91,7 +92,8 @@ def replan_params(settings_name: str) -> dict:
     out = {}
     for k, d in LIVE_REPLAN.items():
         v = getattr(rs, k)
-        out[k] = P(v, d, live=True) if isinstance(v, bool) else P(float(v), d, live=True, lo=0.0)
+        lo = 1.0 if k == "goal_commit_growth" else 0.0  # a factor: below 1 the commitment would shrink
+        out[k] = P(v, d, live=True) if isinstance(v, bool) else P(float(v), d, live=True, lo=lo)
     return out
 
 

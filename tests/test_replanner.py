@@ -696,3 +696,49 @@ def test_no_score_triggered_replan_on_the_final_approach(replanner):
     assert rp.needs_replan(now=t0 + 5.0) == []
     rp.update_settings(final_approach_m=0.0)
     assert rp.needs_replan(now=t0 + 5.0) == ["score_low_retry"]
+
+
+def test_each_goal_switch_multiplies_the_next_commitment(replanner):
+    """Two candidate goals far apart; the test puts the robot next to one or the other, so that goal is by far the
+    cheaper (the test's own single-goal plans say so). After one switch the commitment is ``goal_commit_growth``
+    times longer: a switch back that ``goal_commit_s`` alone would allow is refused, and allowed after the longer
+    window; a new goal set starts again at ``goal_commit_s``."""
+    rp = replanner
+    p = rp.planner
+    commit, growth = rp.settings.goal_commit_s, rp.settings.goal_commit_growth
+    assert commit > 0 and growth >= 2.0
+    ids = p.roadmap_node_ids()
+    xy = p.graph.configs[ids, :2]
+    far = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    i, j = np.unravel_index(np.argmax(far), far.shape)
+    A, B = p.graph.configs[ids[i]].copy(), p.graph.configs[ids[j]].copy()
+
+    def near(goal):  # a roadmap node 0.3-1.2 m from the goal, from which the goal is cheap
+        d = np.linalg.norm(xy - goal[:2], axis=1)
+        for k in np.argsort(d):
+            if 0.3 <= d[k] <= 1.2 and p.plan(p.graph.configs[ids[k]], goal, timing=False).success:
+                return p.graph.configs[ids[k]].copy()
+        raise AssertionError("no roadmap node near the goal")
+
+    sA, sB = near(A), near(B)
+    ca = p.plan(sA, A, timing=False).cost, p.plan(sA, B, timing=False).cost
+    cb = p.plan(sB, B, timing=False).cost, p.plan(sB, A, timing=False).cost
+    assert ca[1] > 2 * ca[0] and cb[1] > 2 * cb[0]  # from near each goal, the other is far dearer
+    both = np.stack([A, B])
+    rp.set_goals(both)
+
+    def replan_from(state, now):
+        rp.set_robot_state(state)
+        res = rp.replan(now=now)
+        assert res.success, res.reason
+        return res.dense[-1]
+
+    assert same_config(replan_from(sB, 0.0), B)
+    t1 = commit + 1.0
+    assert same_config(replan_from(sA, t1), A)  # the first switch: after goal_commit_s
+    assert same_config(replan_from(sB, t1 + commit + 1.0), A)  # within goal_commit_s x growth: kept
+    t2 = t1 + growth * commit + 1.0
+    assert same_config(replan_from(sB, t2), B)  # after it: the switch back
+    rp.set_goals(both[::-1])  # a new goal set: goal_commit_s again
+    assert same_config(replan_from(sB, t2 + 1.0), B)
+    assert same_config(replan_from(sA, t2 + 1.0 + commit + 1.0), A)

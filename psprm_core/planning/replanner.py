@@ -66,6 +66,9 @@ class ReplanSettings:
     goal_commit_s: float = 10.0  # keep a chosen goal this long (s, the caller's clock) before another may replace it;
     # earlier only when no path reaches it (0: off). A person turning back and forth makes the cheapest goal alternate
     # faster than the robot can drive to either
+    goal_commit_growth: float = 2.0  # each switch between the candidate goals multiplies the next commitment by this
+    # (1: constant); a new goal set starts again at goal_commit_s. Bounds the switching: a person who keeps turning
+    # cannot keep the robot away from both goals
     min_interval_s: float = 1.0  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
@@ -82,6 +85,8 @@ class ReplanSettings:
     # checking the candidate shortcuts costs tens of ms per replan
 
     def __post_init__(self):
+        if not (self.goal_commit_growth >= 1.0 and math.isfinite(self.goal_commit_growth)):
+            raise PsprmError(f"goal_commit_growth must be a finite factor >= 1, got {self.goal_commit_growth}")
         if self.heuristic not in HEURISTICS:
             raise PsprmError(f"replan heuristic must be one of {', '.join(HEURISTICS)}, got {self.heuristic!r}")
 
@@ -144,6 +149,7 @@ class Replanner:
         self._last_plan_time = -math.inf
         self._goal_cfg: Optional[np.ndarray] = None  # the current plan's goal configuration
         self._goal_since = -math.inf  # when the current plan's goal was chosen (the clock of replan's ``now``)
+        self._switches = 0  # switches between the candidate goals since they were set (goal_commit_growth)
         self._last_failed = False
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
         self.history: list = []  # one dict per replan: reasons, timings, success
@@ -191,6 +197,7 @@ class Replanner:
             raise PsprmError(f"goals must be finite configurations of {self.robot.dof} values")
         if self.goals is None or self.goals.shape != g.shape or not np.allclose(self.goals, g, atol=1e-6):
             self._pending.add("goal_changed")
+            self._switches = 0
         self.goals = g
 
     def update_target(self, name: str, position, quat=None) -> bool:
@@ -375,6 +382,8 @@ class Replanner:
             old_goal = self._goal_cfg
             if new_goal is None or old_goal is None or old_goal.shape != new_goal.shape or \
                     np.abs(old_goal - new_goal).max() >= 1e-6:
+                if self._current_goal_mask() is not None:  # from one candidate goal to another
+                    self._switches += 1
                 self._goal_since = self._last_plan_time
             self._goal_cfg = new_goal
             self._plan_score = plan_score
@@ -387,9 +396,11 @@ class Replanner:
         return res
 
     def _committed_goal(self, now: float) -> Optional[np.ndarray]:
-        """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s``), else None."""
+        """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s`` times
+        ``goal_commit_growth`` to the power of the switches so far), else None."""
+        window = self.settings.goal_commit_s * self.settings.goal_commit_growth ** self._switches
         if (self.settings.goal_commit_s <= 0 or self.result is None or self.goals is None or len(self.goals) < 2
-                or now - self._goal_since >= self.settings.goal_commit_s):
+                or now - self._goal_since >= window):
             return None
         return self._current_goal_mask()
 
