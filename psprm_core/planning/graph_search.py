@@ -20,7 +20,7 @@ from __future__ import annotations
 import heapq
 import logging
 import math
-from typing import Any, Iterable, Union
+from typing import Iterable, Union
 
 import numpy as np
 
@@ -30,8 +30,8 @@ from .graph import Roadmap
 from .hops import heuristic_consistency_gap, hop_distances, hop_heuristic
 from .objectives import (_CMIN_SAFETY, OBJECTIVES, combined_weight, edge_perception, edge_weight, motion_heuristic,
                          motion_weighted)
-from .search_types import (EdgeCheck, SearchResult, VerifyCallback, _compiled, _node_ids, _scipy_matrix,
-                           _weights_array, _weights_list, min_edge_cost, path_cost)
+from .search_types import (ArrayLike, Backend, EdgeCheck, SearchResult, VerifyCallback, _compiled, _node_ids,
+                           _scipy_matrix, _weights_array, _weights_list, min_edge_cost, path_cost)
 
 logger = logging.getLogger(__name__)
 
@@ -54,9 +54,7 @@ __all__ = [
     "path_cost",
 ]
 
-ArrayLike = Any  # numpy array, torch tensor or Python float
 HeuristicSpec = Union[str, np.ndarray]
-Backend = str  # "auto" (compiled when numba is available) or "python"
 
 
 # ====================================================================== all-nodes searches (compiled)

@@ -176,13 +176,14 @@ class PSPRM:
         fixed = [k for k in CONSTRUCTION_SETTINGS if getattr(new, k) != getattr(old, k)]
         if fixed:
             raise ConfigError("settings", ", ".join(fixed), "fixed when the planner is made: make a new planner")
-        self.ctx.settings = dataclasses.replace(new, alpha=old.alpha, objective=old.objective)
+        reweigh = self.graph is not None and (new.alpha, new.objective) != (old.alpha, old.objective)
+        # with new weights to make, reweight publishes alpha and the objective once the weights are written
+        self.ctx.settings = dataclasses.replace(new, alpha=old.alpha, objective=old.objective) if reweigh else new
         if self.graph is not None and any(getattr(new, k) != getattr(old, k) for k in KNOT_SETTINGS):
             self.pipeline.dynamics.forget_knots()
-        if (new.alpha, new.objective) != (old.alpha, old.objective) and self.graph is not None:
+        if reweigh:
             self.reweight(new.alpha, new.objective)
-        self.ctx.settings = new
-        return new
+        return self.ctx.settings
 
     def set_alpha(self, alpha: float) -> None:
         """Re-weight every edge with a new alpha (Eq. 2) without rebuilding (alpha = 0: shortest-path PRM)."""

@@ -10,8 +10,8 @@ import numpy as np
 from ..errors import InputError
 from . import search_kernels
 from .graph import Roadmap
+from .objectives import ArrayLike
 
-ArrayLike = Any  # numpy array, torch tensor or Python float
 Backend = str  # "auto" (compiled when numba is available) or "python"
 
 

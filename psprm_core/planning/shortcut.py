@@ -53,10 +53,10 @@ class Shortcut(Stage):
         seen = np.concatenate([[0.0], np.cumsum(cm * np.nan_to_num(cp))])
         P = np.asarray(path)
         src, dst, dist, need = [], [], [], []
+        I, J = np.triu_indices(len(path), 2)  # every (i, j) with j >= i + 2, by i then j
+        D = self.pl.edges.motion_distance(g.configs[P[I]], g.configs[P[J]]) if len(I) else np.zeros(0)
         for i in range(len(path) - 2):
-            later = np.arange(i + 2, len(path))
-            qa = np.repeat(g.configs[path[i]][None], len(later), 0)
-            d = self.pl.edges.motion_distance(qa, g.configs[P[later]])
+            later, d = J[I == i], D[I == i]
             span = arc[later] - arc[i]
             # an existing edge between the two was the search's to take (and must not be overwritten)
             joined = np.asarray([g.edge_id(path[i], path[x]) is not None for x in later])
