@@ -61,8 +61,9 @@ class ReferenceRoutes:
     def routes(self, start: np.ndarray, goal: np.ndarray) -> list:
         """Distinct successful routes ``[(label, PlanResult), ...]`` from ``start`` to ``goal`` (configurations).
 
-        Labels name the search (``motion@1.0``, ``eq2@0.8+shortcut``, ``alt2``). Routes with the same waypoints are
-        given once. The planner's settings and weights are restored afterwards."""
+        Labels name the search (``motion@1.0``, ``eq2@0.8+shortcut``, ``alt2``); each is one search (no route
+        selection). Routes with the same waypoints are given once. The planner's settings and weights are restored
+        afterwards."""
         if not self._bench.built:
             return []
         self._bench.queried()
@@ -85,14 +86,15 @@ class ReferenceRoutes:
                 for shortcut in (False, True):
                     p.reweight(alpha=alpha, objective=objective)
                     add(f"{objective}@{alpha:g}" + ("+shortcut" if shortcut else ""),
-                        p.plan(start, goal, timing=False, options={"shortcut": shortcut}))
+                        p.plan(start, goal, timing=False, options={"shortcut": shortcut, "route_searches": ""}))
             for k in range(self.alternatives):
                 p.reweight(alpha=1.0, objective="motion")
                 g = p.graph
                 e = np.unique(np.asarray([x for x in used_edges if g.edge_valid[x]], dtype=np.int64))
                 if len(e):
                     g.set_weights(e, g.weights[e] * self.penalty)
-                add(f"alt{k + 1}", p.plan(start, goal, timing=False, options={"shortcut": False}))
+                add(f"alt{k + 1}", p.plan(start, goal, timing=False,
+                                          options={"shortcut": False, "route_searches": ""}))
         finally:
             p.reweight(alpha=saved.alpha, objective=saved.objective)
         return out

@@ -92,4 +92,4 @@ class Heuristics(Stage):
             np.minimum(lb, d, out=lb)
         if sink is not None:
             lb[sink] = 0.0
-        return motion_heuristic(lb, self.ctx.settings.alpha, self.rm.max_motion)
+        return motion_heuristic(lb, self.qs.alpha, self.rm.max_motion)

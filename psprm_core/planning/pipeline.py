@@ -22,6 +22,7 @@ from .recovery import Recovery
 from .roadmap_state import RoadmapState
 from .sampling import Sampling
 from .scoring import Scoring
+from .selection import RouteSelection
 from .shortcut import Shortcut
 from .results import PlanResult
 from .settings import QUERY_OPTIONS
@@ -44,7 +45,8 @@ class Pipeline:
     (``sampling``, ``neighbours``, ``edges``, ``scoring``, ``heuristics``, ``verify``, ``trajectory``), which use
     each other only for knots and scores (``edges`` <-> ``scoring``). :meth:`plan` runs one search
     (``query.plan_once``) and, when no goal is reachable, the strategies of ``recovery``, which search again through
-    ``query.plan_once``: ``recovery`` calls ``query``, never the other way round."""
+    ``query.plan_once``: ``recovery`` calls ``query``, never the other way round; with ``route_searches``,
+    ``selection`` searches again with other weights and keeps the route that sees most."""
 
     def __init__(self, ctx: PlannerContext):
         self.ctx = ctx
@@ -62,6 +64,7 @@ class Pipeline:
         self.verify = Verification(self)
         self.query = Query(self)
         self.shortcut = Shortcut(self)
+        self.selection = RouteSelection(self)
         self.recovery = Recovery(self)
         self.trajectory = Trajectory(self)
         self.dynamics = Dynamics(self)
@@ -82,7 +85,8 @@ class Pipeline:
             settings.validate("query options")
         self.qc.settings = settings
         try:
-            return self.plan_recovering(start, goals, timing, goal_costs)
+            res = self.plan_recovering(start, goals, timing, goal_costs)
+            return self.selection.choose(res, start, goals, timing, goal_costs)
         finally:
             self.qc.settings = None
 

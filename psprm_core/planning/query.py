@@ -218,7 +218,7 @@ class Query(Stage):
         numpy in the planner's dtype: validated and fully scored (``verified``), or unchecked with an endpoint
         estimate (verified lazily by the search). The Eq. 2 weight is computed in that dtype, as on the roadmap."""
         c_m = dist / np.asarray(self.rm.max_motion, dist.dtype)
-        if self.ctx.settings.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs all
+        if self.qs.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs all
             c_m = np.clip(c_m, 0, 1)
         w = self.pl.scoring.weight(p, c_m)
         return list(self.rm.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),

@@ -83,6 +83,8 @@ class ReplanSettings:
     # (docs/benchmarks.md, "Replanning latency")
     shortcut: bool = False  # perception-preserving shortcuts of replanned paths (PSPRMSettings.shortcut): off, since
     # checking the candidate shortcuts costs tens of ms per replan
+    route_selection: bool = False  # the planner's route selection (PSPRMSettings.route_searches) in replans: off,
+    # since every extra search adds a search's time to each replan
 
     def __post_init__(self):
         if not (self.goal_commit_growth >= 1.0 and math.isfinite(self.goal_commit_growth)):
@@ -158,9 +160,12 @@ class Replanner:
     def update_settings(self, settings: Optional[ReplanSettings] = None, **changes) -> ReplanSettings:
         """Adopt new settings (``settings``, else the current ones with ``changes``; validated as they are built) and
         the query options the replans pass to the planner (:attr:`plan_options`: heuristic, smooth timing,
-        shortcuts; the planner's own settings are left as they are). Returns the settings now in use."""
+        shortcuts, route selection; the planner's own settings are left as they are). Returns the settings now in
+        use."""
         new = dataclasses.replace(settings or self.settings, **changes)
         options = {"smooth_timing": new.smooth_timing, "shortcut": new.shortcut}
+        if not new.route_selection:
+            options["route_searches"] = ""
         if new.heuristic != "planner":
             options["heuristic"] = new.heuristic
         self.settings, self.plan_options = new, options

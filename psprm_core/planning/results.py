@@ -29,6 +29,8 @@ class PlanResult:
     path_length: float = float("nan")
     query_ms: float = float("nan")
     goal_index: int = -1
+    route: str = ""  # with route selection: the search whose route this is ("motion@1", ...)
+    route_candidates: dict = field(default_factory=dict, repr=False)  # search -> (route perception, path length)
     score_fn: Optional[Callable[[np.ndarray], np.ndarray]] = field(default=None, repr=False, compare=False)
     _dense_scores: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
 
@@ -50,6 +52,8 @@ class PlanResult:
         d = {"success": self.success, "reason": self.reason, "cost": self.cost,
              "path_length_rad": self.path_length, "mean_perception_score": self.mean_score,
              "query_ms": self.query_ms, "goal_index": self.goal_index, "n_waypoints": 0}
+        if self.route:
+            d["route"] = self.route
         if self.waypoints is not None:
             d["n_waypoints"] = int(len(self.waypoints))
             d["waypoints"] = np.round(self.waypoints, 5).tolist()

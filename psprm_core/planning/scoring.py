@@ -4,6 +4,7 @@ the motion-weighted form)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from typing import Optional
 
@@ -48,8 +49,58 @@ class Scoring(Stage):
 
     def weight(self, p, c_m):
         """Edge weight of the configured objective (:func:`~.graph_search.edge_weight`): Eq. 2 or the motion-weighted
-        form, from the Eq. 1 perception ``p`` and the normalised motion cost ``c_m`` (numpy or torch)."""
-        return edge_weight(p, c_m, self.ctx.settings.alpha, self.ctx.settings.objective)
+        form, from the Eq. 1 perception ``p`` and the normalised motion cost ``c_m`` (numpy or torch); the running
+        query's alpha and objective (:attr:`~.state.Stage.qs`), else the planner's."""
+        return edge_weight(p, c_m, self.qs.alpha, self.qs.objective)
+
+    def apply_weights(self, settings) -> None:
+        """Weight every valid edge of finite weight from its stored Eq. 1 perception and motion cost with the alpha
+        and objective of ``settings``; edges of infinite weight (a retired query's, blocked ones) stay so."""
+        g = self.rm.graph
+        ids = g.valid_edge_ids()
+        ids = ids[np.isfinite(g.weights[ids])]
+        g.set_weights(ids, self._weights_of(ids, settings))
+
+    def _weights_of(self, ids: np.ndarray, settings) -> np.ndarray:
+        g = self.rm.graph
+        c_m = g.edge_attribute("c_m")[ids]
+        if settings.objective == "eq2":
+            c_m = np.clip(c_m, 0, 1)
+        return edge_weight(g.edge_attribute("c_p")[ids], c_m, settings.alpha, settings.objective)
+
+    @contextlib.contextmanager
+    def weighted_for(self, settings):
+        """The roadmap weighted with the alpha and objective of ``settings`` inside the block (one search of route
+        selection), the planner's weights after it: the saved weight of every edge the block left as it was, and
+        the planner's weight of the edges the block verified and scored (Eq. 1) meanwhile; edges found colliding in
+        the block stay removed."""
+        g = self.rm.graph
+        ids = g.valid_edge_ids()
+        ids = ids[np.isfinite(g.weights[ids])]
+        saved, c_p = g.weights[ids].copy(), g.edge_attribute("c_p")[ids].copy()
+        g.set_weights(ids, self._weights_of(ids, settings))
+        try:
+            yield
+        finally:
+            keep = g.edge_valid[ids] & np.isfinite(g.weights[ids])
+            ids, saved, c_p = ids[keep], saved[keep], c_p[keep]
+            same = (g.edge_attribute("c_p")[ids] == c_p) | (np.isnan(c_p) & np.isnan(g.edge_attribute("c_p")[ids]))
+            w = saved.copy()
+            if not same.all():
+                w[~same] = self._weights_of(ids[~same], self.qs)
+            g.set_weights(ids, w)
+
+    def route_perception(self, dense: np.ndarray, scores: np.ndarray) -> float:
+        """Perception of a whole route: the motion-weighted mean normalised score c_p along its dense configurations
+        ``dense`` (K, dof) with raw scores ``scores`` (K,) (Eq. 1's mean, taken over the route by motion, as a
+        camera frame every so much motion sees it); the one configuration of a route that does not move: its c_p."""
+        c = np.clip(np.asarray(scores, float) * self.rm.score_scale, 0.0, 1.0)
+        if len(c) < 2:
+            return float(c.mean()) if len(c) else float("nan")
+        d = self.pl.edges.motion_distance(np.asarray(dense[:-1]), np.asarray(dense[1:])).astype(np.float64)
+        if d.sum() <= 0:
+            return float(c.mean())
+        return float(((c[:-1] + c[1:]) * 0.5 * d).sum() / d.sum())
 
     def normalized(self, scores: torch.Tensor) -> torch.Tensor:
         """Normalised perception score c_p in [0, 1] (scores divided by the roadmap's 99th-percentile node score)."""
@@ -97,12 +148,7 @@ class Scoring(Stage):
         new = dataclasses.replace(self.ctx.settings, **changes)
         new.validate()
         self.rm.compact()
-        g = self.rm.graph
-        ids = g.valid_edge_ids()
-        c_m = g.edge_attribute("c_m")[ids]
-        if new.objective == "eq2":
-            c_m = np.clip(c_m, 0, 1)
-        g.set_weights(ids, edge_weight(g.edge_attribute("c_p")[ids], c_m, new.alpha, new.objective))
+        self.apply_weights(new)
         self.ctx.settings = new  # last: a reader that sees the new settings sees the new weights
 
     def score_numpy(self, q: np.ndarray) -> np.ndarray:

@@ -14,7 +14,7 @@ from .objectives import OBJECTIVES
 
 
 # settings one query may override (PSPRM.plan's ``options``)
-QUERY_OPTIONS = ("heuristic", "shortcut", "shortcut_rounds", "smooth_timing")
+QUERY_OPTIONS = ("heuristic", "shortcut", "shortcut_rounds", "smooth_timing", "route_searches", "route_length_ratio")
 
 # settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
 QUERY_SETTINGS = ("alpha", "objective", "heuristic", "shortcut", "shortcut_rounds", "connect_k", "build_timeout_s",
@@ -22,7 +22,7 @@ QUERY_SETTINGS = ("alpha", "objective", "heuristic", "shortcut", "shortcut_round
                   "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
                   "query_wide_k", "query_untracked_fallback", "query_escape_s", "query_escape_nodes",
                   "query_escape_radius", "query_escape_step", "query_escape_connect_k",
-                  "smooth_timing")
+                  "smooth_timing", "route_searches", "route_length_ratio")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -81,9 +81,14 @@ class PSPRMSettings:
     heuristic: str = "auto"  # A* heuristic: hop (Eq. 3, the paper's) | distance (motion lower bound, for the motion
     # objective) | exact (cost-to-go from a compiled Dijkstra) | auto (hop for eq2, distance for motion)
     shortcut: bool = False  # shorten the found path where a direct motion is free, on the manifold and sees as well
-    kinematics: str = "native"  # camera FK + Jacobian of the Newton projection: native (the robot model; compiled
-    # kernels for small CPU batches) | pytorch_kinematics (psprm_core.kinematics_pk, always the torch path)
+    kinematics: str = "native"  # camera FK + Jacobian of the Newton projection and the collision checker's body FK:
+    # native (the robot model; compiled kernels for small CPU batches) | pytorch_kinematics (psprm_core.kinematics_pk:
+    # the projection always on the torch path; the checker's torch path, its small CPU batches still compiled)
     shortcut_rounds: int = 2  # greedy shortcut passes over the path
+    route_searches: str = ""  # more searches of each query, "objective@alpha" separated by commas (e.g.
+    # "motion@1.0"); the route that sees most (motion-weighted mean Eq. 1 along the path) is returned when it is at
+    # most route_length_ratio times as long as the planner's own (selection.RouteSelection); "" = one search
+    route_length_ratio: float = 1.5  # longest alternative route taken, relative to the length of the planner's own
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     smooth_timing: bool = True  # trajectories pass the knots of a base phase without stopping (timing.smooth)
     sample_batch: int = 2048
@@ -126,6 +131,10 @@ class PSPRMSettings:
         if self.kinematics not in ("native", "pytorch_kinematics"):
             raise ConfigError(source, "kinematics", f"unknown kinematics '{self.kinematics}' (native, "
                                                     "pytorch_kinematics)")
+        self.route_search_list(source)
+        if not (self.route_length_ratio >= 1.0 and np.isfinite(self.route_length_ratio)):
+            raise ConfigError(source, "route_length_ratio",
+                              f"must be a finite ratio >= 1, got {self.route_length_ratio}")
         if self.sample_joints not in ("camera", "all"):
             raise ConfigError(source, "sample_joints", "must be 'camera' or 'all'")
         if not 0.0 <= self.alpha <= 1.0:
@@ -145,3 +154,25 @@ class PSPRMSettings:
                 if getattr(self, name) < 1:
                     raise ConfigError(source, name, f"must be >= 1 when query_escape_s > 0, got {getattr(self, name)}")
 
+
+    def route_search_list(self, source: str = "settings") -> tuple:
+        """The extra searches of ``route_searches`` as ``((objective, alpha), ...)`` (empty when unset).
+
+        Raises
+        ------
+        ConfigError
+            An entry that is not ``objective@alpha`` with a known objective and alpha in [0, 1]."""
+        out = []
+        for item in (x.strip() for x in self.route_searches.split(",")):
+            if not item:
+                continue
+            objective, _, alpha = item.partition("@")
+            try:
+                a = float(alpha)
+            except ValueError:
+                a = float("nan")
+            if objective not in OBJECTIVES or not 0.0 <= a <= 1.0:
+                raise ConfigError(source, "route_searches", f"'{item}' is not objective@alpha with an objective of "
+                                                            f"{', '.join(OBJECTIVES)} and alpha in [0, 1]")
+            out.append((objective, a))
+        return tuple(out)

@@ -1,0 +1,67 @@
+"""Route selection: more than one search per query, and the route that sees most.
+
+One objective and one alpha do not find the best-seen route of a roadmap on every problem: Eq. 2 at the paper's
+alpha trades views for fewer edges, the motion-weighted form at alpha < 1 trades a little perception for length, and
+at alpha = 1 it ignores length entirely. With ``route_searches`` (e.g. ``"motion@1.0"``) a query searches the same
+roadmap once more per entry, the edges weighted with that entry's objective and alpha for the search and weighted
+back afterwards, and returns the route whose perception along the whole path (:meth:`~.scoring.Scoring.
+route_perception`: the motion-weighted mean c_p of its dense configurations, Eq. 1 taken over the route) is highest
+among the routes at most ``route_length_ratio`` times as long as the planner's own route. Every candidate is a
+complete query result (connected, verified, shortcut, timed), so what is returned is what was checked.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Optional, Sequence
+
+import numpy as np
+
+from .results import PlanResult
+from .state import Stage
+
+
+class RouteSelection(Stage):
+    """Runs a query's extra searches and picks the route that sees most."""
+
+    def choose(self, first: PlanResult, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
+               goal_costs: Optional[np.ndarray]) -> PlanResult:
+        """``first`` (the planner's own route, a success) or the extra search's route that sees more, within the
+        length bound. The returned result names its search in ``route`` and carries every candidate's perception
+        in ``route_candidates`` ({label: (perception, length)})."""
+        base = self.qs
+        searches = base.route_search_list()
+        if not searches or not first.success:
+            return first
+        t0 = time.perf_counter()
+        own = f"{base.objective}@{base.alpha:g}"
+        best, best_p = first, self.perception(first)
+        first.route = own
+        cands = {own: (best_p, first.path_length)}
+        limit = base.route_length_ratio * first.path_length
+        saved = self.qc.settings
+        for objective, alpha in searches:
+            label = f"{objective}@{alpha:g}"
+            if label in cands:
+                continue
+            alt = dataclasses.replace(base, objective=objective, alpha=alpha, route_searches="")
+            with self.pl.scoring.weighted_for(alt):
+                self.qc.settings = alt
+                try:
+                    res = self.pl.query.plan_once(start, goals, timing, goal_costs)
+                finally:
+                    self.qc.settings = saved
+            if not res.success:
+                continue
+            p = self.perception(res)
+            cands[label] = (p, res.path_length)
+            if res.path_length <= limit and p > best_p + 1e-9:
+                res.route, best, best_p = label, res, p
+        best.route_candidates = cands
+        best.query_ms = float(np.nan_to_num(first.query_ms)) + (time.perf_counter() - t0) * 1e3
+        return best
+
+    def perception(self, res: PlanResult) -> float:
+        """:meth:`~.scoring.Scoring.route_perception` of a result's dense path (scored now: the scene as it is)."""
+        return self.pl.scoring.route_perception(res.dense, res.dense_scores)
