@@ -119,7 +119,8 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
     scene, robot, planner, problems = setup
     before = planner.settings
     for start, goals in problems[:3]:
-        planner.plan(start, goals, timing=False, options={"route_searches": "motion@1.0,eq2@0.7"})
+        res = planner.plan(start, goals, timing=False, options={"route_searches": "motion@1.0,eq2@0.7,alt"})
+        assert "alt" in res.route_candidates
     g = planner.graph
     ids = g.valid_edge_ids()
     ids = ids[np.isfinite(np.asarray(g.weights)[ids])]
@@ -130,9 +131,10 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
 
 
 def test_bad_route_searches_are_config_errors():
-    for bad in ("motion", "motion@1.5", "hops@0.5", "motion@x"):
+    for bad in ("motion", "motion@1.5", "hops@0.5", "motion@x", "alt@2"):
         with pytest.raises(ConfigError, match="route_searches"):
             PSPRMSettings(route_searches=bad).validate()
     with pytest.raises(ConfigError, match="route_length_ratio"):
         PSPRMSettings(route_length_ratio=0.5).validate()
-    assert PSPRMSettings(route_searches=" motion@1, eq2@0.8 ").route_search_list() == (("motion", 1.0), ("eq2", 0.8))
+    assert PSPRMSettings(route_searches=" motion@1, eq2@0.8 ,alt").route_search_list() == (
+        ("motion", 1.0), ("eq2", 0.8), ("alt", 1.0))

@@ -69,16 +69,19 @@ class Scoring(Stage):
         return edge_weight(g.edge_attribute("c_p")[ids], c_m, settings.alpha, settings.objective)
 
     @contextlib.contextmanager
-    def weighted_for(self, settings):
+    def weighted_for(self, settings, penalize: Optional[tuple] = None):
         """The roadmap weighted with the alpha and objective of ``settings`` inside the block (one search of route
-        selection), the planner's weights after it: the saved weight of every edge the block left as it was, and
-        the planner's weight of the edges the block verified and scored (Eq. 1) meanwhile; edges found colliding in
-        the block stay removed."""
+        selection), the edges ``penalize[0]`` weighted ``penalize[1]`` times that, and the planner's weights after
+        it: the saved weight of every edge the block left as it was, and the planner's weight of the edges the
+        block verified and scored (Eq. 1) meanwhile; edges found colliding in the block stay removed."""
         g = self.rm.graph
         ids = g.valid_edge_ids()
         ids = ids[np.isfinite(g.weights[ids])]
         saved, c_p = g.weights[ids].copy(), g.edge_attribute("c_p")[ids].copy()
-        g.set_weights(ids, self._weights_of(ids, settings))
+        w = self._weights_of(ids, settings)
+        if penalize is not None and len(penalize[0]):
+            w[np.isin(ids, penalize[0])] *= penalize[1]
+        g.set_weights(ids, w)
         try:
             yield
         finally:

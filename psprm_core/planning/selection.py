@@ -6,8 +6,11 @@ at alpha = 1 it ignores length entirely. With ``route_searches`` (e.g. ``"motion
 roadmap once more per entry, the edges weighted with that entry's objective and alpha for the search and weighted
 back afterwards, and returns the route whose perception along the whole path (:meth:`~.scoring.Scoring.
 route_perception`: the motion-weighted mean c_p of its dense configurations, Eq. 1 taken over the route) is highest
-among the routes at most ``route_length_ratio`` times as long as the planner's own route. Every candidate is a
-complete query result (connected, verified, shortcut, timed), so what is returned is what was checked.
+among the routes at most ``route_length_ratio`` times as long as the planner's own route. An ``alt`` entry searches
+for another route: the motion-weighted form at alpha = 1 with the roadmap edges of every route found before weighted
+:data:`ALT_PENALTY` times, so it leaves them where another way sees comparably (e.g. round the other side of a table
+whose near side hides the target). Every candidate is a complete query result (connected, verified, shortcut,
+timed), so what is returned is what was checked.
 """
 
 from __future__ import annotations
@@ -20,6 +23,9 @@ import numpy as np
 
 from .results import PlanResult
 from .state import Stage
+
+#: Weight factor of the edges of the routes found before in an ``alt`` search.
+ALT_PENALTY = 3.0
 
 
 class RouteSelection(Stage):
@@ -41,12 +47,15 @@ class RouteSelection(Stage):
         cands = {own: (best_p, first.path_length)}
         limit = base.route_length_ratio * first.path_length
         saved = self.qc.settings
+        used = self.roadmap_edges(first.path_nodes)
         for objective, alpha in searches:
-            label = f"{objective}@{alpha:g}"
+            other = objective == "alt"
+            label = "alt" if other else f"{objective}@{alpha:g}"
             if label in cands:
                 continue
-            alt = dataclasses.replace(base, objective=objective, alpha=alpha, route_searches="")
-            with self.pl.scoring.weighted_for(alt):
+            alt = dataclasses.replace(base, objective="motion" if other else objective, alpha=alpha,
+                                      route_searches="")
+            with self.pl.scoring.weighted_for(alt, penalize=(used, ALT_PENALTY) if other else None):
                 self.qc.settings = alt
                 try:
                     res = self.pl.query.plan_once(start, goals, timing, goal_costs)
@@ -54,6 +63,7 @@ class RouteSelection(Stage):
                     self.qc.settings = saved
             if not res.success:
                 continue
+            used = np.union1d(used, self.roadmap_edges(res.path_nodes))
             p = self.perception(res)
             cands[label] = (p, res.path_length)
             if res.path_length <= limit and p > best_p + 1e-9:
@@ -61,6 +71,13 @@ class RouteSelection(Stage):
         best.route_candidates = cands
         best.query_ms = float(np.nan_to_num(first.query_ms)) + (time.perf_counter() - t0) * 1e3
         return best
+
+    def roadmap_edges(self, path_nodes: Sequence[int]) -> np.ndarray:
+        """Ids of the roadmap edges (between two roadmap nodes, not a query's own) along a node path."""
+        g, mask = self.rm.graph, self.rm.roadmap_mask()
+        ids = [g.edge_id(int(a), int(b)) for a, b in zip(path_nodes[:-1], path_nodes[1:])
+               if a < len(mask) and b < len(mask) and mask[a] and mask[b]]
+        return np.asarray([e for e in ids if e is not None], dtype=np.int64)
 
     def perception(self, res: PlanResult) -> float:
         """:meth:`~.scoring.Scoring.route_perception` of a result's dense path (scored now: the scene as it is)."""

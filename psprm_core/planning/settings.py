@@ -85,8 +85,8 @@ class PSPRMSettings:
     # native (the robot model; compiled kernels for small CPU batches) | pytorch_kinematics (psprm_core.kinematics_pk:
     # the projection always on the torch path; the checker's torch path, its small CPU batches still compiled)
     shortcut_rounds: int = 2  # greedy shortcut passes over the path
-    route_searches: str = ""  # more searches of each query, "objective@alpha" separated by commas (e.g.
-    # "motion@1.0"); the route that sees most (motion-weighted mean Eq. 1 along the path) is returned when it is at
+    route_searches: str = ""  # more searches of each query, "objective@alpha" or "alt" (another route) separated by
+    # commas (e.g. "eq2@0.8,alt"); the route that sees most (motion-weighted mean Eq. 1 along the path) is returned when it is at
     # most route_length_ratio times as long as the planner's own (selection.RouteSelection); "" = one search
     route_length_ratio: float = 1.5  # longest alternative route taken, relative to the length of the planner's own
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
@@ -156,15 +156,20 @@ class PSPRMSettings:
 
 
     def route_search_list(self, source: str = "settings") -> tuple:
-        """The extra searches of ``route_searches`` as ``((objective, alpha), ...)`` (empty when unset).
+        """The extra searches of ``route_searches`` as ``((objective, alpha), ...)`` (empty when unset); ``alt``
+        (another route: the motion-weighted form at alpha = 1 with the edges of the routes found before weighted
+        more, :data:`~.selection.ALT_PENALTY`) is ``("alt", 1.0)``.
 
         Raises
         ------
         ConfigError
-            An entry that is not ``objective@alpha`` with a known objective and alpha in [0, 1]."""
+            An entry that is not ``alt`` or ``objective@alpha`` with a known objective and alpha in [0, 1]."""
         out = []
         for item in (x.strip() for x in self.route_searches.split(",")):
             if not item:
+                continue
+            if item == "alt":
+                out.append(("alt", 1.0))
                 continue
             objective, _, alpha = item.partition("@")
             try:
@@ -172,7 +177,7 @@ class PSPRMSettings:
             except ValueError:
                 a = float("nan")
             if objective not in OBJECTIVES or not 0.0 <= a <= 1.0:
-                raise ConfigError(source, "route_searches", f"'{item}' is not objective@alpha with an objective of "
-                                                            f"{', '.join(OBJECTIVES)} and alpha in [0, 1]")
+                raise ConfigError(source, "route_searches", f"'{item}' is neither 'alt' nor objective@alpha with an "
+                                                            f"objective of {', '.join(OBJECTIVES)} and alpha in [0, 1]")
             out.append((objective, a))
         return tuple(out)
