@@ -97,13 +97,15 @@ def kinematics_benchmark(robot_name: str, scene_name: str, n: int = 10000, seed:
 
 
 def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, seed: int, threads: int,
-                   target: str | None, heuristic: str | None = None, aimed: bool = True) -> tuple:
+                   target: str | None, heuristic: str | None = None, aimed: bool = True,
+                   overrides: dict | None = None) -> tuple:
     """Scene, robot, target name, built planner, its build stats and ``problems`` random (start, goal) pairs.
 
     ``aimed`` (default): both ends face the target, as in ``psprm bench`` (camera joints projected onto the
     line-of-sight manifold with restarts, unconverged configurations dropped). ``aimed=False``: the camera joints
     are only pushed towards the target from the default pose (10 Gauss-Newton steps, converged or not); on the mobile
-    UR5, whose whole arm aims the wrist camera, 9 in 10 such ends then lie off the visibility manifold."""
+    UR5, whose whole arm aims the wrist camera, 9 in 10 such ends then lie off the visibility manifold.
+    ``overrides``: planner settings (as ``psprm bench --set``)."""
     from ..collision import CollisionChecker
     from ..paths import resolve_named
     from ..planning.factory import make_planner
@@ -114,7 +116,8 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
     target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
-    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed, heuristic=heuristic)
+    p = make_planner(planner, scene, [target], robot=robot, **{"n_nodes": nodes, "seed": seed, "heuristic": heuristic,
+                                                                **(overrides or {})})
     stats = p.build()
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     probs = random_problems(robot, scene, checker, problems, np.random.default_rng(seed + 1),
@@ -125,17 +128,21 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
 
 def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes: int = 3000, queries: int = 50,
                       seed: int = 0, threads: int = 2, target: str | None = None, heuristic: str | None = None,
-                      aimed: bool = True) -> dict:
-    """Build time (sampling, projection, collision, neural scoring with occlusion) and query times of PS-PRM."""
+                      aimed: bool = True, overrides: dict | None = None) -> dict:
+    """Build time (sampling, projection, collision, neural scoring with occlusion) and query times of PS-PRM;
+    with route selection (``route_searches`` in ``overrides``) also the share of queries that returned another
+    search's route (``other_route_rate``)."""
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, queries, seed, threads, target,
-                                                           heuristic, aimed=aimed)
-    times, ok, scores = [], 0, []
+                                                           heuristic, aimed=aimed, overrides=overrides)
+    times, ok, scores, other = [], 0, [], 0
+    own = f"{p.settings.objective}@{p.settings.alpha:g}"
     for a, b in probs:
         res = p.plan(a, b, timing=False)
         times.append(res.query_ms)
         ok += res.success
         if res.success:
             scores.append(res.mean_score)
+            other += bool(res.route) and res.route != own
     return {
         "scene": scene.name, "planner": planner, "target": target, "threads": threads, "aimed": aimed,
         "heuristic": p.settings.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
@@ -144,6 +151,7 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
         "queries": len(probs), "success_rate": ok / len(probs),
         "query_ms": float(np.median(times)), "query_p95_ms": float(np.percentile(times, 95)),
         "mean_perception_score": float(np.mean(scores)) if scores else float("nan"),
+        "route_searches": p.settings.route_searches, "other_route_rate": other / max(ok, 1),
     }
 
 

@@ -26,6 +26,8 @@ from .state import Stage
 
 #: Weight factor of the edges of the routes found before in an ``alt`` search.
 ALT_PENALTY = 3.0
+#: A route's perception is taken from every this many of its dense configurations (``edge_resolution`` apart).
+PERCEPTION_STRIDE = 4
 
 
 class RouteSelection(Stage):
@@ -80,5 +82,8 @@ class RouteSelection(Stage):
         return np.asarray([e for e in ids if e is not None], dtype=np.int64)
 
     def perception(self, res: PlanResult) -> float:
-        """:meth:`~.scoring.Scoring.route_perception` of a result's dense path (scored now: the scene as it is)."""
-        return self.pl.scoring.route_perception(res.dense, res.dense_scores)
+        """:meth:`~.scoring.Scoring.route_perception` of a result's dense path, every :data:`PERCEPTION_STRIDE`-th
+        configuration and the last (scored now: the scene as it is)."""
+        d = np.asarray(res.dense)
+        idx = np.unique(np.r_[np.arange(0, len(d), PERCEPTION_STRIDE), len(d) - 1])
+        return self.pl.scoring.route_perception(d[idx], self.pl.scoring.score_numpy(d[idx]))
