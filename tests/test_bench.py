@@ -361,6 +361,23 @@ def test_planner_settings_are_typed_and_checked():
             parse_planner_settings([item], ["post", "neural-psprm-line"])
 
 
+def test_replan_settings_are_typed_and_checked():
+    """``psprm simulate --replan KEY=VALUE``: the replanner's settings, typed like the YAML files and validated."""
+    from psprm_core.baselines import parse_settings
+    from psprm_core.planning.replanner import ReplanSettings
+
+    got = parse_settings(["route_selection=true", "goal_commit_s=4", "heuristic=hop"], ReplanSettings, "replanning",
+                         flag="--replan")
+    assert got == {"route_selection": True, "goal_commit_s": 4.0, "heuristic": "hop"}
+    assert isinstance(got["goal_commit_s"], float)
+    bad = {"route_selection": "expected KEY=VALUE", "nope=1": "--replan 'nope=1': 'nope' is not a setting",
+           "route_selection=3": "takes true or false", "heuristic=astar": "heuristic must be one of",
+           "goal_commit_growth=0.5": "goal_commit_growth"}
+    for item, msg in bad.items():
+        with pytest.raises(PsprmError, match=msg):
+            parse_settings([item], ReplanSettings, "replanning", flag="--replan")
+
+
 def test_bench_set_reaches_the_planner_and_the_table(tmp_path, monkeypatch, capsys):
     from psprm_core.cli import main
 

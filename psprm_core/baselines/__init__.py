@@ -93,13 +93,6 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
         Malformed item, a planner not in ``planners``, an unknown or fixed setting, a value of the wrong type or
         out of range.
     """
-    import dataclasses
-
-    import yaml
-
-    from ..errors import ConfigError
-    from ..yamlio import Fields, typed_value
-
     out: dict = {}
     for item in items:
         head, eq, raw = str(item).partition("=")
@@ -110,32 +103,61 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
             raise PsprmError(f"--set '{item}': planner '{name}' is not among the planners run "
                              f"({', '.join(planners)})")
         cls = settings_class(name.split("~", 1)[0])  # NAME~LABEL: planner NAME under its own label
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        if key in FIXED_SETTINGS or key not in fields or fields[key].default is dataclasses.MISSING:
-            settable = sorted(k for k, f in fields.items() if k not in FIXED_SETTINGS and f.default is not
+        out.setdefault(name, {}).update(parse_settings([f"{key}={raw}"], cls, name, FIXED_SETTINGS, item))
+    return out
+
+
+def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[str] = (),
+                   shown: str | None = None, flag: str = "--set") -> dict:
+    """``["KEY=VALUE", ...]`` -> ``{key: value}`` for the settings dataclass ``cls`` (typed like the YAML settings
+    files, by the field default's type; the class's ``validate()`` run on the result); ``label`` names the settings
+    in messages, ``fixed`` lists fields that cannot be set this way, ``shown`` the item as the user wrote it and
+    ``flag`` the option it came with.
+
+    Raises
+    ------
+    PsprmError
+        Malformed item, an unknown or fixed setting, a value of the wrong type or out of range.
+    """
+    import dataclasses
+
+    import yaml
+
+    from ..errors import ConfigError
+    from ..yamlio import Fields, typed_value
+
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    out: dict = {}
+    for item in items:
+        key, eq, raw = str(item).partition("=")
+        key, said = key.strip(), shown or item
+        if not eq or not key or not raw.strip():
+            raise PsprmError(f"{flag} '{said}': expected KEY=VALUE")
+        if key in fixed or key not in fields or fields[key].default is dataclasses.MISSING:
+            settable = sorted(k for k, f in fields.items() if k not in fixed and f.default is not
                               dataclasses.MISSING)
-            raise PsprmError(f"--set '{item}': '{key}' is not a setting of {name} that --set can change "
+            raise PsprmError(f"{flag} '{said}': '{key}' is not a setting of {label} that {flag} can change "
                              f"(settable: {', '.join(settable)})")
         try:
             value = yaml.safe_load(raw)
         except yaml.YAMLError:
             value = raw.strip()
         default = fields[key].default
-        f = Fields({key: value}, f"--set {name}")
+        f = Fields({key: value}, f"{flag} {label}")
         try:  # typed as the YAML settings files are (the field default's type)
             value = typed_value(f, key, default, int_lo=None, float_lo=None)
         except ConfigError:
             kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
-            raise PsprmError(f"--set '{item}': {name}.{key} takes {kind}, got {raw.strip()!r}") from None
-        probe = dataclasses.replace(cls(), **{key: value})
-        if hasattr(probe, "validate"):
-            try:
-                probe.validate(f"--set {name}")
-            except Exception as exc:
-                raise PsprmError(f"--set '{item}': {exc}") from None
-        out.setdefault(name, {})[key] = value
+            raise PsprmError(f"{flag} '{said}': {label}.{key} takes {kind}, got {raw.strip()!r}") from None
+        try:
+            probe = dataclasses.replace(cls(), **{**out, key: value})
+            if hasattr(probe, "validate"):
+                probe.validate(f"{flag} {label}")
+        except Exception as exc:
+            raise PsprmError(f"{flag} '{said}': {exc}") from None
+        out[key] = value
     return out
 
 
 __all__ = ["BASELINES", "SETTINGS", "planner_names", "make_baseline", "resolve", "settings_class",
-           "parse_planner_settings"]
+           "parse_planner_settings", "parse_settings"]

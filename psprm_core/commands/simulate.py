@@ -16,6 +16,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-static", action="store_true", help="skip the static single-plan comparison")
     p.add_argument("--plot", default=None, help="figure path (default out/simulate_<scenario>.png)")
     p.add_argument("--threads", type=int, default=2)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                   help="change one setting of the scenario's planner (repeatable), e.g. --set alpha=1.0")
+    p.add_argument("--replan", action="append", default=[], metavar="KEY=VALUE",
+                   help="change one replanning setting (ReplanSettings; repeatable), e.g. --replan route_selection=true")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_run)
 
@@ -23,15 +27,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _run(args) -> int:
     from pathlib import Path
 
+    from ..baselines import parse_settings, settings_class
+    from ..evaluation.simulation import load_scenario, simulate
     from ..paths import resolve_named
-    from ..evaluation.simulation import simulate
+    from ..planning.replanner import ReplanSettings
 
     path = Path(args.scenario)
     if not path.is_file():
         path = resolve_named("scenario", args.scenario)
     plot = args.plot or f"out/simulate_{path.stem}.png"
+    planner = load_scenario(path).planner
+    overrides = parse_settings(args.settings, settings_class(planner), planner)
+    replan = parse_settings(args.replan, ReplanSettings, "replanning", flag="--replan")
     res = simulate(path, compare_static=not args.no_static, plot=plot, threads=args.threads, nodes=args.nodes,
-                   duration_s=args.duration)
+                   duration_s=args.duration, planner_overrides=overrides, replan_overrides=replan)
     if args.json:
         print(json.dumps(res))
     else:

@@ -263,14 +263,15 @@ def _aimer(planner):
     return aim
 
 
-def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracle=None, progress=None) -> dict:
+def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracle=None, progress=None,
+                replan_settings=None) -> dict:
     """Execute one episode; ``replanning=False`` is the static baseline (one plan at t = 0, then only execution).
 
     Returns a dict with the executed configurations, camera-frame times, oracle confidences and detections, the
     replanning log and summary numbers (see :func:`summarize`)."""
     from ..paths import resolve_named
     from ..planning.factory import make_planner
-    from ..planning.replanner import Replanner
+    from ..planning.replanner import Replanner, ReplanSettings
     from ..robot import RobotModel
     from ..scene import load_scene
 
@@ -281,7 +282,7 @@ def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracl
         planner = make_planner(scenario.planner, scene, [scenario.target], robot=robot, n_nodes=scenario.nodes,
                                seed=scenario.seed)
         planner.build()
-    rp = Replanner(planner, targets=[scenario.target])
+    rp = Replanner(planner, replan_settings or ReplanSettings(), targets=[scenario.target])
     aim = _aimer(planner)
     start = robot.configuration(scenario.start)
     start = aim(start[None])[0]
@@ -440,9 +441,12 @@ def plot_episodes(episodes: dict, scenario: Scenario, path: str | Path) -> Path:
 
 
 def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optional[str | Path] = None,
-             threads: int = 2, nodes: Optional[int] = None, duration_s: Optional[float] = None) -> dict:
+             threads: int = 2, nodes: Optional[int] = None, duration_s: Optional[float] = None,
+             planner_overrides: Optional[dict] = None, replan_overrides: Optional[dict] = None) -> dict:
     """``psprm simulate``: run the scenario with replanning (and a static single plan on the same timeline), judge
-    both with the oracle, return the summary (and write the figure)."""
+    both with the oracle, return the summary (and write the figure). ``planner_overrides``: settings of the
+    scenario's planner; ``replan_overrides``: :class:`~psprm_core.planning.replanner.ReplanSettings` fields (both
+    episodes use them: the static one for its single plan)."""
     from ..perception.oracle import Oracle
 
     torch.set_num_threads(threads)
@@ -450,6 +454,7 @@ def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optio
 
     from ..paths import resolve_named
     from ..planning.factory import make_planner
+    from ..planning.replanner import ReplanSettings
     from ..robot import RobotModel
     from ..scene import load_scene
 
@@ -463,25 +468,29 @@ def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optio
     robot = RobotModel.load(scene.robot)
 
     def fresh():
-        return make_planner(sc.planner, scene, [sc.target], robot=robot, n_nodes=sc.nodes, seed=sc.seed)
+        return make_planner(sc.planner, scene, [sc.target], robot=robot,
+                            **{"n_nodes": sc.nodes, "seed": sc.seed, **(planner_overrides or {})})
+
+    rs = ReplanSettings(**(replan_overrides or {}))
 
     planner = fresh()
     build_s = planner.build().get("build_s", float("nan"))
     with tempfile.TemporaryDirectory() as tmp:  # the static run gets an untouched copy of the same roadmap
         saved = planner.save(Path(tmp) / "roadmap.npz")
-        ep = run_episode(sc, replanning=True, planner=planner)
+        ep = run_episode(sc, replanning=True, planner=planner, replan_settings=rs)
         episodes = {"replanning": ep}
         if compare_static:
             p2 = fresh()
             p2.load(saved)
-            episodes["static"] = run_episode(sc, replanning=False, planner=p2)
+            episodes["static"] = run_episode(sc, replanning=False, planner=p2, replan_settings=rs)
     oracle = Oracle(ep["scene"], intrinsics=ep["robot"].config.intrinsics)
     try:
         for e in episodes.values():
             judge_frames(e, oracle, sc.target)
     finally:
         oracle.close()
-    out = {"scenario": sc.name, "scene": sc.scene, "planner": sc.planner, "nodes": sc.nodes, "build_s": build_s}
+    out = {"scenario": sc.name, "scene": sc.scene, "planner": sc.planner, "nodes": sc.nodes, "build_s": build_s,
+           "planner_overrides": dict(planner_overrides or {}), "replan_overrides": dict(replan_overrides or {})}
     out.update(summarize(ep))
     out["replan_log"] = ep["replans"]
     if compare_static:
