@@ -90,12 +90,18 @@ class CollisionChecker:
     device, dtype : torch device and dtype of all tensors.
     chunk : int
         Configurations processed per batch (bounds peak memory).
+    kinematics : object with ``body_poses(q)``, optional
+        The body poses of the torch path, in the format of :meth:`RobotModel.body_poses`: the robot model itself
+        (default) or e.g. :class:`~psprm_core.kinematics_pk.PKBodyKinematics`. The compiled small-batch CPU path
+        (:mod:`~psprm_core.fastpath`) runs the robot model's own FK either way.
     """
 
     def __init__(self, robot: RobotModel, boxes: Iterable = (), allowed_pairs: Optional[set] = None,
-                 workspace: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32, chunk: int = 16384):
+                 workspace: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32, chunk: int = 16384,
+                 kinematics=None):
 
         self.robot = robot
+        self.kin = robot if kinematics is None else kinematics
         self.device = torch.device(device)
         self.dtype = dtype
         self.chunk = chunk
@@ -185,7 +191,7 @@ class CollisionChecker:
         if fastpath.applies(q):
             f = torch.from_numpy(fastpath.check(self, q, detailed=True))
             return {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
-        poses = self.robot.body_poses(q)
+        poses = self.kin.body_poses(q)
         return {"limits": self.limits_violated(q), "environment": self._env(poses), "self": self._self(poses)}
 
     def env_hits(self, q: torch.Tensor, boxes, return_aabb: bool = False):
@@ -204,7 +210,7 @@ class CollisionChecker:
         try:
             self.boxes = bt
             for s in range(0, q.shape[0], self.chunk):
-                poses = self.robot.body_poses(q[s:s + self.chunk])
+                poses = self.kin.body_poses(q[s:s + self.chunk])
                 hits.append(self._env(poses))
                 if return_aabb:
                     boxes_out.append(self._aabb(poses))
@@ -223,7 +229,7 @@ class CollisionChecker:
         if fastpath.applies(q):
             return torch.from_numpy(fastpath.env_hits(self, q, BoxTensors.from_boxes([], self.device, self.dtype),
                                                       True)[1]).to(self.dtype)
-        return torch.cat([self._aabb(self.robot.body_poses(q[s:s + self.chunk]))
+        return torch.cat([self._aabb(self.kin.body_poses(q[s:s + self.chunk]))
                           for s in range(0, q.shape[0], self.chunk)]) if q.shape[0] else \
             torch.zeros(0, 6, dtype=self.dtype, device=self.device)
 
@@ -240,7 +246,7 @@ class CollisionChecker:
 
     def _check_chunk(self, q: torch.Tensor) -> torch.Tensor:
         bad = self.limits_violated(q)
-        poses = self.robot.body_poses(q)
+        poses = self.kin.body_poses(q)
         return bad | self._env(poses) | self._self(poses, q)
 
     def _element_world(self, poses, b_idx: torch.Tensor, e_idx: torch.Tensor) -> tuple:

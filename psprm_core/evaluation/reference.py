@@ -157,6 +157,26 @@ class PybulletWorld:
         T[:3, 3] = st[4]
         return T @ image_roll(self.robot.config.camera_roll_deg)
 
+    def link_poses(self, q: np.ndarray, links: Iterable[str]) -> np.ndarray:
+        """4x4 world poses (L, 4, 4) of the URDF frames of ``links`` at configuration ``q``, from pybullet's own FK."""
+        p = self.p
+        self.set_configuration(q)
+        links = list(links)
+        idx = [self.link_index[name] for name in links]
+        states = dict(zip([i for i in idx if i >= 0], p.getLinkStates(
+            self.body, [i for i in idx if i >= 0], computeForwardKinematics=True, physicsClientId=self.cid) or []))
+        out = np.tile(np.eye(4), (len(links), 1, 1))
+        for k, i in enumerate(idx):
+            if i >= 0:
+                pos, quat = states[i][4:6]
+            else:  # the base: pybullet places its inertial frame, the URDF frame is that times the inverse offset
+                pos, quat = p.getBasePositionAndOrientation(self.body, physicsClientId=self.cid)
+                inertial = p.getDynamicsInfo(self.body, -1, physicsClientId=self.cid)[3:5]
+                pos, quat = p.multiplyTransforms(pos, quat, *p.invertTransform(*inertial))
+            out[k, :3, :3] = np.array(p.getMatrixFromQuaternion(quat)).reshape(3, 3)
+            out[k, :3, 3] = pos
+        return out
+
 
 def compute_acm(robot: RobotModel, samples: int, seed: int = 0, always_fraction: float = 0.95) -> dict:
     """Sample ``samples`` random configurations and classify every colliding link pair (see module docstring).

@@ -61,20 +61,22 @@ class PSPRM:
         Point the visibility constraint keeps in view (the target's centroid, or the midpoint of several targets).
     settings : PSPRMSettings
     device, dtype : torch device and dtype of all batched work.
-    checker : the collision checker to use (default: one for ``robot`` and the scene's boxes).
+    checker : the collision checker to use (default: one for ``robot`` and the scene's boxes, whose torch path runs
+        the body FK of :class:`~psprm_core.kinematics_pk.PKBodyKinematics` under ``kinematics: pytorch_kinematics``).
     """
 
     def __init__(self, robot: RobotModel, scene: Scene, scorer, focus, settings: PSPRMSettings = PSPRMSettings(),
                  device="cpu", checker: Optional[CollisionChecker] = None, dtype: torch.dtype = torch.float32):
         settings.validate()
         device = torch.device(device)
-        checker = checker or CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace, device=device,
-                                              dtype=dtype)
-        kin = None
+        kin = body_kin = None
         if settings.kinematics == "pytorch_kinematics":
-            from ..kinematics_pk import PKCameraKinematics
+            from ..kinematics_pk import PKBodyKinematics, PKCameraKinematics
 
             kin = PKCameraKinematics(robot, device=device)
+            body_kin = None if checker is not None else PKBodyKinematics(robot, device=device, dtype=dtype)
+        checker = checker or CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace, device=device,
+                                              dtype=dtype, kinematics=body_kin)
         constraint = VisibilityConstraint(robot, settings.constraint, focus, margin=settings.frustum_margin,
                                           min_distance=settings.min_view_distance, kinematics=kin)
         mask = camera_joint_mask(robot)
