@@ -1,4 +1,5 @@
-"""Neural perception surrogate: features, model I/O, training on an analytic scorer, metrics."""
+"""Neural perception surrogate: features, model I/O, training on an analytic scorer, the loss options and class
+weights against closed-form optima, metrics."""
 
 from __future__ import annotations
 
@@ -266,3 +267,49 @@ def test_pooled_datasets_are_split_per_source(tmp_path):
     assert set(by_src) == {str(tmp_path / "a"), str(tmp_path / "b")}
     assert sum(m["n"] for m in by_src.values()) == report["metrics"]["test"]["n"]
     assert by_src[str(tmp_path / "b")]["spearman"] > 0.9, by_src
+
+
+def _uninformative(n: int = 4000, seed: int = 0):
+    """Features that carry no information (noise) and labels drawn independently of them: a trained model can only
+    learn each class's optimal constant, which each loss defines in closed form."""
+    g = torch.Generator().manual_seed(seed)
+    feats = torch.randn(n, len(PerceptionSurrogate(["a"]).feature_names), generator=g)
+    cls = (torch.arange(n) % 2).long()  # class 0 "a", class 1 "b"
+    y = torch.where(torch.rand(n, generator=g) < 0.5, 0.0, 0.5)  # half 0, half 0.5
+    y = torch.where(cls == 1, 0.1, y)  # class "b": always 0.1
+    return feats, cls, y
+
+
+@pytest.mark.parametrize("loss, optimum", [
+    ("bce", 0.25),  # the mean label
+    ("log-mse", math.sqrt(0.05 * 0.55) - 0.05),  # exp(mean log(y + c)) - c, c = 0.05: 0.116
+])
+def test_loss_options_reach_their_closed_form_optimum(loss, optimum):
+    from psprm_core.perception.training import fit_surrogate
+
+    feats, cls, y = _uninformative()
+    cfg = TrainConfig(epochs=40, lr=3e-3, batch_size=500, loss=loss, patience=None, seed=0, threads=1, hidden=16,
+                      layers=2, weight_decay=1e-2)
+    model, _ = fit_surrogate((feats, cls, y), None, ["a", "b"], cfg)
+    pred = model.predict_features(feats, cls).double().numpy()
+    assert pred[cls.numpy() == 0].mean() == pytest.approx(optimum, abs=0.03)
+    assert pred[cls.numpy() == 1].mean() == pytest.approx(0.1, abs=0.03)
+
+
+def test_class_weights_scale_each_class_loss():
+    from psprm_core.errors import InputError
+    from psprm_core.perception.training import fit_surrogate
+
+    feats, cls, y = _uninformative()
+
+    def class_b_mean(weights):
+        cfg = TrainConfig(epochs=15, lr=3e-3, batch_size=500, patience=None, seed=0, threads=1, hidden=16, layers=2,
+                          class_weights=weights)
+        model, _ = fit_surrogate((feats, cls, y), None, ["a", "b"], cfg)
+        return float(model.predict_features(feats, cls).double().numpy()[cls.numpy() == 1].mean())
+
+    assert class_b_mean({"b": 1.0}) == pytest.approx(0.1, abs=0.03)
+    assert abs(class_b_mean({"b": 1e-6}) - 0.1) > 0.07  # class "b" barely trained: far from its label (0.22)
+    for bad in ({"c": 2.0}, {"b": 0.0}):
+        with pytest.raises(InputError):
+            fit_surrogate((feats, cls, y), None, ["a", "b"], TrainConfig(epochs=1, class_weights=bad))

@@ -67,6 +67,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("--n", type=int, default=10000, help="number of random configurations (default 10000)")
     k.add_argument("--seed", type=int, default=0)
     k.add_argument("--threads", type=int, default=2)
+    k.add_argument("--kinematics", choices=["native", "pytorch_kinematics"], default="native",
+                   help="pytorch_kinematics: also the whole-body FK of the robot model, pytorch-kinematics and "
+                        "pybullet side by side (throughput, agreement with pybullet, torch-path collision checks)")
     k.add_argument("--json", action="store_true", help="print one JSON object")
     k.set_defaults(func=_json_only(_kinematics))
     pl = ps.add_parser("planner", help="PS-PRM build time (incl. neural scoring, occlusion, collision) and query time")
@@ -79,6 +82,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--heuristic", choices=["hop", "exact"], default=None, help="A* heuristic (default: settings)")
     pl.add_argument("--threads", type=int, default=2)
     pl.add_argument("--unaimed", action="store_true", help="ends not required to face the target (see benchmarks)")
+    pl.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
+                    help="change one planner setting (repeatable), e.g. --set route_searches=eq2@0.8,motion@1.0")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=_json_only(_planner))
     cp = ps.add_parser("compare", help="success over random problems and oracle-judged perception: PS-PRM vs the "
@@ -117,6 +122,31 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                       "the same views against the same oracle labels")
     tr.add_argument("--json", action="store_true")
     tr.set_defaults(func=_json_only(_transfer))
+    ln = ps.add_parser("label-noise", help="test-retest reliability of the oracle labels: held-out test views of "
+                                           "the surrogate's dataset relabelled after a pose change no planner "
+                                           "resolves, against the surrogate on the same views")
+    from .surrogate import DEFAULT_DATASET
+
+    ln.add_argument("--checkpoint", default="psprm_core/data/surrogate.pt",
+                    help="surrogate whose held-out test split is used and which is judged on the same views")
+    ln.add_argument("--dataset", default=DEFAULT_DATASET, help="dataset directories, comma-separated (as the "
+                                                              "checkpoint was trained on)")
+    ln.add_argument("--per-class", type=int, default=200, help="test views drawn per class (the cup's tiled "
+                                                               "detector: ~0.5 s a view, the others ~0.1 s)")
+    ln.add_argument("--translation", type=float, default=0.01, help="camera moved by this many metres")
+    ln.add_argument("--rotation-deg", type=float, default=0.5, help="and turned by this many degrees")
+    ln.add_argument("--seed", type=int, default=0, help="seeds the views drawn and the directions of the change")
+    ln.add_argument("--threads", type=int, default=1, help="detector and torch threads")
+    ln.add_argument("--checkpoints", default="", help="further surrogate checkpoints (comma-separated) judged on "
+                                                      "the same views against the same labels")
+    ln.add_argument("--no-reproduce", action="store_true", help="skip relabelling the unperturbed views (the "
+                                                                "check that this oracle reproduces the stored labels)")
+    ln.add_argument("--allow-incomplete", action="store_true", help="a dataset whose build was stopped")
+    ln.add_argument("--out", default=None, help="also write the full record (per-view labels) as JSON here")
+    ln.add_argument("--record", default=None, help="judge the views and labels of an earlier run's --out record "
+                                                   "again (no oracle; e.g. with other --checkpoints)")
+    ln.add_argument("--json", action="store_true")
+    ln.set_defaults(func=_json_only(_label_noise))
     vm = ps.add_parser("viewmap", help="where the real detector sees a target: the robot's camera aimed at it from a "
                                        "grid of base positions (share detected, mean confidence, the grid)")
     vm.add_argument("--scene", default="home")
@@ -212,7 +242,12 @@ def _replan(args) -> int:
 def _kinematics(args) -> int:
     from ..evaluation.benchmarks import kinematics_benchmark
 
-    _print(kinematics_benchmark(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads), args.json)
+    res = kinematics_benchmark(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads)
+    if args.kinematics == "pytorch_kinematics":
+        from ..evaluation.fk_compare import body_fk_comparison
+
+        res.update(body_fk_comparison(args.robot, args.scene, n=args.n, seed=args.seed, threads=args.threads))
+    _print(res, args.json)
     return 0
 
 
@@ -226,11 +261,14 @@ def _print(res: dict, as_json: bool) -> None:
 
 
 def _planner(args) -> int:
+    from ..baselines import parse_planner_settings
     from ..evaluation.benchmarks import planner_benchmark
 
+    overrides = parse_planner_settings([f"{args.planner}.{s}" for s in args.settings], [args.planner]).get(
+        args.planner, {})
     _print(planner_benchmark(args.scene, args.planner, nodes=args.nodes, queries=args.queries, seed=args.seed,
                              threads=args.threads, target=args.target, heuristic=args.heuristic,
-                             aimed=not args.unaimed), args.json)
+                             aimed=not args.unaimed, overrides=overrides), args.json)
     return 0
 
 
@@ -287,4 +325,41 @@ def _preprocess(args) -> int:
 
     _print(preprocess_benchmark(args.scene, args.target, nodes=args.nodes, oracle_nodes=args.oracle_nodes,
                                 seed=args.seed, threads=args.threads), args.json)
+    return 0
+
+
+def _label_noise(args) -> int:
+    from pathlib import Path
+
+    from ..evaluation.label_noise import label_noise
+
+    res = label_noise(args.checkpoint, args.dataset, per_class=args.per_class, translation=args.translation,
+                      rotation_deg=args.rotation_deg, seed=args.seed, threads=args.threads,
+                      checkpoints=[c for c in args.checkpoints.split(",") if c], reproduce=not args.no_reproduce,
+                      allow_incomplete=args.allow_incomplete,
+                      record=json.loads(Path(args.record).read_text()) if args.record else None)
+    if args.out:
+        Path(args.out).write_text(json.dumps(_finite(res), allow_nan=False))
+    res.pop("views")
+    if args.json:
+        print_json(res)
+        return 0
+    print(("labels of " + args.record + ": " if args.record else "") +
+          f"{res['views_relabelled']} held-out test views relabelled after a {100 * res['translation_m']:g} cm / "
+          f"{res['rotation_deg']:g} deg camera change ({res['target_left_view']} moved out of the image, "
+          f"{res['target_out_of_view_before']} out of it before), oracle "
+          f"{res['oracle_s']:.0f} s")
+    if "reproduction" in res:
+        r = res["reproduction"]
+        print(f"unperturbed views relabelled: {100 * r['identical_fraction']:.1f} % identical to the stored labels, "
+              f"max difference {r['max_abs_diff']:.3g}")
+    preds = [k for k in res["per_class"]["pooled"] if k not in ("n", "positive_rate", "zero_fraction", "retest")]
+    print(f"{'class':14s} {'n':>4s} {'pos':>5s} {'zero':>5s} | {'retest rho':>10s} {'ceiling':>7s} {'rmse':>6s} "
+          f"{'f1':>5s} | " + " | ".join(f"{k[-24:]:>24s}" for k in preds))
+    for c, st in res["per_class"].items():
+        rt = st["retest"]
+        cells = " | ".join(f"rho {st[k]['spearman']:.3f} rmse {st[k]['rmse']:.3f} f1 {st[k]['f1']:.2f}".rjust(24)
+                           for k in preds)
+        print(f"{c:14s} {st['n']:4d} {st['positive_rate']:5.2f} {st['zero_fraction']:5.2f} | "
+              f"{rt['spearman']:10.3f} {rt['ceiling_spearman']:7.3f} {rt['rmse']:6.3f} {rt['f1']:5.2f} | {cells}")
     return 0

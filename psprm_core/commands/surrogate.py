@@ -52,6 +52,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--batch", type=int, default=512)
     t.add_argument("--threads", type=int, default=2)
     t.add_argument("--seed", type=int, default=0)
+    t.add_argument("--loss", choices=("bce", "mse", "log-mse"), default="bce",
+                   help="bce: cross-entropy with the soft labels; log-mse: squared error of log(score + "
+                        "--log-offset), training on the logarithm of the confidence (the network still outputs the "
+                        "confidence)")
+    t.add_argument("--log-offset", type=float, default=0.05, help="offset of the log-mse loss")
+    t.add_argument("--class-weight", default="", metavar="CLASS=W,...",
+                   help="loss weight of the samples of each named class (others 1), e.g. 'cup=4'")
     t.add_argument("--allow-incomplete", action="store_true",
                    help="train on the chunks labelled so far (a dataset build that was stopped; resume it later)")
     t.set_defaults(func=_train)
@@ -63,6 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--occluded", default=DEFAULT_OCCLUDED, help="dataset rendered in a cluttered scene "
                                                                  "(occluded views are evaluated with ray casting)")
     e.add_argument("--allow-incomplete", action="store_true", help="evaluate on a dataset whose build was stopped")
+    e.add_argument("--threads", type=int, default=2, help="torch threads (the throughput measurement, "
+                                                          "evals_per_s, included)")
     e.add_argument("--json", action="store_true")
     e.set_defaults(func=_eval)
 
@@ -114,7 +123,17 @@ def _train(args) -> int:
     from ..perception.dataset import load_dataset
     from ..perception.training import TrainConfig, pool_datasets, train_surrogate
 
-    cfg = TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch, seed=args.seed, threads=args.threads)
+    weights = {}
+    for item in (w for w in args.class_weight.split(",") if w.strip()):
+        name, sep, value = item.rpartition("=")
+        try:
+            weights[name.strip()] = float(value)
+        except ValueError:
+            name = ""
+        if not sep or not name.strip():
+            raise InputError(f"--class-weight wants CLASS=WEIGHT items, got {item!r}")
+    cfg = TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch, seed=args.seed, threads=args.threads,
+                      loss=args.loss, log_offset=args.log_offset, class_weights=weights)
     dss = [load_dataset(d, allow_incomplete=args.allow_incomplete) for d in args.dataset.split(",") if d]
     for d in dss:
         if not d.metadata.get("complete", True):
@@ -178,6 +197,7 @@ def _eval(args) -> int:
     from ..perception.training import _splits, TrainConfig, evals_per_s, perception_metrics, pool_datasets
     from ..scene import load_scene
 
+    torch.set_num_threads(max(1, int(args.threads)))
     ck = Path(args.checkpoint)
     if not ck.is_file():
         raise PsprmError(f"checkpoint not found: {ck}")
@@ -250,7 +270,7 @@ def _eval(args) -> int:
         out["raycast_agreement_with_line_of_sight"] = float(np.mean(rc == blocked))
         out["cluttered_scene_rmse_surrogate"] = perception_metrics(p_raw[valid], occ.scores[valid], thr[valid])["rmse"]
         out["cluttered_scene_rmse_raycast"] = perception_metrics(p_zero[valid], occ.scores[valid], thr[valid])["rmse"]
-    out["evals_per_s"] = evals_per_s(model, threads=2)
+    out["evals_per_s"] = evals_per_s(model, threads=args.threads)
     print(json.dumps(out, default=float) if args.json else json.dumps(out, indent=2, default=float))
     return 0
 

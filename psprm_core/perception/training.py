@@ -7,7 +7,11 @@ the best weights.
 Loss: ``"bce"`` (default) is the binary cross-entropy between the predicted score and the *soft* label
 :math:`y \\in [0, 1]` (``BCEWithLogitsLoss`` on the pre-sigmoid output). Like the MSE it is minimised by
 :math:`\\hat y = y`, but its gradient w.r.t. the logit, :math:`\\hat y - y`, does not vanish when the sigmoid
-saturates, which matters because detector confidences pile up near 0 and near 1. ``"mse"`` is available too.
+saturates, which matters because detector confidences pile up near 0 and near 1. ``"mse"`` is available too, and
+``"log-mse"``, the squared error of :math:`\\log(\\hat y + c)` against :math:`\\log(y + c)` (``log_offset`` c): training
+on the logarithm of the confidence, which weighs an error on a small label by about :math:`1 / (y + c)^2` instead of
+BCE's :math:`1 / (y (1 - y))`, while the network still outputs the confidence itself. ``class_weights`` scales the
+loss of each class's samples.
 
 Evaluation (:func:`perception_metrics`) reports what the paper's Table "benchmark-results" reports: RMSE, MAE,
 Spearman's rho, and accuracy/precision/recall/F1 of the binary decision ``score >= threshold`` (threshold 0.75 in
@@ -46,8 +50,13 @@ class TrainConfig:
     Attributes
     ----------
     epochs, lr, batch_size : int, float, int
-    loss : {"bce", "mse"}
+    loss : {"bce", "mse", "log-mse"}
         See the module docstring.
+    log_offset : float
+        ``c`` of the ``"log-mse"`` loss (default: the detectors' reporting floor, 0.05).
+    class_weights : dict
+        ``{class: weight}``: each sample's loss is multiplied by its class's weight (absent classes: 1), and each
+        batch's loss divided by the sum of its weights.
     patience : int or None
         Stop after this many epochs without a validation-RMSE improvement larger than ``min_delta``
         (``None``: never stop early). The best weights are restored at the end.
@@ -74,6 +83,8 @@ class TrainConfig:
     lr: float = 1e-4
     batch_size: int = 512
     loss: str = "bce"
+    log_offset: float = 0.05
+    class_weights: dict = dataclasses.field(default_factory=dict)
     patience: Optional[int] = 20
     min_delta: float = 1e-5
     weight_decay: float = 0.0
@@ -235,8 +246,15 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
         ``train_loss``, ``val_rmse`` per epoch, ``best_epoch``, ``epochs_run``, ``seconds``, ``stopped_early``.
     """
     cfg = config or TrainConfig()
-    if cfg.loss not in ("bce", "mse"):
-        raise InputError(f"loss must be 'bce' or 'mse', got {cfg.loss!r}")
+    if cfg.loss not in ("bce", "mse", "log-mse"):
+        raise InputError(f"loss must be 'bce', 'mse' or 'log-mse', got {cfg.loss!r}")
+    unknown = sorted(set(cfg.class_weights) - set(classes))
+    if unknown:
+        raise InputError(f"class weights for classes not in the data: {unknown} (classes: {list(classes)})")
+    if any(not float(w) > 0 for w in cfg.class_weights.values()):
+        raise InputError(f"class weights must be positive, got {cfg.class_weights}")
+    if cfg.loss == "log-mse" and not cfg.log_offset > 0:
+        raise InputError(f"log_offset must be positive, got {cfg.log_offset}")
     old_threads = torch.get_num_threads()
     if cfg.threads:
         torch.set_num_threads(int(cfg.threads))
@@ -253,7 +271,22 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
         model.to(device)
         xf, xc, y = xf.to(device), xc.to(device), y.to(device)
         opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-        loss_fn = nn.BCEWithLogitsLoss() if cfg.loss == "bce" else None
+        class_w = torch.tensor([float(cfg.class_weights.get(c, 1.0)) for c in classes], device=device)
+        weighted = bool(cfg.class_weights)
+
+        def batch_loss(logits: torch.Tensor, target: torch.Tensor, cls_idx: torch.Tensor) -> torch.Tensor:
+            if cfg.loss == "bce":
+                if not weighted:  # the mean reduction of BCEWithLogitsLoss, as the shipped checkpoint was trained
+                    return nn.functional.binary_cross_entropy_with_logits(logits, target)
+                per = nn.functional.binary_cross_entropy_with_logits(logits, target, reduction="none")
+            elif cfg.loss == "mse":
+                per = (torch.sigmoid(logits) - target) ** 2
+            else:
+                per = (torch.log(torch.sigmoid(logits) + cfg.log_offset) - torch.log(target + cfg.log_offset)) ** 2
+            if not weighted:
+                return per.mean()
+            w = class_w[cls_idx]
+            return (w * per).sum() / w.sum()
         n = xf.shape[0]
         hist = {"train_loss": [], "val_rmse": [], "best_epoch": -1, "epochs_run": 0, "stopped_early": False}
         best, best_state, since_best = math.inf, None, 0
@@ -271,10 +304,7 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
             for s in range(0, n, cfg.batch_size):
                 idx = perm[s:s + cfg.batch_size]
                 logits = model.forward_logits(xf[idx], xc[idx])
-                if loss_fn is not None:
-                    loss = loss_fn(logits, y[idx])
-                else:
-                    loss = torch.mean((torch.sigmoid(logits) - y[idx]) ** 2)
+                loss = batch_loss(logits, y[idx], xc[idx])
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
