@@ -79,7 +79,7 @@ class ReferenceRoutes:
                 return
             seen.add(key)
             out.append((label, res))
-            used_edges.extend(self._roadmap_edges(res.path_nodes))
+            used_edges.extend(self.planner.path_roadmap_edges(res.path_nodes).tolist())
 
         try:
             for objective, alpha in self.searches:
@@ -98,15 +98,3 @@ class ReferenceRoutes:
         finally:
             p.reweight(alpha=saved.alpha, objective=saved.objective)
         return out
-
-    def _roadmap_edges(self, path_nodes: Sequence[int]) -> list:
-        """Ids of the roadmap edges (not the query's own) between consecutive nodes of a route."""
-        p = self.planner
-        mask = p.roadmap_mask()
-        ids = []
-        for a, b in zip(path_nodes[:-1], path_nodes[1:]):
-            if a < len(mask) and b < len(mask) and mask[a] and mask[b]:
-                e = p.graph.edge_id(int(a), int(b))
-                if e is not None:
-                    ids.append(int(e))
-        return ids

@@ -137,6 +137,9 @@ class PSPRM:
     def roadmap_edge_ids(self) -> np.ndarray:
         return self.pipeline.rm.roadmap_edge_ids()
 
+    def path_roadmap_edges(self, path_nodes: Sequence[int]) -> np.ndarray:
+        return self.pipeline.rm.path_roadmap_edges(path_nodes)
+
     def components(self) -> tuple:
         return self.pipeline.rm.components()
 

@@ -81,6 +81,13 @@ class RoadmapState:
         g = self.graph
         return np.nonzero(self.roadmap_mask() & g.node_valid[: g.n_nodes])[0]
 
+    def path_roadmap_edges(self, path_nodes) -> np.ndarray:
+        """Ids of the roadmap edges (between two roadmap nodes, not a query's own) along a node path."""
+        g, mask = self.graph, self.roadmap_mask()
+        ids = [g.edge_id(int(a), int(b)) for a, b in zip(path_nodes[:-1], path_nodes[1:])
+               if a < len(mask) and b < len(mask) and mask[a] and mask[b]]
+        return np.asarray([e for e in ids if e is not None], dtype=np.int64)
+
     def roadmap_edge_ids(self) -> np.ndarray:
         """Ids of the valid edges between roadmap nodes (start/goal query edges excluded)."""
         g = self.graph

@@ -49,7 +49,7 @@ class RouteSelection(Stage):
         cands = {own: (best_p, first.path_length)}
         limit = base.route_length_ratio * first.path_length
         saved = self.qc.settings
-        used = self.roadmap_edges(first.path_nodes)
+        used = self.rm.path_roadmap_edges(first.path_nodes)
         for objective, alpha in searches:
             other = objective == "alt"
             label = "alt" if other else f"{objective}@{alpha:g}"
@@ -65,7 +65,7 @@ class RouteSelection(Stage):
                     self.qc.settings = saved
             if not res.success:
                 continue
-            used = np.union1d(used, self.roadmap_edges(res.path_nodes))
+            used = np.union1d(used, self.rm.path_roadmap_edges(res.path_nodes))
             p = self.perception(res)
             cands[label] = (p, res.path_length)
             if res.path_length <= limit and p > best_p + 1e-9:
@@ -73,13 +73,6 @@ class RouteSelection(Stage):
         best.route_candidates = cands
         best.query_ms = float(np.nan_to_num(first.query_ms)) + (time.perf_counter() - t0) * 1e3
         return best
-
-    def roadmap_edges(self, path_nodes: Sequence[int]) -> np.ndarray:
-        """Ids of the roadmap edges (between two roadmap nodes, not a query's own) along a node path."""
-        g, mask = self.rm.graph, self.rm.roadmap_mask()
-        ids = [g.edge_id(int(a), int(b)) for a, b in zip(path_nodes[:-1], path_nodes[1:])
-               if a < len(mask) and b < len(mask) and mask[a] and mask[b]]
-        return np.asarray([e for e in ids if e is not None], dtype=np.int64)
 
     def perception(self, res: PlanResult) -> float:
         """:meth:`~.scoring.Scoring.route_perception` of a result's dense path, every :data:`PERCEPTION_STRIDE`-th
