@@ -277,6 +277,38 @@ class Roadmap(AdjacencyViews):
         self._restore_version += 1
         self._structure_changed()
 
+    def truncate(self, n_nodes: int, n_edges: int) -> None:
+        """Give back the trailing node and edge slots from ``n_nodes`` / ``n_edges`` on, which must all be invalid
+        (retired): later additions reuse their ids. The slots are reset as new ones are (invalid, zero, NaN
+        attributes); the adjacency is rebuilt on its next use and the search cache dropped (its entries are keyed
+        by node ids).
+
+        Raises
+        ------
+        InputError
+            A slot to give back is still valid, or the sizes are out of range."""
+        n_nodes, n_edges = int(n_nodes), int(n_edges)
+        if not (0 <= n_nodes <= self._n_nodes and 0 <= n_edges <= self._n_edges):
+            raise InputError(f"cannot truncate {self._n_nodes} nodes / {self._n_edges} edges to {n_nodes} / {n_edges}")
+        if self._node_valid[n_nodes: self._n_nodes].any() or self._edge_valid[n_edges: self._n_edges].any():
+            raise InputError("only invalid (retired) node and edge slots can be given back")
+        if n_nodes == self._n_nodes and n_edges == self._n_edges:
+            return
+        if self._configs is not None:
+            self._configs[n_nodes: self._n_nodes] = 0.0
+        self._eu[n_edges: self._n_edges] = 0
+        self._ev[n_edges: self._n_edges] = 0
+        self._weights[n_edges: self._n_edges] = 0.0
+        for arr in self._edge_attrs.values():
+            arr[n_edges: self._n_edges] = np.nan
+        self._n_nodes, self._n_edges = n_nodes, n_edges
+        self._csr = None
+        self._py_adj = self._py_weights = self._arr_adj = None
+        self.search_cache.clear()
+        self._removal_version += 1
+        self._restore_version += 1
+        self._structure_changed()
+
     # ------------------------------------------------------------------ edges
     def add_edge_attribute(self, name: str, fill: float = np.nan) -> np.ndarray:
         """Register a named float per-edge attribute (e.g. ``"c_m"``/``"c_p"`` of Eqs. 1-2); returns a view of it."""

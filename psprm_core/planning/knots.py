@@ -71,6 +71,14 @@ class KnotStore:
         self.interior[idx] = interior
         self.written(ids)
 
+    def forget_from(self, n: int) -> None:
+        """Forget the knots, camera poses and robot bounds of edge ids ``n`` and above (their slots were given back
+        and will be reused by new edges; the arrays keep their capacity)."""
+        self.have[n:] = False
+        self.cams_have[n:] = False
+        if self.aabb is not None and self.aabb.shape[0] > n:
+            self.aabb[n:] = float("nan")
+
     def trim_query_cache(self) -> None:
         """Keep the :data:`QUERY_KNOT_CACHE` newest entries of :attr:`query` (dicts keep insertion order)."""
         while len(self.query) > QUERY_KNOT_CACHE:

@@ -52,8 +52,8 @@ class Pipeline:
         self.ctx = ctx
         if ctx.backend is None:
             ctx.backend = backend_for(ctx)
-        self.rm = RoadmapState(ctx)
         self.knots = KnotStore()
+        self.rm = RoadmapState(ctx, self.knots)
         self.qc = QueryContext()
         self.sampling = Sampling(self)
         self.neighbours = Neighbours(self)

@@ -15,8 +15,9 @@ from .state import NP_DTYPE, PlannerContext
 class RoadmapState:
     """The roadmap graph of a planner (roadmap nodes and the current query's nodes and edges) and its bookkeeping."""
 
-    def __init__(self, ctx: PlannerContext):
+    def __init__(self, ctx: PlannerContext, knots=None):
         self.ctx = ctx
+        self.knots = knots  # the KnotStore of the roadmap's edges (by edge id): told when edge slots are given back
         self.template = ctx.robot.default_configuration()  # joints that are not sampled (build() may override)
         self.stats: dict = {}
         self.escapes = 0  # escape searches run (their random streams)
@@ -57,12 +58,35 @@ class RoadmapState:
         return ids, lab[ids]
 
     def compact(self) -> None:
-        """Remove the retired query nodes and edges from the graph (one adjacency rebuild for many queries)."""
-        if self.dead_edges:
-            self.graph.remove_edges(np.asarray(self.dead_edges))
-        if self.dead_nodes:
-            self.graph.remove_nodes(np.asarray(self.dead_nodes))
+        """Remove the retired query nodes and edges from the graph (one adjacency rebuild for many queries), and give
+        their slots back where they are the last ones (:meth:`~.graph.Roadmap.truncate`), so that a long-running
+        planner's graph and per-edge stores (the knot store, the node scores, the re-check flags) keep the size of
+        the roadmap and one batch of queries instead of growing with every query. A retired slot below a live one
+        (a node a repair kept after it) stays allocated."""
+        g = self.graph
+        dead_e = np.asarray(self.dead_edges, dtype=np.int64)
+        dead_n = np.asarray(self.dead_nodes, dtype=np.int64)
+        if len(dead_e):
+            g.remove_edges(dead_e)
+        if len(dead_n):
+            g.remove_nodes(dead_n)
+            gone = np.zeros(g.n_nodes, dtype=bool)
+            gone[dead_n] = True
+            touching = np.flatnonzero(gone[g.edge_u] | gone[g.edge_v])  # every edge of a retired node, valid or not
+            dead_e = np.concatenate([dead_e, touching])
         self.dead_edges, self.dead_nodes = [], []
+        if not len(dead_n) and not len(dead_e):
+            return
+        n_keep = _kept_prefix(g.n_nodes, dead_n)
+        e_keep = _kept_prefix(g.n_edges, dead_e)
+        if n_keep == g.n_nodes and e_keep == g.n_edges:
+            return
+        g.truncate(n_keep, e_keep)
+        if self.node_scores is not None and len(self.node_scores) > n_keep:
+            self.node_scores[n_keep:] = np.nan
+        self.recheck[e_keep:] = False
+        if self.knots is not None:
+            self.knots.forget_from(e_keep)
 
     @property
     def n_roadmap_nodes(self) -> int:
@@ -82,11 +106,12 @@ class RoadmapState:
         return np.nonzero(self.roadmap_mask() & g.node_valid[: g.n_nodes])[0]
 
     def path_roadmap_edges(self, path_nodes) -> np.ndarray:
-        """Ids of the roadmap edges (between two roadmap nodes, not a query's own) along a node path."""
-        g, mask = self.graph, self.roadmap_mask()
+        """Ids of the roadmap edges (between two roadmap nodes, not a query's own: no connection or shortcut edge)
+        along a node path."""
+        g, mask, retired = self.graph, self.roadmap_mask(), set(self.dead_edges)
         ids = [g.edge_id(int(a), int(b)) for a, b in zip(path_nodes[:-1], path_nodes[1:])
                if a < len(mask) and b < len(mask) and mask[a] and mask[b]]
-        return np.asarray([e for e in ids if e is not None], dtype=np.int64)
+        return np.asarray([e for e in ids if e is not None and e not in retired], dtype=np.int64)
 
     def roadmap_edge_ids(self) -> np.ndarray:
         """Ids of the valid edges between roadmap nodes (start/goal query edges excluded)."""
@@ -112,3 +137,12 @@ class RoadmapState:
         if len(self.node_scores) < g.n_nodes:
             self.node_scores = np.concatenate([self.node_scores, np.full(g.n_nodes - len(self.node_scores), np.nan)])
         return self.node_scores
+
+
+def _kept_prefix(n: int, retired: np.ndarray) -> int:
+    """The slots ``0 .. k - 1`` to keep of ``n``: ``k`` is one past the last slot that is not in ``retired``."""
+    dead = np.zeros(n, dtype=bool)
+    retired = retired[(retired >= 0) & (retired < n)]
+    dead[retired] = True
+    live = np.nonzero(~dead)[0]
+    return int(live[-1]) + 1 if len(live) else 0
