@@ -182,12 +182,13 @@ def test_live_parameters_change_behaviour_and_rebuild_parameters_are_refused(loa
             turn_face(2.0)
             assert s.probe.wait_trajectory(n2, 20) is not None, "no replan after lowering the threshold"
             # alpha (Eq. 2) applied to the roadmap's edge weights
-            w_before = s.server.planner.graph.weights.copy() if hasattr(s.server.planner.graph, "weights") else None
+            # (the roadmap's own edges: re-weighting also gives the retired query edges' slots back)
+            ids = s.server.planner.roadmap_edge_ids()
+            w_before = np.asarray(s.server.planner.graph.weights)[ids].copy()
             r = srv.set_params("roadmap_server", alpha=0.3)
             assert r[0].successful
             assert s.probe.wait_for(lambda: abs(s.server.planner.settings.alpha - 0.3) < 1e-9, 5)
-            if w_before is not None:
-                assert not np.allclose(w_before, s.server.planner.graph.weights)
+            assert not np.allclose(w_before, np.asarray(s.server.planner.graph.weights)[ids])
             # refused, with reasons
             r = srv.set_params("roadmap_server", n_nodes=800)
             assert not r[0].successful and "read-only" in r[0].reason
