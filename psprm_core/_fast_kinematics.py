@@ -1,11 +1,7 @@
 """Numba kernels of the robot's body tree (re-exported by :mod:`psprm_core._fast_numba`): forward kinematics,
 camera poses and the oriented-box collision check (joint limits, environment, self-collision), and the kernels'
-decorator ``jit`` (compiled on first call, cached on disk with ``cache=True``) shared by the other kernel modules.
-They follow the torch implementations step by step in float64.
-
-The robot and the collision model reach the public kernels as one named tuple each (``RobotArrays``,
-``CollisionArrays``, with the joint type codes: :mod:`psprm_core._fast_args`); the per-row helpers take their
-arrays one by one.
+decorator ``jit`` (compiled on first call, cached on disk with ``cache=True``) and joint type codes shared by the
+other kernel modules. They follow the torch implementations step by step in float64.
 """
 
 import math
@@ -13,16 +9,9 @@ import math
 import numpy as np
 from numba import njit
 
-# the joint type codes (used by the other kernel modules) and the tuples these kernels take
-from ._fast_args import PRISMATIC, REVOLUTE, ROOT, CollisionArrays, RobotArrays  # noqa: F401
-
-#: SHA-256 of the module of the argument tuples this one imports (its source with this line blanked; checked by
-#: tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it loads, and keys it on
-#: the tuples' classes, not their fields: a change there must change this file too, or the cached kernels here
-#: would keep the old layout.
-CALLEES_SHA256 = "5d3c8d9c8d3c79439a1d82d24ec0068001c5c19893c759c502151156fd574311"
-
 jit = njit(cache=True, nogil=True)
+
+ROOT, REVOLUTE, PRISMATIC = 0, 1, 2
 
 
 # ---------------------------------------------------------------------------------------------- kinematics
@@ -83,12 +72,9 @@ def _camera(R, t, cam_body, cam_R, cam_t, Rc, tc):  # pragma: no cover - compile
 
 
 @jit
-def camera_poses(q, robot):  # pragma: no cover - compiled
-    """Camera optical-frame poses (B, 4, 4) of configurations q (B, dof) of ``robot`` (``RobotArrays``, FK of its
-    camera chain; RobotModel.camera_poses)."""
-    order, parent, jtype, R_off, t_off, axis, D, off, mobile = robot.chain, robot.parent, robot.jtype, robot.R_off, \
-        robot.t_off, robot.axis, robot.D, robot.off, robot.mobile
-    cam_body, cam_R, cam_t = robot.cam_body, robot.cam_R, robot.cam_t
+def camera_poses(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R,
+                 cam_t):  # pragma: no cover - compiled
+    """Camera optical-frame poses (B, 4, 4) of configurations q (B, dof) (RobotModel.camera_poses)."""
     B, NB = q.shape[0], parent.shape[0]
     out = np.zeros((B, 4, 4))
     R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
@@ -220,18 +206,11 @@ def _self_hit(R, t, pairs, pair_els, el_body, el_c, el_R, el_h, el_r, eps, ec, c
 
 
 @jit
-def check(q, detailed, robot, col):  # pragma: no cover - compiled
-    """Collision flags (B, 3) of configurations q (B, dof) of ``robot`` (``RobotArrays``, FK of all its bodies)
-    against ``col`` (``CollisionArrays``): joint limits, environment, self (CollisionChecker.check_detailed).
-    Without ``detailed`` a row stops at its first violation (only the OR of the three is meaningful then)."""
-    order, parent, jtype, R_off, t_off, axis, D, off, mobile = robot.order, robot.parent, robot.jtype, robot.R_off, \
-        robot.t_off, robot.axis, robot.D, robot.off, robot.mobile
-    lower, upper, bodies, body_c, body_r, body_box_c, body_box_h = col.lower, col.upper, col.bodies, col.body_c, \
-        col.body_r, col.body_box_c, col.body_box_h
-    el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r = col.el_start, col.el_count, col.el_order, \
-        col.el_body, col.el_c, col.el_R, col.el_h, col.el_r
-    pairs, pair_els, box_c, box_R, box_h, box_aabb, eps = col.pairs, col.pair_els, col.box_c, col.box_R, col.box_h, \
-        col.box_aabb, col.eps
+def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile, lower, upper, bodies, body_c,
+          body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs,
+          pair_els, box_c, box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
+    """Collision flags (B, 3): joint limits, environment, self (CollisionChecker.check_detailed). Without
+    ``detailed`` a row stops at its first violation (only the OR of the three is meaningful then)."""
     B, dof, NB, E = q.shape[0], q.shape[1], parent.shape[0], el_c.shape[0]
     out = np.zeros((B, 3), np.bool_)
     R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
@@ -258,16 +237,12 @@ def check(q, detailed, robot, col):  # pragma: no cover - compiled
 
 
 @jit
-def env_hits(q, want_aabb, robot, col):  # pragma: no cover - compiled
-    """Environment flags (B,) against the boxes of ``col`` only (no limits, no self-collision:
+def env_hits(q, want_aabb, order, parent, jtype, R_off, t_off, axis, D, off, mobile, bodies, body_c, body_r,
+             body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, box_c, box_R, box_h,
+             box_aabb, eps):  # pragma: no cover - compiled
+    """Environment flags (B,) against the given boxes only (no limits, no self-collision:
     CollisionChecker.env_hits) and, with ``want_aabb``, the robot's world bounds (B, 6) = [min xyz, max xyz] of
     every element box (CollisionChecker._aabb: half extents sum_j |(R_b R_e)_ij| h_j), from the same FK."""
-    order, parent, jtype, R_off, t_off, axis, D, off, mobile = robot.order, robot.parent, robot.jtype, robot.R_off, \
-        robot.t_off, robot.axis, robot.D, robot.off, robot.mobile
-    bodies, body_c, body_r, body_box_c, body_box_h = col.bodies, col.body_c, col.body_r, col.body_box_c, col.body_box_h
-    el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r = col.el_start, col.el_count, col.el_order, \
-        col.el_body, col.el_c, col.el_R, col.el_h, col.el_r
-    box_c, box_R, box_h, box_aabb, eps = col.box_c, col.box_R, col.box_h, col.box_aabb, col.eps
     B, NB, E = q.shape[0], parent.shape[0], el_c.shape[0]
     hit = np.zeros(B, np.bool_)
     aabb = np.zeros((B if want_aabb else 0, 6))
@@ -291,3 +266,4 @@ def env_hits(q, want_aabb, robot, col):  # pragma: no cover - compiled
                     aabb[r, i] = min(aabb[r, i], c[i] - ext)
                     aabb[r, 3 + i] = max(aabb[r, 3 + i], c[i] + ext)
     return hit, aabb
+

@@ -11,9 +11,9 @@ from ._fast_kinematics import jit
 
 #: SHA-256 of the kernel modules this one imports from, directly or through them (their sources with this line
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
-#: loads, not those of the kernels, the decorator and the argument tuples it was compiled with: a change there must
-#: change this file too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "bd82be108569c56020d98fc70c1c5947b1dfae13ed47003507570a03aac2dbb9"
+#: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
+#: too, or the cached kernels here would keep the old code.
+CALLEES_SHA256 = "b0845fb35d1b2e4104b94682d4dfc5050db4edb2354cb6d0000200e98eb55592"
 
 
 # ---------------------------------------------------------------------------------------------- motion

@@ -13,16 +13,8 @@ nearest nodes, edge knots), :mod:`~psprm_core._fast_scoring` (occlusion, pose fe
 :mod:`~psprm_core._fast_query` (the fused kernels of a query's edges). numba's disk cache checks only the source
 file of the kernel it loads, so a module that imports from the others records their SHA-256 (``CALLEES_SHA256``,
 checked by ``tests/test_fastpath.py``): a change to a called kernel changes the caller's file too.
-
-The kernels take the arrays that travel together as named tuples (:mod:`~psprm_core._fast_args`, re-exported here
-and built by :mod:`psprm_core.fastpath`): ``RobotArrays`` (body tree and camera), ``CollisionArrays`` (joint
-limits, collision model, obstacle boxes), ``ProjectionArgs`` (target, model and Gauss-Newton settings),
-``MlpArrays``, ``OcclusionArrays`` and ``ScorerArgs`` (a neural scorer), ``EdgeArgs`` (how a query's edges are
-built and verified).
 """
 
-from ._fast_args import (CollisionArrays, EdgeArgs, MlpArrays, OcclusionArrays, ProjectionArgs, RobotArrays,
-                         ScorerArgs)
 from ._fast_kinematics import (PRISMATIC, REVOLUTE, ROOT, _camera, _centre, _env_hit, _fk, _obb_overlap,
                                _point_box_sqdist, _self_hit, _world_box, camera_poses, check, env_hits, jit)
 from ._fast_motion import _base_plan, _distance, _wrap, distance, edge_knot_seeds, interpolate, nearest, pieces
@@ -30,7 +22,6 @@ from ._fast_projection import _residual, _solve, project
 from ._fast_query import _round32, check_score_knots, neural_scores, query_knots, verify_edges
 from ._fast_scoring import _slab, mlp, occlusion, pose_features
 
-__all__ = ["ROOT", "REVOLUTE", "PRISMATIC", "jit", "RobotArrays", "CollisionArrays", "ProjectionArgs", "MlpArrays",
-           "OcclusionArrays", "ScorerArgs", "EdgeArgs", "camera_poses", "project", "check", "env_hits", "occlusion",
+__all__ = ["ROOT", "REVOLUTE", "PRISMATIC", "jit", "camera_poses", "project", "check", "env_hits", "occlusion",
            "distance", "interpolate", "pieces", "nearest", "edge_knot_seeds", "pose_features", "mlp", "query_knots",
            "neural_scores", "check_score_knots", "verify_edges"]

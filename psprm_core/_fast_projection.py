@@ -1,21 +1,19 @@
 """Numba kernels of the damped Gauss-Newton projection onto the visibility manifold (Alg. 1, line 7; re-exported by
 :mod:`psprm_core._fast_numba`): the residual h_M and its Jacobian over the planning joints, a small linear solve,
-and the projection of a batch of configurations. The projection's inputs reach the kernels as one named tuple
-(``ProjectionArgs``), beside the robot's (``RobotArrays``; both :mod:`psprm_core._fast_args`).
+and the projection of a batch of configurations.
 """
 
 import math
 
 import numpy as np
 
-from ._fast_args import ProjectionArgs  # noqa: F401 - the tuple these kernels take
 from ._fast_kinematics import PRISMATIC, ROOT, _camera, _fk, jit
 
 #: SHA-256 of the kernel modules this one imports from, directly or through them (their sources with this line
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
-#: loads, not those of the kernels, the decorator and the argument tuples it was compiled with: a change there must
-#: change this file too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "bd82be108569c56020d98fc70c1c5947b1dfae13ed47003507570a03aac2dbb9"
+#: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
+#: too, or the cached kernels here would keep the old code.
+CALLEES_SHA256 = "b0845fb35d1b2e4104b94682d4dfc5050db4edb2354cb6d0000200e98eb55592"
 
 
 # ---------------------------------------------------------------------------------------------- projection
@@ -138,18 +136,12 @@ def _solve(A, b, m):  # pragma: no cover - compiled
 
 
 @jit
-def project(q0, robot, pa):  # pragma: no cover - compiled
-    """Damped Gauss-Newton projection of configurations q0 (B, dof) of ``robot`` (``RobotArrays``) onto h_M = 0
-    (Alg. 1, line 7; VisibilityConstraint.project) with the target, model and settings ``pa`` (``ProjectionArgs``):
-    per row, q[cols] <- q[cols] - J^T (J J^T + damping I)^-1 h with the step norm capped at ``max_step``, clamped to
-    [lo, hi] (base theta wrapped), until |h| < tol or ``max_iters`` steps. Returns (q (B, dof), |h| at the result
-    (B,))."""
-    order, parent, jtype, R_off, t_off, axis, D, off, mobile = robot.chain, robot.parent, robot.jtype, robot.R_off, \
-        robot.t_off, robot.axis, robot.D, robot.off, robot.mobile
-    cam_body, cam_R, cam_t = robot.cam_body, robot.cam_R, robot.cam_t
-    target, cols, line, min_distance, far, th, tv, margin = pa.target, pa.cols, pa.line, pa.min_distance, pa.far, \
-        pa.th, pa.tv, pa.margin
-    lo, hi, tol, max_iters, damping, max_step = pa.lo, pa.hi, pa.tol, pa.max_iters, pa.damping, pa.max_step
+def project(q0, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t, target, cols,
+            line, min_distance, far, th, tv, margin, lo, hi, tol, max_iters, damping,
+            max_step):  # pragma: no cover - compiled
+    """Damped Gauss-Newton projection onto h_M = 0 (Alg. 1, line 7; VisibilityConstraint.project): per row,
+    q[cols] <- q[cols] - J^T (J J^T + damping I)^-1 h with the step norm capped at ``max_step``, clamped to [lo, hi]
+    (base theta wrapped), until |h| < tol or ``max_iters`` steps. Returns (q (B, dof), |h| at the result (B,))."""
     B, dof, NB = q0.shape[0], q0.shape[1], parent.shape[0]
     k = cols.shape[0]
     q = q0.copy()

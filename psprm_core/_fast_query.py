@@ -1,14 +1,11 @@
 """Fused numba kernels of a query's edges (re-exported by :mod:`psprm_core._fast_numba`): an edge's knots with the
 camera joints re-aimed, the neural scores of configurations, and the lazy verification (collision checks and
 scoring) of a few edges in one call. They call the kernels of the other modules, imported at module level
-(numba resolves them when it compiles). Their inputs arrive as a few named tuples (:mod:`psprm_core._fast_args`):
-the edges' settings (``EdgeArgs``), the robot (``RobotArrays``), the projection (``ProjectionArgs``), the collision
-model (``CollisionArrays``) and the neural scorer (``ScorerArgs``).
+(numba resolves them when it compiles).
 """
 
 import numpy as np
 
-from ._fast_args import EdgeArgs, ScorerArgs  # noqa: F401 - the tuples these kernels take
 from ._fast_kinematics import camera_poses, check, jit
 from ._fast_motion import edge_knot_seeds, pieces
 from ._fast_projection import project
@@ -16,9 +13,9 @@ from ._fast_scoring import mlp, occlusion, pose_features
 
 #: SHA-256 of the kernel modules this one imports from, directly or through them (their sources with this line
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
-#: loads, not those of the kernels, the decorator and the argument tuples it was compiled with: a change there must
-#: change this file too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "a215cb6826822228be04246b899cf3b66264cc9c89ac8d568603b770e448d6fc"
+#: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
+#: too, or the cached kernels here would keep the old code.
+CALLEES_SHA256 = "aa398e422903717899b10b9fe3c538705df903b06b6ee64f4a1bf29d6b72b32f"
 
 
 # ---------------------------------------------------------------------------------------------- a query's edges
@@ -32,23 +29,25 @@ def _round32(a):  # pragma: no cover - compiled
 
 
 @jit
-def query_knots(qa, qb, edge, robot, pa):  # pragma: no cover - compiled
-    """PSPRM.edge_knots of a few edges qa -> qb (E, dof) in one call, with the settings ``edge`` (``EdgeArgs``):
-    :func:`edge_knot_seeds`, then (``edge.track``) the interior knots' non-base camera joints re-aimed by
-    :func:`project` of ``robot`` (``RobotArrays``) with ``pa`` (``ProjectionArgs``; ``pa.max_iters`` =
-    track_iters); with ``edge.r32`` rounded to float32 after each stage, as the float32 torch path is. Returns
-    (knots (E, M, dof), interior (E, N))."""
-    knots, interior = edge_knot_seeds(qa, qb, edge.n_interp, edge.w_rot, edge.mobile)
-    if edge.r32:
+def query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtype, R_off, t_off, axis, D, off,
+                rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance, far, th, tv, margin, lo, hi, tol,
+                max_iters, damping, max_step):  # pragma: no cover - compiled
+    """PSPRM.edge_knots of a few edges in one call: :func:`edge_knot_seeds`, then (``track``) the interior knots'
+    non-base camera joints re-aimed by :func:`project` (``max_iters`` = track_iters); with ``r32`` rounded to float32
+    after each stage, as the float32 torch path is. Returns (knots (E, M, dof), interior (E, N))."""
+    knots, interior = edge_knot_seeds(qa, qb, n_interp, w_rot, mobile)
+    if r32:
         _round32(knots)
     E, M, dof = knots.shape
-    if edge.track and M > 2 and pa.cols.shape[0] > 0:
+    if track and M > 2 and cols.shape[0] > 0:
         inner = np.empty((E * (M - 2), dof))
         for e in range(E):
             for m in range(M - 2):
                 inner[e * (M - 2) + m] = knots[e, m + 1]
-        qn, _ = project(inner, robot, pa)
-        if edge.r32:
+        qn, _ = project(inner, order, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t,
+                        target, cols, line, min_distance, far, th, tv, margin, lo, hi, tol, max_iters, damping,
+                        max_step)
+        if r32:
             _round32(qn)
         for e in range(E):
             for m in range(M - 2):
@@ -57,27 +56,27 @@ def query_knots(qa, qb, edge, robot, pa):  # pragma: no cover - compiled
 
 
 @jit
-def neural_scores(q, r32, robot, scorer, mlp_rows):  # pragma: no cover - compiled
-    """Camera poses (B, 4, 4) of configurations q (B, dof) of ``robot`` (``RobotArrays``) and their raw scores (B,)
-    float32 by the neural scorer ``scorer`` (``ScorerArgs``; NeuralScorer.score of RobotModel.camera_poses: pose
-    features, :func:`mlp` on chunks of ``mlp_rows`` views, zero where the ray-cast occlusion score exceeds ``tau``;
-    Alg. 2, lines 4-7), rounded to float32 after the poses with ``r32``."""
-    cp = camera_poses(q, robot)
+def neural_scores(q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t, tgt,
+                  derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside,
+                  eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
+    """Camera poses (B, 4, 4) of configurations q (B, dof) and their raw neural scores (B,) float32 (NeuralScorer.score
+    of RobotModel.camera_poses: pose features, :func:`mlp` on chunks of ``mlp_rows`` views, zero where the ray-cast
+    occlusion score exceeds ``tau``; Alg. 2, lines 4-7), rounded to float32 after the poses with ``r32``."""
+    cp = camera_poses(q, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t)
     if r32:
         _round32(cp)
-    feats = pose_features(cp, scorer.target_pose, scorer.derived)
+    feats = pose_features(cp, tgt, derived)
     f32 = feats.astype(np.float32)
     sc = np.empty(f32.shape[0], np.float32)
     for c0 in range(0, f32.shape[0], mlp_rows):  # the scorer's calls: one per batch of at most mlp_rows views
         c1 = min(c0 + mlp_rows, f32.shape[0])
-        sc[c0:c1] = mlp(f32[c0:c1], scorer.mlp)
-    if scorer.has_occ:
-        tau = scorer.tau
+        sc[c0:c1] = mlp(f32[c0:c1], w1, b1, ws, bs, wo, bo)
+    if has_occ:
         pos = np.empty((cp.shape[0], 3))
         for r in range(cp.shape[0]):
             for i in range(3):
                 pos[r, i] = cp[r, i, 3]
-        occ = occlusion(pos, scorer.occ)
+        occ = occlusion(pos, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir)
         for r in range(cp.shape[0]):
             if (np.float32(occ[r]) > np.float32(tau)) if r32 else (occ[r] > tau):
                 sc[r] = np.float32(0.0)
@@ -85,21 +84,24 @@ def neural_scores(q, r32, robot, scorer, mlp_rows):  # pragma: no cover - compil
 
 
 @jit
-def check_score_knots(knots, interior, do_check, do_score, edge, robot, col, scorer):  # pragma: no cover - compiled
-    """The lazy verification of a few edges from their knots (E, M, dof), in one call (Verification.verify_edges),
-    with the settings ``edge`` (``EdgeArgs``), ``robot`` (``RobotArrays``), its collision model ``col``
-    (``CollisionArrays``) and the neural scorer ``scorer`` (``ScorerArgs``):
+def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
+                      all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies, body_c,
+                      body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+                      pairs, pair_els, box_c, box_R, box_h, box_aabb, eps,
+                      chain, cam_body, cam_R, cam_t, tgt, derived, w1, b1, ws, bs, wo, bo,
+                      has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir,
+                      tau, mlp_rows):  # pragma: no cover - compiled
+    """The lazy verification of a few edges from their knots (E, M, dof), in one call (Verification.verify_edges):
 
-    - ``do_check`` (E,): collision flags of the interior knots and of the points every ``edge.resolution`` on the
+    - ``do_check`` (E,): collision flags of the interior knots and of the points every ``resolution`` on the
       pieces between consecutive knots (Edges.knots_valid, dense);
     - ``do_score`` (E,), for edges found free: the camera poses of the Eq. 1 points (both ends and the N interior
       samples, Scoring.eq1_cameras) and their raw surrogate scores (pose features, :func:`mlp`), zeroed where the
       ray-cast occlusion score exceeds ``tau`` (Alg. 2, lines 4-7; NeuralScorer.score); the MLP runs on chunks of
-      ``edge.mlp_rows`` views, edge-aligned (the rows the compiled scorer takes per call).
+      ``mlp_rows`` views, edge-aligned (the rows the compiled scorer takes per call).
 
-    With ``edge.r32``, rounded to float32 where the float32 torch path casts. Returns (free (E,), cameras
+    With ``r32``, rounded to float32 where the float32 torch path casts. Returns (free (E,), cameras
     (E, N + 2, 4, 4), raw scores (E, N + 2) float32; rows not scored are zero)."""
-    r32 = edge.r32
     E, M, dof = knots.shape
     N = interior.shape[1]
     free = np.ones(E, np.bool_)
@@ -121,7 +123,9 @@ def check_score_knots(knots, interior, do_check, do_score, edge, robot, col, sco
         for j in range(nck):
             for m in range(M - 2):
                 q[j * (M - 2) + m] = knots[edge_of[j], m + 1]
-        flags = check(q, False, robot, col)
+        flags = check(q, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
+                      body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h,
+                      el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
         for r in range(q.shape[0]):
             if flags[r, 0] or flags[r, 1] or flags[r, 2]:
                 free[edge_of[r // (M - 2)]] = False
@@ -142,10 +146,12 @@ def check_score_knots(knots, interior, do_check, do_score, edge, robot, col, sco
                         a[i * (M - 1) + m] = knots[e, m]
                         b[i * (M - 1) + m] = knots[e, m + 1]
                     i += 1
-            seg, pts = pieces(a, b, edge.resolution, edge.max_steps, False, edge.w_rot, edge.mobile)
+            seg, pts = pieces(a, b, resolution, max_steps, False, w_rot, mobile)
             if r32:
                 _round32(pts)
-            flags = check(pts, False, robot, col)
+            flags = check(pts, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper,
+                          bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c,
+                          el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
             for r in range(pts.shape[0]):
                 if flags[r, 0] or flags[r, 1] or flags[r, 2]:
                     free[dense_of[seg[r] // (M - 1)]] = False
@@ -169,7 +175,9 @@ def check_score_knots(knots, interior, do_check, do_score, edge, robot, col, sco
                 pts_q[base + 1 + i] = knots[e, interior[e, i]]
             pts_q[base + N + 1] = knots[e, M - 1]
             j += 1
-    cp, sc = neural_scores(pts_q, r32, robot, scorer, edge.mlp_rows)
+    cp, sc = neural_scores(pts_q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R,
+                           cam_t, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc,
+                           oR, oh, count_inside, eps_dir, tau, mlp_rows)
     for j in range(ns):
         e = edge_s[j]
         for p in range(N + 2):
@@ -179,18 +187,25 @@ def check_score_knots(knots, interior, do_check, do_score, edge, robot, col, sco
 
 
 @jit
-def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, do_check, do_score, edge, robot, pa, col,
-                 scorer):  # pragma: no cover - compiled
+def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, n_interp, w_rot, mobile, track, r32, order, parent,
+                 jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance,
+                 far, th, tv, margin, lo, hi, tol, max_iters, damping, max_step, do_check, do_score, resolution,
+                 max_steps, all_bodies, lower, upper, bodies, body_c, body_r, body_box_c, body_box_h, el_start,
+                 el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb,
+                 eps, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh,
+                 count_inside, eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
     """A lazy search's verification of edges ``ids`` (E,) in one call (Verification.verify_edges): first the knots of the
-    ``compute`` ones (the query's connection edges, from their ends qa -> qb (C, dof), :func:`query_knots` with
-    ``edge``, ``robot`` and ``pa``) are written into the knot store (``store_k`` (cap, M, dof), ``store_i``
-    (cap, N): the planner's tensors), reversed where ``flip`` (C,) (the store keeps an edge's knots in its u -> v
-    direction), then every edge is checked and scored from the store by :func:`check_score_knots` (``do_check``,
-    ``do_score`` (E,), ``col``, ``scorer``). Returns (free (E,), cameras (E, N + 2, 4, 4), raw scores (E, N + 2))."""
+    ``compute`` ones (the query's connection edges, from their ends qa -> qb (C, dof), :func:`query_knots`) are
+    written into the knot store (``store_k`` (cap, M, dof), ``store_i`` (cap, N): the planner's tensors), reversed
+    where ``flip`` (C,) (the store keeps an edge's knots in its u -> v direction), then every edge is checked and
+    scored from the store by :func:`check_score_knots` (the camera chain is ``order``; ``all_bodies`` the collision
+    bodies' FK order). Returns (free (E,), cameras (E, N + 2, 4, 4), raw scores (E, N + 2))."""
     E = ids.shape[0]
     M, dof, N = store_k.shape[1], store_k.shape[2], store_i.shape[1]
     if qa.shape[0] > 0:
-        kn, ki = query_knots(qa, qb, edge, robot, pa)
+        kn, ki = query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtype, R_off, t_off, axis,
+                             D, off, rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance, far, th, tv,
+                             margin, lo, hi, tol, max_iters, damping, max_step)
         j = 0
         for e in range(E):
             if compute[e]:
@@ -210,5 +225,10 @@ def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, do_check, do_scor
                 knots[e, m, d] = store_k[ids[e], m, d]
         for i in range(N):
             interior[e, i] = store_i[ids[e], i]
-    return check_score_knots(knots, interior, do_check, do_score, edge, robot, col, scorer)
+    return check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
+                             all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
+                             body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R,
+                             el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps, order, cam_body, cam_R,
+                             cam_t, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half,
+                             oc, oR, oh, count_inside, eps_dir, tau, mlp_rows)
 

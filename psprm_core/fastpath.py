@@ -14,11 +14,6 @@ such call costs 1-10 ms of per-operator overhead, far more than its arithmetic. 
   diff-drive metric and local motions (:class:`DiffDriveMotion`, ``Edges.pieces``, the query's nearest roadmap
   nodes, the knots of Eq. 1 edges).
 
-The kernels take the arrays that travel together as named tuples (:mod:`psprm_core._fast_args`), built here: the
-robot's body tree and camera (:func:`robot_arrays`, kept on the model), a collision checker's limits, model and boxes
-(kept on the checker), a projection's target and settings, a neural scorer's MLP and occluders (:func:`neural_args`)
-and the settings of a query's edges.
-
 The callers use them for CPU tensors outside autograd (:func:`applies`): batches of at most :data:`MAX_BATCH` rows
 (the metric up to :data:`MOTION_MAX_BATCH`) everywhere, and batches of any size inside :func:`bulk`, which the
 planner's large-batch methods enter (build, re-scoring, invalidation near moved obstacles, repair growth): their rows
@@ -42,9 +37,6 @@ from typing import Any, Iterator
 
 import numpy as np
 import torch
-
-from ._fast_args import (PRISMATIC, REVOLUTE, ROOT, CollisionArrays, EdgeArgs, MlpArrays, OcclusionArrays,
-                         ProjectionArgs, RobotArrays, ScorerArgs)
 
 log = logging.getLogger(__name__)
 
@@ -189,86 +181,81 @@ def _i64(x) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------- robot
-def robot_arrays(robot) -> RobotArrays:
-    """The body tree and camera of a :class:`~psprm_core.robot.RobotModel` as the kernels' ``RobotArrays`` (all
-    bodies in FK order, camera chain order, parent, joint type, R_off, t_off, axis, D, offset, mobile, camera body
-    and offset; cached on the model)."""
-    arr = getattr(robot, "_fast_robot", None)
+def robot_arrays(robot) -> tuple:
+    """The body tree of a :class:`~psprm_core.robot.RobotModel` as arrays (cached on the model): (all bodies in FK
+    order, camera chain order, parent, joint type, R_off, t_off, axis, D, offset, mobile)."""
+    arr = getattr(robot, "_fast_arrays", None)
     if arr is None:
+        K = kernels()
         NB = len(robot.bodies)
-        jtype = np.array([ROOT if j is None else (PRISMATIC if j.type == "prismatic" else REVOLUTE)
+        jtype = np.array([K.ROOT if j is None else (K.PRISMATIC if j.type == "prismatic" else K.REVOLUTE)
                           for j in robot.body_joint], dtype=np.int64)
         offs = np.stack(robot.body_joint_offset)
         axes = np.stack([j.axis if j is not None else np.zeros(3) for j in robot.body_joint])
-        arr = RobotArrays(
-            order=np.arange(1, NB, dtype=np.int64), chain=_i64(robot.camera_chain[1:]), parent=_i64(robot.parent_body),
-            jtype=jtype, R_off=_f64(offs[:, :3, :3]), t_off=_f64(offs[:, :3, 3]), axis=_f64(axes),
-            D=_f64(robot.drive_matrix), off=_f64(robot.drive_offset), mobile=bool(robot.mobile),
-            cam_body=int(robot.camera_body), cam_R=_f64(robot.camera_offset[:3, :3]),
-            cam_t=_f64(robot.camera_offset[:3, 3]))
-        robot._fast_robot = arr
+        arr = (np.arange(1, NB, dtype=np.int64), _i64(robot.camera_chain[1:]), _i64(robot.parent_body), jtype,
+               _f64(offs[:, :3, :3]), _f64(offs[:, :3, 3]), _f64(axes), _f64(robot.drive_matrix),
+               _f64(robot.drive_offset), bool(robot.mobile))
+        robot._fast_arrays = arr
     return arr
+
+
+def _camera_args(robot) -> tuple:
+    args = getattr(robot, "_fast_camera_args", None)
+    if args is None:
+        _, chain, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
+        args = robot._fast_camera_args = (chain, parent, jtype, R_off, t_off, axis, D, off, mobile,
+                                          int(robot.camera_body), _f64(robot.camera_offset[:3, :3]),
+                                          _f64(robot.camera_offset[:3, 3]))
+    return args
 
 
 def camera_poses(robot, q: torch.Tensor) -> torch.Tensor:
     """Camera optical-frame poses (B, 4, 4) of ``q`` (B, dof), as :meth:`RobotModel.camera_poses`."""
-    out = _rows(kernels().camera_poses, 1, _f64(q), robot_arrays(robot))
+    out = _rows(kernels().camera_poses, 1, _f64(q), *_camera_args(robot))
     return torch.from_numpy(out).to(q.dtype)
 
 
 # ---------------------------------------------------------------------------------------------- projection
-def _projection_args(constraint, dtype: torch.dtype, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
-                     max_iters: int) -> ProjectionArgs:
-    """The kernels' ``ProjectionArgs`` of :meth:`VisibilityConstraint.project` over the joints ``cols`` within
-    [lo, hi], for ``max_iters`` steps, with the target in ``dtype``."""
-    intr = constraint.intr
-    return ProjectionArgs(
-        target=_const64(constraint.target, dtype), cols=_i64(cols), line=constraint.kind == "line",
-        min_distance=float(constraint.min_distance), far=float(intr.far), th=float(intr.tan_half_h),
-        tv=float(intr.tan_half_v), margin=float(constraint.margin), lo=_const64(lo), hi=_const64(hi),
-        tol=float(settings.tolerance), max_iters=int(max_iters), damping=float(settings.damping),
-        max_step=float(settings.max_step))
-
-
 def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray) -> tuple:
     """:meth:`VisibilityConstraint.project` of ``q`` (B, dof) over the joints ``cols``: (projected q, converged)."""
-    qn, err = _rows(kernels().project, 1, _f64(q), robot_arrays(constraint.robot),
-                    _projection_args(constraint, q.dtype, settings, lo, hi, cols, settings.max_iters))
+    intr = constraint.intr
+    target = _const64(constraint.target, q.dtype)
+    qn, err = _rows(
+        kernels().project, 1, _f64(q), *_camera_args(constraint.robot), target, _i64(cols), constraint.kind == "line",
+        float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
+        float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(settings.max_iters),
+        float(settings.damping), float(settings.max_step))
     return torch.from_numpy(qn).to(q.dtype), torch.from_numpy(err < settings.tolerance)
 
 
 # ---------------------------------------------------------------------------------------------- collision
-def _box_arrays(boxes) -> dict:
-    """Centres, rotations, half extents and bounds of a :class:`~psprm_core.collision.BoxTensors` (the obstacle
-    fields of the kernels' ``CollisionArrays``)."""
-    return {"box_c": _f64(boxes.center).reshape(-1, 3), "box_R": _f64(boxes.rotation).reshape(-1, 3, 3),
-            "box_h": _f64(boxes.half).reshape(-1, 3), "box_aabb": _f64(boxes.aabb()).reshape(-1, 6)}
-
-
-def _collision_arrays(checker) -> CollisionArrays:
-    """The kernels' ``CollisionArrays`` of a :class:`~psprm_core.collision.CollisionChecker`: its joint limits,
-    collision model and obstacle boxes, eps 1e-6 (cached on it; rebuilt when the limits change in place or its box
-    set is replaced)."""
-    cache = getattr(checker, "_fast_collision", None)
+def _checker_arrays(checker) -> tuple:
+    """Collision model and obstacle arrays of a :class:`~psprm_core.collision.CollisionChecker` (cached on it; the
+    obstacle part is rebuilt when its box set is replaced)."""
+    cache = getattr(checker, "_fast_arrays", None)
     if cache is None:
-        cache = checker._fast_collision = {
-            "model": dict(bodies=_i64(checker.bodies_with_elements), body_c=_f64(checker.body_c),
-                          body_r=_f64(checker.body_r), body_box_c=_f64(checker.body_box_c),
-                          body_box_h=_f64(checker.body_box_h), el_start=_i64(checker.body_el_start),
-                          el_count=_i64(checker.body_el_count), el_order=_i64(checker.body_el_order),
-                          el_body=_i64(checker.el_body), el_c=_f64(checker.el_c), el_R=_f64(checker.el_R),
-                          el_h=_f64(checker.el_h), el_r=_f64(checker.el_r),
-                          pairs=_i64(checker.self_pairs).reshape(-1, 2), pair_els=np.unique(_i64(checker.self_pairs))),
-            "boxes": None, "boxes_of": None, "args": None}
+        cache = checker._fast_arrays = {
+            "model": (_i64(checker.bodies_with_elements), _f64(checker.body_c), _f64(checker.body_r),
+                      _f64(checker.body_box_c), _f64(checker.body_box_h), _i64(checker.body_el_start),
+                      _i64(checker.body_el_count), _i64(checker.body_el_order), _i64(checker.el_body),
+                      _f64(checker.el_c), _f64(checker.el_R), _f64(checker.el_h), _f64(checker.el_r),
+                      _i64(checker.self_pairs).reshape(-1, 2), np.unique(_i64(checker.self_pairs))),
+            "boxes": None, "boxes_of": None}
     bx = checker.boxes
     if cache["boxes_of"] is not bx:
-        cache["boxes"] = _box_arrays(bx)
+        cache["boxes"] = (_f64(bx.center).reshape(-1, 3), _f64(bx.rotation).reshape(-1, 3, 3),
+                          _f64(bx.half).reshape(-1, 3), _f64(bx.aabb()).reshape(-1, 6))
         cache["boxes_of"] = bx
-    lower, upper = _const64(checker.lower), _const64(checker.upper)  # the same arrays until the limits change
-    args = cache["args"]
-    if args is None or args.lower is not lower or args.upper is not upper or args.box_c is not cache["boxes"]["box_c"]:
-        args = cache["args"] = CollisionArrays(lower=lower, upper=upper, **cache["model"], **cache["boxes"], eps=1e-6)
-    return args
+    return cache["model"], cache["boxes"]
+
+
+def _check_args(checker) -> tuple:
+    """The arguments of the ``check`` kernel after ``q`` and ``detailed``: the robot's body tree, the joint limits,
+    the collision model and the obstacle boxes of a :class:`~psprm_core.collision.CollisionChecker`, and eps."""
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
+    model, boxes = _checker_arrays(checker)
+    return (all_bodies, parent, jtype, R_off, t_off, axis, D, off, mobile, _const64(checker.lower),
+            _const64(checker.upper), *model, *boxes, 1e-6)
 
 
 def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.ndarray:
@@ -279,14 +266,20 @@ def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.n
         q64 = _f64(q.astype(np.float32) if checker.dtype == torch.float32 else q)  # rounded as the checker's dtype
     else:
         q64 = _f64(q.to(checker.dtype))
-    return _rows(kernels().check, 1, q64, bool(detailed), robot_arrays(checker.robot), _collision_arrays(checker))
+    return _rows(kernels().check, 1, q64, bool(detailed), *_check_args(checker))
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
     """:meth:`CollisionChecker.env_hits` of ``q`` (B, dof) against ``boxes`` (:class:`BoxTensors`) only: flags (B,)
     and, with ``want_aabb``, the robot's world bounds (B, 6) (else an empty array)."""
-    col = _collision_arrays(checker)._replace(**_box_arrays(boxes))
-    return _rows(kernels().env_hits, 1, _f64(q.to(checker.dtype)), bool(want_aabb), robot_arrays(checker.robot), col)
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
+    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+     _, _), _ = _checker_arrays(checker)
+    box = (_f64(boxes.center).reshape(-1, 3), _f64(boxes.rotation).reshape(-1, 3, 3), _f64(boxes.half).reshape(-1, 3),
+           _f64(boxes.aabb()).reshape(-1, 6))
+    return _rows(kernels().env_hits, 1, _f64(q.to(checker.dtype)), bool(want_aabb), all_bodies, parent, jtype, R_off,
+                 t_off, axis, D, off, mobile, bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order,
+                 el_body, el_c, el_R, el_h, el_r, *box, 1e-6)
 
 
 # ---------------------------------------------------------------------------------------------- perception
@@ -297,8 +290,8 @@ def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
     _, pts_local, centre_local, fat_half, c, R, h = _occlusion_arrays(occ)
     if len(c) == 0 or pts_local.shape[0] == 0:
         return torch.zeros(pos.shape[0], dtype=pos.dtype)
-    args = OcclusionArrays(pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside), float(_EPS_DIR))
-    out = _rows(kernels().occlusion, 1, _f64(pos), args)
+    out = _rows(kernels().occlusion, 1, _f64(pos), pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside),
+                              float(_EPS_DIR))
     return torch.from_numpy(out).to(pos.dtype)
 
 
@@ -320,12 +313,11 @@ def _occlusion_arrays(occ) -> tuple:
     return arr
 
 
-def _mlp(model, cls: int) -> tuple:
+def _mlp(model, cls: int) -> list:
     """The surrogate's layers as (W^T (in, out), b) pairs for one class, with the feature normalisation and the
-    class's one-hot column folded into the first layer (as :meth:`PerceptionSurrogate._folded_first_layer`), and the
-    compiled kernel's ``MlpArrays`` of them (None unless float32 with a single output); cached on the model until a
-    parameter or buffer changes: in place (the tensors' versions) or by new storage (``.to()``,
-    ``load_state_dict``)."""
+    class's one-hot column folded into the first layer (as :meth:`PerceptionSurrogate._folded_first_layer`); cached
+    on the model until a parameter or buffer changes: in place (the tensors' versions) or by new storage
+    (``.to()``, ``load_state_dict``)."""
     cache = getattr(model, "_fast_mlp", None)
     tensors = cache[1] if cache is not None else list(model.parameters()) + list(model.buffers())
     key = (cls,) + tuple((t._version, t.data_ptr()) for t in tensors)
@@ -340,13 +332,12 @@ def _mlp(model, cls: int) -> tuple:
             if all(w.dtype == torch.float32 for w, _ in layers) and len(layers) >= 2 and layers[-1][0].shape[1] == 1:
                 hid = layers[1:-1]
                 H = w1.shape[1]
-                compiled = MlpArrays(
-                    w1=w1.numpy(), b1=b1.numpy(),
-                    ws=np.ascontiguousarray(np.stack([w.numpy() for w, _ in hid]) if hid else
-                                            np.zeros((0, H, H), np.float32)),
-                    bs=np.ascontiguousarray(np.stack([b.numpy() for _, b in hid]) if hid else
-                                            np.zeros((0, H), np.float32)),
-                    wo=np.ascontiguousarray(layers[-1][0].numpy()[:, 0]), bo=np.float32(layers[-1][1].item()))
+                compiled = (w1.numpy(), b1.numpy(),
+                            np.ascontiguousarray(np.stack([w.numpy() for w, _ in hid]) if hid else
+                                                 np.zeros((0, H, H), np.float32)),
+                            np.ascontiguousarray(np.stack([b.numpy() for _, b in hid]) if hid else
+                                                 np.zeros((0, H), np.float32)),
+                            np.ascontiguousarray(layers[-1][0].numpy()[:, 0]), np.float32(layers[-1][1].item()))
         cache = model._fast_mlp = (key, tensors, layers, compiled)
     return cache[2], cache[3]
 
@@ -359,7 +350,7 @@ def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
     above that torch's GEMM (numpy's is 5x slower at this shape)."""
     layers, compiled = _mlp(model, cls)
     if compiled is not None and feats.shape[0] <= MLP_MAX_ROWS:  # single-threaded, no per-layer dispatch
-        return torch.from_numpy(kernels().mlp(feats.numpy().astype(np.float32), compiled))
+        return torch.from_numpy(kernels().mlp(feats.numpy().astype(np.float32), *compiled))
     h = feats.to(layers[0][0].dtype)
     with torch.no_grad():
         for i, (w, b) in enumerate(layers):
@@ -423,13 +414,14 @@ def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -
 
 
 # ---------------------------------------------------------------------------------------------- a query's edges
-def _edge_args(motion, n_interp: int, track: bool, r32: bool, resolution: float = 0.0, max_steps: int = 0,
-               mlp_rows: int = 1) -> EdgeArgs:
-    """The kernels' ``EdgeArgs``: the Eq. 1 samples ``n_interp``, the metric of ``motion``, whether the camera joints
-    re-aim (``track``), float32 rounding (``r32``), the dense check's ``resolution`` and ``max_steps`` and the views
-    per compiled MLP call (the last three unused by the knots alone)."""
-    return EdgeArgs(n_interp=int(n_interp), w_rot=float(motion.w_rot), mobile=bool(motion.mobile), track=bool(track),
-                    r32=bool(r32), resolution=float(resolution), max_steps=int(max_steps), mlp_rows=int(mlp_rows))
+def _project_args(constraint, dtype: torch.dtype, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
+                  max_iters: int) -> tuple:
+    """The arguments of :func:`project` after ``q``, for ``max_iters`` steps."""
+    intr = constraint.intr
+    return (*_camera_args(constraint.robot), _const64(constraint.target, dtype), _i64(cols), constraint.kind == "line",
+            float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
+            float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(max_iters),
+            float(settings.damping), float(settings.max_step))
 
 
 def query_knots(motion, constraint, qa: torch.Tensor, qb: torch.Tensor, n_interp: int, track: bool, settings,
@@ -437,17 +429,16 @@ def query_knots(motion, constraint, qa: torch.Tensor, qb: torch.Tensor, n_interp
     """``PSPRM.edge_knots`` of a few edges (E, dof) in one compiled call: knots (E, M, dof) in the dtype of ``qa``
     and the Eq. 1 sample positions (E, N) (same values as :func:`edge_knot_seeds` followed by :func:`project` of
     the interior knots over ``cols``)."""
-    edge = _edge_args(motion, n_interp, track and len(cols), qa.dtype == torch.float32)
-    kn, ki = kernels().query_knots(_f64(qa), _f64(qb), edge, robot_arrays(constraint.robot),
-                                   _projection_args(constraint, qa.dtype, settings, lo, hi, cols, max_iters))
+    kn, ki = kernels().query_knots(_f64(qa), _f64(qb), int(n_interp), float(motion.w_rot), bool(motion.mobile),
+                                   bool(track and len(cols)), qa.dtype == torch.float32,
+                                   *_project_args(constraint, qa.dtype, settings, lo, hi, cols, max_iters))
     return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)
 
 
-def neural_args(scorer, dtype: torch.dtype) -> ScorerArgs | None:
-    """The kernels' ``ScorerArgs`` of a single-target neural scorer (``NeuralScorer``: ``model``, ``target_pose``,
-    ``class_name``, ``occ``, ``tau``; its surrogate's ``MlpArrays`` and occluders' ``OcclusionArrays``) for
-    :func:`check_score_knots` of cameras in ``dtype``, or None when the compiled scoring does not apply (another
-    scorer, a model off the CPU or not float32)."""
+def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
+    """The surrogate and occlusion arrays of a single-target neural scorer (``NeuralScorer``: ``model``,
+    ``target_pose``, ``class_name``, ``occ``, ``tau``) for :func:`check_score_knots` of cameras in ``dtype``, or None
+    when the compiled scoring does not apply (another scorer, a model off the CPU or not float32)."""
     from .geometry import EPS_DIR as _EPS_DIR
 
     model = getattr(scorer, "model", None)
@@ -469,24 +460,23 @@ def neural_args(scorer, dtype: torch.dtype) -> ScorerArgs | None:
         pts_local, centre_local = np.zeros((1, 0, 3)), np.zeros((0, 3))
         fat_half = c = h = np.zeros((0, 3))
         R = np.zeros((0, 3, 3))
-    occ_args = OcclusionArrays(pts_local, centre_local, fat_half, c, R, h, count_inside, float(_EPS_DIR))
-    return ScorerArgs(target_pose=tgt, derived=bool(model.derived), mlp=compiled, has_occ=bool(has_occ), occ=occ_args,
-                      tau=float(getattr(scorer, "tau", 0.5)))
+    return (tgt, bool(model.derived), *compiled, bool(has_occ), pts_local, centre_local, fat_half, c, R, h,
+            count_inside, float(_EPS_DIR), float(getattr(scorer, "tau", 0.5)))
 
 
-def check_score_knots(motion, checker, robot, scorer_args: ScorerArgs, knots: torch.Tensor, interior: torch.Tensor,
+def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.Tensor, interior: torch.Tensor,
                       do_check: np.ndarray, do_score: np.ndarray, resolution: float, max_steps: int) -> tuple:
     """The lazy verification of a few edges in one compiled call (``Verification.verify_edges``): collision-free flags
     (E,) of their knots (E, M, dof) and dense pieces (where ``do_check``), and for the free ones (where
     ``do_score``) the camera poses (E, N + 2, 4, 4) of their Eq. 1 points and the raw scores (E, N + 2) of the
     neural scorer (``scorer_args`` from :func:`neural_args`; the MLP in chunks of whole edges within
     :data:`MLP_MAX_ROWS` views). Free flags are True for rows not checked."""
-    n = interior.shape[1]
-    edge = _edge_args(motion, n, False, knots.dtype == torch.float32, resolution, max_steps, _mlp_rows(n + 2))
+    chain, _, _, _, _, _, _, _, _, cam_body, cam_R, cam_t = _camera_args(robot)
     free, cams, raw = kernels().check_score_knots(
         _f64(knots), _i64(interior), np.ascontiguousarray(do_check, dtype=np.bool_),
-        np.ascontiguousarray(do_score, dtype=np.bool_), edge, robot_arrays(robot), _collision_arrays(checker),
-        scorer_args)
+        np.ascontiguousarray(do_score, dtype=np.bool_), knots.dtype == torch.float32, float(resolution), int(max_steps),
+        float(motion.w_rot), bool(motion.mobile), *_check_args(checker), chain, cam_body, cam_R, cam_t, *scorer_args,
+        _mlp_rows(interior.shape[1] + 2))
     return free, torch.from_numpy(cams).to(knots.dtype), torch.from_numpy(raw)
 
 
@@ -496,18 +486,20 @@ def _mlp_rows(n_eq1: int) -> int:
     return max(1, MLP_MAX_ROWS // n_eq1) * n_eq1
 
 
-def neural_config_scores(robot, scorer_args: ScorerArgs, q: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
+def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Raw neural scores (B,) of configurations q (B, dof), in one compiled call (``scorer.score(robot.camera_poses(q))``
     of a single-target neural scorer, ``scorer_args`` from :func:`neural_args`), in the dtype of ``q`` (a tensor, or
     a numpy array for numpy input); at most :data:`MLP_MAX_ROWS` rows (the compiled MLP's, as the step-by-step
     path)."""
+    chain, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t = _camera_args(robot)
     is_np = isinstance(q, np.ndarray)
     f32 = q.dtype == np.float32 if is_np else q.dtype == torch.float32
-    _, sc = kernels().neural_scores(_f64(q), f32, robot_arrays(robot), scorer_args, MLP_MAX_ROWS)
+    _, sc = kernels().neural_scores(_f64(q), f32, chain, parent, jtype, R_off, t_off, axis, D, off,
+                                    mobile, cam_body, cam_R, cam_t, *scorer_args, MLP_MAX_ROWS)
     return sc.astype(q.dtype, copy=False) if is_np else torch.from_numpy(sc).to(q.dtype)
 
 
-def verify_edges(motion, constraint, checker, scorer_args: ScorerArgs, store_k: np.ndarray, store_i: np.ndarray,
+def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.ndarray, store_i: np.ndarray,
                  ids: np.ndarray, compute: np.ndarray, qa: np.ndarray, qb: np.ndarray, flip: np.ndarray,
                  n_interp: int, track: bool, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
                  max_iters: int, do_check: np.ndarray, do_score: np.ndarray, resolution: float,
@@ -517,11 +509,16 @@ def verify_edges(motion, constraint, checker, scorer_args: ScorerArgs, store_k: 
     knot store's arrays ``store_k`` (cap, M, dof) / ``store_i`` (cap, N) (numpy views of its tensors; reversed where
     ``flip``), then :func:`check_score_knots` of all of them from the store. Returns numpy arrays (free (E,),
     cameras (E, N + 2, 4, 4) in the store's dtype, raw scores (E, N + 2) float32)."""
+    robot = checker.robot
+    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
+    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
+     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
     dtype = torch.float32 if store_k.dtype == np.float32 else torch.float64
-    edge = _edge_args(motion, n_interp, track and len(cols), dtype == torch.float32, resolution, max_steps,
-                      _mlp_rows(n_interp + 2))
     free, cams, raw = kernels().verify_edges(
-        store_k, store_i, ids, compute, qa, qb, flip, do_check, do_score, edge, robot_arrays(checker.robot),
-        _projection_args(constraint, dtype, settings, lo, hi, cols, max_iters), _collision_arrays(checker),
-        scorer_args)
+        store_k, store_i, ids, compute, qa, qb, flip, int(n_interp), float(motion.w_rot), bool(motion.mobile),
+        bool(track and len(cols)), dtype == torch.float32,
+        *_project_args(constraint, dtype, settings, lo, hi, cols, max_iters), do_check, do_score, float(resolution),
+        int(max_steps), all_bodies, _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b,
+        box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h,
+        box_aabb, 1e-6, *scorer_args, _mlp_rows(n_interp + 2))
     return free, cams.astype(store_k.dtype, copy=False), raw
