@@ -339,7 +339,9 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
             first = float(np.median(v[: max(2, len(v) // 6)]))
             last = float(np.median(v[-max(2, len(v) // 6):]))
             growth[n] = {"first_mb": round(first, 1), "last_mb": round(last, 1), "growth_mb": round(last - first, 1),
-                         "max_mb": round(max(v), 1)}
+                         "max_mb": round(max(v), 1),
+                         # one sample a minute (s, MB): whether the memory levels off over a long run
+                         "series": [[round(t), round(x, 1)] for t, x in m[::6] if np.isfinite(x)]}
     left_active = sum(1 for _, n, s in statuses if "inactive" in s or "configure failed" in s)
     errors = [s for _, n, s in statuses if s.startswith("error")]
     pct = (lambda p: round(float(np.percentile(lat, p)), 1) if len(lat) else None)
