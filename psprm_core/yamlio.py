@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 from typing import Any, Sequence
@@ -135,16 +136,116 @@ def typed_value(f: Fields, key: str, default: Any, int_lo: int | None = 0, float
     return f.str(key)
 
 
+def _nested_class(fl) -> type | None:
+    """The settings dataclass a field holds (a ``default_factory`` that makes a dataclass), else None."""
+    import dataclasses
+
+    if fl.default_factory is dataclasses.MISSING:
+        return None
+    made = fl.default_factory()
+    return type(made) if dataclasses.is_dataclass(made) else None
+
+
 def dataclass_kwargs(cls, f: Fields, strict: bool = True, skip: Sequence[str] = (), signed: Sequence[str] = (),
                      int_lo: int | None = 0, float_lo: float | None = 0.0) -> dict:
     """The fields of settings dataclass ``cls`` present in ``f``, each typed by its default (:func:`typed_value`):
-    the one YAML-to-settings reader of the planner, replanner, baselines and ``--set`` settings. ``strict``: a key
-    that is not a field is an error (else ignored); ``skip``: fields the caller reads itself (nested settings);
-    ``signed``: float fields that may be negative."""
+    the one YAML-to-settings reader of the planner, replanner, baselines and ``--set`` settings. A field holding a
+    settings dataclass (a group, e.g. ``PSPRMSettings.scoring``) is read from its own mapping, recursively.
+    ``strict``: a key that is not a field is an error (else ignored); ``skip``: fields the caller reads itself;
+    ``signed``: float fields that may be negative (also ``metadata={"signed": True}`` on the field). A class may
+    set its own bounds with a ``YAML_BOUNDS`` dict (``int_lo``, ``float_lo``)."""
     import dataclasses
 
+    bounds = getattr(cls, "YAML_BOUNDS", {})
+    int_lo, float_lo = bounds.get("int_lo", int_lo), bounds.get("float_lo", float_lo)
     fields = {fl.name: fl for fl in dataclasses.fields(cls)}
     if strict:
-        f.check_keys(list(fields))
-    return {key: typed_value(f, key, fields[key].default, int_lo, None if key in signed else float_lo)
-            for key in f.data if key in fields and key not in skip}
+        for key in f.data:
+            if key not in fields:
+                home = leaf_paths(cls).get(str(key))
+                if home is not None:  # a leaf of a group given at the top: say where it belongs
+                    raise f.error(str(key), f"belongs to the '{'.'.join(home[:-1])}' group "
+                                            f"({'.'.join(home[:-1])}: {{{key}: ...}})")
+                raise f.error(str(key), f"unknown field (allowed: {', '.join(fields)})")
+    out = {}
+    for key in f.data:
+        if key not in fields or key in skip:
+            continue
+        sub = _nested_class(fields[key])
+        if sub is not None:
+            out[key] = sub(**dataclass_kwargs(sub, f.sub(key), strict, (), signed, int_lo, float_lo))
+            continue
+        lo = None if key in signed or fields[key].metadata.get("signed") else float_lo
+        out[key] = typed_value(f, key, fields[key].default, int_lo, lo)
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def leaf_paths(cls) -> dict:
+    """Every setting of the (possibly nested) settings dataclass ``cls`` by name: its dotted path
+    (``"scoring.alpha"``) and, when no other group has a field of that name, its own name (``"alpha"``), each
+    mapped to the path as a tuple (``("scoring", "alpha")``). A group's name maps to the whole group."""
+    import dataclasses
+
+    out: dict = {}
+    nested: dict = {}
+
+    def walk(c, prefix: tuple) -> None:
+        for fl in dataclasses.fields(c):
+            path = prefix + (fl.name,)
+            out[".".join(path)] = path
+            if prefix:
+                nested.setdefault(fl.name, []).append(path)
+            sub = _nested_class(fl)
+            if sub is not None:
+                walk(sub, path)
+
+    walk(cls, ())
+    for name, paths in nested.items():
+        if len(paths) == 1 and name not in out:
+            out[name] = paths[0]
+    return out
+
+
+def setting_value(obj, name: str) -> Any:
+    """The setting ``name`` (its own name or dotted path, :func:`leaf_paths`) of settings dataclass ``obj``."""
+    path = leaf_paths(type(obj)).get(name)
+    if path is None:
+        raise ConfigError("settings", name, f"unknown setting of {type(obj).__name__}")
+    for part in path:
+        obj = getattr(obj, part)
+    return obj
+
+
+def replace_settings(obj, changes: dict | None = None, **more) -> Any:
+    """A copy of settings dataclass ``obj`` with ``changes`` (names or dotted paths, :func:`leaf_paths`; a group's
+    name takes a whole group object) applied; ``obj`` is left as it is. Not validated.
+
+    Raises
+    ------
+    ConfigError
+        A name that is not a setting of ``obj``."""
+    import dataclasses
+
+    changes = {**(changes or {}), **more}
+    if not changes:
+        return obj
+    paths = leaf_paths(type(obj))
+    tree: dict = {}
+    for name, value in changes.items():
+        path = paths.get(name)
+        if path is None:
+            raise ConfigError("settings", name, f"unknown setting of {type(obj).__name__} "
+                                                f"(a field name or a dotted path such as "
+                                                f"{next((k for k in paths if '.' in k), 'group.field')})")
+        node = tree
+        for part in path[:-1]:
+            node = node.setdefault(part, {})
+        node[path[-1]] = value
+
+    def apply(o, t: dict):
+        kw = {k: (apply(getattr(o, k), v) if isinstance(v, dict) and dataclasses.is_dataclass(getattr(o, k))
+                  else v) for k, v in t.items()}
+        return dataclasses.replace(o, **kw)
+
+    return apply(obj, tree)

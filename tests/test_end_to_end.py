@@ -69,7 +69,7 @@ def test_oracle_variant_plans_a_query_seen_as_the_oracle_sees_it(variant, load_r
     target = "person_face"
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     p = make_planner(variant, scene, [target], robot=robot, n_nodes=24, seed=0)
-    assert isinstance(p.scorer, OracleScorer) and p.settings.constraint == variant.split("-")[1]
+    assert isinstance(p.scorer, OracleScorer) and p.settings.visibility.constraint == variant.split("-")[1]
     assert p.build(template=start)["success"]
     res = p.plan(start, goals)
     _valid_plan(res, robot, scene, start, goals)
@@ -86,11 +86,11 @@ def test_oracle_variant_plans_a_query_seen_as_the_oracle_sees_it(variant, load_r
     finally:
         world.close()
     tol = p.settings.projection.tolerance
-    assert (pc[:, 2] >= p.settings.min_view_distance - tol).all()
+    assert (pc[:, 2] >= p.settings.visibility.min_view_distance - tol).all()
     if variant == "psprm-line":
         assert (np.hypot(pc[:, 0], pc[:, 1]) <= 1.5 * tol).all(), pc
     else:  # inside the frustum, by its half-angles, with the margin kept on every side
-        m = p.settings.frustum_margin - 1.5 * tol
+        m = p.settings.visibility.frustum_margin - 1.5 * tol
         assert (np.abs(pc[:, 0]) + m <= intr.tan_half_h * pc[:, 2] + 1e-9).all(), pc
         assert (np.abs(pc[:, 1]) + m <= intr.tan_half_v * pc[:, 2] + 1e-9).all(), pc
     assert (along[:, 2] > 0).all()

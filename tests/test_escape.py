@@ -44,7 +44,7 @@ def _pocket_scene(closed: bool = False) -> Scene:
 
 def _planner(robot, scene: Scene, **overrides) -> PSPRM:
     scorer = GeometricScorer(scene, "monitor", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("monitor").center, PSPRMSettings(**{**SETTINGS, **overrides}))
+    p = PSPRM(robot, scene, scorer, scene.target("monitor").center, PSPRMSettings().changed(**{**SETTINGS, **overrides}))
     assert p.build()["success"]
     return p
 
@@ -118,7 +118,7 @@ def test_escape_is_off_and_never_runs_for_queries_that_succeed(pocket, monkeypat
     monkeypatch.setattr(p.pipeline.recovery, "escape", lambda *a, **k: calls.append(1) or real(*a, **k))
     s0 = p.settings
     try:
-        p.update_settings(dataclasses.replace(s0, query_escape_s=0.0, query_untracked_fallback=False,
+        p.update_settings(s0.changed(query_escape_s=0.0, query_untracked_fallback=False,
                                               query_repair_failures=10**6))
         res = p.plan(start, goal, timing=False)
         assert not res.success and "reachable" in res.reason and not calls
@@ -188,7 +188,7 @@ def test_escape_settings_are_query_settings_and_validated(pocket, tmp_path):
     fp = p.fingerprint()
     s0 = p.settings
     try:
-        p.update_settings(dataclasses.replace(s0, query_escape_s=0.5, query_escape_nodes=10, query_escape_radius=1.0,
+        p.update_settings(s0.changed(query_escape_s=0.5, query_escape_nodes=10, query_escape_radius=1.0,
                                               query_escape_step=0.2, query_escape_connect_k=2,
                                               query_untracked_fallback=False))
         assert p.fingerprint() == fp  # a saved roadmap stays valid
@@ -197,13 +197,13 @@ def test_escape_settings_are_query_settings_and_validated(pocket, tmp_path):
     for bad in (dict(query_escape_s=-1.0), dict(query_escape_s=float("nan")), dict(query_escape_step=0.0),
                 dict(query_escape_radius=-1.0), dict(query_escape_nodes=0), dict(query_escape_connect_k=0)):
         with pytest.raises(ConfigError):
-            PSPRMSettings(**{"query_escape_s": 1.0, **bad}).validate()
+            PSPRMSettings().changed(**{"query_escape_s": 1.0, **bad}).validate()
     shipped = PSPRMSettings.from_yaml(config_dir() / "planners" / "psprm.yaml", robot="ur5_mobile")
-    assert shipped.query_escape_s > 0 and shipped.query_untracked_fallback
+    assert shipped.recovery.query_escape_s > 0 and shipped.recovery.query_untracked_fallback
     y = tmp_path / "p.yaml"
-    y.write_text("query_escape_step: 0.0\nquery_escape_s: 1.0\n")
+    y.write_text("recovery:\n  query_escape_step: 0.0\n  query_escape_s: 1.0\n")
     with pytest.raises(ConfigError, match="query_escape_step"):
         PSPRMSettings.from_yaml(y)
-    y.write_text("query_escape_s: soon\n")
+    y.write_text("recovery:\n  query_escape_s: soon\n")
     with pytest.raises(ConfigError, match="query_escape_s"):
         PSPRMSettings.from_yaml(y)

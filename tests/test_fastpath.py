@@ -191,7 +191,7 @@ def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
     robot, scene = _robot_scene("stretch2", load_robot)
     target = scene.problems[0].target
     scorer = GeometricScorer(scene, target, robot.config.intrinsics)
-    settings = PSPRMSettings(n_nodes=400, seed=3, query_repair_nodes=0)  # repairs grow nodes: not compared
+    settings = PSPRMSettings().changed(n_nodes=400, seed=3, query_repair_nodes=0)  # repairs grow nodes: not compared
     focus = scene.target(target).center
     a = PSPRM(robot, scene, scorer, focus, settings)
     assert a.build()["success"]
@@ -383,7 +383,7 @@ def test_queries_run_with_one_intra_op_thread(load_robot):
             return super().score(cameras)
 
     p = PSPRM(robot, scene, Recording(scene, target, robot.config.intrinsics), focus,
-              PSPRMSettings(n_nodes=200, seed=1, query_repair_nodes=0))
+              PSPRMSettings().changed(n_nodes=200, seed=1, query_repair_nodes=0))
     old = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
@@ -434,7 +434,7 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     qa = qa[planner.checker.valid(qa)][:90]
     qb = qa + torch.as_tensor(rng.normal(0, 0.15, qa.shape), dtype=dtype)  # short edges, some colliding
     kn, ki = planner.edge_knots(qa, qb)
-    seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.n_interp)
+    seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.edges.n_interp)
     assert torch.equal(kn, planner.pipeline.edges.track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
     args = fastpath.neural_args(scorer, dtype)
     # a query's start and goal scores: one compiled call, the scorer's values
@@ -445,7 +445,7 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
         k, i = kn[s0:s0 + 3], ki[s0:s0 + 3]
         free, cams, raw = fastpath.check_score_knots(planner.motion, planner.checker, robot, args, k, i,
                                                      np.ones(len(k), bool), np.ones(len(k), bool),
-                                                     planner.settings.edge_resolution, 200)
+                                                     planner.settings.edges.edge_resolution, 200)
         assert np.array_equal(free, planner.pipeline.edges.knots_valid(k, dense=True).numpy())
         if free.any():
             ref_cams = planner.pipeline.scoring.eq1_cameras(k[free], i[free])
@@ -465,7 +465,7 @@ def test_planner_same_paths_with_the_fused_verification_on_and_off(load_robot, t
     robot, scene = _robot_scene("stretch2", load_robot)
     target = scene.problems[0].target
     focus = scene.target(target).center
-    settings = PSPRMSettings(n_nodes=400, seed=5, query_repair_nodes=0)
+    settings = PSPRMSettings().changed(n_nodes=400, seed=5, query_repair_nodes=0)
     a = PSPRM(robot, scene, _neural_scorer(scene, target), focus, settings)
     assert a.build()["success"]
     b = PSPRM(robot, scene, _neural_scorer(scene, target), focus, settings)

@@ -31,7 +31,7 @@ def home(load_robot):
     robot = load_robot("stretch2")
     prob = scene.problem("tv_west_to_southeast")
     scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
-    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings(n_nodes=N_NODES, seed=1))
+    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings().changed(n_nodes=N_NODES, seed=1))
     stats = planner.build(template=problem_configurations(robot, scene, prob)[0])
     assert stats["success"] and stats["n_nodes"] == N_NODES
     return scene, robot, planner
@@ -195,7 +195,7 @@ def test_eager_collision_checking_plans_free_paths(load_robot):
     prob = scene.problem("tv_west_to_southeast")
     scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
     planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center,
-                    PSPRMSettings(n_nodes=300, seed=2, lazy_collision=False))
+                    PSPRMSettings().changed(n_nodes=300, seed=2, lazy_collision=False))
     planner.build(template=problem_configurations(robot, scene, prob)[0])
     assert (planner.graph.edge_attribute("checked")[planner.graph.valid_edge_ids()] == 1.0).all()
     solved = 0
@@ -221,7 +221,7 @@ def test_rebuilt_roadmap_connects_queries_to_its_own_nodes(load_robot):
     prob = scene.problem("tv_west_to_southeast")
     scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
     start, goals = problem_configurations(robot, scene, prob)
-    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings(n_nodes=300, seed=3))
+    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings().changed(n_nodes=300, seed=3))
     planner.build(template=start)
     assert planner.plan(start, goals, timing=False).success
     planner.update_settings(planner.settings.__class__(**{**planner.settings.__dict__, "seed": 4}))
@@ -251,7 +251,7 @@ def test_perception_preserving_shortcuts(home):
             start, goals = problem_configurations(robot, scene, p)
             out = {}
             for sc in (False, True):
-                planner.update_settings(dataclasses.replace(saved, objective="motion", shortcut=sc))
+                planner.update_settings(saved.changed(objective="motion", shortcut=sc))
                 planner.reweight(alpha=0.8, objective="motion")
                 out[sc] = planner.plan(start, goals, timing=True)
                 assert out[sc].success, out[sc].reason
@@ -268,7 +268,7 @@ def test_perception_preserving_shortcuts(home):
     finally:
         world.close()
         planner.update_settings(saved)
-        planner.reweight(alpha=saved.alpha, objective=saved.objective)
+        planner.reweight(alpha=saved.scoring.alpha, objective=saved.scoring.objective)
     assert shorter >= 1
 
 
@@ -305,7 +305,7 @@ def test_perception_biased_sampling(load_robot):
     for share in (0.0, 0.5):
         scorer = GeometricScorer(scene, "tv", robot.config.intrinsics)
         p = PSPRM(robot, scene, scorer, scene.target("tv").center,
-                  PSPRMSettings(n_nodes=400, seed=2, biased_share=share))
+                  PSPRMSettings().changed(n_nodes=400, seed=2, biased_share=share))
         stats = p.build()
         assert stats["success"] and stats["n_nodes"] == 400
         assert stats.get("biased_nodes", 0) == int(round(400 * share))
@@ -319,7 +319,7 @@ def test_perception_biased_sampling(load_robot):
             world.close()
     assert means[0.5] > means[0.0] + 0.03, means
     with pytest.raises(ConfigError, match="biased_share"):
-        PSPRMSettings(biased_share=1.5).validate()
+        PSPRMSettings().changed(biased_share=1.5).validate()
 
 
 def test_make_planner_applies_overrides_and_the_shipped_settings(load_robot):
@@ -336,34 +336,46 @@ def test_make_planner_applies_overrides_and_the_shipped_settings(load_robot):
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
     p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50, biased_share=0.3, objective="eq2")
-    assert p.settings.biased_share == 0.3 and p.settings.objective == "eq2"
-    assert p.settings.alpha == DEFAULT_ALPHA[("eq2", "neural")] == 0.8
+    assert p.settings.roadmap.biased_share == 0.3 and p.settings.scoring.objective == "eq2"
+    assert p.settings.scoring.alpha == DEFAULT_ALPHA[("eq2", "neural")] == 0.8
     p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50)
-    assert p.settings.objective == shipped["objective"] and p.settings.shortcut == shipped["shortcut"]
-    assert p.settings.biased_share == shipped["biased_share"]
-    assert p.settings.alpha == DEFAULT_ALPHA[(shipped["objective"], "neural")]
+    assert p.settings.scoring.objective == shipped["scoring"]["objective"]
+    assert p.settings.query.shortcut == shipped["query"]["shortcut"]
+    assert p.settings.roadmap.biased_share == shipped["roadmap"]["biased_share"]
+    assert p.settings.scoring.alpha == DEFAULT_ALPHA[(shipped["scoring"]["objective"], "neural")]
     p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50, alpha=0.5)
-    assert p.settings.alpha == 0.5
+    assert p.settings.scoring.alpha == 0.5
     p = make_planner("psprm-line", scene, ["tv"], robot=robot, n_nodes=50, biased_share=0.5)
-    assert p.settings.biased_share == 0.0
+    assert p.settings.roadmap.biased_share == 0.0
     alley = load_scene(resolve_named("scene", "blind_spot_alley"))
     p = make_planner("neural-psprm-line", alley, [alley.target_names[0]], robot=load_robot("ur5_mobile"), n_nodes=50)
-    assert p.settings.biased_share == shipped["robots"]["ur5_mobile"]["biased_share"] == 0.0
+    assert p.settings.roadmap.biased_share == shipped["robots"]["ur5_mobile"]["roadmap"]["biased_share"] == 0.0
+    # the rest of the group keeps the shared values
+    assert p.settings.roadmap.n_nodes == 50 and p.settings.roadmap.k_long == shipped["roadmap"]["k_long"]
 
 
 def test_settings_files_are_read_by_one_typed_reader(tmp_path):
     """PSPRMSettings and ReplanSettings YAML: values typed by each field's default, the file and field named in the
-    error; negative values only where a field is signed; unknown keys refused; the nested projection settings."""
+    error; negative values only where a field is signed; unknown keys refused; the groups nested, a setting given
+    outside its group refused with the group named; settings named by their own name or dotted path."""
     from psprm_core.planning.replanner import ReplanSettings
 
     good = tmp_path / "p.yaml"
-    good.write_text("n_nodes: 120\nedge_view_slack: -1.0\nshortcut: true\nprojection:\n  max_iters: 7\n"
-                    "  tolerance: 0.01\n")
+    good.write_text("roadmap:\n  n_nodes: 120\nedges:\n  edge_view_slack: -1.0\nquery:\n  shortcut: true\n"
+                    "projection:\n  max_iters: 7\n  tolerance: 0.01\n")
     s = PSPRMSettings.from_yaml(good)
-    assert (s.n_nodes, s.edge_view_slack, s.shortcut) == (120, -1.0, True)
+    assert (s.roadmap.n_nodes, s.edges.edge_view_slack, s.query.shortcut) == (120, -1.0, True)
     assert (s.projection.max_iters, s.projection.tolerance) == (7, 0.01)
-    for text, field in (("n_nodes: many\n", "n_nodes"), ("max_edge_length: -2.0\n", "max_edge_length"),
-                        ("no_such_setting: 1\n", "no_such_setting"), ("projection:\n  max_iters: 0\n", "max_iters")):
+    assert s.roadmap.k_long == PSPRMSettings().roadmap.k_long  # a group given in part keeps its other defaults
+    t = s.changed({"scoring.alpha": 0.3}, max_iters=9)
+    assert (t.scoring.alpha, t.projection.max_iters, t.value("alpha"), s.scoring.alpha) == (0.3, 9, 0.3, 0.8)
+    with pytest.raises(ConfigError, match="no_such"):
+        s.changed(no_such=1)
+    for text, field in (("roadmap:\n  n_nodes: many\n", "roadmap.n_nodes"),
+                        ("roadmap:\n  max_edge_length: -2.0\n", "roadmap.max_edge_length"),
+                        ("no_such_setting: 1\n", "no_such_setting"), ("projection:\n  max_iters: 0\n", "max_iters"),
+                        ("alpha: 0.5\n", "'alpha'.*'scoring' group"), ("scoring:\n  alpha: 1.5\n", "scoring.alpha"),
+                        ("robots:\n  stretch2:\n    n_nodes: 5\n", "robots.stretch2.n_nodes.*'roadmap' group")):
         bad = tmp_path / "bad.yaml"
         bad.write_text(text)
         with pytest.raises(ConfigError, match=field) as e:
@@ -384,17 +396,17 @@ def test_update_settings_refuses_the_visibility_model_and_remakes_changed_knots(
     scene, robot, planner = home
     saved = planner.settings
     with pytest.raises(ConfigError, match="constraint"):
-        planner.update_settings(constraint="frustum" if saved.constraint == "line" else "line")
+        planner.update_settings(constraint="frustum" if saved.visibility.constraint == "line" else "line")
     assert planner.settings == saved
     world = PybulletWorld(robot, scene.collision_boxes())
     try:
-        planner.update_settings(n_interp=saved.n_interp + 2)
+        planner.update_settings(n_interp=saved.edges.n_interp + 2)
         start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
         res = planner.plan(start, goals, timing=False)
         assert res.success, res.reason
         eids = planner.graph.edge_ids_of_path(res.path_nodes)
         knots, interior = planner.stored_knots(eids)
-        assert interior.shape[1] == saved.n_interp + 2
+        assert interior.shape[1] == saved.edges.n_interp + 2
         assert not world.in_collision(res.dense).any()
         # Eq. 1 of every edge that runs, from its knots, by this test's own FK and scorer: the weights the search
         # used were made with the new N at the knots that run, not kept from the old ones

@@ -31,7 +31,7 @@ N_NODES = 500
 
 def _planner(robot, scene, seed=3, n=N_NODES):
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings(n_nodes=n, seed=seed))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings().changed(n_nodes=n, seed=seed))
     assert p.build()["success"]
     return p
 
@@ -54,7 +54,7 @@ def replanner(world, saved_roadmap):
     """A fresh replanner per test on a copy of one built roadmap (tests change the roadmap)."""
     scene, robot = world
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings(n_nodes=N_NODES, seed=3))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings().changed(n_nodes=N_NODES, seed=3))
     p.load(saved_roadmap)
     rp = Replanner(p, targets=["person_face"])
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
@@ -308,7 +308,7 @@ def test_knot_bounds_cache_gives_the_same_hits_as_full_kinematics(replanner):
 
 def test_replan_heuristic_setting(replanner, tmp_path: Path):
     assert replanner.plan_options["heuristic"] == "exact"  # the replanner's default, for its queries only
-    assert replanner.planner.settings.heuristic != "exact"  # the planner's own settings are left as they are
+    assert replanner.planner.settings.query.heuristic != "exact"  # the planner's own settings are left as they are
     with pytest.raises(PsprmError, match="heuristic"):
         ReplanSettings(heuristic="fast")
     f = tmp_path / "r.yaml"
@@ -409,7 +409,7 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     d = cfg[:, :2] - q[:2]
     lateral = np.abs(-np.sin(q[2]) * d[:, 0] + np.cos(q[2]) * d[:, 1])
     on_line = (lateral < 1e-4) & (np.abs(np.angle(np.exp(1j * (cfg[:, 2] - q[2])))) < 1e-4)
-    assert on_line.any() and (np.linalg.norm(d[on_line], axis=1) <= p.settings.query_repair_radius + 1e-6).all()
+    assert on_line.any() and (np.linalg.norm(d[on_line], axis=1) <= p.settings.recovery.query_repair_radius + 1e-6).all()
     assert p.checker.valid(torch.as_tensor(cfg, dtype=torch.float32)).all()
     monkeypatch.setattr(p.pipeline.query, "plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
     assert not p.plan(q, goals).success and p.n_roadmap_nodes == n0 + len(new)  # other failures: no repair
@@ -417,7 +417,7 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap")  # noqa: E731
     monkeypatch.setattr(p.pipeline.query, "plan_once", unreachable)
     kept, valid0 = p.pipeline.rm.repair_added, p.roadmap_node_ids()
-    p.update_settings(dataclasses.replace(p.settings, query_repair_failures=p.pipeline.rm.repair_failed + 2))
+    p.update_settings(p.settings.changed(query_repair_failures=p.pipeline.rm.repair_failed + 2))
     slots = p.n_roadmap_nodes
     assert not p.plan(q, goals).success
     assert p.n_roadmap_nodes > slots and np.array_equal(p.roadmap_node_ids(), valid0) and p.pipeline.rm.repair_added == kept
@@ -430,9 +430,9 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     # the budget bounds what successful repairs keep
     monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
     calls.clear()
-    p.update_settings(dataclasses.replace(p.settings, query_repair_failures=10**6, query_repair_budget=p.pipeline.rm.repair_added + 10))
+    p.update_settings(p.settings.changed(query_repair_failures=10**6, query_repair_budget=p.pipeline.rm.repair_added + 10))
     assert p.plan(q, goals, timing=False).success
-    assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p.pipeline.rm.repair_added <= p.settings.query_repair_budget
+    assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p.pipeline.rm.repair_added <= p.settings.recovery.query_repair_budget
 
 
 def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkeypatch):
@@ -453,18 +453,18 @@ def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkey
     monkeypatch.setattr(p.pipeline.query, "plan_once", only_wide_succeeds)
     s0 = p.settings
     try:
-        p.update_settings(dataclasses.replace(s0, query_wide_k=150, query_repair_failures=10**6))
+        p.update_settings(s0.changed(query_wide_k=150, query_repair_failures=10**6))
         res = p.plan(q, goals, timing=False)
         assert res.success and "150 nearest" in res.reason and calls[-1] == ({}, 150)
         assert len(calls) >= 3  # the plain query and at least one repair came first
         assert res.query_ms >= 1.0 and np.isfinite(res.cost)
         calls.clear()
-        p.update_settings(dataclasses.replace(s0, query_wide_k=0, query_repair_failures=10**6))
+        p.update_settings(s0.changed(query_wide_k=0, query_repair_failures=10**6))
         assert not p.plan(q, goals, timing=False).success
         assert all(c != ({}, 150) for c in calls)
         # once the failed-repair cap is reached, a failing query is given up without repair or wide attempt
         calls.clear()
-        p.update_settings(dataclasses.replace(s0, query_wide_k=150, query_repair_failures=p.pipeline.rm.repair_failed))
+        p.update_settings(s0.changed(query_wide_k=150, query_repair_failures=p.pipeline.rm.repair_failed))
         assert not p.plan(q, goals, timing=False).success and len(calls) == 1
     finally:
         p.update_settings(s0)
@@ -484,7 +484,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
         return real_add(ua, vb, *a, **k)
 
     def first_fails(*a, **k):
-        calls.append((k.get("extra_candidates"), k.get("connect_k") or p.settings.connect_k))
+        calls.append((k.get("extra_candidates"), k.get("connect_k") or p.settings.query.connect_k))
         if len(calls) == 1:
             return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
         seen.clear()
@@ -492,11 +492,11 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
 
     monkeypatch.setattr(p.pipeline.query, "add_query_edges", record)
     monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
-    k0 = p.settings.connect_k
+    k0 = p.settings.query.connect_k
     res = p.plan(q, goals, timing=False)
     assert res.success and len(calls) == 2
     extra, k_used = calls[1]
-    assert k_used == max(k0, p.settings.query_repair_connect_k) and p.settings.connect_k == k0  # settings untouched
+    assert k_used == max(k0, p.settings.recovery.query_repair_connect_k) and p.settings.query.connect_k == k0  # settings untouched
     assert set(extra) == {0} | {1 + k for k in range(min(4, len(goals)))}
     start_id = min(int(u.min()) for u, _ in seen)  # the query's own nodes come first: the start has the lowest id
     ua = np.concatenate([u for u, _ in seen])
@@ -509,7 +509,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     # QUERY_FALLBACK_K nearest nodes, the repaired one all its query_repair_connect_k nearest, however long
     s0 = p.settings
     calls.clear()
-    p.update_settings(dataclasses.replace(s0, max_edge_length=1e-4))
+    p.update_settings(s0.changed(max_edge_length=1e-4))
     try:
         p.plan(q, goals, timing=False)
     finally:
@@ -546,14 +546,14 @@ def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
     monkeypatch.setattr(p.pipeline.builder, "grow", grow)
     monkeypatch.setattr(p.pipeline.query, "plan_once", fails_twice)
     s0 = p.settings
-    p.update_settings(dataclasses.replace(s0, query_repair_rounds=3, query_repair_budget=p.pipeline.rm.repair_added + 10_000))
+    p.update_settings(s0.changed(query_repair_rounds=3, query_repair_budget=p.pipeline.rm.repair_added + 10_000))
     try:
         res = p.plan(q, goals, timing=False)
     finally:
         p.update_settings(s0)
     assert res.success and len(extras) == 3  # first query + two repaired ones
     ends = 1 + min(4, len(goals))
-    r0 = s0.query_repair_radius
+    r0 = s0.recovery.query_repair_radius
     assert radii == pytest.approx([r0] * ends + [1.5 * r0] * ends)
     assert all(set(extras[1][k].tolist()) < set(extras[2][k].tolist()) for k in extras[1])  # accumulated
 

@@ -187,7 +187,7 @@ def test_live_parameters_change_behaviour_and_rebuild_parameters_are_refused(loa
             w_before = np.asarray(s.server.planner.graph.weights)[ids].copy()
             r = srv.set_params("roadmap_server", alpha=0.3)
             assert r[0].successful
-            assert s.probe.wait_for(lambda: abs(s.server.planner.settings.alpha - 0.3) < 1e-9, 5)
+            assert s.probe.wait_for(lambda: abs(s.server.planner.settings.scoring.alpha - 0.3) < 1e-9, 5)
             assert not np.allclose(w_before, np.asarray(s.server.planner.graph.weights)[ids])
             # refused, with reasons
             r = srv.set_params("roadmap_server", n_nodes=800)

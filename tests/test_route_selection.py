@@ -33,7 +33,7 @@ def setup(load_robot):
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
     prob = scene.problem("tv_west_to_southeast")
-    settings = PSPRMSettings(n_nodes=N_NODES, seed=2, objective="motion", alpha=ALPHA)
+    settings = PSPRMSettings().changed(n_nodes=N_NODES, seed=2, objective="motion", alpha=ALPHA)
     planner = PSPRM(robot, scene, GeometricScorer(scene, "tv", robot.config.intrinsics), scene.target("tv").center,
                     settings)
     start, goals = problem_configurations(robot, scene, prob)
@@ -75,7 +75,7 @@ def _reweighted_route(planner, start, goals, objective, alpha):
         planner.reweight(alpha=alpha, objective=objective)
         return planner.plan(start, goals, timing=False)
     finally:
-        planner.reweight(alpha=saved.alpha, objective=saved.objective)
+        planner.reweight(alpha=saved.scoring.alpha, objective=saved.scoring.objective)
 
 
 def test_selected_route_sees_most_within_the_length_bound(setup):
@@ -133,8 +133,8 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
 def test_bad_route_searches_are_config_errors():
     for bad in ("motion", "motion@1.5", "hops@0.5", "motion@x", "alt@2"):
         with pytest.raises(ConfigError, match="route_searches"):
-            PSPRMSettings(route_searches=bad).validate()
+            PSPRMSettings().changed(route_searches=bad).validate()
     with pytest.raises(ConfigError, match="route_length_ratio"):
-        PSPRMSettings(route_length_ratio=0.5).validate()
-    assert PSPRMSettings(route_searches=" motion@1, eq2@0.8 ,alt").route_search_list() == (
+        PSPRMSettings().changed(route_length_ratio=0.5).validate()
+    assert PSPRMSettings().changed(route_searches=" motion@1, eq2@0.8 ,alt").route_search_list() == (
         ("motion", 1.0), ("eq2", 0.8), ("alt", 1.0))

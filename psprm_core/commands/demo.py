@@ -142,7 +142,7 @@ def _plan(args, scene, robot, out: Path) -> dict:
     figure = out / f"plan_{scene.name}.png"
     if res.success:
         plot_plan(planner, res, str(figure), title=f"{args.planner} on {scene.name}/{prob.name}")
-    alpha = planner.settings.alpha
+    alpha = planner.settings.scoring.alpha
     planner.set_alpha(0.0)
     res0 = planner.plan(start, goals, timing=False)
     planner.set_alpha(alpha)

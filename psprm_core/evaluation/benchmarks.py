@@ -135,7 +135,7 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, queries, seed, threads, target,
                                                            heuristic, aimed=aimed, overrides=overrides)
     times, ok, scores, other = [], 0, [], 0
-    own = f"{p.settings.objective}@{p.settings.alpha:g}"
+    own = f"{p.settings.scoring.objective}@{p.settings.scoring.alpha:g}"
     for a, b in probs:
         res = p.plan(a, b, timing=False)
         times.append(res.query_ms)
@@ -145,13 +145,13 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
             other += bool(res.route) and res.route != own
     return {
         "scene": scene.name, "planner": planner, "target": target, "threads": threads, "aimed": aimed,
-        "heuristic": p.settings.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
+        "heuristic": p.settings.query.heuristic, "n_nodes": stats.get("n_nodes"), "n_edges": stats.get("n_edges"),
         "build_s": stats.get("build_s"), "sample_s": stats.get("sample_s"), "edges_s": stats.get("edges_s"),
         "score_s": stats.get("score_s"), "warm_up_s": stats.get("warm_up_s"),
         "queries": len(probs), "success_rate": ok / len(probs),
         "query_ms": float(np.median(times)), "query_p95_ms": float(np.percentile(times, 95)),
         "mean_perception_score": float(np.mean(scores)) if scores else float("nan"),
-        "route_searches": p.settings.route_searches, "other_route_rate": other / max(ok, 1),
+        "route_searches": p.settings.query.route_searches, "other_route_rate": other / max(ok, 1),
     }
 
 
@@ -183,7 +183,6 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     is extrapolated from the measured geometry time of the neural build plus the views it scored times the
     oracle's measured seconds per view.
     """
-    import dataclasses
 
     from ..paths import config_dir, resolve_named
     from ..planning.factory import make_scorer
@@ -201,8 +200,8 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     def build(kind: str, n: int) -> dict:
         # the same uniform roadmap for both scorers (perception-biased sampling would score thousands of extra
         # oracle views)
-        settings = dataclasses.replace(base, constraint="line", alpha=0.75 if kind == "oracle" else 0.8,
-                                       lazy_edges=False, n_nodes=n, seed=seed, expand_rounds=0, biased_share=0.0)
+        settings = base.changed(constraint="line", alpha=0.75 if kind == "oracle" else 0.8, lazy_edges=False,
+                                n_nodes=n, seed=seed, expand_rounds=0, biased_share=0.0)
         scorer = _TimedScorer(make_scorer(kind, scene, [target], robot.config.intrinsics))
         p = PSPRM(robot, scene, scorer, focus, settings)
         st = p.build()
@@ -409,7 +408,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
 
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
                                                            target, aimed=aimed)
-    alpha = p.settings.alpha
+    alpha = p.settings.scoring.alpha
     oracle = Oracle(scene, intrinsics=robot.config.intrinsics)
     n_oracle = len(probs) if oracle_problems is None else min(oracle_problems, len(probs))
     rows = {"psprm": [], "shortest": []}
@@ -494,7 +493,7 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     yaw0 = float(np.arctan2(tgt.rotation[1, 0], tgt.rotation[0, 0]))
     movable = [b.name for b in scene.obstacles if not b.name.startswith("wall") and b.name != body]
     out = {"scene": scene.name, "planner": planner, "target": target, "threads": threads,
-           "heuristic": rp.plan_options.get("heuristic", p.settings.heuristic), "n_nodes": stats.get("n_nodes"),
+           "heuristic": rp.plan_options.get("heuristic", p.settings.query.heuristic), "n_nodes": stats.get("n_nodes"),
            "n_edges": stats.get("n_edges"), "build_s": stats.get("build_s"), "first_plan_ms": first.query_ms, "updates": updates}
 
     def timed(kind: str, update) -> None:

@@ -96,5 +96,5 @@ class ReferenceRoutes:
                 add(f"alt{k + 1}", p.plan(start, goal, timing=False,
                                           options={"shortcut": False, "route_searches": ""}))
         finally:
-            p.reweight(alpha=saved.alpha, objective=saved.objective)
+            p.reweight(alpha=saved.scoring.alpha, objective=saved.scoring.objective)
         return out

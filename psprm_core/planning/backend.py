@@ -48,7 +48,7 @@ class TorchBackend:
         """(knots (E, M, dof), Eq. 1 positions (E, N)) of the local motions qa -> qb (:meth:`.edges.Edges.edge_knots`):
         the ends, the drive corners and the N samples sorted along the motion, re-aimed with ``track``."""
         c = self.ctx
-        E, n = qa.shape[0], c.settings.n_interp
+        E, n = qa.shape[0], c.settings.edges.n_interp
         dt, dev = qa.dtype, qa.device
         if c.robot.mobile:
             _, r1, d, r2 = c.motion._base_plan(qa, qb)
@@ -76,7 +76,7 @@ class TorchBackend:
         E, M, dof = knots.shape
         if len(c.track_cols) and M > 2:
             inner = knots[:, 1:-1].reshape(-1, dof)
-            ps = dataclasses.replace(c.settings.projection, max_iters=c.settings.track_iters)
+            ps = dataclasses.replace(c.settings.projection, max_iters=c.settings.edges.track_iters)
             proj, _ = c.constraint.project(inner, ps, c.lo, c.hi, joints=c.track_cols)
             knots = torch.cat([knots[:, :1], proj.reshape(E, M - 2, -1), knots[:, -1:]], 1)
         return knots
@@ -94,7 +94,7 @@ class TorchBackend:
         diff = b - a
         if c.robot.mobile:
             diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
-        n = torch.ceil(c.motion.distance(a, b) / c.settings.edge_resolution).long().clamp(1, max_steps)
+        n = torch.ceil(c.motion.distance(a, b) / c.settings.edges.edge_resolution).long().clamp(1, max_steps)
         count = n if include_start else n - 1
         seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), count)
         k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
@@ -142,10 +142,10 @@ class CompiledBackend(TorchBackend):
 
     def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor, track: bool) -> tuple:
         c = self.ctx
-        E, n = qa.shape[0], c.settings.n_interp
+        E, n = qa.shape[0], c.settings.edges.n_interp
         if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: one call
             return fastpath.query_knots(c.motion, c.constraint, qa, qb, n, track, c.settings.projection, c.lo, c.hi,
-                                        c.track_cols, c.settings.track_iters)
+                                        c.track_cols, c.settings.edges.track_iters)
         if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # bulk: compiled, in row chunks
             knots, interior_idx = fastpath.edge_knot_seeds(c.motion, qa, qb, n)
             return (self.track_knots(knots) if track else knots), interior_idx
@@ -161,7 +161,7 @@ class CompiledBackend(TorchBackend):
 
     def pieces(self, a: torch.Tensor, b: torch.Tensor, max_steps: int, include_start: bool) -> tuple:
         if fastpath.motion_applies(a, b):  # one compiled pass (same lengths, same points)
-            return fastpath.pieces(self.ctx.motion, a, b, self.ctx.settings.edge_resolution, max_steps, include_start)
+            return fastpath.pieces(self.ctx.motion, a, b, self.ctx.settings.edges.edge_resolution, max_steps, include_start)
         return super().pieces(a, b, max_steps, include_start)
 
     def dense_path(self, W: np.ndarray) -> tuple:
@@ -170,7 +170,7 @@ class CompiledBackend(TorchBackend):
         if len(W) < 2:
             return W, 0.0
         m, K = self.ctx.motion, fastpath.kernels()
-        _, pts = K.pieces(W[:-1], W[1:], float(self.ctx.settings.edge_resolution), 1000, True, float(m.w_rot),
+        _, pts = K.pieces(W[:-1], W[1:], float(self.ctx.settings.edges.edge_resolution), 1000, True, float(m.w_rot),
                           bool(m.mobile))
         return np.concatenate([pts, W[-1:]]), float(K.distance(W[:-1], W[1:], float(m.w_rot), bool(m.mobile)).sum())
 

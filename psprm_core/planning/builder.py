@@ -49,14 +49,14 @@ class Builder(Stage):
         t0 = time.perf_counter()
         nodes, tried = [], 0
         have = 0
-        n_biased = int(round(s.biased_share * s.n_nodes))
-        n_uniform = s.n_nodes - n_biased
+        n_biased = int(round(s.roadmap.biased_share * s.roadmap.n_nodes))
+        n_uniform = s.roadmap.n_nodes - n_biased
         while have < n_uniform:
-            if time.perf_counter() - t0 > s.build_timeout_s:
-                log.warning("node sampling timed out with %d/%d nodes", have, s.n_nodes)
+            if time.perf_counter() - t0 > s.roadmap.build_timeout_s:
+                log.warning("node sampling timed out with %d/%d nodes", have, s.roadmap.n_nodes)
                 break
             q = self.pl.sampling.manifold_samples(rng, template)
-            tried += s.sample_batch
+            tried += s.roadmap.sample_batch
             nodes.append(q)
             have += len(q)
         t_sample = time.perf_counter() - t0
@@ -72,14 +72,14 @@ class Builder(Stage):
             Q, node_scores, biased = self.pl.sampling.biased_nodes(Q, node_scores, n_biased, rng, template, t0)
             t_sample += time.perf_counter() - t5
         self.rm.score_scale = 1.0
-        if s.normalize_scores:  # the normalised score of Eq. 1 (c_p in [0, 1]) is relative to this roadmap
+        if s.scoring.normalize_scores:  # the normalised score of Eq. 1 (c_p in [0, 1]) is relative to this roadmap
             self.rm.score_scale = 1.0 / max(float(torch.quantile(node_scores.double(), 0.99)), 1e-3)
         t_score = time.perf_counter() - t2
         t1 = time.perf_counter()
-        eu, ev, dist = self.pl.neighbours.neighbours(Q, Q, s.k_neighbors, exclude_self=True, k_long=s.k_long, rng=rng)
+        eu, ev, dist = self.pl.neighbours.neighbours(Q, Q, s.roadmap.k_neighbors, exclude_self=True, k_long=s.roadmap.k_long, rng=rng)
         valid, p_edge, knots = self.pl.edges.edges_valid(Q[eu], Q[ev], end_scores=(node_scores[eu], node_scores[ev]))
         eu, ev, dist, p_edge = eu[valid], ev[valid], dist[valid], p_edge[valid]
-        if s.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
+        if s.edges.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
             norm = self.pl.scoring.normalized
             p_edge = edge_perception(norm(node_scores[eu]), norm(node_scores[ev]))
         t_edges = time.perf_counter() - t1
@@ -91,13 +91,13 @@ class Builder(Stage):
         edge_ids = g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
                                self.pl.scoring.weight(p_edge, c_m).double().cpu().numpy(),
                                c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
-                               verified=np.full(len(eu), 0.0 if s.lazy_edges else 1.0),
-                               checked=np.full(len(eu), 0.0 if s.lazy_collision else 1.0))
+                               verified=np.full(len(eu), 0.0 if s.edges.lazy_edges else 1.0),
+                               checked=np.full(len(eu), 0.0 if s.edges.lazy_collision else 1.0))
         self.rm.adopt(g, node_scores.double().cpu().numpy(), max_motion=self.rm.max_motion,
                       score_scale=self.rm.score_scale)
         self.pl.edges.put_knots(edge_ids, eu.cpu().numpy(), *knots)
         t3 = time.perf_counter()
-        expand = self.expand(rng) if s.expand_rounds > 0 else {}
+        expand = self.expand(rng) if s.roadmap.expand_rounds > 0 else {}
         t4 = time.perf_counter()
         self.pl.heuristics.build_hop_table()
         if self.knots.data is not None:  # room for the queries' edges now: the first query does not copy the store
@@ -146,19 +146,19 @@ class Builder(Stage):
         if score or args is not None:  # a neural scorer is the surrogate (one compiled call), not a rendered view
             self.pl.scoring.score_configs(q)
         kn, ki = self.pl.edges.edge_knots(q, qb)  # a query's connection edges (one compiled call)
-        seeds = fastpath.edge_knot_seeds(c.motion, q, qb, c.settings.n_interp)[0]
+        seeds = fastpath.edge_knot_seeds(c.motion, q, qb, c.settings.edges.n_interp)[0]
         self.pl.edges.track_knots(seeds)  # step by step
         if args is not None:  # the lazy verification's compiled calls
             fastpath.check_score_knots(c.motion, c.checker, c.robot, args, kn, ki, np.ones(2, bool),
-                                       np.ones(2, bool), c.settings.edge_resolution, 200)
+                                       np.ones(2, bool), c.settings.edges.edge_resolution, 200)
             # a two-edge knot store of its own: edge 1's knots computed into it, both checked and scored
             one = np.ones(1, bool)
             fastpath.verify_edges(c.motion, c.constraint, c.checker, args, kn.numpy().copy(),
                                   ki.numpy().copy(), np.arange(2), np.array([False, True]),
-                                  q.double().numpy()[1:], qb.double().numpy()[1:], one, c.settings.n_interp, True,
+                                  q.double().numpy()[1:], qb.double().numpy()[1:], one, c.settings.edges.n_interp, True,
                                   c.settings.projection, c.lo, c.hi, c.track_cols,
-                                  c.settings.track_iters, np.ones(2, bool), np.ones(2, bool),
-                                  c.settings.edge_resolution, 200)
+                                  c.settings.edges.track_iters, np.ones(2, bool), np.ones(2, bool),
+                                  c.settings.edges.edge_resolution, 200)
         self.pl.edges.pieces(q, qb, max_steps=200, include_start=False)
         c.motion.distance(q, qb)
         fastpath.nearest(c.motion, q, qb, 1)
@@ -172,12 +172,12 @@ class Builder(Stage):
         wrist camera that must look over shelves) leave a uniform roadmap in pieces; this is where samples help."""
         s = self.ctx.settings
         added, rounds = 0, 0
-        for _ in range(s.expand_rounds):
+        for _ in range(s.roadmap.expand_rounds):
             ids, lab = self.rm.components()
             cnt = np.bincount(lab)
             main = int(np.argmax(cnt))
             others = [int(c) for c in np.argsort(-cnt, kind="stable") if c != main and cnt[c] >= 3]
-            others = others[:s.expand_components]
+            others = others[:s.roadmap.expand_components]
             if not others:
                 break
             rounds += 1
@@ -187,7 +187,7 @@ class Builder(Stage):
                 d = torch.cdist(xy, main_xy)
                 i = int(d.min(1).values.argmin())
                 a, b = xy[i].cpu().numpy(), main_xy[int(d[i].argmin())].cpu().numpy()
-                got = self.grow(s.expand_nodes, center=(a + b) / 2, radius=float(np.linalg.norm(a - b)) / 2 + 0.3,
+                got = self.grow(s.roadmap.expand_nodes, center=(a + b) / 2, radius=float(np.linalg.norm(a - b)) / 2 + 0.3,
                                 rng=rng)
                 added += got["added_nodes"]
         ids, lab = self.rm.components()
@@ -245,7 +245,7 @@ class Builder(Stage):
         scores[new_ids] = self.pl.scoring.score_configs(Qn).double().cpu().numpy()
         all_ids = np.concatenate([old_ids, new_ids])
         Qall = self.ctx.t(g.configs[all_ids])
-        eu, ev, dist = self.pl.neighbours.neighbours(Qn, Qall, s.k_neighbors, k_long=s.k_long, rng=rng)
+        eu, ev, dist = self.pl.neighbours.neighbours(Qn, Qall, s.roadmap.k_neighbors, k_long=s.roadmap.k_long, rng=rng)
         u_ids, v_ids = new_ids[eu.cpu().numpy()], all_ids[ev.cpu().numpy()]
         keep = u_ids != v_ids
         eu, ev, dist, u_ids, v_ids = eu[keep], ev[keep], dist[keep], u_ids[keep], v_ids[keep]
@@ -261,19 +261,19 @@ class Builder(Stage):
         if len(sel):
             qa, qb = Qn[eu[sel]], Qall[ev[sel]]
             valid, p_edge, knots = self.pl.edges.edges_valid(qa, qb)  # old nodes' scores may predate a scene change
-            if s.lazy_edges:
+            if s.edges.lazy_edges:
                 sc = self.ctx.t(scores)
                 norm = self.pl.scoring.normalized
                 p_edge = edge_perception(norm(sc[u_ids[sel]]), norm(sc[v_ids[sel]]))
             v = valid.cpu().numpy()
             c_m = dist[sel] / self.rm.max_motion
-            c_m = (c_m.clamp(0, 1) if s.objective == "eq2" else c_m)[valid]
+            c_m = (c_m.clamp(0, 1) if s.scoring.objective == "eq2" else c_m)[valid]
             p_edge = p_edge[valid]
             eids = g.add_edges(u_ids[sel][v], v_ids[sel][v],
                                self.pl.scoring.weight(p_edge, c_m).double().cpu().numpy(),
                                c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
-                               verified=np.full(int(v.sum()), 0.0 if s.lazy_edges else 1.0),
-                               checked=np.full(int(v.sum()), 0.0 if s.lazy_collision else 1.0))
+                               verified=np.full(int(v.sum()), 0.0 if s.edges.lazy_edges else 1.0),
+                               checked=np.full(int(v.sum()), 0.0 if s.edges.lazy_collision else 1.0))
             self.pl.edges.put_knots(eids, u_ids[sel][v], *knots)
             added = int(v.sum())
         self.rm.index = None

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 import torch
@@ -45,6 +46,10 @@ def camera_joint_mask(robot: RobotModel) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ProjectionSettings:
+    """The Newton projection onto the visibility manifold (Alg. 1, line 7)."""
+
+    YAML_BOUNDS: ClassVar[dict] = {"int_lo": 1, "float_lo": None}  # read by yamlio.dataclass_kwargs
+
     tolerance: float = 0.02  # line: metres off the optical axis; frustum: metres outside the frustum
     max_iters: int = 20
     damping: float = 1e-4

@@ -129,23 +129,23 @@ class Edges(Stage):
         for s0 in range(0, qa.shape[0], chunk):
             a, b = qa[s0:s0 + chunk], qb[s0:s0 + chunk]
             knots, interior = self.edge_knots(a, b)
-            v = self.knots_valid(knots, dense=not self.ctx.settings.lazy_collision)
-            if self.ctx.settings.edge_view_slack >= 0:
+            v = self.knots_valid(knots, dense=not self.ctx.settings.edges.lazy_collision)
+            if self.ctx.settings.edges.edge_view_slack >= 0:
                 inner = torch.gather(knots, 1, interior.unsqueeze(-1).expand(-1, -1, knots.shape[-1]))
                 seen = self.ctx.constraint.in_view(inner.reshape(-1, knots.shape[-1]),
-                                                   slack=self.ctx.settings.edge_view_slack)
+                                                   slack=self.ctx.settings.edges.edge_view_slack)
                 v &= seen.reshape(v.shape[0], -1).all(-1)
             ok[s0:s0 + chunk] = v
             kept.append(knots[v])
             kept_i.append(interior[v])
-            if not self.ctx.settings.lazy_edges and v.any():
+            if not self.ctx.settings.edges.lazy_edges and v.any():
                 ends = None if end_scores is None else \
                     tuple(e[s0:s0 + chunk][v].to(self.ctx.device, self.ctx.dtype) for e in end_scores)
                 p[s0:s0 + chunk][v] = self.pl.scoring.knots_perception(knots[v], interior[v], ends=ends)
         dof = self.ctx.robot.dof
         if not kept:
             return ok, p, (torch.zeros(0, 2, dof, dtype=self.ctx.dtype, device=self.ctx.device),
-                           torch.zeros(0, self.ctx.settings.n_interp, dtype=torch.long, device=self.ctx.device))
+                           torch.zeros(0, self.ctx.settings.edges.n_interp, dtype=torch.long, device=self.ctx.device))
         return ok, p, (torch.cat(kept), torch.cat(kept_i))
 
     def knots_free(self, knots: torch.Tensor) -> torch.Tensor:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -67,12 +66,13 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
         path = config_dir() / "planners" / "psprm.yaml"
         settings = PSPRMSettings.from_yaml(path, robot=robot.name) if path.is_file() else PSPRMSettings()
     alpha = overrides.pop("alpha", None)
-    settings = dataclasses.replace(settings, **{k: v for k, v in overrides.items() if v is not None})
-    settings = dataclasses.replace(settings, constraint=constraint,
-                                   alpha=DEFAULT_ALPHA.get((settings.objective, kind), 0.8) if alpha is None else alpha,
-                                   lazy_edges=settings.lazy_edges or kind == "oracle",
-                                   # biased sampling scores thousands of extra samples: only with a cheap scorer
-                                   biased_share=settings.biased_share if kind != "oracle" else 0.0)
+    settings = settings.changed({k: v for k, v in overrides.items() if v is not None})
+    settings = settings.changed(
+        constraint=constraint,
+        alpha=DEFAULT_ALPHA.get((settings.scoring.objective, kind), 0.8) if alpha is None else alpha,
+        lazy_edges=settings.edges.lazy_edges or kind == "oracle",
+        # biased sampling scores thousands of extra samples: only with a cheap scorer
+        biased_share=settings.roadmap.biased_share if kind != "oracle" else 0.0)
     scorer = make_scorer(kind, scene, targets, robot.config.intrinsics, checkpoint, multi_mode)
     focus = np.mean([scene.target(t).center for t in targets], axis=0)
     planner = PSPRM(robot, scene, scorer, focus, settings, device=device)

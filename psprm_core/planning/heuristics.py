@@ -20,9 +20,9 @@ HOP_TABLE_MAX_NODES = 5000  # roadmaps up to this many nodes keep all their hop 
 def resolve(settings) -> str:
     """The A* heuristic of ``settings``, with ``auto`` resolved (hop for Eq. 2, distance for the motion-weighted
     objective)."""
-    if settings.heuristic == "auto":
-        return "distance" if settings.objective == "motion" else "hop"
-    return settings.heuristic
+    if settings.query.heuristic == "auto":
+        return "distance" if settings.scoring.objective == "motion" else "hop"
+    return settings.query.heuristic
 
 
 class Heuristics(Stage):
@@ -92,4 +92,4 @@ class Heuristics(Stage):
             np.minimum(lb, d, out=lb)
         if sink is not None:
             lb[sink] = 0.0
-        return motion_heuristic(lb, self.qs.alpha, self.rm.max_motion)
+        return motion_heuristic(lb, self.qs.scoring.alpha, self.rm.max_motion)

@@ -13,7 +13,7 @@ QUERY_KNOT_CACHE = 512  # start/goal query edges whose knots are kept (by end co
 def no_knots(ctx) -> tuple:
     """Empty (knots (0, M, dof), Eq. 1 positions (0, N)) of a planner's edges (``ctx``: its
     :class:`~.state.PlannerContext`)."""
-    n = ctx.settings.n_interp
+    n = ctx.settings.edges.n_interp
     return (torch.zeros(0, n + 4, ctx.robot.dof, dtype=ctx.dtype, device=ctx.device),
             torch.zeros(0, n, dtype=torch.long, device=ctx.device))
 

@@ -38,7 +38,7 @@ class Neighbours(Stage):
             cols.append(idx.reshape(-1))
             if k_long > 0:  # random long edges: random keys, masked to the radius, take the k_long smallest keys
                 key = torch.rand(d.shape, generator=gen).to(d.device)
-                key[d > self.ctx.settings.max_edge_length] = 2.0
+                key[d > self.ctx.settings.roadmap.max_edge_length] = 2.0
                 lidx = key.topk(min(k_long, d.shape[1]), largest=False).indices
                 okl = torch.gather(key, 1, lidx) < 2.0
                 r = torch.arange(s, s + idx.shape[0], device=A.device).unsqueeze(1).expand_as(lidx)
@@ -54,7 +54,7 @@ class Neighbours(Stage):
         u, v, dist = u[order], v[order], dist[order]
         first = torch.ones_like(u, dtype=torch.bool)
         rank = torch.arange(len(u), device=u.device) - torch.searchsorted(u, u, right=False)
-        keep = (rank < k) & (dist <= self.ctx.settings.max_edge_length) & first
+        keep = (rank < k) & (dist <= self.ctx.settings.roadmap.max_edge_length) & first
         u, v, dist = u[keep], v[keep], dist[keep]
         if lrows:
             lu, lv = torch.cat(lrows), torch.cat(lcols)
@@ -62,7 +62,7 @@ class Neighbours(Stage):
                 m = lu != lv
                 lu, lv = lu[m], lv[m]
             ld = self.ctx.motion.distance(A[lu], B[lv])
-            m = ld <= self.ctx.settings.max_edge_length
+            m = ld <= self.ctx.settings.roadmap.max_edge_length
             u, v, dist = torch.cat([u, lu[m]]), torch.cat([v, lv[m]]), torch.cat([dist, ld[m]])
         if exclude_self:  # undirected, unique
             a, b = torch.minimum(u, v), torch.maximum(u, v)

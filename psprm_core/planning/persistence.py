@@ -3,7 +3,6 @@ the settings that shape the roadmap."""
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 from pathlib import Path
@@ -25,7 +24,7 @@ class Persistence(Stage):
         for b in self.ctx.scene.collision_boxes():
             h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
         h.update(self.ctx.constraint.target.numpy().tobytes())
-        build = {k: v for k, v in dataclasses.asdict(self.ctx.settings).items() if k not in QUERY_SETTINGS}
+        build = {k: v for k, v in self.ctx.settings.flat().items() if k not in QUERY_SETTINGS}
         h.update(json.dumps(build, sort_keys=True, default=str).encode())
         return h.hexdigest()[:20]
 
@@ -65,7 +64,7 @@ class Persistence(Stage):
             g.remove_nodes(bad)
         self.rm.adopt(g, data["node_scores"], max_motion=float(data["max_motion"]),
                       score_scale=float(data["score_scale"]),
-                      unverified=bool((data["verified"] < 0.5).any()) and not self.ctx.settings.lazy_edges)
+                      unverified=bool((data["verified"] < 0.5).any()) and not self.ctx.settings.edges.lazy_edges)
         self.knots.clear()
         self.rm.stats = json.loads(str(data["stats"]))
         self.pl.heuristics.build_hop_table()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Optional, Sequence
 
@@ -81,7 +80,7 @@ class Pipeline:
             unknown = sorted(set(options) - set(QUERY_OPTIONS))
             if unknown:
                 raise InputError(f"unknown query options {unknown} (choose from {', '.join(QUERY_OPTIONS)})")
-            settings = dataclasses.replace(self.ctx.settings, **options)
+            settings = self.ctx.settings.changed(options)
             settings.validate("query options")
         self.qc.settings = settings
         try:
@@ -126,21 +125,21 @@ class Pipeline:
             return res
         t0 = time.perf_counter()
         s = self.ctx.settings
-        k = s.query_wide_k
+        k = s.recovery.query_wide_k
         # after query_repair_failures failed repairs an unreachable goal is given up cheaply (a replanner may ask again
         # and again): no escape, repair or wide attempt
         escaped = None
         out = res
-        if s.query_escape_s > 0 and self.rm.repair_failed < s.query_repair_failures:
+        if s.recovery.query_escape_s > 0 and self.rm.repair_failed < s.recovery.query_repair_failures:
             escaped = self.recovery.escape_query(start, goals, timing, goal_costs)
             if escaped.success:
                 out = escaped
         if not out.success:
             out = self.recovery.repair_query(start, goals, timing, goal_costs, res)
-        if (not out.success and "reachable" in out.reason and k > s.query_repair_connect_k
-                and self.rm.repair_failed < s.query_repair_failures):
+        if (not out.success and "reachable" in out.reason and k > s.recovery.query_repair_connect_k
+                and self.rm.repair_failed < s.recovery.query_repair_failures):
             wide = self.query.plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
-                                  untracked=s.query_untracked_fallback)
+                                  untracked=s.recovery.query_untracked_fallback)
             if wide.success or "reachable" not in wide.reason:
                 out = wide
                 if wide.success:

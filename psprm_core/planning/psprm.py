@@ -39,12 +39,6 @@ from .results import EscapeResult, PlanResult
 from .settings import QUERY_SETTINGS, VARIANTS, PSPRMSettings
 from .state import PlannerContext
 
-#: settings read when the planner is made (the visibility model): changing them needs a new planner
-CONSTRUCTION_SETTINGS = ("constraint", "kinematics", "frustum_margin", "min_view_distance")
-#: settings that shape the edges' knots, their checks or their Eq. 1 samples
-KNOT_SETTINGS = ("n_interp", "track_iters", "projection", "edge_resolution", "edge_view_slack", "lazy_collision",
-                 "lazy_edges")
-
 __all__ = ["PSPRM", "PSPRMSettings", "PlanResult", "EscapeResult", "QUERY_SETTINGS", "VARIANTS"]
 
 
@@ -70,15 +64,15 @@ class PSPRM:
         settings.validate()
         device = torch.device(device)
         kin = body_kin = None
-        if settings.kinematics == "pytorch_kinematics":
+        if settings.visibility.kinematics == "pytorch_kinematics":
             from ..kinematics_pk import PKBodyKinematics, PKCameraKinematics
 
             kin = PKCameraKinematics(robot, device=device)
             body_kin = None if checker is not None else PKBodyKinematics(robot, device=device, dtype=dtype)
         checker = checker or CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace, device=device,
                                               dtype=dtype, kinematics=body_kin)
-        constraint = VisibilityConstraint(robot, settings.constraint, focus, margin=settings.frustum_margin,
-                                          min_distance=settings.min_view_distance, kinematics=kin)
+        constraint = VisibilityConstraint(robot, settings.visibility.constraint, focus, margin=settings.visibility.frustum_margin,
+                                          min_distance=settings.visibility.min_view_distance, kinematics=kin)
         mask = camera_joint_mask(robot)
         mask[: robot.base_dof] = False
         ctx = PlannerContext(robot=robot, scene=scene, scorer=scorer, settings=settings, device=device, dtype=dtype,
@@ -169,25 +163,26 @@ class PSPRM:
 
     def update_settings(self, settings: Optional[PSPRMSettings] = None, **changes) -> PSPRMSettings:
         """Adopt new settings (``settings``, else the current ones with ``changes``), validated. Queries use them at
-        once; edges are re-weighted when alpha or the objective change; when a setting that shapes the edges' knots
-        or checks changes (:data:`KNOT_SETTINGS`), every stored knot is dropped and every edge re-checked and
-        re-scored when a search next uses it (as after :meth:`set_focus`). The other roadmap settings (node count,
-        seed, neighbours, ...) take effect at the next :meth:`build` and change :meth:`fingerprint`. The visibility
-        model (:data:`CONSTRUCTION_SETTINGS`) is fixed when the planner is made: changing it raises
-        :class:`~psprm_core.errors.ConfigError`. Returns the settings now in use."""
+        once; edges are re-weighted when the ``scoring`` group changes; when the ``edges`` or ``projection`` group
+        changes (the edges' knots, their checks, their Eq. 1 samples), every stored knot is dropped and every edge
+        re-checked and re-scored when a search next uses it (as after :meth:`set_focus`). The ``roadmap`` group and
+        the seed take effect at the next :meth:`build` and change :meth:`fingerprint`. The ``visibility`` group is
+        fixed when the planner is made: changing it raises :class:`~psprm_core.errors.ConfigError`. ``changes``:
+        names or dotted paths (:meth:`~.settings.PSPRMSettings.changed`). Returns the settings now in use."""
         old = self.settings
-        new = dataclasses.replace(settings or old, **changes)
+        new = (settings or old).changed(changes)
         new.validate()
-        fixed = [k for k in CONSTRUCTION_SETTINGS if getattr(new, k) != getattr(old, k)]
-        if fixed:
+        if new.visibility != old.visibility:
+            fixed = [f"visibility.{k}" for k, v in dataclasses.asdict(new.visibility).items()
+                     if v != getattr(old.visibility, k)]
             raise ConfigError("settings", ", ".join(fixed), "fixed when the planner is made: make a new planner")
-        reweigh = self.graph is not None and (new.alpha, new.objective) != (old.alpha, old.objective)
-        # with new weights to make, reweight publishes alpha and the objective once the weights are written
-        self.ctx.settings = dataclasses.replace(new, alpha=old.alpha, objective=old.objective) if reweigh else new
-        if self.graph is not None and any(getattr(new, k) != getattr(old, k) for k in KNOT_SETTINGS):
+        reweigh = self.graph is not None and new.scoring != old.scoring
+        # with new weights to make, reweight publishes the scoring settings once the weights are written
+        self.ctx.settings = dataclasses.replace(new, scoring=old.scoring) if reweigh else new
+        if self.graph is not None and (new.edges, new.projection) != (old.edges, old.projection):
             self.pipeline.dynamics.forget_knots()
         if reweigh:
-            self.reweight(new.alpha, new.objective)
+            self.pipeline.scoring.reweight(scoring=new.scoring)
         return self.ctx.settings
 
     def set_alpha(self, alpha: float) -> None:

@@ -86,7 +86,7 @@ class Query(Stage):
             qq = Q[[i for i, _ in queries]]
             # candidates: the connect_k nearest roadmap nodes under the motion metric itself (one batched evaluation;
             # the Euclidean embedding used for the roadmap's own neighbours can rank arm-heavy motions poorly)
-            kk = min(connect_k or self.ctx.settings.connect_k, rm_q.shape[0])
+            kk = min(connect_k or self.ctx.settings.query.connect_k, rm_q.shape[0])
             cand = self.nearest_ids(torch.from_numpy(qq).to(self.ctx.device), rm_q, kk).cpu().numpy()  # (Q, kk)
             src = np.repeat(np.arange(len(queries)), kk)
             dst = cand.reshape(-1)
@@ -97,7 +97,7 @@ class Query(Stage):
             u_ids = np.concatenate([qend[src], np.full(len(goal_ids), s_id, dtype=np.int64)])
             v_ids = np.concatenate([rm_ids[dst], np.asarray(goal_ids, dtype=np.int64)])
             dist = self.pl.edges.motion_distance(qa, qb)
-            within = dist <= 2 * self.ctx.settings.max_edge_length
+            within = dist <= 2 * self.ctx.settings.roadmap.max_edge_length
             # a start or goal far from the manifold (e.g. the arm folded away) has no roadmap node within 2 delta:
             # it still gets its QUERY_FALLBACK_K nearest candidates (longer edges, checked like any other)
             cand_d = dist[: len(src)].reshape(len(queries), kk)
@@ -127,7 +127,7 @@ class Query(Stage):
                     within = np.concatenate([within, np.ones(len(ex_q), dtype=bool)])
             near = np.nonzero(within)[0]
             ta, tb = torch.from_numpy(qa[near]).to(self.ctx.device), torch.from_numpy(qb[near]).to(self.ctx.device)
-            if len(near) and self.ctx.settings.lazy_collision:
+            if len(near) and self.ctx.settings.edges.lazy_collision:
                 # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
                 # interior scores only for the edges the search wants to use (usually one at each end)
                 scores = self.rm.node_score_slots()
@@ -178,7 +178,7 @@ class Query(Stage):
                 heur = self.pl.heuristics.name
                 if heur == "distance":
                     heur = self.pl.heuristics.distance(goal_ids, search_goals[0] if sink_w is not None else None)
-                if self.ctx.settings.lazy_edges or self.ctx.settings.lazy_collision or self.rm.unverified:
+                if self.ctx.settings.edges.lazy_edges or self.ctx.settings.edges.lazy_collision or self.rm.unverified:
                     hops = None
                     if isinstance(heur, str) and heur == "hop":
                         hops = self.pl.heuristics.query_hops(search_goals, added_edges)
@@ -194,7 +194,7 @@ class Query(Stage):
             if sink_w is not None:  # drop the virtual sink and its terminal edge
                 path, goal = path[:-1], path[-2]
                 cost -= sink_w[goal]
-            if self.qs.shortcut and len(path) > 2:
+            if self.qs.query.shortcut and len(path) > 2:
                 path, cost = self.pl.shortcut.shortcut_path(path, cost, added_edges)
             result = self.pl.trajectory.finish(path, cost, timing)
             result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == goal)[0][0])
@@ -218,7 +218,7 @@ class Query(Stage):
         numpy in the planner's dtype: validated and fully scored (``verified``), or unchecked with an endpoint
         estimate (verified lazily by the search). The Eq. 2 weight is computed in that dtype, as on the roadmap."""
         c_m = dist / np.asarray(self.rm.max_motion, dist.dtype)
-        if self.qs.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs all
+        if self.qs.scoring.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs all
             c_m = np.clip(c_m, 0, 1)
         w = self.pl.scoring.weight(p, c_m)
         return list(self.rm.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),

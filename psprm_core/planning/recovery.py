@@ -54,7 +54,7 @@ class Recovery(Stage):
         order = [k for k, e in escapes.items() if not e.success]
         why = []
         for j, k in enumerate(order):
-            left = s.query_escape_s - (time.perf_counter() - t0)
+            left = s.recovery.query_escape_s - (time.perf_counter() - t0)
             deadline = time.perf_counter() + max(left, 0.0) / (len(order) - j)  # unused time goes to later ends
             esc = self.escape(q_end[k], targets, rng, deadline)
             escapes[k] = esc
@@ -67,7 +67,7 @@ class Recovery(Stage):
                     where = f", bases within {esc.base_reach:.2f} m of it" if self.ctx.robot.mobile else ""
                     why.append(f"{name}: the escape search found no way to the roadmap's largest component "
                                f"({esc.explored} configurations reached in {esc.seconds:.1f} s{where})")
-        res = self.pl.query.plan_once(start, goals, timing, goal_costs, untracked=s.query_untracked_fallback,
+        res = self.pl.query.plan_once(start, goals, timing, goal_costs, untracked=s.recovery.query_untracked_fallback,
                                       escapes={k: e for k, e in escapes.items() if e.success})
         if res.success:
             n = sum(len(e.configs) for e in escapes.values())
@@ -103,7 +103,7 @@ class Recovery(Stage):
         dof = r.dof
         if r.mobile:  # every tree configuration lies within the radius: farther nodes are beyond a connection
             xy = np.linalg.norm(self.rm.graph.configs[targets, :2] - q0[:2].cpu().numpy(), axis=1)
-            targets = targets[xy <= 2 * s.query_escape_radius + 2 * s.max_edge_length]
+            targets = targets[xy <= 2 * s.recovery.query_escape_radius + 2 * s.roadmap.max_edge_length]
             if len(targets) == 0:
                 return EscapeResult(q0[None][:0], [], no_knots(self.ctx), [], no_knots(self.ctx),
                                     seconds=time.perf_counter() - t0)
@@ -122,17 +122,17 @@ class Recovery(Stage):
             qn = T[torch.as_tensor(new_idx, device=self.ctx.device)]
             pool = torch.arange(len(rm_q), device=self.ctx.device)
             if r.mobile:  # the motion cost is at least the base's xy distance: farther nodes are no candidates
-                pool = torch.nonzero((torch.cdist(qn[:, :2], rm_q[:, :2]) <= 2 * s.max_edge_length).any(0),
+                pool = torch.nonzero((torch.cdist(qn[:, :2], rm_q[:, :2]) <= 2 * s.roadmap.max_edge_length).any(0),
                                      as_tuple=True)[0]
                 if len(pool) == 0:
                     return []
-            cand = pool[self.pl.query.nearest_ids(qn, rm_q[pool], s.query_escape_connect_k).to(self.ctx.device)]
+            cand = pool[self.pl.query.nearest_ids(qn, rm_q[pool], s.recovery.query_escape_connect_k).to(self.ctx.device)]
             kk = cand.shape[1]
             src = torch.arange(len(qn), device=self.ctx.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
             qa, qb = qn[src], rm_q[dst]
             d = self.ctx.motion.distance(qa, qb)
-            near = torch.nonzero(d <= 2 * s.max_edge_length, as_tuple=True)[0]
+            near = torch.nonzero(d <= 2 * s.roadmap.max_edge_length, as_tuple=True)[0]
             if len(near) == 0:
                 return []
             if len(near) > ESCAPE_CONNECT:  # the shortest candidates of the round (the likeliest to be free)
@@ -149,9 +149,9 @@ class Recovery(Stage):
         near_t = np.zeros(0, dtype=np.int64)
         if r.mobile:
             near_t = np.nonzero(np.linalg.norm(self.rm.graph.configs[targets, :2] - q0[:2].cpu().numpy(), axis=1)
-                                <= s.query_escape_radius)[0]
+                                <= s.recovery.query_escape_radius)[0]
         rounds = 0
-        while not found and len(parent) < s.query_escape_nodes and time.perf_counter() < deadline:
+        while not found and len(parent) < s.recovery.query_escape_nodes and time.perf_counter() < deadline:
             if len(parent) == 1 and rounds >= ESCAPE_STUCK_ROUNDS:  # not one motion out of the end is free
                 break
             rounds += 1
@@ -163,7 +163,7 @@ class Recovery(Stage):
             q[u < 0.5, r.base_dof:] = self.rm.graph.configs[targets[like[u < 0.5]], r.base_dof:]
             if r.mobile:
                 ang = rng.uniform(-np.pi, np.pi, B)
-                rad = s.query_escape_radius * np.sqrt(rng.random(B)) * np.where(np.arange(B) % 2, 2.0, 1.0)
+                rad = s.recovery.query_escape_radius * np.sqrt(rng.random(B)) * np.where(np.arange(B) % 2, 2.0, 1.0)
                 q[:, :2] = q0[:2].cpu().numpy() + np.stack([rad * np.cos(ang), rad * np.sin(ang)], 1)
                 q[:, 2] = rng.uniform(-np.pi, np.pi, B)
             goal_bias = u < 0.15
@@ -176,7 +176,7 @@ class Recovery(Stage):
                 qm = T[torch.as_tensor(src, device=self.ctx.device)].cpu().numpy().astype(float)
                 sign = rng.choice([-1.0, 1.0], m)
                 drive = rng.random(m) < 0.5
-                L = ESCAPE_LONG * s.query_escape_step
+                L = ESCAPE_LONG * s.recovery.query_escape_step
                 qm[drive, 0] += sign[drive] * L * np.cos(qm[drive, 2])
                 qm[drive, 1] += sign[drive] * L * np.sin(qm[drive, 2])
                 qm[~drive, 2] = np.angle(np.exp(1j * (qm[~drive, 2] + sign[~drive] * np.pi / 2)))
@@ -189,8 +189,8 @@ class Recovery(Stage):
             d = self.ctx.motion.distance(q_near, q_rand).clamp_min(1e-9)
             # a short and a long extension of each (the long one, ESCAPE_LONG steps, is kept where it is free: the
             # tree follows an open aisle in few steps)
-            frac = torch.cat([(s.query_escape_step / d).clamp(max=1.0),
-                              (ESCAPE_LONG * s.query_escape_step / d).clamp(max=1.0)])
+            frac = torch.cat([(s.recovery.query_escape_step / d).clamp(max=1.0),
+                              (ESCAPE_LONG * s.recovery.query_escape_step / d).clamp(max=1.0)])
             q_from = torch.cat([q_near, q_near])
             q_new = self.ctx.motion.interpolate(q_from, torch.cat([q_rand, q_rand]), frac)
             tried += B
@@ -280,17 +280,17 @@ class Recovery(Stage):
         ends = _ends(start, goals, self.ctx.robot.dof)
         added, grown, again = 0, {}, None
         mobile = self.ctx.robot.mobile
-        for r in range(max(1, s.query_repair_rounds)):
-            if (s.query_repair_budget - self.rm.repair_added <= 0 or s.query_repair_nodes <= 0
-                    or self.rm.repair_failed >= s.query_repair_failures):
+        for r in range(max(1, s.recovery.query_repair_rounds)):
+            if (s.recovery.query_repair_budget - self.rm.repair_added <= 0 or s.recovery.query_repair_nodes <= 0
+                    or self.rm.repair_failed >= s.recovery.query_repair_failures):
                 break
             self.rm.repairs += 1
             rng = np.random.default_rng([s.seed, self.rm.repairs])
             for k, q in enumerate(ends):
-                n = min(s.query_repair_nodes, s.query_repair_budget - self.rm.repair_added)
+                n = min(s.recovery.query_repair_nodes, s.recovery.query_repair_budget - self.rm.repair_added)
                 if n <= 0:
                     break
-                out = self.pl.builder.grow(n, center=q[:2] if mobile else None, radius=s.query_repair_radius * 1.5 ** r,
+                out = self.pl.builder.grow(n, center=q[:2] if mobile else None, radius=s.recovery.query_repair_radius * 1.5 ** r,
                                            rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)
                 added += out["added_nodes"]
                 self.rm.repair_added += out["added_nodes"]
@@ -299,7 +299,7 @@ class Recovery(Stage):
             # valid edges beyond the connect_k nearest nodes; the nodes grown on its heading line are reachable by
             # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
             again = self.pl.query.plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
-                                            connect_k=max(s.connect_k, s.query_repair_connect_k))
+                                            connect_k=max(s.query.connect_k, s.recovery.query_repair_connect_k))
             if again.success or "reachable" not in again.reason:
                 break
         if again is None:

@@ -81,9 +81,9 @@ class ReplanSettings:
     smooth_timing: bool = True  # replanned trajectories pass the knots of a base phase without stopping: about a
     # third shorter to execute, for about +25 ms per replan (per-phase TOPP-RA); within the latency goals
     # (docs/benchmarks.md, "Replanning latency")
-    shortcut: bool = False  # perception-preserving shortcuts of replanned paths (PSPRMSettings.shortcut): off, since
+    shortcut: bool = False  # perception-preserving shortcuts of replanned paths (PSPRMSettings.query.shortcut): off, since
     # checking the candidate shortcuts costs tens of ms per replan
-    route_selection: bool = False  # the planner's route selection (PSPRMSettings.route_searches) in replans: off,
+    route_selection: bool = False  # the planner's route selection (PSPRMSettings.query.route_searches) in replans: off,
     # since every extra search adds a search's time to each replan
 
     def __post_init__(self):

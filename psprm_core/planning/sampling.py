@@ -29,12 +29,12 @@ class Sampling(Stage):
             lo[2], hi[2] = -np.pi, np.pi
         lo = np.where(np.isfinite(lo), lo, -np.pi)
         hi = np.where(np.isfinite(hi), hi, np.pi)
-        if self.ctx.settings.sample_spread >= 0:  # keep an arm near its camera-ready template pose
+        if self.ctx.settings.roadmap.sample_spread >= 0:  # keep an arm near its camera-ready template pose
             b = r.base_dof
-            lo[b:] = np.maximum(lo[b:], template[b:] - self.ctx.settings.sample_spread)
-            hi[b:] = np.minimum(hi[b:], template[b:] + self.ctx.settings.sample_spread)
+            lo[b:] = np.maximum(lo[b:], template[b:] - self.ctx.settings.roadmap.sample_spread)
+            hi[b:] = np.minimum(hi[b:], template[b:] + self.ctx.settings.roadmap.sample_spread)
         q = lo + rng.random((n, r.dof)) * (hi - lo)
-        if self.ctx.settings.sample_joints == "camera":
+        if self.ctx.settings.roadmap.sample_joints == "camera":
             mask = camera_joint_mask(r)
             q[:, ~mask] = template[~mask]
         return self.ctx.t(q)
@@ -42,7 +42,7 @@ class Sampling(Stage):
     def manifold_samples(self, rng: np.random.Generator, template: np.ndarray) -> torch.Tensor:
         """One batch of ``sample_batch`` samples projected onto the visibility manifold; the converged, valid ones."""
         s = self.ctx.settings
-        q = self.sample(s.sample_batch, rng, template)
+        q = self.sample(s.roadmap.sample_batch, rng, template)
         q, ok = self.ctx.constraint.project(q, s.projection, self.ctx.lo, self.ctx.hi)
         q = q[ok]
         return q[self.ctx.checker.valid(q)]
@@ -57,13 +57,13 @@ class Sampling(Stage):
         ref = max(float(torch.quantile(scores.double(), 0.99)), 1e-3) if len(scores) else 1.0
         keep_q, keep_s, tried = [Q], [scores], 0
         got = 0
-        while got < n and tried < s.biased_tries * n:
-            if time.perf_counter() - t0 > s.build_timeout_s:
+        while got < n and tried < s.roadmap.biased_tries * n:
+            if time.perf_counter() - t0 > s.roadmap.build_timeout_s:
                 log.warning("biased sampling timed out with %d/%d nodes", got, n)
                 break
             q = self.manifold_samples(rng, template)
             if not len(q):
-                tried += s.sample_batch
+                tried += s.roadmap.sample_batch
                 continue
             sc = self.pl.scoring.score_configs(q)
             tried += len(q)

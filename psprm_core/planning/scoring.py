@@ -5,7 +5,6 @@ the motion-weighted form)."""
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 from typing import Optional
 
 import numpy as np
@@ -13,6 +12,7 @@ import torch
 
 from .. import fastpath
 from .graph_search import edge_perception, edge_weight
+from .settings import ScoringSettings
 from .state import Stage
 
 
@@ -51,7 +51,7 @@ class Scoring(Stage):
         """Edge weight of the configured objective (:func:`~.graph_search.edge_weight`): Eq. 2 or the motion-weighted
         form, from the Eq. 1 perception ``p`` and the normalised motion cost ``c_m`` (numpy or torch); the running
         query's alpha and objective (:attr:`~.state.Stage.qs`), else the planner's."""
-        return edge_weight(p, c_m, self.qs.alpha, self.qs.objective)
+        return edge_weight(p, c_m, self.qs.scoring.alpha, self.qs.scoring.objective)
 
     def apply_weights(self, settings) -> None:
         """Weight every valid edge of finite weight from its stored Eq. 1 perception and motion cost with the alpha
@@ -64,9 +64,9 @@ class Scoring(Stage):
     def _weights_of(self, ids: np.ndarray, settings) -> np.ndarray:
         g = self.rm.graph
         c_m = g.edge_attribute("c_m")[ids]
-        if settings.objective == "eq2":
+        if settings.scoring.objective == "eq2":
             c_m = np.clip(c_m, 0, 1)
-        return edge_weight(g.edge_attribute("c_p")[ids], c_m, settings.alpha, settings.objective)
+        return edge_weight(g.edge_attribute("c_p")[ids], c_m, settings.scoring.alpha, settings.scoring.objective)
 
     @contextlib.contextmanager
     def weighted_for(self, settings, penalize: Optional[tuple] = None):
@@ -144,11 +144,14 @@ class Scoring(Stage):
         return self.knots_perception(knots, interior, cams=self.knots.cams[
             torch.as_tensor(np.asarray(edge_ids, dtype=np.int64), device=knots.device)])
 
-    def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None) -> None:
+    def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None,
+                 scoring: Optional[ScoringSettings] = None) -> None:
         """Re-weight every edge from its stored Eq. 1 perception and motion cost with a new ``alpha`` and/or objective
-        form (:data:`~.graph_search.OBJECTIVES`) without rebuilding; ``None`` keeps the current one."""
-        changes = {k: v for k, v in (("alpha", alpha), ("objective", objective)) if v is not None}
-        new = dataclasses.replace(self.ctx.settings, **changes)
+        form (:data:`~.objectives.OBJECTIVES`), or a whole new ``scoring`` group, without rebuilding; ``None`` keeps
+        the current one."""
+        changes = {k: v for k, v in (("alpha", alpha), ("objective", objective), ("scoring", scoring))
+                   if v is not None}
+        new = self.ctx.settings.changed(changes)
         new.validate()
         self.rm.compact()
         self.apply_weights(new)

@@ -15,7 +15,6 @@ timed), so what is returned is what was checked.
 
 from __future__ import annotations
 
-import dataclasses
 import time
 from typing import Optional, Sequence
 
@@ -43,11 +42,11 @@ class RouteSelection(Stage):
         if not searches or not first.success:
             return first
         t0 = time.perf_counter()
-        own = f"{base.objective}@{base.alpha:g}"
+        own = f"{base.scoring.objective}@{base.scoring.alpha:g}"
         best, best_p = first, self.perception(first)
         first.route = own
         cands = {own: (best_p, first.path_length)}
-        limit = base.route_length_ratio * first.path_length
+        limit = base.query.route_length_ratio * first.path_length
         saved = self.qc.settings
         used = self.rm.path_roadmap_edges(first.path_nodes)
         for objective, alpha in searches:
@@ -55,8 +54,7 @@ class RouteSelection(Stage):
             label = "alt" if other else f"{objective}@{alpha:g}"
             if label in cands:
                 continue
-            alt = dataclasses.replace(base, objective="motion" if other else objective, alpha=alpha,
-                                      route_searches="")
+            alt = base.changed(objective="motion" if other else objective, alpha=alpha, route_searches="")
             with self.pl.scoring.weighted_for(alt, penalize=(used, ALT_PENALTY) if other else None):
                 self.qc.settings = alt
                 try:

@@ -30,7 +30,7 @@ class Shortcut(Stage):
         Returns the new path and its cost."""
         g = self.rm.graph
         checked: dict = {}  # (node, node) -> what _candidates found for that motion (later passes reuse it)
-        for _ in range(max(1, self.qs.shortcut_rounds)):
+        for _ in range(max(1, self.qs.query.shortcut_rounds)):
             path, changed = self._round(path, added_edges, checked)
             if not changed:
                 break

@@ -57,7 +57,7 @@ class Trajectory(Stage):
                   base_indices=(0, 1, 2) if r.mobile else None,
                   base_linear_limits=(r.config.base.linear_velocity, r.config.base.linear_acceleration)
                   if r.mobile else None, method="analytic")
-        if not (self.qs.smooth_timing and r.mobile and len(W) > 2):
+        if not (self.qs.query.smooth_timing and r.mobile and len(W) > 2):
             return time_parameterize(W, r.velocity, r.acceleration, **kw)
         traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, profile_cache=self.profiles, **kw)
         curved = traj.off_segment_mask()  # samples off the checked straight pieces

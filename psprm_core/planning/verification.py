@@ -97,8 +97,8 @@ class Verification(Stage):
         c, s = self.ctx, self.ctx.settings
         ok, cams, raw = fastpath.verify_edges(
             c.motion, c.constraint, c.checker, args, store.data.numpy(), store.interior.numpy(), todo, compute,
-            np.ascontiguousarray(qa[rows]), np.ascontiguousarray(qb[rows]), flip, s.n_interp, True, s.projection,
-            c.lo, c.hi, c.track_cols, s.track_iters, do_check, do_score, s.edge_resolution, 200)
+            np.ascontiguousarray(qa[rows]), np.ascontiguousarray(qb[rows]), flip, s.edges.n_interp, True, s.projection,
+            c.lo, c.hi, c.track_cols, s.edges.track_iters, do_check, do_score, s.edges.edge_resolution, 200)
         if len(cid):
             store.written(cid)
             self.cache_query_knots(cid, rows, flip)
