@@ -173,24 +173,21 @@ class CollisionChecker:
         self.boxes = BoxTensors.from_boxes(boxes, self.device, self.dtype)
 
     # ---- checks ----------------------------------------------------------------------------------------------------
+    @fastpath.twin(fastpath.check_flags, when=fastpath.on_cpu_applies)
     def check(self, q: torch.Tensor) -> torch.Tensor:
         """In-collision flags (B,) for configurations (B, dof): limits, environment or self-collision."""
         q = q.to(self.device, self.dtype)
         if q.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=self.device)
-        if fastpath.applies(q):  # a few configurations on the CPU: the compiled check (same flags)
-            return torch.from_numpy(fastpath.check(self, q).any(-1))
         return torch.cat([self._check_chunk(q[s:s + self.chunk]) for s in range(0, q.shape[0], self.chunk)])
 
     def valid(self, q: torch.Tensor) -> torch.Tensor:
         return ~self.check(q)
 
+    @fastpath.twin(fastpath.check_detailed, when=fastpath.on_cpu_applies)
     def check_detailed(self, q: torch.Tensor) -> dict:
         """Separate flags: ``limits``, ``environment``, ``self`` (each (B,) bool)."""
         q = q.to(self.device, self.dtype)
-        if fastpath.applies(q):
-            f = torch.from_numpy(fastpath.check(self, q, detailed=True))
-            return {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
         poses = self.kin.body_poses(q)
         return {"limits": self.limits_violated(q), "environment": self._env(poses), "self": self._self(poses)}
 
@@ -201,10 +198,11 @@ class CollisionChecker:
         (:meth:`robot_aabb`), from the same forward kinematics."""
         q = q.to(self.device, self.dtype)
         bt = boxes if isinstance(boxes, BoxTensors) else BoxTensors.from_boxes(boxes, self.device, self.dtype)
-        if fastpath.applies(q):  # CPU: the compiled kernel (same flags and bounds)
-            hit, aabb = fastpath.env_hits(self, q, bt, return_aabb)
-            hit = torch.from_numpy(hit)
-            return (hit, torch.from_numpy(aabb).to(self.dtype)) if return_aabb else hit
+        return self._env_hits(q, bt, return_aabb)
+
+    @fastpath.twin(fastpath.env_hit_flags, when=fastpath.on_cpu_applies)
+    def _env_hits(self, q: torch.Tensor, bt: "BoxTensors", return_aabb: bool):
+        """:meth:`env_hits` against :class:`BoxTensors`."""
         saved = self.boxes
         hits, boxes_out = [], []
         try:
@@ -221,14 +219,12 @@ class CollisionChecker:
             return hit
         return hit, (torch.cat(boxes_out) if boxes_out else torch.zeros(0, 6, dtype=self.dtype, device=self.device))
 
+    @fastpath.twin(fastpath.robot_aabb, when=fastpath.on_cpu_applies)
     def robot_aabb(self, q: torch.Tensor) -> torch.Tensor:
         """World axis-aligned bounds (B, 6) = [min xyz, max xyz] enclosing every collision element of the robot at
         configurations (B, dof) (the union of the element boxes' world bounds). A configuration whose bounds
         miss a box's bounds (:meth:`BoxTensors.aabb`) cannot touch it."""
         q = q.to(self.device, self.dtype)
-        if fastpath.applies(q):
-            return torch.from_numpy(fastpath.env_hits(self, q, BoxTensors.from_boxes([], self.device, self.dtype),
-                                                      True)[1]).to(self.dtype)
         return torch.cat([self._aabb(self.kin.body_poses(q[s:s + self.chunk]))
                           for s in range(0, q.shape[0], self.chunk)]) if q.shape[0] else \
             torch.zeros(0, 6, dtype=self.dtype, device=self.device)

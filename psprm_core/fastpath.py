@@ -33,7 +33,7 @@ import contextlib
 import functools
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import numpy as np
 import torch
@@ -134,6 +134,33 @@ def applies(x: torch.Tensor, max_batch: int = MAX_BATCH, bulk: bool = True) -> b
             and not (x.requires_grad and torch.is_grad_enabled()) and available())
 
 
+def twin(compiled: Callable, when: Callable | None = None) -> Callable:
+    """Decorator of a domain method (robot FK, the projection, collision checks, ray casting, the motion metric): the
+    one seam where a call goes to its compiled twin. The decorated body is the torch implementation (any device,
+    any batch); ``compiled(obj, *args, **kw)`` runs instead when ``when(obj, *args, **kw)`` holds, by default when
+    the first argument is a batch :func:`applies` to. ``method.torch`` is the torch body alone and
+    ``method.compiled`` the twin (the equivalence tests call both)."""
+
+    def decorate(method: Callable) -> Callable:
+        test = when if when is not None else (lambda obj, x, *a, **k: applies(x))
+
+        @functools.wraps(method)
+        def dispatch(obj, *args, **kw):
+            if test(obj, *args, **kw):
+                return compiled(obj, *args, **kw)
+            return method(obj, *args, **kw)
+
+        dispatch.torch, dispatch.compiled = method, compiled
+        return dispatch
+
+    return decorate
+
+
+def on_cpu_applies(obj, x: torch.Tensor, *args, **kw) -> bool:
+    """:func:`applies` for the methods of an object that keeps its tensors on ``obj.device``: only a CPU one."""
+    return obj.device.type == "cpu" and applies(x)
+
+
 @functools.lru_cache(maxsize=4)
 def _pool(workers: int) -> ThreadPoolExecutor:
     """The worker threads of :func:`bulk` calls (created on first use, one pool per worker count)."""
@@ -209,15 +236,29 @@ def _camera_args(robot) -> tuple:
     return args
 
 
-def camera_poses(robot, q: torch.Tensor) -> torch.Tensor:
+def camera_applies(robot, q: torch.Tensor, body_poses=None) -> bool:
+    """When :meth:`RobotModel.camera_poses` runs compiled: configurations (B, dof) given (no body poses), a batch
+    :func:`applies` to."""
+    return body_poses is None and q.dim() == 2 and q.shape[1] == robot.dof and applies(q)
+
+
+def camera_poses(robot, q: torch.Tensor, body_poses=None) -> torch.Tensor:
     """Camera optical-frame poses (B, 4, 4) of ``q`` (B, dof), as :meth:`RobotModel.camera_poses`."""
     out = _rows(kernels().camera_poses, 1, _f64(q), *_camera_args(robot))
     return torch.from_numpy(out).to(q.dtype)
 
 
 # ---------------------------------------------------------------------------------------------- projection
-def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray) -> tuple:
+def project_applies(constraint, q: torch.Tensor, *args) -> bool:
+    """When the Gauss-Newton iteration of :meth:`VisibilityConstraint.project` runs compiled: the robot model's own
+    kinematics (not e.g. pytorch-kinematics), a batch :func:`applies` to."""
+    return constraint.kin is constraint.robot and applies(q)
+
+
+def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.Tensor,
+            cols: torch.Tensor | np.ndarray) -> tuple:
     """:meth:`VisibilityConstraint.project` of ``q`` (B, dof) over the joints ``cols``: (projected q, converged)."""
+    cols = cols.cpu().numpy() if isinstance(cols, torch.Tensor) else np.asarray(cols)
     intr = constraint.intr
     target = _const64(constraint.target, q.dtype)
     qn, err = _rows(
@@ -258,6 +299,30 @@ def _check_args(checker) -> tuple:
             _const64(checker.upper), *model, *boxes, 1e-6)
 
 
+def check_flags(checker, q: torch.Tensor) -> torch.Tensor:
+    """:meth:`CollisionChecker.check`: in-collision flags (B,)."""
+    return torch.from_numpy(check(checker, q).any(-1))
+
+
+def check_detailed(checker, q: torch.Tensor) -> dict:
+    """:meth:`CollisionChecker.check_detailed`: ``limits``, ``environment``, ``self`` flags (each (B,))."""
+    f = torch.from_numpy(check(checker, q, detailed=True))
+    return {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
+
+
+def env_hit_flags(checker, q: torch.Tensor, boxes, return_aabb: bool = False):
+    """``CollisionChecker._env_hits``: flags (B,) against ``boxes`` (:class:`BoxTensors`) and, with ``return_aabb``,
+    the robot's world bounds (B, 6)."""
+    hit, aabb = env_hits(checker, q, boxes, return_aabb)
+    hit = torch.from_numpy(hit)
+    return (hit, torch.from_numpy(aabb).to(checker.dtype)) if return_aabb else hit
+
+
+def robot_aabb(checker, q: torch.Tensor) -> torch.Tensor:
+    """:meth:`CollisionChecker.robot_aabb`: the robot's world bounds (B, 6)."""
+    return env_hit_flags(checker, q, None, True)[1]
+
+
 def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.ndarray:
     """Collision flags (B, 3) of ``q`` (B, dof, a tensor or a numpy array): limits, environment, self
     (:meth:`CollisionChecker.check_detailed`). Without ``detailed`` a row stops at its first violation: only the OR
@@ -270,13 +335,17 @@ def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.n
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
-    """:meth:`CollisionChecker.env_hits` of ``q`` (B, dof) against ``boxes`` (:class:`BoxTensors`) only: flags (B,)
+    """:meth:`CollisionChecker.env_hits` of ``q`` (B, dof) against ``boxes`` (:class:`BoxTensors`, or None: no box)
+    only: flags (B,)
     and, with ``want_aabb``, the robot's world bounds (B, 6) (else an empty array)."""
     all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
     (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
      _, _), _ = _checker_arrays(checker)
-    box = (_f64(boxes.center).reshape(-1, 3), _f64(boxes.rotation).reshape(-1, 3, 3), _f64(boxes.half).reshape(-1, 3),
-           _f64(boxes.aabb()).reshape(-1, 6))
+    if boxes is None:  # no boxes: the bounds only
+        box = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6)))
+    else:
+        box = (_f64(boxes.center).reshape(-1, 3), _f64(boxes.rotation).reshape(-1, 3, 3),
+               _f64(boxes.half).reshape(-1, 3), _f64(boxes.aabb()).reshape(-1, 6))
     return _rows(kernels().env_hits, 1, _f64(q.to(checker.dtype)), bool(want_aabb), all_bodies, parent, jtype, R_off,
                  t_off, axis, D, off, mobile, bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order,
                  el_body, el_c, el_R, el_h, el_r, *box, 1e-6)
@@ -360,6 +429,23 @@ def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
         return torch.sigmoid(h).squeeze(-1)
 
 
+def surrogate_applies(model, cam: torch.Tensor, target_pose, class_name, chunk_size=None) -> bool:
+    """When :meth:`PerceptionSurrogate.predict` runs compiled: camera poses (B, 4, 4) of one target pose (4, 4) and
+    one class, a model on the CPU, at most :data:`MAX_BATCH` rows (torch's GEMMs are faster beyond, even in bulk)."""
+    if not (cam.shape[-2:] == (4, 4) and model.device.type == "cpu" and applies(cam, bulk=False)
+            and isinstance(target_pose, (torch.Tensor, np.ndarray)) and tuple(target_pose.shape) == (4, 4)):
+        return False
+    cls = model._class_arg(class_name, cam.shape[0])
+    return not (isinstance(cls, torch.Tensor) and cls.dim() > 0)
+
+
+def surrogate_pose_scores(model, cam: torch.Tensor, target_pose, class_name, chunk_size=None) -> torch.Tensor:
+    """:meth:`PerceptionSurrogate.predict` of camera poses (B, 4, 4), one target pose and one class: numpy features
+    and the compiled MLP."""
+    return surrogate_scores(model, pose_features(cam, target_pose, model.derived),
+                            int(model._class_arg(class_name, cam.shape[0])))
+
+
 def pose_features(cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
     """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4)
     (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``), compiled."""
@@ -374,6 +460,11 @@ def motion_applies(qa: torch.Tensor, qb: torch.Tensor) -> bool:
     """Whether a pair of batches (E, dof) takes the compiled motion kernels (same shape, see :func:`applies`)."""
     return qa.dim() == 2 and qa.shape == qb.shape and qa.dtype == qb.dtype and qb.device.type == "cpu" and \
         not (qb.requires_grad and torch.is_grad_enabled()) and applies(qa, MOTION_MAX_BATCH)
+
+
+def interpolate_applies(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> bool:
+    """When :meth:`DiffDriveMotion.interpolate` runs compiled: one fraction per pair (:func:`motion_applies`)."""
+    return motion_applies(qa, qb) and s.shape == qa.shape[:1] and applies(s.unsqueeze(-1))
 
 
 def motion_distance(motion, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:

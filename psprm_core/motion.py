@@ -46,23 +46,21 @@ class DiffDriveMotion:
         r2 = wrap_angle(qb[:, 2] - phi)
         return phi, r1, d, r2
 
+    @fastpath.twin(fastpath.motion_distance, when=lambda m, qa, qb: fastpath.motion_applies(qa, qb))
     def distance(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
         """Motion cost between configurations (E, dof) and (E, dof) -> (E,) (see module docstring)."""
-        if fastpath.motion_applies(qa, qb):  # CPU batches: compiled, same formula
-            return fastpath.motion_distance(self, qa, qb)
         qa, qb = torch.broadcast_tensors(qa, qb)
         if not self.mobile:
             return (qb - qa).norm(dim=-1)
         _, r1, d, r2 = self._base_plan(qa, qb)
         return self.w_rot * (r1.abs() + r2.abs()) + d + (qb[:, 3:] - qa[:, 3:]).norm(dim=-1)
 
+    @fastpath.twin(fastpath.motion_interpolate, when=fastpath.interpolate_applies)
     def interpolate(self, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """Configurations at fractions ``s`` (E,) in [0, 1] of the local motion from ``qa`` to ``qb`` (E, dof).
 
         The base fraction follows the three phases in proportion to their weighted lengths; joints move linearly.
         """
-        if fastpath.motion_applies(qa, qb) and s.shape == qa.shape[:1] and fastpath.applies(s.unsqueeze(-1)):
-            return fastpath.motion_interpolate(self, qa, qb, s)
         if not self.mobile:
             return qa + (qb - qa) * s.unsqueeze(-1)
         phi, r1, d, r2 = self._base_plan(qa, qb)

@@ -377,12 +377,11 @@ class RobotModel:
                 Rs[b], ts[b] = Rj @ axis_angle_matrix_torch(T["axis"][b], v), tj
         return Rs, ts
 
+    @fastpath.twin(fastpath.camera_poses, when=fastpath.camera_applies)
     def camera_poses(self, q: torch.Tensor, body_poses: Optional[tuple] = None) -> torch.Tensor:
         """Camera optical-frame poses (B, 4, 4) in the scene frame."""
         if body_poses is not None:
             Rb, tb = body_poses[0][:, self.camera_body], body_poses[1][:, self.camera_body]
-        elif q.dim() == 2 and q.shape[1] == self.dof and fastpath.applies(q):  # a few rows on the CPU: compiled FK
-            return fastpath.camera_poses(self, q)
         else:  # the camera chain only
             Rs, ts = self._poses(q, only=self.camera_chain)
             Rb, tb = Rs[self.camera_body], ts[self.camera_body]

@@ -420,10 +420,11 @@ class OcclusionChecker:
     def score(self, cameras: torch.Tensor) -> torch.Tensor:
         """Occlusion scores (B,) for camera positions (B, 3) or poses (B, 4, 4), on their device."""
         pos = camera_positions(torch.as_tensor(cameras))
-        if not pos.is_floating_point():
-            pos = pos.double()
-        if fastpath.applies(pos):  # a few cameras on the CPU: the same rays, compiled
-            return fastpath.occlusion_scores(self, pos)
+        return self.score_positions(pos if pos.is_floating_point() else pos.double())
+
+    @fastpath.twin(fastpath.occlusion_scores)
+    def score_positions(self, pos: torch.Tensor) -> torch.Tensor:
+        """Occlusion scores (B,) of camera positions (B, 3), on their device."""
         boxes, pts = self._on(pos.device, pos.dtype)
         return occlusion_scores(pos, pts, boxes, self.count_inside, self.chunk_elements)
 

@@ -105,8 +105,6 @@ class GeometricScorer(Scorer):
         """:meth:`score` of one camera pose (4, 4) float64 with numpy and the compiled ray casting (an RL
         environment's step scores one view: no tensor batch). The same formula; the occlusion rays only for a view
         that scores above 0."""
-        from .. import fastpath
-
         p, f = self.center.numpy(), self.facing.numpy()
         pc = camera[:3, :3].T @ (p - camera[:3, 3])
         z = pc[2]
@@ -120,8 +118,7 @@ class GeometricScorer(Scorer):
                                                                          0.0), 1.0)
         if v > 0.0 and self.occ is not None:
             pos = torch.from_numpy(np.ascontiguousarray(camera[None, :3, 3], dtype=np.float64))
-            occ = fastpath.occlusion_scores(self.occ, pos) if fastpath.enabled() else self.occ.score(
-                torch.as_tensor(camera[None]))
+            occ = self.occ.score_positions(pos)
             if float(occ[0]) > self.occ.tau:
                 return 0.0
         return v

@@ -303,14 +303,12 @@ class PerceptionSurrogate(nn.Module):
         out_device = cam.device
         if cam.dim() == 2:
             cam = cam.unsqueeze(0)
-        if (cam.shape[-2:] == (4, 4) and self.device.type == "cpu" and fastpath.applies(cam, bulk=False)
-                and isinstance(target_pose, (torch.Tensor, np.ndarray)) and tuple(target_pose.shape) == (4, 4)):
-            cls = self._class_arg(class_name, cam.shape[0])
-            if not (isinstance(cls, torch.Tensor) and cls.dim() > 0):  # one class: numpy features and MLP
-                return fastpath.surrogate_scores(self, fastpath.pose_features(cam, target_pose, self.derived),
-                                                 int(cls))
-        feats = pose_features(cam, target_pose, self.derived)
-        return self.predict_features(feats, class_name, chunk_size).to(out_device)
+        return self._predict_poses(cam, target_pose, class_name, chunk_size).to(out_device)
+
+    @fastpath.twin(fastpath.surrogate_pose_scores, when=fastpath.surrogate_applies)
+    def _predict_poses(self, cam: torch.Tensor, target_pose, class_name, chunk_size: Optional[int]) -> torch.Tensor:
+        """:meth:`predict` of camera poses (B, 4, 4): pose features, then :meth:`predict_features`."""
+        return self.predict_features(pose_features(cam, target_pose, self.derived), class_name, chunk_size)
 
     @torch.no_grad()
     def predict_features(self, features: torch.Tensor, class_name: Union[str, int, Sequence, torch.Tensor],

@@ -185,14 +185,19 @@ class VisibilityConstraint:
         lo = torch.as_tensor(robot.lower, dtype=q.dtype, device=q.device) if lower is None else lower
         hi = torch.as_tensor(robot.upper, dtype=q.dtype, device=q.device) if upper is None else upper
         q = q.detach().clone()
-        active = torch.ones(q.shape[0], dtype=torch.bool, device=q.device)
-        eye = torch.eye(self.dim, dtype=q.dtype, device=q.device)
         cols = torch.as_tensor(np.nonzero(self._camera_joints())[0] if joints is None else np.asarray(joints),
                                dtype=torch.long, device=q.device)
         if len(cols) == 0:
-            return q.detach().clone(), self.error(q).detach() < settings.tolerance
-        if self.kin is robot and fastpath.applies(q):  # a few rows on the CPU: the same iteration, compiled
-            return fastpath.project(self, q, settings, lo, hi, cols.numpy())
+            return q, self.error(q).detach() < settings.tolerance
+        return self._gauss_newton(q, settings, lo, hi, cols)
+
+    @fastpath.twin(fastpath.project, when=fastpath.project_applies)
+    def _gauss_newton(self, q: torch.Tensor, settings: ProjectionSettings, lo: torch.Tensor, hi: torch.Tensor,
+                      cols: torch.Tensor) -> tuple:
+        """Damped Gauss-Newton steps of :meth:`project` over the joints ``cols``, in place on ``q`` (a copy)."""
+        robot = self.robot
+        active = torch.ones(q.shape[0], dtype=torch.bool, device=q.device)
+        eye = torch.eye(self.dim, dtype=q.dtype, device=q.device)
         for _ in range(settings.max_iters):
             idx = torch.nonzero(active, as_tuple=True)[0]
             if len(idx) == 0:
