@@ -14,7 +14,8 @@ such call costs 1-10 ms of per-operator overhead, far more than its arithmetic. 
   diff-drive metric and local motions (:class:`DiffDriveMotion`, ``Edges.pieces``, the query's nearest roadmap
   nodes, the knots of Eq. 1 edges).
 
-The callers use them for CPU tensors outside autograd (:func:`applies`): batches of at most :data:`MAX_BATCH` rows
+The domain methods name their twin with the :func:`twin` decorator, the one place a call is routed; the methods
+themselves hold only the torch code. The twins serve CPU tensors outside autograd (:func:`applies`): batches of at most :data:`MAX_BATCH` rows
 (the metric up to :data:`MOTION_MAX_BATCH`) everywhere, and batches of any size inside :func:`bulk`, which the
 planner's large-batch methods enter (build, re-scoring, invalidation near moved obstacles, repair growth): their rows
 are split into chunks run on a small thread pool (the kernels release the GIL). At that size the kernels are 3-8x
