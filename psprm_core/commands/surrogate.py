@@ -59,6 +59,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--log-offset", type=float, default=0.05, help="offset of the log-mse loss")
     t.add_argument("--class-weight", default="", metavar="CLASS=W,...",
                    help="loss weight of the samples of each named class (others 1), e.g. 'cup=4'")
+    t.add_argument("--schedule", choices=("constant", "cosine"), default="constant",
+                   help="learning rate: --lr throughout (the paper), or cosine-annealed to 1 %% of it")
+    t.add_argument("--patience", type=int, default=20,
+                   help="stop after this many epochs without a better validation RMSE (0: never stop early)")
+    t.add_argument("--weight-decay", type=float, default=0.0, help="Adam weight decay")
     t.add_argument("--allow-incomplete", action="store_true",
                    help="train on the chunks labelled so far (a dataset build that was stopped; resume it later)")
     t.set_defaults(func=_train)
@@ -133,7 +138,8 @@ def _train(args) -> int:
         if not sep or not name.strip():
             raise InputError(f"--class-weight wants CLASS=WEIGHT items, got {item!r}")
     cfg = TrainConfig(epochs=args.epochs, lr=args.lr, batch_size=args.batch, seed=args.seed, threads=args.threads,
-                      loss=args.loss, log_offset=args.log_offset, class_weights=weights)
+                      loss=args.loss, log_offset=args.log_offset, class_weights=weights, schedule=args.schedule,
+                      patience=args.patience if args.patience > 0 else None, weight_decay=args.weight_decay)
     dss = [load_dataset(d, allow_incomplete=args.allow_incomplete) for d in args.dataset.split(",") if d]
     for d in dss:
         if not d.metadata.get("complete", True):

@@ -63,6 +63,9 @@ class TrainConfig:
     min_delta : float
     weight_decay : float
         Adam weight decay (0 in the paper).
+    schedule : {"constant", "cosine"}
+        Learning rate over the epochs: ``lr`` throughout (the paper), or cosine-annealed from ``lr`` to 1 % of it
+        at the last epoch.
     seed : int
         Seeds the weight initialisation and the batch order.
     derived_features, hidden, layers
@@ -88,6 +91,7 @@ class TrainConfig:
     patience: Optional[int] = 20
     min_delta: float = 1e-5
     weight_decay: float = 0.0
+    schedule: str = "constant"
     seed: int = 0
     derived_features: bool = True
     hidden: int = 256
@@ -271,6 +275,10 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
         model.to(device)
         xf, xc, y = xf.to(device), xc.to(device), y.to(device)
         opt = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+        if cfg.schedule not in ("constant", "cosine"):
+            raise InputError(f"unknown learning-rate schedule '{cfg.schedule}' (constant, cosine)")
+        sched = (torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(1, cfg.epochs), eta_min=0.01 * cfg.lr)
+                 if cfg.schedule == "cosine" else None)
         class_w = torch.tensor([float(cfg.class_weights.get(c, 1.0)) for c in classes], device=device)
         weighted = bool(cfg.class_weights)
 
@@ -311,6 +319,8 @@ def fit_surrogate(train: tuple, val: Optional[tuple], classes: Sequence[str], co
                 total += loss.detach().item() * idx.shape[0]
             hist["train_loss"].append(total / max(n, 1))
             hist["epochs_run"] = epoch + 1
+            if sched is not None:
+                sched.step()
             if val is not None and val[0].shape[0]:
                 vp = _predict_features(model, val[0], val[1])
                 rmse = float(torch.sqrt(torch.mean((vp - val[2].cpu()) ** 2)))
