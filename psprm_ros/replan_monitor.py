@@ -390,6 +390,7 @@ class ReplanMonitor:
                 self.last_plan_t = time.monotonic()
                 if info.get("latency_ms") is not None:
                     self.latencies.append(float(info["latency_ms"]))
+                    del self.latencies[:-200]  # the status reports the latest 200
             else:
                 self.counts["failed"] += 1
 

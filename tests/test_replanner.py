@@ -742,3 +742,23 @@ def test_each_goal_switch_multiplies_the_next_commitment(replanner):
     rp.set_goals(both[::-1])  # a new goal set: goal_commit_s again
     assert same_config(replan_from(sB, t2 + 1.0), B)
     assert same_config(replan_from(sA, t2 + 1.0 + commit + 1.0), A)
+
+
+def test_the_replan_history_is_bounded(world, saved_roadmap, monkeypatch):
+    """A node replans for hours: the replanner keeps only its latest replans (a module bound, set small here), while
+    its count, which seeds the repairs' random draws, goes on."""
+    import psprm_core.planning.replanner as replanner_module
+
+    monkeypatch.setattr(replanner_module, "HISTORY", 3)
+    scene, robot = world
+    p = PSPRM(robot, scene, GeometricScorer(scene, "person_face", robot.config.intrinsics),
+              scene.target("person_face").center, PSPRMSettings().changed(n_nodes=N_NODES, seed=3))
+    p.load(saved_roadmap)
+    rp = Replanner(p, targets=["person_face"])
+    start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    rp.set_robot_state(start)
+    rp.set_goals(goals)
+    results = [rp.replan() for _ in range(5)]
+    assert all(r.success for r in results)
+    assert rp.replans == 5 and len(rp.history) == 3
+    assert [h["ms"] for h in rp.history] == pytest.approx([r.query_ms for r in results[-3:]])

@@ -27,6 +27,7 @@ import logging
 import math
 import time
 import dataclasses
+from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Sequence
@@ -43,6 +44,7 @@ log = logging.getLogger(__name__)
 
 
 HEURISTICS = ("exact", "hop", "planner")
+HISTORY = 1000  # replans kept in Replanner.history (a long-running node must not keep them all)
 
 
 @dataclass(frozen=True)
@@ -154,7 +156,8 @@ class Replanner:
         self._switches = 0  # switches between the candidate goals since they were set (goal_commit_growth)
         self._last_failed = False
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
-        self.history: list = []  # one dict per replan: reasons, timings, success
+        self.history: deque = deque(maxlen=HISTORY)  # the latest replans: reasons, timings, success
+        self.replans = 0  # replans so far
         self._collides_cache: Optional[tuple] = None  # (result, progress, planner scene, remaining path collides)
 
     def update_settings(self, settings: Optional[ReplanSettings] = None, **changes) -> ReplanSettings:
@@ -361,7 +364,7 @@ class Replanner:
             rounds += 1
             centers = ([b.center[:2] for b in self._moved_obstacles.values()] + [self.q[:2]]
                        + [g[:2] for g in self.goals])
-            rng = np.random.default_rng(len(self.history) * 7 + rounds)
+            rng = np.random.default_rng(self.replans * 7 + rounds)
             for c in centers:
                 got = p.grow(self.settings.repair_nodes, center=np.asarray(c), radius=self.settings.repair_radius_m,
                              rng=rng)
@@ -380,6 +383,7 @@ class Replanner:
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
                              "repair_rounds": rounds, **{k: v for k, v in info.items() if k == "rescore"}})
+        self.replans += 1
         self._last_failed = not res.success
         if res.success:
             self.result, self._progress = res, 0
