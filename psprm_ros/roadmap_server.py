@@ -31,6 +31,7 @@ import numpy as np
 
 from . import conversions as cv
 from . import core
+from .heap import release_free_heap
 
 P = core.Param
 SERVER_PARAMS = {
@@ -57,6 +58,8 @@ SERVER_PARAMS = {
     "alpha": P(-1.0, "Eq. 2 weight of perception against motion cost (< 0: the planner variant's default)",
                live=True, lo=-1.0, hi=1.0),
     "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
+    "heap_trim_period_s": P(60.0, "give the C heap's free memory back to the system this often, while the planner "
+                                  "is idle (0 = never; psprm_ros.heap)", lo=0.0),
 }
 #: the replanner's settings a running server changes live (their defaults come from the replan settings file)
 LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
@@ -204,6 +207,10 @@ class RoadmapServer:
         core.install_param_callback(node, self.spec_params, self.p, self._stage_param)
         node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
                           callback_group=MutuallyExclusiveCallbackGroup())
+        self.heap_trims, self.heap_trim_ms = 0, None
+        if self.p["heap_trim_period_s"] > 0:
+            node.create_timer(self.p["heap_trim_period_s"], lambda: self._submit_side("heap trim", self._trim_heap),
+                              callback_group=MutuallyExclusiveCallbackGroup())
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def on_configure(self, state) -> bool:
@@ -648,6 +655,12 @@ class RoadmapServer:
         except Exception as exc:  # never lose the side thread
             self.status(f"{what} failed: {exc}", "warning")
 
+    def _trim_heap(self) -> None:
+        """Side job: return the C heap's free pages to the system (:mod:`.heap`)."""
+        ms = release_free_heap()
+        if ms is not None:
+            self.heap_trims, self.heap_trim_ms = self.heap_trims + 1, ms
+
     def _publish_stop(self, why: str, info: Optional[dict] = None) -> None:
         self.pub_traj.publish(cv.stop_trajectory(self.q, self.names, self.frame, hold_s=self.p["stop_hold_s"]))
         self.counts["stops"] += 1
@@ -805,7 +818,9 @@ class RoadmapServer:
             ages = {f"age_s {k}": now - t for k, t in self._input_t.items()}
         vals = {"lifecycle": state, "roadmap_nodes": int(self.planner.n_roadmap_nodes) if self.planner else 0,
                 **self.counts, "last_latency_ms": self.last_latency_ms if self.last_latency_ms is not None else "",
-                "robot_state_age_s": (now - rx) if rx is not None else "never", **ages}
+                "robot_state_age_s": (now - rx) if rx is not None else "never", **ages,
+                "heap_trims": self.heap_trims, "last_heap_trim_ms": self.heap_trim_ms if self.heap_trim_ms is not None
+                else ""}
         core.publish_diagnostics(self.pub_diag, self.node, [
             core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
 
