@@ -100,8 +100,7 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
         # the planner is the longest name run that prefixes the item (labels may hold dots; keys may be dotted paths)
         name = max((p for p in planners if head.startswith(p + ".")), key=len, default=head.partition(".")[0])
         key = head[len(name) + 1:] if head.startswith(name + ".") else ""
-        dot = "." if key else ""
-        if not eq or not dot or not name or not key or not raw.strip():
+        if not eq or not name or not key or not raw.strip():
             raise PsprmError(f"--set '{item}': expected PLANNER.KEY=VALUE (e.g. neural-psprm-line.alpha=0.95)")
         if name not in planners:
             raise PsprmError(f"--set '{item}': planner '{name}' is not among the planners run "
@@ -128,9 +127,7 @@ def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[
     import yaml
 
     from ..errors import ConfigError
-    from ..yamlio import Fields, typed_value
-
-    from ..yamlio import leaf_paths, replace_settings, setting_value
+    from ..yamlio import Fields, leaf_paths, replace_settings, setting_value, typed_value
 
     paths = leaf_paths(cls)
     defaults = cls()
@@ -148,64 +145,6 @@ def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[
             owner = getattr(owner, part)
         fl = {f.name: f for f in dataclasses.fields(owner)}[leaf]
         return fl.default is not dataclasses.MISSING
-
-    out: dict = {}
-    for item in items:
-        head, eq, raw = str(item).partition("=")
-        head = head.strip()
-        # the planner is the longest name run that prefixes the item (labels may hold dots; keys may be dotted paths)
-        name = max((p for p in planners if head.startswith(p + ".")), key=len, default=head.partition(".")[0])
-        key = head[len(name) + 1:] if head.startswith(name + ".") else ""
-        dot = "." if key else ""
-        if not eq or not dot or not name or not key or not raw.strip():
-            raise PsprmError(f"--set '{item}': expected PLANNER.KEY=VALUE (e.g. neural-psprm-line.alpha=0.95)")
-        if name not in planners:
-            raise PsprmError(f"--set '{item}': planner '{name}' is not among the planners run "
-                             f"({', '.join(planners)})")
-        cls = settings_class(name.split("~", 1)[0])  # NAME~LABEL: planner NAME under its own label
-        out.setdefault(name, {}).update(parse_settings([f"{key}={raw}"], cls, name, FIXED_SETTINGS, item))
-    return out
-
-
-def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[str] = (),
-                   shown: str | None = None, flag: str = "--set") -> dict:
-    """``["KEY=VALUE", ...]`` -> ``{key: value}`` for the settings dataclass ``cls`` (typed like the YAML settings
-    files, by the field default's type; the class's ``validate()`` run on the result); ``label`` names the settings
-    in messages, ``fixed`` lists fields that cannot be set this way, ``shown`` the item as the user wrote it and
-    ``flag`` the option it came with.
-
-    Raises
-    ------
-    PsprmError
-        Malformed item, an unknown or fixed setting, a value of the wrong type or out of range.
-    """
-    import dataclasses
-
-    import yaml
-
-    from ..errors import ConfigError
-    from ..yamlio import Fields, typed_value
-
-    from ..yamlio import leaf_paths, replace_settings, setting_value
-
-    paths = leaf_paths(cls)
-    defaults = cls()
-
-    def canonical(name: str) -> str:  # a setting's own name where it is unique, else its dotted path
-        path = paths[name]
-        return path[-1] if paths.get(path[-1]) == path else ".".join(path)
-
-    def settable(name: str) -> bool:
-        if name not in paths or canonical(name) in fixed:
-            return False
-        path, c = paths[name], cls
-        for part in path:  # a field without a default, or a whole group, is not a value --set can give
-            fl = {f.name: f for f in dataclasses.fields(c)}[part]
-            if fl.default is dataclasses.MISSING:
-                if fl.default_factory is dataclasses.MISSING or part == path[-1]:
-                    return False
-            c = type(getattr(c(), part)) if part != path[-1] else None
-        return True
 
     out: dict = {}
     for item in items:
