@@ -36,6 +36,8 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 
+from psprm_core.errors import InputError, UnknownNameError
+
 BASE_JOINTS = ("base_x", "base_y", "base_theta")
 INTERFACES = ("topic", "action")
 STAMP_MODES = ("zero", "lead")
@@ -108,7 +110,7 @@ class AdapterConfig:
         for c in self.controllers:
             if c.name == name:
                 return c
-        raise KeyError(f"adapter {self.source}: no controller '{name}' (have {[c.name for c in self.controllers]})")
+        raise UnknownNameError(f"adapter {self.source}: no controller '{name}' (have {[c.name for c in self.controllers]})")
 
     def name_map(self) -> dict:
         """Robot joint name -> planning joint name over every controller (for reading /joint_states)."""
@@ -124,13 +126,13 @@ class AdapterConfig:
         """The same adapter with every controller on ``interface`` (e.g. ``topic`` for sim_robot, which offers
         the JTC topics: control_msgs is not installed here)."""
         if interface not in INTERFACES:
-            raise ValueError(f"interface must be one of {', '.join(INTERFACES)}, got '{interface}'")
+            raise InputError(f"interface must be one of {', '.join(INTERFACES)}, got '{interface}'")
         cs = []
         for c in self.controllers:
             if interface == "topic" and not c.topic:
-                raise ValueError(f"adapter {self.source}: controller '{c.name}' has no topic")
+                raise InputError(f"adapter {self.source}: controller '{c.name}' has no topic")
             if interface == "action" and not c.action:
-                raise ValueError(f"adapter {self.source}: controller '{c.name}' has no action")
+                raise InputError(f"adapter {self.source}: controller '{c.name}' has no action")
             cs.append(dataclasses.replace(c, interface=interface))
         base = self.base
         if interface == "topic" and base.mode == "stretch_translate_rotate":
@@ -286,7 +288,7 @@ def columns(names: Sequence[str], wanted: Sequence[str]) -> list:
     idx = []
     for j in wanted:
         if j not in names:
-            raise ValueError(f"trajectory has no joint '{j}' (has {', '.join(names)})")
+            raise InputError(f"trajectory has no joint '{j}' (has {', '.join(names)})")
         idx.append(list(names).index(j))
     return idx
 
@@ -302,7 +304,7 @@ def controller_command(ctrl: ControllerConfig, names: Sequence[str], times, posi
     t = np.asarray(times, float).reshape(-1)
     P = np.asarray(positions, float).reshape(len(t), -1)
     if len(t) == 0 or not np.isfinite(t).all() or np.any(np.diff(t) <= 0) or not np.isfinite(P).all():
-        raise ValueError("trajectory times must be finite and strictly increasing, positions finite")
+        raise InputError("trajectory times must be finite and strictly increasing, positions finite")
     idx = columns(names, ctrl.joints)
     P = P[:, idx]
     V = None if velocities is None else np.asarray(velocities, float).reshape(len(t), -1)[:, idx]

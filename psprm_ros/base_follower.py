@@ -23,6 +23,8 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 
 @dataclasses.dataclass(frozen=True)
 class Limits:
@@ -57,7 +59,7 @@ class BaseReference:
         t = np.asarray(times, float).reshape(-1)
         P = np.asarray(poses, float).reshape(len(t), 3).copy()
         if len(t) == 0 or np.any(np.diff(t) <= 0) or not np.isfinite(P).all():
-            raise ValueError("base reference: times must be strictly increasing and poses finite")
+            raise InputError("base reference: times must be strictly increasing and poses finite")
         P[:, 2] = np.unwrap(P[:, 2])
         self.t, self.P = t - t[0], P
         if len(t) > 1:

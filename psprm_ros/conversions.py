@@ -13,9 +13,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from psprm_core.errors import InputError  # a message that must not reach the planner (non-finite, wrong frame, ...)
 
-class InputError(ValueError):
-    """A message that must not reach the planner (non-finite, wrong frame, stale, malformed)."""
+__all__ = ["InputError"]  # the nodes catch cv.InputError: the library's error of bad input, a ValueError
 
 
 # ---------------------------------------------------------------------------------------------------------- time
@@ -286,7 +286,7 @@ def trajectory_samples(traj, dt: float = 0.1) -> tuple:
     t = np.asarray(traj.times, float)
     m = len(t)
     if m == 0:
-        raise ValueError("empty trajectory")
+        raise InputError("empty trajectory")
     if dt > 0 and m > 1:
         step = max(1, int(round(dt / max(float(np.median(np.diff(t))), 1e-9))))
         idx = np.arange(0, m, step)
@@ -389,7 +389,7 @@ def stop_trajectory(q: np.ndarray, names: Sequence[str], frame: str, stamp=None,
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
     if not hold_s > 0:
-        raise ValueError(f"hold_s must be > 0, got {hold_s}")
+        raise InputError(f"hold_s must be > 0, got {hold_s}")
     m = JointTrajectory()
     m.header.frame_id = frame
     if stamp is not None:

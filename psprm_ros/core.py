@@ -15,6 +15,8 @@ from typing import Any, Optional
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 log = logging.getLogger(__name__)
 
 
@@ -169,10 +171,10 @@ def install_param_callback(node, spec: dict, values: dict, apply) -> None:
             try:
                 v = coerce(prm.name, prm.value, p.default)
                 if isinstance(v, float) and not math.isfinite(v):
-                    raise ValueError("must be finite")
+                    raise InputError("must be finite")
                 if isinstance(v, (int, float)) and not isinstance(v, bool):
                     if (p.lo is not None and v < p.lo) or (p.hi is not None and v > p.hi):
-                        raise ValueError(f"must lie in [{p.lo}, {p.hi}]")
+                        raise InputError(f"must lie in [{p.lo}, {p.hi}]")
                 staged[prm.name] = v
             except (TypeError, ValueError) as exc:
                 return SetParametersResult(successful=False, reason=f"{prm.name}: {exc}")

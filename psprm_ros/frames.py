@@ -22,7 +22,7 @@ from typing import Dict, Optional, Sequence
 
 import numpy as np
 
-from .conversions import InputError
+from psprm_core.errors import InputError
 
 
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -90,12 +90,12 @@ class FrameTable:
         xyz = np.asarray(xyz, float).reshape(-1)
         quat = np.asarray(quat, float).reshape(-1)
         if not f:
-            raise ValueError("input frame: empty frame name")
+            raise InputError("input frame: empty frame name")
         if xyz.shape != (3,) or quat.shape != (4,) or not (np.isfinite(xyz).all() and np.isfinite(quat).all()):
-            raise ValueError(f"input frame '{f}': xyz must be 3 finite numbers and quat 4 (x, y, z, w), "
+            raise InputError(f"input frame '{f}': xyz must be 3 finite numbers and quat 4 (x, y, z, w), "
                              f"got {xyz.tolist()} / {quat.tolist()}")
         if f == self.scene_frame:
-            raise ValueError(f"input frame '{f}' is the scene frame itself (it needs no transform)")
+            raise InputError(f"input frame '{f}' is the scene frame itself (it needs no transform)")
         self.transforms[f] = (xyz, _unit(quat))
 
     @property
@@ -145,7 +145,7 @@ def declare_frame_params(node, scene_frame: str) -> FrameTable:
         try:
             table.add(n, vals[0], vals[1])
         except (ValueError, InputError) as exc:
-            raise ValueError(f"parameter input_frame.{n}: {exc}") from None
+            raise InputError(f"parameter input_frame.{n}: {exc}") from None
     return table
 
 

@@ -23,6 +23,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 from . import conversions as cv
 from .recordings import Recording, load_recording
 
@@ -49,7 +51,7 @@ class Replayer:
         want = bodies or rec.bodies
         unknown = set(want) - set(rec.bodies)
         if unknown:
-            raise ValueError(f"bodies not in the recording: {', '.join(sorted(unknown))} (have {rec.bodies})")
+            raise InputError(f"bodies not in the recording: {', '.join(sorted(unknown))} (have {rec.bodies})")
         self.selected = np.isin(rec.body, [rec.bodies.index(b) for b in want])
         self.pubs = {i: node.create_publisher(PoseStamped, f"{prefix}/{b}/pose", qos_profile_sensor_data)
                      for i, b in enumerate(rec.bodies) if b in want}

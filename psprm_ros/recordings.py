@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 COLUMNS = ["time", "body", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
 
@@ -70,18 +72,18 @@ def load_csv(path) -> Recording:
         reader = csv.DictReader(f)
         missing = set(COLUMNS) - {"frame"} - set(reader.fieldnames or [])
         if missing:
-            raise ValueError(f"{path}: missing CSV columns {', '.join(sorted(missing))}")
+            raise InputError(f"{path}: missing CSV columns {', '.join(sorted(missing))}")
         for i, row in enumerate(reader, start=2):
             try:
                 times.append(float(row["time"]))
                 P.append([float(row["x"]), float(row["y"]), float(row["z"])])
                 Q.append([float(row["qx"]), float(row["qy"]), float(row["qz"]), float(row["qw"])])
             except (TypeError, ValueError) as exc:
-                raise ValueError(f"{path}: line {i}: {exc}") from None
+                raise InputError(f"{path}: line {i}: {exc}") from None
             names.append(row["body"])
             frames.setdefault(row["body"], row.get("frame") or "map")
     if not times:
-        raise ValueError(f"{path}: no samples")
+        raise InputError(f"{path}: no samples")
     return _finish(times, names, P, Q, frames)
 
 
@@ -102,7 +104,7 @@ def load_rosbag(path) -> Recording:
     with AnyReader([bag]) as reader:
         conns = [c for c in reader.connections if c.msgtype == "geometry_msgs/msg/PoseStamped"]
         if not conns:
-            raise ValueError(f"{bag}: no geometry_msgs/msg/PoseStamped topics")
+            raise InputError(f"{bag}: no geometry_msgs/msg/PoseStamped topics")
         for conn, stamp_ns, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             b = _body_of(conn.topic)

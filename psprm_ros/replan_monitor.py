@@ -23,6 +23,8 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 from . import conversions as cv
 from . import core
 
@@ -149,7 +151,7 @@ class ReplanMonitor:
         src = self.p["base_pose_source"]
         if self.robot.mobile and src == "pose":
             if not self.p["robot_pose_topic"]:
-                raise ValueError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
+                raise InputError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
             node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
         if self.robot.mobile and src == "odom":
             node.create_subscription(Odometry, self.p["odom_topic"], self._odom_cb, 10, callback_group=cb)
@@ -214,7 +216,7 @@ class ReplanMonitor:
 
     def _topics(self, kind, names, topics) -> list:
         if topics and len(topics) != len(names):
-            raise ValueError(f"{kind}_topics has {len(topics)} entries for {len(names)} {kind}s")
+            raise InputError(f"{kind}_topics has {len(topics)} entries for {len(names)} {kind}s")
         return [(kind, n, topics[i] if topics else f"{self.p['mocap_prefix']}/{n}/pose") for i, n in enumerate(names)]
 
     # ------------------------------------------------------------------------------------------------ reporting

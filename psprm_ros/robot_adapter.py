@@ -25,6 +25,8 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 from . import adapters as ad
 from . import conversions as cv
 from . import core
@@ -127,7 +129,7 @@ class RobotAdapter:
         if self.p["interface"]:
             cfg = cfg.with_interface(self.p["interface"])
         if cfg.base.mode == "stretch_translate_rotate":
-            raise ValueError("base.mode stretch_translate_rotate: its goals are built by "
+            raise InputError("base.mode stretch_translate_rotate: its goals are built by "
                              "psprm_ros.adapters.stretch_base_steps / stretch_base_command; this node drives the "
                              "base with cmd_vel (Stretch's navigation mode)")
         fjt = None

@@ -18,6 +18,8 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.errors import InputError
+
 from . import conversions as cv
 from .frames import FrameTable, compose_pose
 
@@ -44,7 +46,7 @@ class RobotStateTracker:
     def __init__(self, robot, frames: FrameTable, base_source: str = "odom", name_map: Optional[dict] = None,
                  body_offset: Optional[tuple] = None, timeout_s: float = 0.5, template: Optional[np.ndarray] = None):
         if base_source not in BASE_SOURCES:
-            raise ValueError(f"base_pose_source must be one of {', '.join(BASE_SOURCES)}, got '{base_source}'")
+            raise InputError(f"base_pose_source must be one of {', '.join(BASE_SOURCES)}, got '{base_source}'")
         self.robot, self.frames, self.base_source = robot, frames, base_source
         self.name_map = dict(name_map or {})
         self.body_offset = body_offset
