@@ -326,12 +326,18 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         if version != checked_version:
             checker.set_boxes(_scene_with(scene, cur).collision_boxes())
             checked_version = version
-        hit = bool(checker.check(torch.as_tensor(q[None], dtype=torch.float32))[0])
+        qt = torch.as_tensor(q[None], dtype=torch.float32)
+        hit = bool(checker.check(qt)[0])
         collided += int(hit)
         if hit and len(events) < 10:
             body = cur.get("person_body", (np.full(3, np.nan), None))[0]
+            det = checker.check_detailed(qt)
+            boxes = _scene_with(scene, cur).collision_boxes()
             events.append({"t": round(t - t0, 2), "base": [round(float(v), 3) for v in q[:3]],
-                           "person": [round(float(v), 3) for v in body[:2]]})
+                           "person": [round(float(v), 3) for v in body[:2]],
+                           "q": [round(float(v), 4) for v in q],  # the whole configuration, for a replay
+                           "why": [k for k in ("limits", "environment", "self") if bool(det[k][0])],
+                           "boxes": [b.name for b in boxes if bool(checker.env_hits(qt, [b])[0])]})
     growth = {}
     for n, m in mem.items():
         v = [x for _, x in m if np.isfinite(x)]
