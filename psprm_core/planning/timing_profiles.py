@@ -60,7 +60,7 @@ def _pchip_slopes(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     w1, w2 = 2.0 * h[1:] + h[:-1], h[1:] + 2.0 * h[:-1]
     d0, d1 = delta[:-1], delta[1:]
     agree = (np.sign(d0) * np.sign(d1)) > 0
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # masked where the secants disagree
         m[1:-1] = np.where(agree, (w1 + w2) / (w1 / d0 + w2 / d1), 0.0)
 
     def edge(h0, h1, m0, m1):
