@@ -26,13 +26,8 @@ N_NODES = 700
 
 
 @pytest.fixture(scope="module")
-def home(load_robot):
-    scene = load_scene(resolve_named("scene", "home"))
-    robot = load_robot("stretch2")
-    prob = scene.problem("tv_west_to_southeast")
-    scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
-    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings().changed(n_nodes=N_NODES, seed=1))
-    stats = planner.build(template=problem_configurations(robot, scene, prob)[0])
+def home(home_tv_planner):
+    scene, robot, planner, _, _, stats = home_tv_planner(n_nodes=N_NODES, seed=1)
     assert stats["success"] and stats["n_nodes"] == N_NODES
     return scene, robot, planner
 

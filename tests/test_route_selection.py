@@ -15,12 +15,9 @@ import torch
 from psprm_core.errors import ConfigError
 from psprm_core.evaluation.reference import PybulletWorld
 from psprm_core.motion import DiffDriveMotion
-from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer
-from psprm_core.planning.factory import problem_configurations
-from psprm_core.planning.psprm import PSPRM, PSPRMSettings
+from psprm_core.planning.psprm import PSPRMSettings
 from psprm_core.problems import random_problems
-from psprm_core.scene import load_scene
 
 N_NODES = 700
 ALPHA = 0.9
@@ -29,15 +26,8 @@ RATIO = 1.5
 
 
 @pytest.fixture(scope="module")
-def setup(load_robot):
-    scene = load_scene(resolve_named("scene", "home"))
-    robot = load_robot("stretch2")
-    prob = scene.problem("tv_west_to_southeast")
-    settings = PSPRMSettings().changed(n_nodes=N_NODES, seed=2, objective="motion", alpha=ALPHA)
-    planner = PSPRM(robot, scene, GeometricScorer(scene, "tv", robot.config.intrinsics), scene.target("tv").center,
-                    settings)
-    start, goals = problem_configurations(robot, scene, prob)
-    assert planner.build(template=start)["success"]
+def setup(home_tv_planner):
+    scene, robot, planner, start, goals, _ = home_tv_planner(n_nodes=N_NODES, seed=2, objective="motion", alpha=ALPHA)
     from psprm_core.collision import CollisionChecker
 
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
