@@ -445,9 +445,23 @@ class RobotAdapter:
         try:
             if self.active:
                 self.stop("node destroyed")
+                self.wait_stop_delivered()
         except Exception:
             pass
         self.node.destroy_node()
+
+    def wait_stop_delivered(self, timeout_s: float = 1.0) -> bool:
+        """Wait (at most ``timeout_s``) until the subscribers acknowledged what the command publishers sent: a stop
+        published just before the process ends is otherwise still in the middleware's queue and lost with it."""
+        from rclpy.duration import Duration
+
+        pubs = list(self._pubs.values()) + ([self._twist_pub] if self._twist_pub is not None else [])
+        deadline = time.monotonic() + timeout_s
+        ok = True
+        for pub in pubs:
+            left = max(0.0, deadline - time.monotonic())
+            ok = pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and ok
+        return ok
 
 
 def _retrieve(fut) -> None:

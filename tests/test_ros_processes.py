@@ -9,6 +9,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -69,19 +70,25 @@ def _start(script: str, domain: int):
     cmd = ["bash", str(ROOT / "scripts" / script), str(PARAMS_FILE), "-p", f"roadmap_server:n_nodes:={N_NODES}",
            "-p", "replan_monitor:stale_timeout_s:=60.0", "-p", "roadmap_server:publish_markers:=false",
            "-p", "robot_adapter:interface:=topic"]
-    return subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
+    # the suite's log is read as it comes: a pipe nobody reads fills (64 KiB) and blocks the nodes in their logging
+    proc.lines = []
+    proc.reader = threading.Thread(target=lambda: proc.lines.extend(proc.stdout), daemon=True)
+    proc.reader.start()
+    return proc
 
 
 def _stop(proc) -> tuple:
     if proc.poll() is None:
         os.killpg(proc.pid, signal.SIGTERM)
     try:
-        out, _ = proc.communicate(timeout=20)
+        proc.wait(timeout=20)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        out, _ = proc.communicate()
-    return proc.returncode, out
+        proc.wait()
+    proc.reader.join(timeout=5.0)
+    return proc.returncode, "".join(proc.lines)
 
 
 @pytest.mark.parametrize("script", ["run_all_in_one.sh", "run_nodes.sh"])
@@ -102,8 +109,6 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
     ex = SingleThreadedExecutor(context=ctx)
     probe = Probe(context=ctx)
     ex.add_node(probe.node)
-    import threading
-
     from trajectory_msgs.msg import JointTrajectory
 
     from geometry_msgs.msg import Twist
@@ -163,7 +168,7 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
 
         while time.monotonic() < wait and not (zero_twist() and hold()):
             time.sleep(0.1)
-        assert zero_twist(), "no zero twist at shutdown"
+        assert zero_twist(), f"no zero twist at shutdown; output:\n{_tail(proc)}"
         assert hold(), "no hold trajectory at shutdown"
         state.stop()
     finally:
@@ -205,6 +210,4 @@ def _spin(ex, stop) -> None:
 
 
 def _tail(proc) -> str:
-    if proc.poll() is None:
-        return "(still running)"
-    return (proc.stdout.read() or "")[-3000:]
+    return "".join(proc.lines)[-3000:]
