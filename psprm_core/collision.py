@@ -66,6 +66,13 @@ class BoxTensors:
         ext = (self.rotation.abs() * self.half.unsqueeze(-2)).sum(-1)
         return torch.cat([self.center - ext, self.center + ext], -1)
 
+    def padded(self, padding: float) -> "BoxTensors":
+        """The boxes grown by ``padding`` (m) on every face. A grown box contains every point within ``padding`` of
+        the box, so a robot that misses the grown boxes keeps at least that clearance from the real ones."""
+        if padding == 0.0:
+            return self
+        return BoxTensors(self.center, self.rotation, self.half + padding, list(self.names))
+
 
 def point_box_sqdist(points: torch.Tensor, box_center: torch.Tensor, box_rot: torch.Tensor,
                      box_half: torch.Tensor) -> torch.Tensor:
@@ -94,11 +101,19 @@ class CollisionChecker:
         The body poses of the torch path, in the format of :meth:`RobotModel.body_poses`: the robot model itself
         (default) or e.g. :class:`~psprm_core.kinematics_pk.PKBodyKinematics`. The compiled small-batch CPU path
         (:mod:`~psprm_core.fastpath`) runs the robot model's own FK either way.
+    padding : float
+        Clearance (m) kept from every obstacle box: the environment checks run against the boxes grown by this much
+        on every face (:meth:`BoxTensors.padded`); :attr:`true_boxes` keeps the boxes as given, for
+        :meth:`check_unpadded`. Self-collision and the limits are not padded. A planner plans with a padding so that
+        a robot tracking its path a few centimetres off stays clear of the real obstacles.
     """
 
     def __init__(self, robot: RobotModel, boxes: Iterable = (), allowed_pairs: Optional[set] = None,
                  workspace: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32, chunk: int = 16384,
-                 kinematics=None):
+                 kinematics=None, padding: float = 0.0):
+        if not (np.isfinite(padding) and padding >= 0):
+            raise ValueError(f"collision padding must be a finite distance >= 0 m, got {padding}")
+        self.padding = float(padding)
 
         self.robot = robot
         self.kin = robot if kinematics is None else kinematics
@@ -169,8 +184,23 @@ class CollisionChecker:
         log.debug("collision model %s: %d elements, %d self pairs", robot.name, E, len(pairs))
 
     def set_boxes(self, boxes: Iterable) -> None:
-        """Replace the obstacle set (e.g. after an obstacle moved)."""
-        self.boxes = BoxTensors.from_boxes(boxes, self.device, self.dtype)
+        """Replace the obstacle set (e.g. after an obstacle moved). :attr:`boxes` are the ones checked (grown by the
+        padding), :attr:`true_boxes` the ones given."""
+        self.true_boxes = BoxTensors.from_boxes(boxes, self.device, self.dtype)
+        self.boxes = self.true_boxes.padded(self.padding)
+
+    def box_tensors(self, boxes: Iterable) -> "BoxTensors":
+        """``boxes`` as this checker tests them (tensors on its device, grown by its padding)."""
+        return BoxTensors.from_boxes(boxes, self.device, self.dtype).padded(self.padding)
+
+    def check_unpadded(self, q: torch.Tensor) -> torch.Tensor:
+        """In-collision flags (B,) against the boxes as given (:attr:`true_boxes`, no padding), the limits and
+        self-collision: whether a configuration touches the real obstacles, not the clearance kept from them."""
+        q = q.to(self.device, self.dtype)
+        if self.padding == 0.0:
+            return self.check(q)
+        det = self.check_detailed(q)
+        return det["limits"] | det["self"] | self.env_hits(q, self.true_boxes)
 
     # ---- checks ----------------------------------------------------------------------------------------------------
     @fastpath.twin(fastpath.check_flags, when=fastpath.on_cpu_applies)
@@ -194,10 +224,11 @@ class CollisionChecker:
     def env_hits(self, q: torch.Tensor, boxes, return_aabb: bool = False):
         """Environment-collision flags (B,) against ``boxes`` only (a list of boxes or :class:`BoxTensors`): no
         limits, no self-collision, no other obstacles. What an obstacle move can change for configurations that were
-        valid before. ``return_aabb``: also return the robot's world bounds (B, 6) at each configuration
+        valid before. A list of boxes is grown by the padding (:meth:`box_tensors`); :class:`BoxTensors` are tested as
+        they are. ``return_aabb``: also return the robot's world bounds (B, 6) at each configuration
         (:meth:`robot_aabb`), from the same forward kinematics."""
         q = q.to(self.device, self.dtype)
-        bt = boxes if isinstance(boxes, BoxTensors) else BoxTensors.from_boxes(boxes, self.device, self.dtype)
+        bt = boxes if isinstance(boxes, BoxTensors) else self.box_tensors(boxes)
         return self._env_hits(q, bt, return_aabb)
 
     @fastpath.twin(fastpath.env_hit_flags, when=fastpath.on_cpu_applies)

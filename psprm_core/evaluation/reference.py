@@ -139,6 +139,18 @@ class PybulletWorld:
                 env.add(self.box_bodies.get(c[2], str(c[2])))
         return env, selfc
 
+    def clearance(self, q: np.ndarray, up_to: float = 0.5) -> float:
+        """Smallest distance (m) between the robot's collision meshes and the boxes at configuration ``q`` (negative:
+        penetration), capped at ``up_to``."""
+        p = self.p
+        self.set_configuration(q)
+        p.performCollisionDetection(physicsClientId=self.cid)
+        d = up_to
+        for b in self.box_bodies:
+            for c in p.getClosestPoints(self.body, b, up_to, physicsClientId=self.cid):
+                d = min(d, c[8])
+        return float(d)
+
     def in_collision(self, qs: np.ndarray) -> np.ndarray:
         """Exact collision flags (B,) for configurations (B, dof): environment or non-allowed self contact."""
         out = np.zeros(len(qs), dtype=bool)

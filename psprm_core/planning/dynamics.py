@@ -125,7 +125,8 @@ class Dynamics(Stage):
         nsel, esel = set(), set()
         for b in boxes:
             c = np.asarray(b.center, float)[:2]
-            rad = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + idx["reach"] + margin
+            rad = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + idx["reach"] + margin \
+                + self.ctx.checker.padding  # the box as checked: grown by the planner's clearance
             nsel.update(idx["node_tree"].query_ball_point(c, rad))
             if idx["edge_tree"] is not None:
                 cand = np.asarray(idx["edge_tree"].query_ball_point(c, rad + idx["max_half"]), dtype=np.int64)
@@ -162,8 +163,7 @@ class Dynamics(Stage):
         # knots checked before: their cached robot bounds must overlap a box's bounds, else no kinematics is needed
         bounds = self.knots.knot_aabb(edges)[:, 1:-1].reshape(-1, 6)
         known = ~torch.isnan(bounds[:, 0])
-        bt = boxes if isinstance(boxes, BoxTensors) else \
-            BoxTensors.from_boxes(list(boxes), self.ctx.device, self.ctx.dtype)
+        bt = boxes if isinstance(boxes, BoxTensors) else self.ctx.checker.box_tensors(list(boxes))
         if len(bt):
             bb = bt.aabb().to(bounds.dtype)
             overlap = ((bounds[:, None, :3] <= bb[None, :, 3:]) & (bounds[:, None, 3:] >= bb[None, :, :3])).all(-1)

@@ -69,8 +69,12 @@ class PSPRM:
 
             kin = PKCameraKinematics(robot, device=device)
             body_kin = None if checker is not None else PKBodyKinematics(robot, device=device, dtype=dtype)
+        pad = settings.edges.collision_padding
         checker = checker or CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace, device=device,
-                                              dtype=dtype, kinematics=body_kin)
+                                              dtype=dtype, kinematics=body_kin, padding=pad)
+        if checker.padding != pad:
+            raise ConfigError("settings", "edges.collision_padding",
+                              f"{pad} m, but the collision checker given keeps {checker.padding} m")
         constraint = VisibilityConstraint(robot, settings.visibility.constraint, focus, margin=settings.visibility.frustum_margin,
                                           min_distance=settings.visibility.min_view_distance, kinematics=kin)
         mask = camera_joint_mask(robot)
@@ -176,6 +180,10 @@ class PSPRM:
             fixed = [f"visibility.{k}" for k, v in dataclasses.asdict(new.visibility).items()
                      if v != getattr(old.visibility, k)]
             raise ConfigError("settings", ", ".join(fixed), "fixed when the planner is made: make a new planner")
+        if new.edges.collision_padding != old.edges.collision_padding:
+            raise ConfigError("settings", "edges.collision_padding",
+                              "fixed when the planner is made (its checker and every node depend on it): make a new "
+                              "planner")
         reweigh = self.graph is not None and new.scoring != old.scoring
         # with new weights to make, reweight publishes the scoring settings once the weights are written
         self.ctx.settings = dataclasses.replace(new, scoring=old.scoring) if reweigh else new

@@ -67,9 +67,20 @@ class Query(Stage):
             return PlanResult(False, "start or goal contains NaN/inf")
         det = self.ctx.backend.check_detailed(Q)
         bad = det["limits"] | det["environment"] | det["self"]
+        fix = origin = None
         if bad[0]:
             why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
-            return PlanResult(False, f"start configuration invalid ({why})")
+            pad = self.ctx.checker.padding
+            if why != "environment" or pad == 0 or bool(self.ctx.checker.check_unpadded(self.ctx.t(Q[:1]))[0]):
+                return PlanResult(False, f"start configuration invalid ({why})")
+            # inside the clearance kept from the obstacles, not touching them: the start fix moves it out first
+            fix = self.pl.recovery.move_out(Q[0])
+            if fix is None:
+                return PlanResult(False, f"start configuration within the collision padding ({pad:g} m) of an "
+                                         f"obstacle, and no motion out of it was found within "
+                                         f"{self.ctx.settings.recovery.start_fix_radius:g} (start_fix_radius)")
+            origin, Q = Q[0].copy(), Q.copy()
+            Q[0] = fix[0]
         if bad[1:].all():
             return PlanResult(False, "every goal configuration is in collision or outside the limits")
         g = self.rm.graph
@@ -155,6 +166,9 @@ class Query(Stage):
                                                 dist=self.pl.edges.motion_distance(qa[keep], qb[keep]))
                     self.pl.edges.put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
+            search_start = s_id
+            if fix is not None:  # the measured start, and its checked motion out of the padding to Q[0]
+                search_start = self.add_start_fix(origin, s_id, fix, added_nodes, added_edges)
             if escapes:
                 added_edges.extend(self.add_escapes(escapes, dict(queries), added_nodes))
             search_goals, sink_w = goal_ids, None
@@ -182,11 +196,11 @@ class Query(Stage):
                     hops = None
                     if isinstance(heur, str) and heur == "hop":
                         hops = self.pl.heuristics.query_hops(search_goals, added_edges)
-                    res = lazy_astar(g, s_id, search_goals, self.pl.verify.verify_edges, heuristic=heur,
+                    res = lazy_astar(g, search_start, search_goals, self.pl.verify.verify_edges, heuristic=heur,
                                      apply_to_graph=True,
                                      hops=hops)
                 else:
-                    res = astar(g, s_id, search_goals, heuristic=heur)
+                    res = astar(g, search_start, search_goals, heuristic=heur)
             if res is None or not res.success:
                 return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
                                   query_ms=(time.perf_counter() - t0) * 1e3)
@@ -198,6 +212,8 @@ class Query(Stage):
                 path, cost = self.pl.shortcut.shortcut_path(path, cost, added_edges)
             result = self.pl.trajectory.finish(path, cost, timing)
             result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == goal)[0][0])
+            if fix is not None:
+                result.reason = f"{result.reason} (after moving the start out of the collision padding)"
             result.query_ms = (time.perf_counter() - t0) * 1e3
             return result
         finally:
@@ -242,6 +258,23 @@ class Query(Stage):
         if ok.any():
             p[ok] = self.pl.scoring.knots_perception(knots[ok], interior[ok])
         return ok, p, knots, interior
+
+    def add_start_fix(self, origin: np.ndarray, fixed_node: int, fix: tuple, added_nodes: list,
+                      added_edges: list) -> int:
+        """Add the measured start ``origin`` as a query node with one edge to ``fixed_node`` (the start fix's
+        configuration), carrying the fix's knots (checked against the unpadded obstacles: what the robot executes),
+        scored with Eq. 1 like any other edge. Returns the node the search starts from."""
+        g = self.rm.graph
+        o = int(g.add_nodes(origin[None].astype(np.float64))[0])
+        added_nodes.append(o)
+        self.rm.node_score_slots()[o] = float(self.pl.scoring.score_configs(self.ctx.t(origin[None]))[0])
+        kn, ki = fix[1], fix[2]
+        p = self.pl.scoring.knots_perception(kn, ki).cpu().numpy()
+        d = self.pl.edges.motion_distance(kn[:, 0].cpu().numpy(), kn[:, -1].cpu().numpy())
+        new = self.add_query_edges(np.array([o]), np.array([fixed_node]), p, d, verified=True)
+        self.pl.edges.put_knots(np.asarray(new), np.array([o]), kn, ki)
+        added_edges.extend(new)
+        return o
 
     def add_escapes(self, escapes: dict, end_node: dict, added_nodes: list) -> list:
         """Add the escape searches' configurations (as query nodes, appended to ``added_nodes``) and their checked

@@ -12,7 +12,7 @@ import torch
 
 from .knots import no_knots
 from .results import EscapeResult, PlanResult
-from .state import Stage, large_batches
+from .state import NP_DTYPE, Stage, large_batches
 
 log = logging.getLogger(__name__)
 
@@ -29,8 +29,63 @@ def _ends(start, goals, dof: int) -> list:
     return [np.asarray(start, float).reshape(-1)] + list(np.asarray(goals, float).reshape(-1, dof))[:4]
 
 
+START_FIX_RINGS = (0.125, 0.25, 0.5, 1.0)  # rings of the start fix, as fractions of recovery.start_fix_radius
+START_FIX_TRY = 8  # nearest padded-free offsets of a ring whose motion from the start is checked
+
+
 class Recovery(Stage):
-    """Escape search and local roadmap repair for unreachable query ends."""
+    """Escape search and local roadmap repair for unreachable query ends, and the start fix."""
+
+    def move_out(self, start: np.ndarray) -> Optional[tuple]:
+        """The start fix: a configuration near ``start`` that keeps the planner's collision padding, and the motion
+        to it. For a start inside the padding (``edges.collision_padding``) but clear of the obstacles themselves:
+        a robot that tracked its last path a little off, next to a shelf (MoveIt's planning-request adapter
+        *FixStartStateCollision* samples such a nearby state the same way).
+
+        Random offsets of ``start`` in rings of growing size (:data:`START_FIX_RINGS` x ``start_fix_radius``: m for
+        the base and prismatic joints, rad for revolute ones; ``start_fix_samples`` per ring, within the joint
+        limits) are checked against the padded boxes; of the free ones, the nearest (motion distance) whose local
+        motion from ``start`` (untracked knots, :meth:`~.edges.Edges.edge_knots`) is free of the *unpadded* boxes,
+        densely at ``edge_resolution``, is returned as ``(q (dof,), knots (1, M, dof), interior (1, N))``: the
+        knots are what the robot executes. None when no ring has one (or the fix is off: radius 0)."""
+        rc, ck = self.ctx.settings.recovery, self.ctx.checker
+        if rc.start_fix_radius <= 0:
+            return None
+        dof = self.ctx.robot.dof
+        q0 = np.asarray(start, float).reshape(dof)
+        lo, hi = ck.lower.cpu().numpy().astype(float), ck.upper.cpu().numpy().astype(float)
+        rng = np.random.default_rng([self.ctx.settings.seed, 11])
+        a = self.ctx.t(q0[None])
+        for frac in START_FIX_RINGS:
+            r = frac * rc.start_fix_radius
+            d = rng.normal(size=(rc.start_fix_samples, dof))
+            d *= (r * rng.uniform(0.5, 1.0, size=(len(d), 1))) / np.linalg.norm(d, axis=1, keepdims=True)
+            cand = np.clip(q0 + d, lo, hi)
+            free = ~ck.check(self.ctx.t(cand)).cpu().numpy()
+            if not free.any():
+                continue
+            npd = NP_DTYPE[self.ctx.dtype]
+            cand = cand[free].astype(npd)
+            dist = self.pl.edges.motion_distance(np.repeat(q0[None].astype(npd), len(cand), 0), cand)
+            pick = cand[np.argsort(dist, kind="stable")[:START_FIX_TRY]]
+            b = self.ctx.t(pick)
+            knots, interior = self.pl.edges.edge_knots(a.expand(len(b), -1), b, track=False)
+            ok = self._unpadded_free(knots)
+            if ok.any():
+                i = int(torch.nonzero(ok, as_tuple=True)[0][0])
+                return pick[i], knots[i:i + 1], interior[i:i + 1]
+        return None
+
+    def _unpadded_free(self, knots: torch.Tensor) -> torch.Tensor:
+        """(E,) flags: every knot of each sequence (E, M, dof) and every ``edge_resolution`` between them is clear
+        of the obstacles as given (:meth:`~psprm_core.collision.CollisionChecker.check_unpadded`)."""
+        E, M, dof = knots.shape
+        a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
+        seg, pts = self.pl.edges.pieces(a, b, max_steps=200, include_start=True)
+        bad = self.ctx.checker.check_unpadded(torch.cat([pts, knots[:, -1]]))
+        seg_ok = torch.ones(len(a), dtype=torch.bool, device=knots.device)
+        seg_ok[seg[bad[:len(pts)]]] = False
+        return seg_ok.reshape(E, M - 1).all(-1) & ~bad[len(pts):]
 
     def escape_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
                      goal_costs: Optional[np.ndarray]) -> PlanResult:

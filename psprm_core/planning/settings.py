@@ -24,7 +24,7 @@ QUERY_SETTINGS = ("alpha", "objective", "heuristic", "shortcut", "shortcut_round
                   "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
                   "query_wide_k", "query_untracked_fallback", "query_escape_s", "query_escape_nodes",
                   "query_escape_radius", "query_escape_step", "query_escape_connect_k",
-                  "smooth_timing", "route_searches", "route_length_ratio")
+                  "start_fix_radius", "start_fix_samples", "smooth_timing", "route_searches", "route_length_ratio")
 
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
@@ -78,6 +78,9 @@ class EdgeSettings:
     track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
     lazy_collision: bool = True  # Lazy PRM: check an edge's dense interior when a search first uses it
     lazy_edges: bool = False  # score edge interiors (Eq. 1) only for edges on candidate paths (slow scorers)
+    collision_padding: float = 0.0  # m kept from every obstacle box by nodes and edges (the boxes grown by this much,
+    # CollisionChecker.padding); a start inside that clearance, but clear of the boxes themselves, is first moved out
+    # of it (recovery.start_fix_*); 0: the planner may graze obstacles, and a robot off its path by 1 cm may hit one
 
 
 @dataclass(frozen=True)
@@ -125,6 +128,10 @@ class RecoverySettings:
     # the others within twice that
     query_escape_step: float = 0.4  # motion-cost units: the escape tree's short extensions (long ones: ESCAPE_LONG x)
     query_escape_connect_k: int = 6  # nearest roadmap nodes each new escape configuration tries to connect to
+    start_fix_radius: float = 0.25  # a start within the collision padding (edges.collision_padding) is moved out of it
+    # to the nearest padded-free configuration found within this offset (m for the base and prismatic joints, rad
+    # for the revolute ones) by a motion free of the unpadded boxes; 0: such a start is refused
+    start_fix_samples: int = 64  # random offsets tried per ring (four rings, up to start_fix_radius)
 
 
 @dataclass(frozen=True)
@@ -194,6 +201,9 @@ class PSPRMSettings:
         """Check every group; a bad value is a :class:`~psprm_core.errors.ConfigError` naming ``source`` and the
         setting's dotted path."""
         v, r, sc, q, rc = self.visibility, self.roadmap, self.scoring, self.query, self.recovery
+        pad = self.edges.collision_padding
+        if not (np.isfinite(pad) and 0 <= pad <= 0.5):
+            raise ConfigError(source, "edges.collision_padding", f"must be a distance in [0, 0.5] m, got {pad}")
         if v.constraint not in ("line", "frustum"):
             raise ConfigError(source, "visibility.constraint",
                               f"unknown visibility model '{v.constraint}' (line, frustum)")
@@ -221,6 +231,10 @@ class PSPRMSettings:
         if not (rc.query_escape_s >= 0 and np.isfinite(rc.query_escape_s)):
             raise ConfigError(source, "recovery.query_escape_s",
                               f"must be a finite time >= 0, got {rc.query_escape_s}")
+        if not (np.isfinite(rc.start_fix_radius) and rc.start_fix_radius >= 0) or rc.start_fix_samples < 1:
+            raise ConfigError(source, "recovery.start_fix_radius",
+                              f"needs a finite radius >= 0 and start_fix_samples >= 1, got {rc.start_fix_radius} and "
+                              f"{rc.start_fix_samples}")
         if rc.query_escape_s > 0:
             for name in ("query_escape_radius", "query_escape_step"):
                 x = getattr(rc, name)
