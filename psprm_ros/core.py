@@ -271,6 +271,8 @@ class PlannerSpec:
     replan_settings: str = "replan_reactive"  # ReplanSettings: a name in config/planners/ or a YAML path
     roadmap_file: str = ""  # "" = cache under ~/.cache/psprm/roadmaps; "none" = always build, never save
     checkpoint: str = ""  # surrogate checkpoint ("" = the shipped one)
+    collision_padding: float = 0.05  # m the planner keeps from obstacles (its edges.collision_padding); the final
+    # check before publishing uses the obstacles as they are
 
 
 PLANNER_PARAMS = {f.name: f.default for f in dataclasses.fields(PlannerSpec)}
@@ -285,7 +287,8 @@ def make_planner_for(scene, robot, targets, spec: PlannerSpec):
         settings = PSPRMSettings.from_yaml(spec.planner_settings, robot=robot.name)
     return make_planner(spec.variant, scene, targets, robot=robot, settings=settings,
                         checkpoint=Path(spec.checkpoint) if spec.checkpoint else None,
-                        n_nodes=int(spec.n_nodes), seed=int(spec.seed))
+                        n_nodes=int(spec.n_nodes), seed=int(spec.seed),
+                        collision_padding=float(spec.collision_padding))
 
 
 def roadmap_cache_path(planner, scene, spec: PlannerSpec) -> Optional[Path]:

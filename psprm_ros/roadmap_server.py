@@ -22,6 +22,7 @@ published; when no safe trajectory exists the last safe one is kept, or a stop t
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -55,6 +56,10 @@ SERVER_PARAMS = {
     "safety_step": P(0.05, "spacing (m / rad) of the final collision check along the published trajectory",
                      live=True, lo=0.005, hi=0.2),
     "stop_hold_s": P(0.25, "time_from_start of the stop trajectory's one point", live=True, lo=0.01),
+    "stop_horizon_s": P(1.5, "the stop guard: an obstacle pose that collides with the next this-many seconds of the "
+                             "trajectory being executed stops the robot at once, on the message's arrival, before the "
+                             "replan (0 = off: the robot follows the old trajectory until a new one is planned)",
+                        live=True, lo=0.0),
     "alpha": P(-1.0, "Eq. 2 weight of perception against motion cost (< 0: the planner variant's default)",
                live=True, lo=-1.0, hi=1.0),
     "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
@@ -77,6 +82,9 @@ LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
 PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
                         "n_nodes": "roadmap nodes", "seed": "roadmap sampling seed",
                         "planner_settings": "PSPRMSettings YAML ('' = config/planners/psprm.yaml)",
+                        "collision_padding": "clearance (m) the planner keeps from every obstacle, so that a robot "
+                                             "tracking its path a few cm off stays clear (overrides the settings "
+                                             "file's edges.collision_padding; a start inside it is moved out first)",
                         "replan_settings": "ReplanSettings: a name in config/planners/ or a YAML path",
                         "roadmap_file": "'' = cache under ~/.cache/psprm/roadmaps; 'none' = always build",
                         "checkpoint": "surrogate checkpoint ('' = the shipped one)"}
@@ -194,7 +202,9 @@ class RoadmapServer:
         self._live: dict = {}  # parameter changes for the worker to apply
         self._transition: Optional[tuple] = None  # (kind, Event, result list) run by the worker
         self.last_latency_ms: Optional[float] = None
-        self.counts = {"plans": 0, "stops": 0, "failed": 0, "refused_unsafe": 0}
+        self.counts = {"plans": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "guard_stops": 0}
+        self.guard = None  # CollisionChecker of the stop guard (its own: the guard runs on the executor thread)
+        self._pub_lock = threading.RLock()  # a trajectory and a stop are published one at a time
         self._input_t: dict = {}  # input label -> monotonic receipt time
         from concurrent.futures import ThreadPoolExecutor
 
@@ -265,7 +275,8 @@ class RoadmapServer:
     # ------------------------------------------------------------------------------------------------ callbacks
     @staticmethod
     def _empty_pending() -> dict:
-        return {"targets": {}, "obstacles": {}, "robot": None, "goals": None, "t_first": None, "stamp": None}
+        return {"targets": {}, "obstacles": {}, "robot": None, "goals": None, "t_first": None, "stamp": None,
+                "guard": None}
 
     def status(self, text: str, level: str = "info") -> None:
         core.report(self.log, self.pub_status, text, level)
@@ -298,8 +309,47 @@ class RoadmapServer:
                     pend["t_first"] = t
                     pend["stamp"] = cv.stamp_to_sec(msg.header.stamp)
                     pend["input_age_ms"] = (self._now() - pend["stamp"]) * 1e3  # stamp -> receipt here
+            self._guard(kind, name, p, q)
             self._wake.set()
         return cb
+
+    def _guard(self, kind: str, name: str, p: np.ndarray, q: np.ndarray) -> None:
+        """The stop guard, on the executor thread as each body pose arrives: when the body (an obstacle, or a target
+        that is one) at its new pose collides with the next ``stop_horizon_s`` of the trajectory being executed, a
+        stop is published at once and a replan is asked for. The planner may be busy for a second with a replan;
+        without the guard the robot would drive on along the old trajectory meanwhile (MoveIt's plan execution
+        likewise stops a trajectory whose remaining path the planning scene invalidates)."""
+        cur, horizon, guard = self.current, self.p["stop_horizon_s"], self.guard
+        if horizon <= 0 or guard is None or cur is None or cur.get("msg") is None:
+            return
+        try:
+            import torch
+
+            if kind == "target":
+                t = self.safety_scene.target(name)
+                if not t.obstacle:
+                    return
+                box = dataclasses.replace(t.as_box(), center=np.asarray(p, float), quat=np.asarray(q, float))
+            else:
+                box = dataclasses.replace(self.safety_scene.obstacle(name), center=np.asarray(p, float),
+                                          quat=np.asarray(q, float))
+            with self._lock:
+                q_now = self._pending["robot"]
+            ahead = self._remaining(cur["positions"], self.q if q_now is None else q_now)
+            ahead = ahead[: int(np.ceil(horizon / self.p["trajectory_dt"])) + 1]
+            P = cv.densify_linear(ahead, self.p["safety_step"])
+            if not bool(guard.env_hits(torch.as_tensor(P, dtype=torch.float32), [box]).any()):
+                return
+        except Exception as exc:  # never lose the executor thread to the guard
+            self.status(f"stop guard failed: {exc}", "warning")
+            return
+        with self._pub_lock:
+            if self.current is not cur:  # a newer trajectory went out meanwhile: the next pose checks that one
+                return
+            self.counts["guard_stops"] += 1
+            self._publish_stop(f"{kind} {name} moved into the next {horizon:g} s of the trajectory")
+        with self._lock:
+            self._pending["guard"] = f"{kind} {name}"
 
     def _robot_cb(self, msg) -> None:
         try:
@@ -461,6 +511,7 @@ class RoadmapServer:
         if self.goals is not None:
             self.rp.set_goals(self.goals)
         self.safety = CollisionChecker(self.robot, scene.collision_boxes(), workspace=scene.workspace)
+        self.guard = CollisionChecker(self.robot, workspace=scene.workspace)
         text = f"roadmap {info['source']} in {info['seconds']:.1f} s: {info.get('n_nodes', 0)} nodes; ready"
         self.status(text)
         self.set_state(f"ready: {text}")
@@ -518,6 +569,8 @@ class RoadmapServer:
         if "plan" in kinds:
             self.hold = False
             reasons.append("plan requested")
+        if pend["guard"]:
+            reasons.append(f"stopped: {pend['guard']} in the path ahead")
         if self.goals is None:
             if reasons:
                 self.status("no goal yet: publish one on the goal topic", "warning")
@@ -603,8 +656,10 @@ class RoadmapServer:
                 info.update(success=False, reason="planner output in collision with the latest obstacles: refused")
                 self.counts["refused_unsafe"] += 1
             else:
-                self.pub_traj.publish(msg)
-                t_pub = time.perf_counter()
+                with self._pub_lock:
+                    self.pub_traj.publish(msg)
+                    self.current = {"result": res, "msg": msg, "t_pub": time.perf_counter(), "positions": P}
+                t_pub = self.current["t_pub"]
                 info["published_stamp"] = self._now()  # node clock (the inputs' stamps are on it too)
                 if self.robot.mobile:  # built on the side thread: ~400 PoseStamped are pure Python
                     self._submit_side("base path", lambda P=P, stamp=stamp: self.pub_base_path.publish(
@@ -612,7 +667,6 @@ class RoadmapServer:
                 self.counts["plans"] += 1
                 if pend["t_first"]:
                     self.last_latency_ms = (t_pub - pend["t_first"]) * 1e3
-                self.current = {"result": res, "msg": msg, "t_pub": t_pub, "positions": P}
                 info.update(latency_ms=_f((t_pub - pend["t_first"]) * 1e3) if pend["t_first"] else None,
                             duration_s=_f(traj.duration), n_points=len(msg.points), stop=False)
                 self._after_publish(res, info, reasons)
@@ -662,9 +716,11 @@ class RoadmapServer:
             self.heap_trims, self.heap_trim_ms = self.heap_trims + 1, ms
 
     def _publish_stop(self, why: str, info: Optional[dict] = None) -> None:
-        self.pub_traj.publish(cv.stop_trajectory(self.q, self.names, self.frame, hold_s=self.p["stop_hold_s"]))
-        self.counts["stops"] += 1
-        self.current = {"result": None, "msg": None, "t_pub": time.perf_counter(), "positions": self.q[None].copy()}
+        with self._pub_lock:
+            self.pub_traj.publish(cv.stop_trajectory(self.q, self.names, self.frame, hold_s=self.p["stop_hold_s"]))
+            self.counts["stops"] += 1
+            self.current = {"result": None, "msg": None, "t_pub": time.perf_counter(),
+                            "positions": self.q[None].copy()}
         info = dict(info or {"seq": self.seq, "reasons": [why]})
         info.update(stop=True, stop_reason=why)
         self._publish_info(info)
@@ -712,13 +768,14 @@ class RoadmapServer:
         bad = self.safety.check(torch.as_tensor(P, dtype=torch.float32))
         return bool(bad.any())
 
-    def _remaining(self, positions: np.ndarray) -> np.ndarray:
-        """The part of a published trajectory the robot has not traversed yet (from its sample nearest to the current
-        robot state)."""
+    def _remaining(self, positions: np.ndarray, q: Optional[np.ndarray] = None) -> np.ndarray:
+        """The part of a published trajectory the robot has not traversed yet (from its sample nearest to the robot
+        state ``q``, default the one the planner last took)."""
         P = np.asarray(positions)
+        q = self.q if q is None else q
         if len(P) <= 1:
             return P
-        d = np.linalg.norm(P[:, :2] - self.q[:2], axis=1) if self.robot.mobile else np.linalg.norm(P - self.q, axis=1)
+        d = np.linalg.norm(P[:, :2] - q[:2], axis=1) if self.robot.mobile else np.linalg.norm(P - q, axis=1)
         return P[int(np.argmin(d)):]
 
     # ------------------------------------------------------------------------------------------------ markers

@@ -82,6 +82,11 @@ def traj_positions(msg, names) -> np.ndarray:
     return P
 
 
+def traj_positions_of(P: np.ndarray) -> np.ndarray:
+    """Positions (M, dof) with their midpoints."""
+    return np.vstack([P, 0.5 * (P[1:] + P[:-1])]) if len(P) > 1 else P
+
+
 def collides(robot, scene, P) -> np.ndarray:
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     return checker.check(torch.as_tensor(P, dtype=torch.float32)).numpy()
@@ -189,6 +194,63 @@ def test_obstacle_moved_into_the_path_gives_a_trajectory_around_it(suite, world)
     assert np.min(np.linalg.norm(goals[:, :2] - end[:2], axis=1)) < 0.2, "the detour does not reach a goal"
     # put the person back where the scene has it
     suite.sent.publish(suite, "person_body", box.center, box.quat)
+
+
+def test_obstacle_moved_into_the_path_just_ahead_stops_the_robot_before_the_replan(suite, world):
+    """The stop guard: a body pose that collides with the next stop_horizon_s (1.5 s) of the trajectory being
+    executed is answered by a stop at once, before the planner's replan."""
+    scene, robot = world
+    if not suite.probe.trajectories or len(suite.probe.trajectories[-1][1].points) < 20:
+        n0 = len(suite.probe.trajectories)
+        suite.probe.publish_regions(["at_shelf", "at_cabinet"])
+        next_plan(suite, n0)
+    time.sleep(0.5)
+    msg = suite.probe.trajectories[-1][1]
+    P = cv.joint_trajectory_positions(msg, robot.joint_names)
+    t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
+    near = P[t <= 1.0]  # well inside the horizon (the robot is held at the trajectory's start)
+    box = scene.obstacle("person_body")
+    here = suite.sent.scene
+    spot = None
+    # a spot on the path, else around the robot (the first second may be a turn in place: the arm sweeps), whose body
+    # blocks the next second of the motion but does not touch the robot where it stands
+    around = [P[0, :2] + r * np.array([np.cos(a), np.sin(a)]) for r in (0.4, 0.6, 0.8, 1.0)
+              for a in np.linspace(-np.pi, np.pi, 24, endpoint=False)]
+    for xy in list(P[1:len(near) + 5, :2]) + around:
+        trial = here.with_obstacle_pose("person_body", np.r_[xy, box.center[2]], box.quat)
+        if collides(robot, trial, traj_positions_of(near)).any() and not collides(robot, trial, P[:1]).any():
+            spot = np.r_[xy, box.center[2]]
+            break
+    assert spot is not None, "no spot just ahead of the robot for this test"
+    n0 = len(suite.probe.trajectories)
+    t_pub = suite.sent.publish(suite, "person_body", spot, box.quat)
+    try:
+        # the body stands there, streamed as mocap does, until the guard's stop arrives
+        def guard_stop():
+            return [(tt, i) for tt, i in suite.probe.infos
+                    if tt >= t_pub and i.get("stop") and "person_body" in i.get("stop_reason", "")]
+
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline and not guard_stop():
+            suite.probe.publish_pose("person_body", spot, box.quat)
+            time.sleep(0.03)
+        got = guard_stop()
+        assert got, f"no stop: {[i for tt, i in suite.probe.infos if tt >= t_pub][:3]}"
+        t_stop = got[0][0]
+        assert t_stop - t_pub < 1.0, f"stop {t_stop - t_pub:.2f} s after the pose"
+        stops = [m for tt, m in suite.probe.trajectories[n0:] if len(m.points) == 1 and tt >= t_stop - 0.05]
+        assert stops and np.allclose(stops[0].points[0].velocities, 0.0)
+        assert np.allclose(cv.joint_trajectory_positions(stops[0], robot.joint_names)[0], P[0], atol=1e-3)
+        # then the replan the guard asked for: clear of the body where it now stands (as is every trajectory
+        # that went out after the pose had reached the server)
+        replan = suite.probe.wait_for(lambda: [i for tt, i in suite.probe.infos if tt > t_stop and any(
+            "stopped: obstacle person_body" in r for r in i.get("reasons", []))], 60)
+        assert replan, f"no replan after the stop: {[i for tt, i in suite.probe.infos if tt > t_stop][:3]}"
+        later = [m for tt, m in suite.probe.trajectories[n0:] if tt > t_stop and len(m.points) > 1]
+        for m in later:
+            assert not collides(robot, suite.sent.scene, traj_positions(m, robot.joint_names)).any()
+    finally:
+        suite.sent.publish(suite, "person_body", box.center, box.quat)
 
 
 def core_goals(robot, scene, names):

@@ -257,7 +257,7 @@ class Replanner:
         return self.result.dense[self._progress:]
 
     def remaining_path_collides(self) -> bool:
-        """The remaining path collides with the obstacle poses the planner holds. Cached per (plan, progress,
+        """The remaining path collides with the obstacle poses the planner holds (not with their padding). Cached per (plan, progress,
         planner scene): an update and the trigger check that follows it in the same cycle pay for one check."""
         rem = self.remaining()
         if rem is None or len(rem) == 0:
@@ -265,7 +265,8 @@ class Replanner:
         c = self._collides_cache
         if c is not None and c[0] is self.result and c[1] == self._progress and c[2] is self.planner.scene:
             return c[3]
-        hit = bool(self.planner.checker.check(torch.as_tensor(rem, dtype=torch.float32)).any())
+        # the obstacles as they are (a path that starts inside the collision padding, moving out of it, is sound)
+        hit = bool(self.planner.checker.check_unpadded(torch.as_tensor(rem, dtype=torch.float32)).any())
         self._collides_cache = (self.result, self._progress, self.planner.scene, hit)
         return hit
 
@@ -372,7 +373,9 @@ class Replanner:
                 info.setdefault("repair", []).append(got)
             res = self._plan_goals(self._last_plan_time)
         if res.success and res.dense is not None:
-            bad = p.checker.check(torch.as_tensor(res.dense, dtype=torch.float32)).cpu().numpy()
+            # against the obstacles as they are: the planner's collision padding is a margin it plans with (a start
+            # inside it is moved out of it by the path's first motion), not what makes a path unsafe
+            bad = p.checker.check_unpadded(torch.as_tensor(res.dense, dtype=torch.float32)).cpu().numpy()
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
                 log.error("replanned path collides at %d of %d dense configurations; rejected", bad.sum(), len(bad))
                 res = PlanResult(False, "internal: path failed the final collision check")
