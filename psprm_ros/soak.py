@@ -294,6 +294,25 @@ def main(args=None) -> int:
     return 0 if result and result["executed_collisions"] == 0 and result["restarts"] == 0 else 1
 
 
+CLOSING_WINDOW_S = 0.25  # the motion before a collision over which the closing speeds are measured
+CLOSING_MPS = 0.02  # a robot closing in faster than this counts the collision as the robot's (else the person's)
+
+
+def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp: list, body_t: np.ndarray) -> tuple:
+    """(robot, person) closing speeds (m/s) at an executed configuration ``q`` at time ``t`` in collision with the
+    person: how fast the robot's base motion alone, and the person's walk alone, shrank the distance between the base
+    and the body over the preceding :data:`CLOSING_WINDOW_S`."""
+    t_b = t - CLOSING_WINDOW_S
+    i = int(np.clip(np.searchsorted(ex_t, t_b), 0, len(ex_t) - 1))
+    j0 = int(np.clip(np.searchsorted(body_t, ex_t[i], side="right") - 1, 0, len(body_t) - 1))
+    j1 = int(np.clip(np.searchsorted(body_t, t, side="right") - 1, 0, len(body_t) - 1))
+    r0, r1 = np.asarray(ex[i][1][:2], float), np.asarray(q[:2], float)
+    p0, p1 = np.asarray(body_tp[j0][1][:2], float), np.asarray(body_tp[j1][1][:2], float)
+    dt = max(t - ex_t[i], 1e-3)
+    d0 = np.linalg.norm(r0 - p0)
+    return (d0 - np.linalg.norm(r1 - p0)) / dt, (d0 - np.linalg.norm(r0 - p1)) / dt
+
+
 def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
            wall_minus_perf) -> dict:
     import torch
@@ -318,6 +337,11 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
     collided, k, cur = 0, 0, {}
     version, checked_version = 0, -1
     events = []
+    # who closed the gap at each collision with the person: the robot's own motion or the person's walk
+    ex_t = np.array([t for t, _ in ex]) if ex else np.zeros(0)
+    body_tp = [(t, p) for t, b, p, _ in poses if b == "person_body"]
+    body_t = np.array([t for t, _ in body_tp]) if body_tp else np.zeros(0)
+    by = {"robot_closing": 0, "person_closing": 0, "static_obstacle": 0}
     for t, q in ex:
         while k < len(poses) and poses[k][0] <= t:
             cur[poses[k][1]] = (poses[k][2], poses[k][3])
@@ -329,6 +353,15 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         qt = torch.as_tensor(q[None], dtype=torch.float32)
         hit = bool(checker.check(qt)[0])
         collided += int(hit)
+        closing = None
+        if hit:
+            hit_boxes = [b.name for b in _scene_with(scene, cur).collision_boxes()
+                         if bool(checker.env_hits(qt, [b])[0])]
+            if "person_body" in hit_boxes and len(body_t):
+                closing = _closing_speeds(t, q, ex, ex_t, body_tp, body_t)
+                by["robot_closing" if closing[0] > CLOSING_MPS else "person_closing"] += 1
+            else:
+                by["static_obstacle"] += 1
         if hit and len(events) < 10:
             body = cur.get("person_body", (np.full(3, np.nan), None))[0]
             det = checker.check_detailed(qt)
@@ -337,7 +370,10 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
                            "person": [round(float(v), 3) for v in body[:2]],
                            "q": [round(float(v), 4) for v in q],  # the whole configuration, for a replay
                            "why": [k for k in ("limits", "environment", "self") if bool(det[k][0])],
-                           "boxes": [b.name for b in boxes if bool(checker.env_hits(qt, [b])[0])]})
+                           "boxes": [b.name for b in boxes if bool(checker.env_hits(qt, [b])[0])],
+                           # m/s by which the robot's motion / the person's walk shrank their distance over the last
+                           # CLOSING_WINDOW_S
+                           "closing_mps": None if closing is None else [round(float(c), 3) for c in closing]})
     growth = {}
     for n, m in mem.items():
         v = [x for _, x in m if np.isfinite(x)]
@@ -357,7 +393,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         "stops": sum(1 for _, i in infos if i.get("stop")), "failed": sum(1 for _, i in infos if not i.get("success")),
         "refused_unsafe": sum(1 for _, i in infos if "refused" in str(i.get("reason"))),
         "goals_reached": len(reached), "executed_configurations": len(ex), "executed_collisions": int(collided),
-        "collision_events": events,
+        "executed_collisions_by": by, "collision_events": events,
         "latency_ms_p50": pct(50), "latency_ms_p90": pct(90), "latency_ms_p95": pct(95), "latency_ms_p99": pct(99),
         "latency_ms_max": round(float(lat.max()), 1) if len(lat) else None, "latency_samples": int(len(lat)),
         "memory": growth, "restarts": len(exits) + left_active, "process_exits": exits, "error_statuses": len(errors),

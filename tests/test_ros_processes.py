@@ -211,3 +211,19 @@ def _spin(ex, stop) -> None:
 
 def _tail(proc) -> str:
     return "".join(proc.lines)[-3000:]
+
+
+def test_soak_tells_who_closed_the_gap_at_a_collision():
+    """The soak's closing speeds, from positions made here: a robot driving at 0.3 m/s into a standing person, and a
+    person walking at 0.5 m/s into a standing robot."""
+    from psprm_ros.soak import _closing_speeds
+
+    ts = np.arange(0.0, 1.0, 0.02)
+    robot = [(t, np.array([0.3 * t, 0.0, 0.0])) for t in ts]  # drives +x
+    person = [(t, np.array([2.0, 0.0, 1.0])) for t in ts]
+    r, p = _closing_speeds(ts[-1], robot[-1][1], robot, ts, person, ts)
+    assert abs(r - 0.3) < 0.02 and abs(p) < 1e-9
+    robot = [(t, np.array([0.0, 0.0, 0.0])) for t in ts]
+    person = [(t, np.array([2.0 - 0.5 * t, 0.0, 1.0])) for t in ts]  # walks -x, towards the robot
+    r, p = _closing_speeds(ts[-1], robot[-1][1], robot, ts, person, ts)
+    assert abs(r) < 1e-9 and abs(p - 0.5) < 0.03
