@@ -66,6 +66,9 @@ def test_a_start_inside_the_padding_is_moved_out_and_the_motion_never_touches_an
             assert np.allclose(res.waypoints[0], q, atol=1e-5)  # the path starts where the robot is
             clear = np.array([world.clearance(x) for x in res.dense])
             assert clear.min() > 0, f"the executed motion touches an obstacle (clearance {clear.min():.4f} m)"
+            # the timed trajectory too (its smooth phases leave the checked pieces)
+            timed = np.array([world.clearance(x) for x in res.trajectory.positions])
+            assert timed.min() > 0, f"the timed trajectory touches an obstacle ({timed.min():.4f} m)"
             inside = np.nonzero(clear < PAD - 1e-3)[0]
             # only the motion out of the padding is inside it: a run of configurations from the start
             assert len(inside) and (inside == np.arange(len(inside))).all(), inside

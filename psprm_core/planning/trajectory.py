@@ -61,7 +61,25 @@ class Trajectory(Stage):
             return time_parameterize(W, r.velocity, r.acceleration, **kw)
         traj = time_parameterize(W, r.velocity, r.acceleration, smooth=True, profile_cache=self.profiles, **kw)
         curved = traj.off_segment_mask()  # samples off the checked straight pieces
-        if curved.any() and bool(self.ctx.checker.check(self.ctx.t(traj.positions[curved])).any()):
+        if curved.any() and not self._curves_free(traj, curved, W):
             log.debug("smooth trajectory grazes an obstacle between knots: stopping at every knot instead")
             return time_parameterize(W, r.velocity, r.acceleration, **kw)
         return traj
+
+    def _curves_free(self, traj, curved: np.ndarray, W: np.ndarray) -> bool:
+        """The samples ``curved`` of a smooth trajectory through ``W`` keep the collision padding; those before the
+        first padded-free knot of a path that starts inside the padding (the start fix's motion out of it) need only
+        be clear of the obstacles themselves."""
+        ck = self.ctx.checker
+        bad = ck.check(self.ctx.t(traj.positions[curved])).cpu().numpy()
+        if not bad.any() or ck.padding == 0:
+            return not bad.any()
+        inside = ck.check(self.ctx.t(W)).cpu().numpy()
+        if not inside[0] or inside.all():
+            return False
+        t_out = traj.waypoint_times[int(np.argmin(inside))]  # the first knot that keeps the padding again
+        early = traj.times[curved] <= t_out
+        if (bad & ~early).any():
+            return False
+        idx = np.nonzero(bad)[0]
+        return not bool(ck.check_unpadded(self.ctx.t(traj.positions[curved][idx])).any())
