@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from . import fastpath
+from .errors import InputError
 from .geometry import obb_overlap
 from .robot import RobotModel, load_acm
 
@@ -112,7 +113,7 @@ class CollisionChecker:
                  workspace: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32, chunk: int = 16384,
                  kinematics=None, padding: float = 0.0):
         if not (np.isfinite(padding) and padding >= 0):
-            raise ValueError(f"collision padding must be a finite distance >= 0 m, got {padding}")
+            raise InputError(f"collision padding must be a finite distance >= 0 m, got {padding}")
         self.padding = float(padding)
 
         self.robot = robot

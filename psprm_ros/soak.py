@@ -12,7 +12,10 @@ looped, with:
 * wrong frames: bursts in an unknown frame (dropped) and in ``world`` (a known input frame: transformed, used);
 * goal spam: 5 s bursts of goals at 20 Hz (goal regions, goal poses, some in collision or outside the room);
 * an obstacle walking into the path: every ``--walk-every`` s the person walks (0.5 m/s) to a point of the robot's
-  current base path 1.2-2.5 m ahead of the robot, stays there, and walks back;
+  current base path 2-3.5 m ahead of the robot, stays there, and walks back; on both ways the person yields as
+  pedestrians do (waits while its next step would take it within ``YIELD_M`` of the robot's base and closer to it,
+  at most ``YIELD_MAX_S``, then walks on), so that a collision judges the robot's motion, not a person walking into
+  the robot. Every collision with the person also says who closed the gap;
 
 while the robot drives between the two goal regions (the other one once it rests at one). It records every pose it
 sent (the true world), what the robot reported (/odom, /joint_states), every trajectory and plan, and the memory
@@ -48,6 +51,11 @@ def rss_mb(pid: int) -> float:
     return float("nan")
 
 
+WALK_MPS = 0.5  # the person's walking speed into the path and back
+YIELD_M = 1.0  # the walking person does not step closer to the robot's base than this ...
+YIELD_MAX_S = 20.0  # ... but after waiting this long in one walk it walks on
+
+
 class Stream:
     """The hostile 120 Hz person stream (its own thread). Everything it sends that a correct mocap would also have
     sent (finite, known frame) is the true world, logged with the send time."""
@@ -57,9 +65,11 @@ class Stream:
         self.walk_every = walk_every
         self.stop_ev = threading.Event()
         self.counts = {"sent": 0, "dropout_s": 0.0, "dropouts": 0, "nan": 0, "unknown_frame": 0, "world_frame": 0,
-                       "walks": 0}
+                       "walks": 0, "yield_s": 0.0}
         self.offset = np.zeros(2)  # walking displacement of the person (x, y)
-        self.walk = None  # (t0, start offset, target offset, phase)
+        self.walk = None  # the walk under way: phase (go, hold, back), offsets, hold time, time waited
+        self.home = np.zeros(2)  # the person's own spot (the scene's), which the offset is added to
+        self.t_last = 0.0
         self.path_xy = None  # the robot's latest base path (set by the main loop)
         self.robot_xy = None
 
@@ -69,20 +79,37 @@ class Stream:
         return self
 
     def _walk_offset(self, t: float) -> np.ndarray:
+        """The person's displacement at time ``t``: walking at ``WALK_MPS`` to the walk's target, holding there, and
+        back, yielding to the robot on both ways (module docstring)."""
         w = self.walk
         if w is None:
+            self.t_last = t
             return self.offset
-        t0, a, b, hold = w
-        d = float(np.linalg.norm(b - a))
-        go = d / 0.5  # walking at 0.5 m/s
-        if t < t0 + go:
-            return a + (b - a) * (t - t0) / max(go, 1e-6)
-        if t < t0 + go + hold:
-            return b
-        if t < t0 + 2 * go + hold:
-            return b + (a - b) * (t - t0 - go - hold) / max(go, 1e-6)
-        self.walk = None
-        return a
+        dt, self.t_last = max(0.0, t - getattr(self, "t_last", t)), t
+        if w["phase"] == "hold":
+            if t >= w["until"]:
+                w["phase"] = "back"
+            return self.offset
+        goal = w["to"] if w["phase"] == "go" else w["home"]
+        d = goal - self.offset
+        n = float(np.linalg.norm(d))
+        if n < 1e-6:
+            if w["phase"] == "go":
+                w["phase"], w["until"] = "hold", t + w["hold"]
+            else:
+                self.walk = None
+            return self.offset
+        step = self.offset + d * min(1.0, WALK_MPS * dt / n)
+        r = self.robot_xy
+        if r is not None:
+            here = self.home + self.offset
+            nxt = self.home + step
+            if np.linalg.norm(nxt - r) < YIELD_M and np.linalg.norm(nxt - r) < np.linalg.norm(here - r):
+                w["waited"] += dt
+                if w["waited"] < YIELD_MAX_S:
+                    self.counts["yield_s"] += dt
+                    return self.offset
+        return step
 
     def _maybe_walk(self, t: float) -> None:
         if self.walk is not None or self.path_xy is None or self.robot_xy is None:
@@ -105,7 +132,10 @@ class Stream:
         if not ok:
             return
         target = ok[int(self.rng.integers(0, len(ok)))]
-        self.walk = (t, self.offset.copy(), target - home, float(self.rng.uniform(3.0, 6.0)))
+        self.home = home
+        self.walk = {"phase": "go", "home": self.offset.copy(), "to": target - home,
+                     "hold": float(self.rng.uniform(3.0, 6.0)), "waited": 0.0, "until": 0.0}
+        self.t_last = t
         self.counts["walks"] += 1
 
     def run(self):

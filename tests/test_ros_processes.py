@@ -227,3 +227,31 @@ def test_soak_tells_who_closed_the_gap_at_a_collision():
     person = [(t, np.array([2.0 - 0.5 * t, 0.0, 1.0])) for t in ts]  # walks -x, towards the robot
     r, p = _closing_speeds(ts[-1], robot[-1][1], robot, ts, person, ts)
     assert abs(r) < 1e-9 and abs(p - 0.5) < 0.03
+
+
+def test_soak_walk_yields_to_the_robot_then_walks_on():
+    """The soak's person walks at 0.5 m/s, never steps within 1 m of the robot's base (closer to it) for up to 20 s
+    of waiting, then walks on; judged from the positions stepped here."""
+    from psprm_ros.soak import Stream
+
+    st = Stream(None, None, None, np.random.default_rng(0), None, 40.0)
+    st.home = np.array([0.0, 0.0])
+    st.walk = {"phase": "back", "home": np.zeros(2), "to": np.array([4.0, 0.0]), "hold": 0.0, "waited": 0.0,
+               "until": 0.0}
+    st.offset = np.array([4.0, 0.0])
+    st.robot_xy = np.array([2.0, 0.0])  # standing on the way home
+    t, track = 0.0, []
+    st.t_last = t
+    while st.walk is not None and t < 60.0:
+        t += 1 / 120
+        st.offset = st._walk_offset(t)
+        track.append((t, st.offset.copy()))
+    T = np.array([x for x, _ in track])
+    P = np.array([p for _, p in track])
+    d = np.linalg.norm(P - st.robot_xy, axis=1)
+    speed = np.linalg.norm(np.diff(P, axis=0), axis=1) * 120
+    assert speed.max() <= 0.5 + 1e-6
+    t_close = T[np.argmax(d < 1.0 - 1e-6)]  # it comes closer than 1 m only after waiting 20 s at 1 m
+    wait = T[(d >= 1.0 - 1e-3) & (d <= 1.0 + 1e-3)]
+    assert wait.max() - wait.min() >= 19.5 and t_close >= 20.0 + 2.0
+    assert st.walk is None and np.allclose(P[-1], 0.0)  # then home
