@@ -85,7 +85,7 @@ class Stream:
         if w is None:
             self.t_last = t
             return self.offset
-        dt, self.t_last = max(0.0, t - getattr(self, "t_last", t)), t
+        dt, self.t_last = max(0.0, t - self.t_last), t
         if w["phase"] == "hold":
             if t >= w["until"]:
                 w["phase"] = "back"

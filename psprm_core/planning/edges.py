@@ -82,9 +82,12 @@ class Edges(Stage):
             self.knots.put(miss, *self.edge_knots(qa, qb))
         return self.knots.get(edge_ids)
 
-    def knots_valid(self, knots: torch.Tensor, dense: bool = True) -> torch.Tensor:
-        """Collision-free flags (E,) of knot sequences: the knots, and with ``dense`` every ``edge_resolution``
-        between them (only for sequences whose knots are free)."""
+    def knots_valid(self, knots: torch.Tensor, dense: bool = True, check=None) -> torch.Tensor:
+        """Collision-free flags (E,) of knot sequences: the interior knots, and with ``dense`` every
+        ``edge_resolution`` between them (only for sequences whose knots are free); the end knots are the caller's.
+        ``check``: the in-collision test of a batch of configurations (default the checker's ``check``, e.g.
+        ``check_unpadded`` for the obstacles without the collision padding)."""
+        check = check or self.ctx.checker.check
         E, M, dof = knots.shape
         if dense and E <= SMALL_BATCH and M > 2:
             # a few edges (a lazy search verifying its path): one checker call for the knots and the dense pieces,
@@ -92,27 +95,29 @@ class Edges(Stage):
             inner = knots[:, 1:-1].reshape(-1, dof)
             a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
             seg, pts = self.pieces(a, b, max_steps=200, include_start=False)
-            bad = self.ctx.checker.check(torch.cat([inner, pts]))
+            bad = check(torch.cat([inner, pts]))
             ok = ~bad[:len(inner)].reshape(E, M - 2).any(-1)
             seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
             seg_ok[seg[bad[len(inner):]]] = False
             return ok & seg_ok.reshape(E, M - 1).all(-1)
-        ok = self.ctx.checker.valid(knots[:, 1:-1].reshape(-1, dof)).reshape(E, M - 2).all(-1) if M > 2 else \
+        ok = ~check(knots[:, 1:-1].reshape(-1, dof)).reshape(E, M - 2).any(-1) if M > 2 else \
             torch.ones(E, dtype=torch.bool, device=knots.device)
         if not dense or not ok.any():
             return ok
         idx = torch.nonzero(ok, as_tuple=True)[0]
-        ok[idx] = self.dense_valid(knots[idx])
+        ok[idx] = self.dense_valid(knots[idx], check)
         return ok
 
-    def dense_valid(self, knots: torch.Tensor) -> torch.Tensor:
-        """Collision-free flags (E,) of the straight pieces between consecutive knots (endpoints excluded)."""
+    def dense_valid(self, knots: torch.Tensor, check=None) -> torch.Tensor:
+        """Collision-free flags (E,) of the straight pieces between consecutive knots (endpoints excluded), by
+        ``check`` (default the checker's ``check``)."""
+        check = check or self.ctx.checker.check
         E, M, dof = knots.shape
         ok = torch.ones(E, dtype=torch.bool, device=knots.device)
         a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
         seg, pts = self.pieces(a, b, max_steps=200, include_start=False)
         if len(seg):
-            bad = self.ctx.checker.check(pts)
+            bad = check(pts)
             seg_ok = torch.ones(len(a), dtype=torch.bool, device=a.device)
             seg_ok[seg[bad]] = False
             ok &= seg_ok.reshape(E, M - 1).all(-1)

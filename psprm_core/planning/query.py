@@ -268,13 +268,17 @@ class Query(Stage):
         o = int(g.add_nodes(origin[None].astype(np.float64))[0])
         added_nodes.append(o)
         self.rm.node_score_slots()[o] = float(self.pl.scoring.score_configs(self.ctx.t(origin[None]))[0])
-        kn, ki = fix[1], fix[2]
-        p = self.pl.scoring.knots_perception(kn, ki).cpu().numpy()
-        d = self.pl.edges.motion_distance(kn[:, 0].cpu().numpy(), kn[:, -1].cpu().numpy())
-        new = self.add_query_edges(np.array([o]), np.array([fixed_node]), p, d, verified=True)
-        self.pl.edges.put_knots(np.asarray(new), np.array([o]), kn, ki)
-        added_edges.extend(new)
+        added_edges.extend(self.add_checked_edges(np.array([o]), np.array([fixed_node]), fix[1], fix[2]))
         return o
+
+    def add_checked_edges(self, ua: np.ndarray, vb: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> list:
+        """Add query edges ``ua`` -> ``vb`` whose ``knots`` (E, M, dof) were checked by the caller: scored with Eq. 1
+        on those knots, their motion cost from the knots' ends, verified, and the knots stored (what runs)."""
+        p = self.pl.scoring.knots_perception(knots, interior).cpu().numpy()
+        d = self.pl.edges.motion_distance(knots[:, 0].cpu().numpy(), knots[:, -1].cpu().numpy())
+        new = self.add_query_edges(ua, vb, p, d, verified=True)
+        self.pl.edges.put_knots(np.asarray(new), ua, knots, interior)
+        return new
 
     def add_escapes(self, escapes: dict, end_node: dict, added_nodes: list) -> list:
         """Add the escape searches' configurations (as query nodes, appended to ``added_nodes``) and their checked
@@ -299,9 +303,5 @@ class Query(Stage):
                     continue
                 ua = np.asarray([node(a) for a, _ in pairs])
                 vb = np.asarray([b if rm_end else node(b) for _, b in pairs])
-                p = self.pl.scoring.knots_perception(kn, ki).cpu().numpy()
-                d = self.pl.edges.motion_distance(kn[:, 0].cpu().numpy(), kn[:, -1].cpu().numpy())
-                new = self.add_query_edges(ua, vb, p, d, verified=True)
-                self.pl.edges.put_knots(np.asarray(new), ua, kn, ki)
-                eids.extend(new)
+                eids.extend(self.add_checked_edges(ua, vb, kn, ki))
         return eids

@@ -46,8 +46,9 @@ class Recovery(Stage):
         the base and prismatic joints, rad for revolute ones; ``start_fix_samples`` per ring, within the joint
         limits) are checked against the padded boxes; of the free ones, the nearest (motion distance) whose local
         motion from ``start`` (untracked knots, :meth:`~.edges.Edges.edge_knots`) is free of the *unpadded* boxes,
-        densely at ``edge_resolution``, is returned as ``(q (dof,), knots (1, M, dof), interior (1, N))``: the
-        knots are what the robot executes. None when no ring has one (or the fix is off: radius 0)."""
+        densely at ``edge_resolution`` (:meth:`~.edges.Edges.knots_valid` with ``check_unpadded``), is returned as
+        ``(q (dof,), knots (1, M, dof), interior (1, N))``: the knots are what the robot executes. None when no ring
+        has one (or the fix is off: radius 0)."""
         rc, ck = self.ctx.settings.recovery, self.ctx.checker
         if rc.start_fix_radius <= 0:
             return None
@@ -56,6 +57,7 @@ class Recovery(Stage):
         lo, hi = ck.lower.cpu().numpy().astype(float), ck.upper.cpu().numpy().astype(float)
         rng = np.random.default_rng([self.ctx.settings.seed, 11])
         a = self.ctx.t(q0[None])
+        npd = NP_DTYPE[self.ctx.dtype]
         for frac in START_FIX_RINGS:
             r = frac * rc.start_fix_radius
             d = rng.normal(size=(rc.start_fix_samples, dof))
@@ -64,28 +66,17 @@ class Recovery(Stage):
             free = ~ck.check(self.ctx.t(cand)).cpu().numpy()
             if not free.any():
                 continue
-            npd = NP_DTYPE[self.ctx.dtype]
             cand = cand[free].astype(npd)
             dist = self.pl.edges.motion_distance(np.repeat(q0[None].astype(npd), len(cand), 0), cand)
             pick = cand[np.argsort(dist, kind="stable")[:START_FIX_TRY]]
             b = self.ctx.t(pick)
             knots, interior = self.pl.edges.edge_knots(a.expand(len(b), -1), b, track=False)
-            ok = self._unpadded_free(knots)
+            # the ends are free of the real boxes (the start touches none, the picks keep the padding): the rest
+            ok = self.pl.edges.knots_valid(knots, check=ck.check_unpadded)
             if ok.any():
                 i = int(torch.nonzero(ok, as_tuple=True)[0][0])
                 return pick[i], knots[i:i + 1], interior[i:i + 1]
         return None
-
-    def _unpadded_free(self, knots: torch.Tensor) -> torch.Tensor:
-        """(E,) flags: every knot of each sequence (E, M, dof) and every ``edge_resolution`` between them is clear
-        of the obstacles as given (:meth:`~psprm_core.collision.CollisionChecker.check_unpadded`)."""
-        E, M, dof = knots.shape
-        a, b = knots[:, :-1].reshape(-1, dof), knots[:, 1:].reshape(-1, dof)
-        seg, pts = self.pl.edges.pieces(a, b, max_steps=200, include_start=True)
-        bad = self.ctx.checker.check_unpadded(torch.cat([pts, knots[:, -1]]))
-        seg_ok = torch.ones(len(a), dtype=torch.bool, device=knots.device)
-        seg_ok[seg[bad[:len(pts)]]] = False
-        return seg_ok.reshape(E, M - 1).all(-1) & ~bad[len(pts):]
 
     def escape_query(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
                      goal_costs: Optional[np.ndarray]) -> PlanResult:

@@ -257,8 +257,9 @@ class Replanner:
         return self.result.dense[self._progress:]
 
     def remaining_path_collides(self) -> bool:
-        """The remaining path collides with the obstacle poses the planner holds (not with their padding). Cached per (plan, progress,
-        planner scene): an update and the trigger check that follows it in the same cycle pay for one check."""
+        """The remaining path collides with the obstacle poses the planner holds (not with their padding). Cached per
+        (plan, progress, planner scene): an update and the trigger check that follows it in the same cycle pay for one
+        check."""
         rem = self.remaining()
         if rem is None or len(rem) == 0:
             return False
