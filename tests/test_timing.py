@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from psprm_core.planning.timing import (
@@ -250,6 +250,7 @@ def _reaiming_path(rng: np.random.Generator, heading: float) -> np.ndarray:
 @pytest.mark.skipif(not _have_toppra(), reason="toppra missing")
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(st.integers(0, 10_000), st.floats(-math.pi, math.pi))
+@example(seed=0, heading=-4.1e-11)  # found by hypothesis: a heading a hair off an axis gave y a ~1e-11 m/s limit
 def test_smooth_phases_pass_knots_without_stopping_within_limits(seed: int, heading: float) -> None:
     """smooth=True: stops only where the base changes its motion (2 inside this path, not 9), the knots are passed
     exactly, every sample keeps the base on its line / turning in place, the joint limits (and the base's linear

@@ -136,7 +136,9 @@ def _run_limits(
     """Per-joint limits for a run; the base linear (x, y)-norm limits are folded into the x/y joint limits.
 
     Along a straight run the (x, y) direction is fixed, so ``||(x', y')|| sd <= v_lin`` is equivalent to
-    ``|x'| sd <= v_lin |x'| / ||(x', y')||`` (and the same for y and for the acceleration).
+    ``|x'| sd <= v_lin |x'| / ||(x', y')||`` (and the same for y and for the acceleration). Either component's bound
+    alone is that equivalence, so only the larger one is folded: the other would get a limit as small as its share of
+    the motion (a heading of 1e-11 rad gave y a limit of 1e-11 m/s, and TOPP-RA failed on it).
     """
     v = vmax.astype(np.float64).copy()
     a = amax.astype(np.float64).copy()
@@ -146,11 +148,10 @@ def _run_limits(
         nxy = math.hypot(d[ix], d[iy])
         if nxy > 1e-12:
             v_lin, a_lin = base_linear_limits
-            for j in (ix, iy):
-                frac = abs(d[j]) / nxy
-                if frac > 1e-12:  # a negligible component keeps its own limit (denormal folds stall TOPP-RA)
-                    v[j] = min(v[j], v_lin * frac)
-                    a[j] = min(a[j], a_lin * frac)
+            j = ix if abs(d[ix]) >= abs(d[iy]) else iy
+            frac = abs(d[j]) / nxy  # >= 1 / sqrt(2)
+            v[j] = min(v[j], v_lin * frac)
+            a[j] = min(a[j], a_lin * frac)
     return v, a
 
 
