@@ -230,6 +230,54 @@ def test_small_jitter_does_not_trigger(replanner):
     assert rp.needs_replan(now=1e9) == []
 
 
+def test_a_target_turning_in_small_steps_reports_one_move_per_threshold(replanner):
+    """A target turning steadily (0.011 rad per pose) is reported moved once per ``target_turn_rad`` of turn, counted
+    by the test from the yaws it sent, not on every pose once it is past the first step: each report makes the
+    server evaluate the triggers (the predicted score along the path), which a mocap stream must not pay per pose."""
+    rp = replanner
+    f = rp.scene.target("person_face")
+    yaw0, step, thr = 2.8, 0.011, rp.settings.target_turn_rad
+    got, want, last = [], [], yaw0
+    for k in range(1, 121):
+        yaw = yaw0 + step * k
+        assert abs(abs(yaw - last) - thr) > 1e-6  # no pose on the threshold itself
+        if yaw - last > thr:
+            want.append(k)
+            last = yaw
+        if rp.update_target("person_face", f.center, yaw_to_quat(yaw)):
+            got.append(k)
+    assert got == want and len(want) == 8
+
+
+def test_a_target_box_creeping_into_the_path_triggers_a_collision(replanner, world):
+    """The face is also a collision box. Moved towards the path in 1 cm steps (each below every threshold) it is
+    re-checked like an obstacle, and once the test's own checker (built from the poses it sent) says the remaining
+    path collides with it, the trigger says "collision" within the obstacle threshold's distance."""
+    scene, robot = world
+    rp = replanner
+    sent = scene
+    rem = rp.remaining()
+    mid = rem[len(rem) // 2]
+    f = rp.scene.target("person_face")
+    target_xy = mid[:2]
+    start = np.r_[target_xy + np.array([0.0, 0.6]), 0.3]  # 0.6 m beside the path's midpoint, knee height
+    rp.update_target("person_face", start, f.quat)
+    assert "collision" not in rp.needs_replan(now=1e9)
+    first_hit = None
+    for k in range(1, 61):
+        c = np.r_[target_xy + np.array([0.0, 0.6 - 0.01 * k]), 0.3]
+        rp.update_target("person_face", c, f.quat)
+        sent = sent.with_target_pose("person_face", c, f.quat)
+        judge = CollisionChecker(robot, sent.collision_boxes(), workspace=sent.workspace)
+        hit = bool(judge.check(torch.as_tensor(rem, dtype=torch.float32)).any())
+        if hit and first_hit is None:
+            first_hit = k
+        if first_hit is not None and k - first_hit >= int(np.ceil(rp.settings.obstacle_move_m / 0.01)) + 1:
+            break
+    assert first_hit is not None, "the test's box never reached the path"
+    assert "collision" in rp.needs_replan(now=1e9)
+
+
 def test_goal_change_triggers_and_best_goal_wins(replanner, world):
     scene, robot = world
     rp = replanner

@@ -141,6 +141,10 @@ class Replanner:
         self.targets = list(targets or getattr(planner, "targets", None) or self.scene.target_names)
         # poses the roadmap's scores / collision state currently reflect
         self._target_ref = {t.name: (t.center.copy(), t.quat.copy()) for t in self.scene.targets}
+        # where each target was when a move of it was last reported (update_target's steps), and where the roadmap
+        # last saw the box of a target that is also an obstacle
+        self._target_step_ref = dict(self._target_ref)
+        self._target_box_ref = dict(self._target_ref)
         self._obstacle_ref = {b.name: (b.center.copy(), b.quat.copy()) for b in self.scene.obstacles}
         self._moved_obstacles: dict = {}  # name -> Box (new pose) since the last plan, for repair sampling
         self._score_stale = False
@@ -209,23 +213,36 @@ class Replanner:
         self.goals = g
 
     def update_target(self, name: str, position, quat=None) -> bool:
-        """New pose of a target; returns True when it moved beyond the thresholds (scores are then stale)."""
+        """New pose of a target. Returns True when it moved beyond the thresholds (``target_move_m`` /
+        ``target_turn_rad``) since the last pose that returned True: a target turning steadily reports one step per
+        threshold, not every pose after the first step. The roadmap's scores are stale once the target is beyond the
+        thresholds from where they were computed. A target that is also a collision box is re-checked near the
+        roadmap like an obstacle: when its box moved beyond ``obstacle_move_m`` / ``obstacle_turn_rad`` from where the
+        roadmap last saw it."""
         self._known(self.scene.target, name)
         p, q = _pose(position, quat, f"target '{name}'")
         self.scene = self.scene.with_target_pose(name, p, q)
-        ref_p, ref_q = self._target_ref[name]
-        moved = (np.linalg.norm(p - ref_p) > self.settings.target_move_m
-                 or _rotation_angle(q, ref_q) > self.settings.target_turn_rad)
-        if moved:
+        s = self.settings
+        if self._beyond(p, q, self._target_ref[name], s.target_move_m, s.target_turn_rad):
             self._score_stale = True
             self._pending.add("target_moved")
-            if self.scene.target(name).obstacle:  # the target is also a collision box: re-check near it
-                old_box = self.planner.scene.target(name).as_box()
-                self.planner.set_scene(self.scene)
-                self.planner.invalidate_near([self.scene.target(name).as_box()], old_boxes=[old_box])
-                if self.remaining_path_collides():
-                    self._pending.add("collision")
-        return moved
+        step = self._beyond(p, q, self._target_step_ref[name], s.target_move_m, s.target_turn_rad)
+        if step:
+            self._target_step_ref[name] = (p.copy(), q.copy())
+        if self.scene.target(name).obstacle and self._beyond(p, q, self._target_box_ref[name], s.obstacle_move_m,
+                                                              s.obstacle_turn_rad):
+            old_box = self.planner.scene.target(name).as_box()  # where the roadmap last saw it
+            self.planner.set_scene(self.scene)
+            self.planner.invalidate_near([self.scene.target(name).as_box()], old_boxes=[old_box])
+            self._target_box_ref[name] = (p.copy(), q.copy())
+            if self.remaining_path_collides():
+                self._pending.add("collision")
+                step = True
+        return step
+
+    @staticmethod
+    def _beyond(p: np.ndarray, q: np.ndarray, ref: tuple, move_m: float, turn_rad: float) -> bool:
+        return bool(np.linalg.norm(p - ref[0]) > move_m or _rotation_angle(q, ref[1]) > turn_rad)
 
     def update_obstacle(self, name: str, position, quat=None) -> bool:
         """New pose of an obstacle; when it moved beyond the thresholds the roadmap near it is re-checked now.
@@ -233,9 +250,8 @@ class Replanner:
         self._known(self.scene.obstacle, name)
         p, q = _pose(position, quat, f"obstacle '{name}'")
         self.scene = self.scene.with_obstacle_pose(name, p, q)
-        ref_p, ref_q = self._obstacle_ref[name]
-        if not (np.linalg.norm(p - ref_p) > self.settings.obstacle_move_m
-                or _rotation_angle(q, ref_q) > self.settings.obstacle_turn_rad):
+        if not self._beyond(p, q, self._obstacle_ref[name], self.settings.obstacle_move_m,
+                            self.settings.obstacle_turn_rad):
             return False
         old_box = self.planner.scene.obstacle(name)  # where the roadmap last saw it
         self.planner.set_scene(self.scene)
