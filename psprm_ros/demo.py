@@ -1,12 +1,15 @@
 """``demo``: the node suite in closed loop with a simulated robot, on the default scene and the shipped mocap recording.
 
     python -m psprm_ros.demo [--params config/ros/dynamic_person.yaml] [--recording config/recordings/person_turning.csv]
-                             [--out out] [--nodes 3000] [--timeout 120] [--in-process] [--no-oracle] [--fresh-roadmap]
+                             [--out out] [--nodes 3000] [--timeout 120] [--suite processes|one-process]
+                             [--in-process] [--no-oracle] [--fresh-roadmap]
 
-1. starts the suite (``scripts/run_all_in_one.sh``: roadmap server, perception scorer, replan monitor and robot
-   adapter in one process) and ``sim_robot`` (a kinematic Stretch 2 behind the interfaces a real one offers: its
-   controller's JointTrajectory topic and cmd_vel, publishing /joint_states and /odom), each as its own process
-   (``--in-process``: all in this one);
+1. starts the suite (roadmap server, perception scorer, replan monitor and robot adapter; ``scripts/run_nodes.sh``,
+   a process per node, or ``scripts/run_all_in_one.sh`` with ``--suite one-process``) and ``sim_robot`` (a kinematic
+   Stretch 2 behind the interfaces a real one offers: its controller's JointTrajectory topic and cmd_vel, publishing
+   /joint_states and /odom) as their own processes (``--in-process``: all in this one). Apart, the planner does not
+   share its interpreter lock with the monitor's 120 Hz mocap input and the adapter's control loop: in the same
+   closed loop its replans take about half as long (docs/benchmarks.md);
 2. once the roadmap is ready (built, or loaded from the cache), replays the recorded person turning side to side
    (120 Hz PoseStamped topics, looped) and sends the goal (either goal region of the scene);
 3. the robot adapter executes every planned trajectory on the simulated robot; this process records what the robot
@@ -84,12 +87,46 @@ class Record:
             return self.executed[-1] if self.executed else None
 
 
-class ClosedLoop:
-    """The suite (``run_all_in_one.sh``) and ``sim_robot`` (``run_sim_robot.sh``) as their own processes, and a client
-    node (:class:`~psprm_ros.probe.Probe`) spinning in this one; ``close()`` ends all of it."""
+def rss_mb(pid: int) -> float:
+    """Resident memory (MB) of a process and all its descendants: the suite started as one process or as a process
+    per node (``run_nodes.sh``: a shell and its four children)."""
+    children: dict = {}
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            continue
+        children.setdefault(int(fields[1]), []).append(int(stat.parent.name))
+    total, todo, found = 0.0, [pid], False
+    while todo:
+        p = todo.pop()
+        todo.extend(children.get(p, []))
+        try:
+            for line in Path(f"/proc/{p}/status").read_text().splitlines():
+                if line.startswith("VmRSS:"):
+                    total += float(line.split()[1]) / 1024.0
+                    found = True
+        except OSError:
+            pass
+    return total if found else float("nan")
 
-    def __init__(self, params_file: str, overrides: dict, out: Path, prefix: str, domain: int):
+
+#: How the closed loop starts the node suite: one process (``run_all_in_one.sh``) or a process per node
+#: (``run_nodes.sh``).
+SUITE_SCRIPTS = {"one-process": "run_all_in_one.sh", "processes": "run_nodes.sh"}
+
+
+class ClosedLoop:
+    """The suite (``run_all_in_one.sh``, or ``run_nodes.sh`` with ``suite="processes"``) and ``sim_robot``
+    (``run_sim_robot.sh``) as their own processes, and a client node (:class:`~psprm_ros.probe.Probe`) spinning in this
+    one; ``close()`` ends all of it."""
+
+    def __init__(self, params_file: str, overrides: dict, out: Path, prefix: str, domain: int,
+                 suite: str = "one-process"):
+        if suite not in SUITE_SCRIPTS:
+            raise ValueError(f"suite must be one of {', '.join(SUITE_SCRIPTS)}, got {suite!r}")
         self.params_file, self.overrides, self.out, self.prefix, self.domain = params_file, overrides, out, prefix, domain
+        self.suite = suite
         self.procs: dict = {}
         self.ex = self.ctx = self.probe = None
 
@@ -100,7 +137,7 @@ class ClosedLoop:
         from .spinning import NodeSpinner
 
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
-        suite = ["bash", str(ROOT / "scripts" / "run_all_in_one.sh"), self.params_file]
+        suite = ["bash", str(ROOT / "scripts" / SUITE_SCRIPTS[self.suite]), self.params_file]
         for k, v in self.overrides.items():
             suite += ["-p", f"{k}:={v}"]
         sim = ["bash", str(ROOT / "scripts" / "run_sim_robot.sh"), self.params_file]
@@ -168,6 +205,9 @@ def main(args=None) -> int:
     ap.add_argument("--nodes", type=int, default=3000)
     ap.add_argument("--timeout", type=float, default=120.0, help="longest closed-loop run after the first plan (s)")
     ap.add_argument("--in-process", action="store_true", help="run the suite and the simulated robot in this process")
+    ap.add_argument("--suite", choices=sorted(SUITE_SCRIPTS), default="processes",
+                    help="the node suite as a process per node (run_nodes.sh; the planner does not share its "
+                         "interpreter with the 120 Hz mocap input) or in one process (run_all_in_one.sh)")
     ap.add_argument("--no-oracle", action="store_true", help="skip the oracle evaluation (no detector needed)")
     ap.add_argument("--oracle-every", type=float, default=1.0, help="oracle sample spacing along the motion (s)")
     ap.add_argument("--fresh-roadmap", action="store_true", help="build the roadmap (not from the cache, not saved)")
@@ -207,7 +247,7 @@ def main(args=None) -> int:
             suite.__enter__()
             probe = suite.probe
         else:
-            loop = ClosedLoop(a.params, overrides, out, "ros_demo", domain).start(say)
+            loop = ClosedLoop(a.params, overrides, out, "ros_demo", domain, suite=a.suite).start(say)
             probe = loop.probe
         record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
         wall_minus_perf = time.time() - time.perf_counter()
@@ -261,8 +301,10 @@ def main(args=None) -> int:
             f"{t_end - t_replay:.1f} s after the replay started")
         result = analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wall_minus_perf, say)
         result.update(reached_goal=bool(reached), goal=reached, first_plan_s=round(first_plan_s, 2),
-                      ready_s=round(t_ready - t_start, 2), load_avg_1min=round(os.getloadavg()[0], 2),
-                      cpus=os.cpu_count(), fresh_roadmap=bool(a.fresh_roadmap))
+                      ready_s=round(t_ready - t_start, 2), suite="in-process" if a.in_process else a.suite,
+                      suite_rss_mb=None if loop is None else round(rss_mb(loop.procs["suite"].pid)),
+                      load_avg_1min=round(os.getloadavg()[0], 2), cpus=os.cpu_count(),
+                      fresh_roadmap=bool(a.fresh_roadmap))
         with probe.cond:
             statuses = list(probe.statuses)
         result["adapter_refusals"] = sum(1 for _, n, t in statuses if n == "robot_adapter" and "refused" in t)

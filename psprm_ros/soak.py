@@ -1,10 +1,10 @@
 """``soak``: the closed loop under a long, hostile input stream.
 
     python -m psprm_ros.soak [--duration 600] [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--out out]
-                             [--seed 0] [--json]
+                             [--suite processes|one-process] [--seed 0] [--json]
 
-Starts the suite (``run_all_in_one.sh``: server, scorer, monitor, robot adapter) and ``sim_robot`` as their own
-processes, then for ``--duration`` seconds streams the person (face + body) at 120 Hz from the shipped recording,
+Starts the suite (server, scorer, monitor, robot adapter: ``run_nodes.sh``, a process per node, or
+``run_all_in_one.sh`` with ``--suite one-process``) and ``sim_robot``, then for ``--duration`` seconds streams the person (face + body) at 120 Hz from the shipped recording,
 looped, with:
 
 * dropouts: the stream stops for 0.2-1.2 s (longer than the monitor's stale timeout: the robot must stop);
@@ -19,7 +19,7 @@ looped, with:
 
 while the robot drives between the two goal regions (the other one once it rests at one). It records every pose it
 sent (the true world), what the robot reported (/odom, /joint_states), every trajectory and plan, and the memory
-(RSS) of both processes. Reports trajectories published, executed configurations in collision with the true world
+(RSS) of the suite's processes and of sim_robot. Reports trajectories published, executed configurations in collision with the true world
 (the person at that instant), pose -> trajectory latency percentiles, memory growth, and restarts (a process that
 exited or a lifecycle node that left the active state). One JSON object with ``--json`` (stdout carries it only).
 """
@@ -38,17 +38,7 @@ import numpy as np
 
 from . import conversions as cv
 from .probe import claim_domain_id
-from .demo import GOAL_REASONS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal
-
-
-def rss_mb(pid: int) -> float:
-    try:
-        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return float(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return float("nan")
+from .demo import GOAL_REASONS, SUITE_SCRIPTS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal, rss_mb
 
 
 WALK_MPS = 0.5  # the person's walking speed into the path and back
@@ -198,6 +188,8 @@ def main(args=None) -> int:
     ap.add_argument("--params", default=str(ROOT / "config" / "ros" / "dynamic_person.yaml"))
     ap.add_argument("--recording", default=str(ROOT / "config" / "recordings" / "person_turning.csv"))
     ap.add_argument("--nodes", type=int, default=3000)
+    ap.add_argument("--suite", choices=sorted(SUITE_SCRIPTS), default="processes",
+                    help="the node suite as a process per node (run_nodes.sh) or in one process (run_all_in_one.sh)")
     ap.add_argument("--walk-every", type=float, default=40.0, help="the person walks into the path this often (s)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out")
@@ -222,7 +214,7 @@ def main(args=None) -> int:
     robot = RobotModel.load(scene.robot)
     domain = a.domain_id or claim_domain_id(100, 200)
     loop = ClosedLoop(a.params, {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}, out, "soak",
-                      domain).start()
+                      domain, suite=a.suite).start()
     procs, probe = loop.procs, loop.probe
     record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
     from diagnostic_msgs.msg import DiagnosticArray
@@ -426,7 +418,8 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         "executed_collisions_by": by, "collision_events": events,
         "latency_ms_p50": pct(50), "latency_ms_p90": pct(90), "latency_ms_p95": pct(95), "latency_ms_p99": pct(99),
         "latency_ms_max": round(float(lat.max()), 1) if len(lat) else None, "latency_samples": int(len(lat)),
-        "memory": growth, "restarts": len(exits) + left_active, "process_exits": exits, "error_statuses": len(errors),
+        "suite": a.suite, "memory": growth, "restarts": len(exits) + left_active, "process_exits": exits,
+        "error_statuses": len(errors),
         "first_errors": errors[:5], "stream": stream.counts, "goal_spam_messages": n_spam,
         "adapter_refusals": sum(1 for _, n, s in statuses if n == "robot_adapter" and "refused" in s),
         "adapter_refusal_examples": [s for _, n, s in statuses if n == "robot_adapter" and "refused" in s][:5],
