@@ -147,6 +147,19 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                    "again (no oracle; e.g. with other --checkpoints)")
     ln.add_argument("--json", action="store_true")
     ln.set_defaults(func=_json_only(_label_noise))
+    sc = ps.add_parser("surrogate-scaling", help="the surrogate's held-out figures against the share of its "
+                                                 "training data used, several seeds, an ensemble and a wider "
+                                                 "network: what more labelled views would buy")
+    sc.add_argument("--dataset", default=DEFAULT_DATASET, help="dataset directories, comma-separated")
+    sc.add_argument("--fractions", default="0.25,0.5,1", help="shares of the training split, comma-separated")
+    sc.add_argument("--seeds", default="0,1", help="training seeds per share, comma-separated")
+    sc.add_argument("--ensemble", type=int, default=0, help="also average this many full-data models")
+    sc.add_argument("--hidden", type=int, default=0, help="also train a network this wide on the full split")
+    sc.add_argument("--target", type=float, default=0.946, help="pooled Spearman to extrapolate the views for")
+    sc.add_argument("--threads", type=int, default=2)
+    sc.add_argument("--allow-incomplete", action="store_true", help="a dataset whose build was stopped")
+    sc.add_argument("--json", action="store_true")
+    sc.set_defaults(func=_json_only(_surrogate_scaling))
     vm = ps.add_parser("viewmap", help="where the real detector sees a target: the robot's camera aimed at it from a "
                                        "grid of base positions (share detected, mean confidence, the grid)")
     vm.add_argument("--scene", default="home")
@@ -325,6 +338,21 @@ def _preprocess(args) -> int:
 
     _print(preprocess_benchmark(args.scene, args.target, nodes=args.nodes, oracle_nodes=args.oracle_nodes,
                                 seed=args.seed, threads=args.threads), args.json)
+    return 0
+
+
+def _surrogate_scaling(args) -> int:
+    from ..evaluation.surrogate_scaling import format_table, surrogate_scaling
+
+    res = surrogate_scaling([d for d in args.dataset.split(",") if d],
+                            fractions=[float(f) for f in args.fractions.split(",") if f],
+                            seeds=[int(s) for s in args.seeds.split(",") if s], ensemble=args.ensemble,
+                            hidden=args.hidden or None, threads=args.threads, target=args.target,
+                            allow_incomplete=args.allow_incomplete)
+    if args.json:
+        print_json(_finite(res))
+    else:
+        print(format_table(res))
     return 0
 
 
