@@ -400,6 +400,79 @@ def test_adapter_drives_sim_robot_through_the_controllers_and_tracks_the_base(na
             stop_process(sim)
 
 
+def _hold_interpreter(seconds: float) -> float:
+    """Keep this process's interpreter lock for about ``seconds`` (a builtin loop that never lets another thread
+    run: a stall as a long collection or a compilation makes it). Returns how long it took."""
+    t0 = time.perf_counter()
+    sum(range(10**6))
+    per = max(time.perf_counter() - t0, 1e-4) / 10**6
+    t0 = time.perf_counter()
+    sum(range(int(seconds / per)))
+    return time.perf_counter() - t0
+
+
+def test_adapter_forgives_its_own_stall_but_stops_when_the_base_pose_goes_stale(load_robot):
+    """A stall of the adapter's own process (the interpreter held for longer than ``state_timeout_s``) leaves the
+    robot's /odom waiting in the adapter's queue: the base keeps following the trajectory and no zero twist goes out.
+    A robot whose /odom really stops (its process frozen) is stopped with a zero twist within ``state_timeout_s``
+    and two control periods of its last /odom. Judged from the test's own record of /odom and cmd_vel."""
+    import os
+    import signal
+
+    from psprm_ros.probe import InProcessSuite
+
+    name = "stretch2"
+    robot = load_robot(name)
+    cfg = ad.load_adapter(name, robot).with_interface("topic")
+    params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
+              "initial_base": [1.0, 1.0, 0.3], "input_frames": ["odom"]}
+    domain = claim_domain_id()
+    sim = start_sim_process(params, domain)
+    with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:
+        rec = Recorder(s.probe.node, cfg)
+        pub = _latched_pub(s.probe.node)
+        try:
+            assert _wait(lambda: s.adapter.active and s.adapter.measured()[0] is not None, 60), \
+                (s.probe.statuses[-5:], sim.poll())
+            timeout = s.adapter.p["state_timeout_s"]
+            period = 1.0 / cfg.base.rate_hz
+            time.sleep(0.3)
+            q0 = s.adapter.measured()[0]
+            tr = planned_trajectory(robot, q0, turn=0.0, drive=2.5)
+            msg = cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1)
+            pub.publish(msg)
+
+            def base_moved():
+                with rec.lock:
+                    return rec.odom and np.hypot(*(rec.odom[-1][1][:2] - q0[:2])) > 0.15
+            assert _wait(base_moved, 20), s.probe.statuses[-5:]
+            n_tw = len(rec.twists)
+            held = _hold_interpreter(timeout + 0.3)
+            assert held > timeout
+            with rec.lock:
+                x_after = rec.odom[-1][1][:2].copy()
+            time.sleep(1.0)
+            with rec.lock:
+                twists = [tw for _, tw in rec.twists[n_tw:]]
+                x_later = rec.odom[-1][1][:2].copy()
+            assert twists and all(abs(tw.linear.x) > 1e-6 for tw in twists), "the adapter stopped after its own stall"
+            assert np.hypot(*(x_later - x_after)) > 0.05  # still driving along the trajectory
+            # the robot's process frozen: its /odom stops for real
+            os.kill(sim.pid, signal.SIGSTOP)
+            try:
+                time.sleep(timeout + 1.0)
+                with rec.lock:
+                    last_odom = rec.odom[-1][0]
+                    zero = [t for t, tw in rec.twists if t > last_odom and tw.linear.x == 0.0 and tw.angular.z == 0.0]
+            finally:
+                os.kill(sim.pid, signal.SIGCONT)
+            assert zero, "no zero twist after the base pose went stale"
+            assert zero[0] - last_odom <= timeout + 2 * period + 0.1, zero[0] - last_odom
+        finally:
+            rec.close()
+            stop_process(sim)
+
+
 def start_sim_process(params: dict, domain: int):
     import os
     import subprocess
