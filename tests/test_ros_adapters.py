@@ -8,6 +8,7 @@ on /odom, and judges the base's tracking against the trajectory the test itself 
 
 from __future__ import annotations
 
+import contextlib
 import math
 import sys
 import threading
@@ -331,73 +332,83 @@ def _wait(pred, timeout):
     return None
 
 
+@contextlib.contextmanager
+def _adapter_on_sim(name: str, robot):
+    """The shipped adapter (forced to the topic interface) in this process, active on a ``sim_robot`` in its own
+    process (as a robot is: its clock and integration do not wait for this one), with the test's recorder and a
+    publisher of /psprm/trajectory. Yields (suite, adapter config, recorder, publisher, the robot's process id)."""
+    from psprm_ros.probe import InProcessSuite
+
+    cfg = ad.load_adapter(name, robot).with_interface("topic")
+    params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
+              "initial_base": [1.0, 1.0, 0.3], "input_frames": ["odom"]}
+    domain = claim_domain_id()
+    sim = start_sim_process(params, domain)
+    try:
+        with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:
+            rec = Recorder(s.probe.node, cfg)
+            try:
+                pub = _latched_pub(s.probe.node)
+                assert _wait(lambda: s.adapter.active and s.adapter.measured()[0] is not None, 60), \
+                    (s.probe.statuses[-5:], sim.poll())
+                yield s, cfg, rec, pub, sim.pid
+            finally:
+                rec.close()
+    finally:
+        stop_process(sim)
+
+
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_adapter_drives_sim_robot_through_the_controllers_and_tracks_the_base(name, load_robot):
     """The shipped adapter (forced to the topic interface sim_robot offers) executes a trajectory the test publishes:
     every message on every controller topic obeys that controller's rules, the base measured on /odom stays within
     0.1 m / 0.1 rad of the published trajectory's path (:func:`path_errors`), the joints end at its last point; a stop then gives a zero twist
     and a hold at the measured configuration, both accepted."""
-    from psprm_ros.probe import InProcessSuite
-
     robot = load_robot(name)
-    cfg = ad.load_adapter(name, robot).with_interface("topic")
-    params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
-              "initial_base": [1.0, 1.0, 0.3], "input_frames": ["odom"]}
-    domain = claim_domain_id()
-    # the simulated robot in its own process, as a robot is: its clock and integration do not wait for this one
-    sim = start_sim_process(params, domain)
-    with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:
-        rec = Recorder(s.probe.node, cfg)
-        pub = _latched_pub(s.probe.node)
-        try:
-            assert _wait(lambda: s.adapter.active and s.adapter.measured()[0] is not None, 60), \
-                (s.probe.statuses[-5:], sim.poll())
-            time.sleep(0.3)
-            q0 = s.adapter.measured()[0]
-            tr = planned_trajectory(robot, q0, drive=0.8)
-            names = robot.joint_names
-            msg = cv.trajectory_to_msg(tr, names, "map", s.probe.node.get_clock().now().to_msg(), 0.1)
-            pub.publish(msg)
-            got = _wait(lambda: all(rec.traj[c.name] for c in cfg.controllers), 10)
-            assert got, f"controllers got nothing: {s.probe.statuses[-5:]}"
-            _wait(lambda: False, tr.times[-1] + 1.5)
-            with rec.lock:
-                first = {c: list(v) for c, v in rec.traj.items()}
-                odom = list(rec.odom)
+    with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
+        time.sleep(0.3)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, drive=0.8)
+        names = robot.joint_names
+        msg = cv.trajectory_to_msg(tr, names, "map", s.probe.node.get_clock().now().to_msg(), 0.1)
+        pub.publish(msg)
+        got = _wait(lambda: all(rec.traj[c.name] for c in cfg.controllers), 10)
+        assert got, f"controllers got nothing: {s.probe.statuses[-5:]}"
+        _wait(lambda: False, tr.times[-1] + 1.5)
+        with rec.lock:
+            first = {c: list(v) for c, v in rec.traj.items()}
+            odom = list(rec.odom)
+        for c in cfg.controllers:
+            t_rx, m = first[c.name][0]
+            assert jtc_problems(m, EXPECTED[name][c.name], t_rx) == [], c.name
+        # the trajectory's start on the robot's clock, from what the controller received
+        c0 = cfg.controllers[0]
+        t_rx, m0 = first[c0.name][0]
+        st = cv.stamp_to_sec(m0.header.stamp)
+        start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
+        T = np.array([t for t, _ in odom])
+        X = np.array([x for _, x in odom])
+        sel = (T >= start) & (T <= start + tr.times[-1] + 1.0)
+        assert sel.sum() > 20 * tr.times[-1]  # /odom at >= 20 Hz through the motion
+        e_xy, e_th = path_errors(tr, T[sel] - start, X[sel])
+        assert e_xy.max() < 0.1 and e_th.max() < 0.1, (e_xy.max(), e_th.max())
+        assert not [x for x in s.probe.statuses if x[1] == "sim_robot" and "refused" in x[2]]
+        q_end = s.adapter.measured()[0]  # from the robot's own /joint_states and /odom
+        assert np.allclose(q_end[3:], tr.positions[-1, 3:], atol=0.02)
+        # stop: the server's one-point trajectory
+        n_tw = len(rec.twists)
+        t_stop = s.probe.node.get_clock().now().nanoseconds * 1e-9
+        pub.publish(cv.stop_trajectory(q_end, names, "map"))
+        assert _wait(lambda: all(len(rec.traj[c.name]) > len(first[c.name]) for c in cfg.controllers), 5)
+        with rec.lock:
             for c in cfg.controllers:
-                t_rx, m = first[c.name][0]
-                assert jtc_problems(m, EXPECTED[name][c.name], t_rx) == [], c.name
-            # the trajectory's start on the robot's clock, from what the controller received
-            c0 = cfg.controllers[0]
-            t_rx, m0 = first[c0.name][0]
-            st = cv.stamp_to_sec(m0.header.stamp)
-            start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
-            T = np.array([t for t, _ in odom])
-            X = np.array([x for _, x in odom])
-            sel = (T >= start) & (T <= start + tr.times[-1] + 1.0)
-            assert sel.sum() > 20 * tr.times[-1]  # /odom at >= 20 Hz through the motion
-            e_xy, e_th = path_errors(tr, T[sel] - start, X[sel])
-            assert e_xy.max() < 0.1 and e_th.max() < 0.1, (e_xy.max(), e_th.max())
-            assert not [x for x in s.probe.statuses if x[1] == "sim_robot" and "refused" in x[2]]
-            q_end = s.adapter.measured()[0]  # from the robot's own /joint_states and /odom
-            assert np.allclose(q_end[3:], tr.positions[-1, 3:], atol=0.02)
-            # stop: the server's one-point trajectory
-            n_tw = len(rec.twists)
-            t_stop = s.probe.node.get_clock().now().nanoseconds * 1e-9
-            pub.publish(cv.stop_trajectory(q_end, names, "map"))
-            assert _wait(lambda: all(len(rec.traj[c.name]) > len(first[c.name]) for c in cfg.controllers), 5)
-            with rec.lock:
-                for c in cfg.controllers:
-                    t_rx, hold = rec.traj[c.name][-1]
-                    assert t_rx >= t_stop and len(hold.points) == 1
-                    assert jtc_problems(hold, EXPECTED[name][c.name], t_rx) == []
-                    idx = [names.index(j) for j in c.joints]
-                    assert np.allclose(hold.points[0].positions, q_end[idx], atol=0.02)
-                zero = [tw for t, tw in rec.twists[n_tw:] if t >= t_stop]
-            assert zero and zero[0].linear.x == 0.0 and zero[0].angular.z == 0.0
-        finally:
-            rec.close()
-            stop_process(sim)
+                t_rx, hold = rec.traj[c.name][-1]
+                assert t_rx >= t_stop and len(hold.points) == 1
+                assert jtc_problems(hold, EXPECTED[name][c.name], t_rx) == []
+                idx = [names.index(j) for j in c.joints]
+                assert np.allclose(hold.points[0].positions, q_end[idx], atol=0.02)
+            zero = [tw for t, tw in rec.twists[n_tw:] if t >= t_stop]
+        assert zero and zero[0].linear.x == 0.0 and zero[0].angular.z == 0.0
 
 
 def _hold_interpreter(seconds: float) -> float:
@@ -419,58 +430,43 @@ def test_adapter_forgives_its_own_stall_but_stops_when_the_base_pose_goes_stale(
     import os
     import signal
 
-    from psprm_ros.probe import InProcessSuite
-
     name = "stretch2"
     robot = load_robot(name)
-    cfg = ad.load_adapter(name, robot).with_interface("topic")
-    params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
-              "initial_base": [1.0, 1.0, 0.3], "input_frames": ["odom"]}
-    domain = claim_domain_id()
-    sim = start_sim_process(params, domain)
-    with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:
-        rec = Recorder(s.probe.node, cfg)
-        pub = _latched_pub(s.probe.node)
-        try:
-            assert _wait(lambda: s.adapter.active and s.adapter.measured()[0] is not None, 60), \
-                (s.probe.statuses[-5:], sim.poll())
-            timeout = s.adapter.p["state_timeout_s"]
-            period = 1.0 / cfg.base.rate_hz
-            time.sleep(0.3)
-            q0 = s.adapter.measured()[0]
-            tr = planned_trajectory(robot, q0, turn=0.0, drive=2.5)
-            msg = cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1)
-            pub.publish(msg)
+    with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
+        timeout = s.adapter.p["state_timeout_s"]
+        period = 1.0 / cfg.base.rate_hz
+        time.sleep(0.3)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.5)
+        msg = cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1)
+        pub.publish(msg)
 
-            def base_moved():
-                with rec.lock:
-                    return rec.odom and np.hypot(*(rec.odom[-1][1][:2] - q0[:2])) > 0.15
-            assert _wait(base_moved, 20), s.probe.statuses[-5:]
-            n_tw = len(rec.twists)
-            held = _hold_interpreter(timeout + 0.3)
-            assert held > timeout
+        def base_moved():
             with rec.lock:
-                x_after = rec.odom[-1][1][:2].copy()
-            time.sleep(1.0)
+                return rec.odom and np.hypot(*(rec.odom[-1][1][:2] - q0[:2])) > 0.15
+        assert _wait(base_moved, 20), s.probe.statuses[-5:]
+        n_tw = len(rec.twists)
+        held = _hold_interpreter(timeout + 0.3)
+        assert held > timeout
+        with rec.lock:
+            x_after = rec.odom[-1][1][:2].copy()
+        time.sleep(1.0)
+        with rec.lock:
+            twists = [tw for _, tw in rec.twists[n_tw:]]
+            x_later = rec.odom[-1][1][:2].copy()
+        assert twists and all(abs(tw.linear.x) > 1e-6 for tw in twists), "the adapter stopped after its own stall"
+        assert np.hypot(*(x_later - x_after)) > 0.05  # still driving along the trajectory
+        # the robot's process frozen: its /odom stops for real
+        os.kill(sim_pid, signal.SIGSTOP)
+        try:
+            time.sleep(timeout + 1.0)
             with rec.lock:
-                twists = [tw for _, tw in rec.twists[n_tw:]]
-                x_later = rec.odom[-1][1][:2].copy()
-            assert twists and all(abs(tw.linear.x) > 1e-6 for tw in twists), "the adapter stopped after its own stall"
-            assert np.hypot(*(x_later - x_after)) > 0.05  # still driving along the trajectory
-            # the robot's process frozen: its /odom stops for real
-            os.kill(sim.pid, signal.SIGSTOP)
-            try:
-                time.sleep(timeout + 1.0)
-                with rec.lock:
-                    last_odom = rec.odom[-1][0]
-                    zero = [t for t, tw in rec.twists if t > last_odom and tw.linear.x == 0.0 and tw.angular.z == 0.0]
-            finally:
-                os.kill(sim.pid, signal.SIGCONT)
-            assert zero, "no zero twist after the base pose went stale"
-            assert zero[0] - last_odom <= timeout + 2 * period + 0.1, zero[0] - last_odom
+                last_odom = rec.odom[-1][0]
+                zero = [t for t, tw in rec.twists if t > last_odom and tw.linear.x == 0.0 and tw.angular.z == 0.0]
         finally:
-            rec.close()
-            stop_process(sim)
+            os.kill(sim_pid, signal.SIGCONT)
+        assert zero, "no zero twist after the base pose went stale"
+        assert zero[0] - last_odom <= timeout + 2 * period + 0.1, zero[0] - last_odom
 
 
 def start_sim_process(params: dict, domain: int):
