@@ -4,8 +4,8 @@
                              [--suite processes|one-process] [--seed 0] [--json]
 
 Starts the suite (server, scorer, monitor, robot adapter: ``run_nodes.sh``, a process per node, or
-``run_all_in_one.sh`` with ``--suite one-process``) and ``sim_robot``, then for ``--duration`` seconds streams the person (face + body) at 120 Hz from the shipped recording,
-looped, with:
+``run_all_in_one.sh`` with ``--suite one-process``) and ``sim_robot``, then for ``--duration`` seconds streams the
+person (face + body) at 120 Hz from the shipped recording, looped, with:
 
 * dropouts: the stream stops for 0.2-1.2 s (longer than the monitor's stale timeout: the robot must stop);
 * NaN bursts: 10-60 poses with NaN positions;
@@ -19,9 +19,9 @@ looped, with:
 
 while the robot drives between the two goal regions (the other one once it rests at one). It records every pose it
 sent (the true world), what the robot reported (/odom, /joint_states), every trajectory and plan, and the memory
-(RSS) of the suite's processes and of sim_robot. Reports trajectories published, executed configurations in collision with the true world
-(the person at that instant), pose -> trajectory latency percentiles, memory growth, and restarts (a process that
-exited or a lifecycle node that left the active state). One JSON object with ``--json`` (stdout carries it only).
+(RSS) of the suite's processes and of sim_robot. Reports trajectories published, executed configurations in
+collision with the true world (the person at that instant), pose -> trajectory latency percentiles, memory growth,
+and restarts (a process that exited or a lifecycle node that left the active state). One JSON object with ``--json`` (stdout carries it only).
 """
 
 from __future__ import annotations
@@ -378,7 +378,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         closing = None
         if hit:
             hit_boxes = [b.name for b in _scene_with(scene, cur).collision_boxes()
-                         if bool(checker.env_hits(qt, [b])[0])]
+                         if bool(checker.env_hits(qt, [b])[0])]  # the boxes this configuration touches
             if "person_body" in hit_boxes and len(body_t):
                 closing = _closing_speeds(t, q, ex, ex_t, body_tp, body_t)
                 by["robot_closing" if closing[0] > CLOSING_MPS else "person_closing"] += 1
@@ -387,12 +387,11 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         if hit and len(events) < 10:
             body = cur.get("person_body", (np.full(3, np.nan), None))[0]
             det = checker.check_detailed(qt)
-            boxes = _scene_with(scene, cur).collision_boxes()
             events.append({"t": round(t - t0, 2), "base": [round(float(v), 3) for v in q[:3]],
                            "person": [round(float(v), 3) for v in body[:2]],
                            "q": [round(float(v), 4) for v in q],  # the whole configuration, for a replay
                            "why": [k for k in ("limits", "environment", "self") if bool(det[k][0])],
-                           "boxes": [b.name for b in boxes if bool(checker.env_hits(qt, [b])[0])],
+                           "boxes": hit_boxes,
                            # m/s by which the robot's motion / the person's walk shrank their distance over the last
                            # CLOSING_WINDOW_S
                            "closing_mps": None if closing is None else [round(float(c), 3) for c in closing]})
