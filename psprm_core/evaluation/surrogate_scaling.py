@@ -14,6 +14,7 @@ the straight line is optimistic and the views it names are a lower bound.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from typing import Optional, Sequence
@@ -61,8 +62,6 @@ def surrogate_scaling(dataset: Sequence[str], fractions: Sequence[float] = (0.25
                       threads: Optional[int] = 2, target: float = 0.946, subset_seed: int = 0,
                       allow_incomplete: bool = False) -> dict:
     """Train and judge the surrogates described in the module docstring; returns the rows and the fitted growth."""
-    import torch
-
     from ..errors import InputError
     from ..perception.dataset import load_dataset
     from ..perception.training import (TrainConfig, _predict_features, _splits, dataset_tensors, fit_surrogate,
@@ -80,9 +79,7 @@ def surrogate_scaling(dataset: Sequence[str], fractions: Sequence[float] = (0.25
 
     def fit(train_idx: np.ndarray, cfg: TrainConfig):
         model, hist = fit_surrogate((feats[train_idx], cls[train_idx], y[train_idx]), val, ds.classes, cfg)
-        with torch.no_grad():
-            pred = np.asarray(_predict_features(model, feats[te], cls[te]), float)
-        return pred, hist
+        return np.asarray(_predict_features(model, feats[te], cls[te]), float), hist
 
     for frac in sorted(fractions):
         if not 0 < frac <= 1:
@@ -103,8 +100,9 @@ def surrogate_scaling(dataset: Sequence[str], fractions: Sequence[float] = (0.25
            "growth": views_needed(rows, target)}
     if ensemble > 1:
         preds = [p for _, p in full_preds[:ensemble]]
-        for s in [s for s in range(10_000) if s not in seeds][: max(0, ensemble - len(preds))]:
-            preds.append(fit(splits["train"], TrainConfig(threads=threads, seed=s))[0])
+        spare = (s for s in itertools.count() if s not in seeds)  # seeds for models beyond the full-data rows
+        while len(preds) < ensemble:
+            preds.append(fit(splits["train"], TrainConfig(threads=threads, seed=next(spare)))[0])
         out["ensemble"] = {"models": len(preds), **judge(np.mean(preds, axis=0), y_te, c_te, ds.classes)}
     if hidden:
         pred, _ = fit(splits["train"], TrainConfig(threads=threads, seed=int(seeds[0]), hidden=int(hidden)))
