@@ -2,8 +2,8 @@
 process, each on its own single-threaded executor: one copy of the core, the least memory, no inter-process hop. The
 nodes share one interpreter lock, though: under a 120 Hz mocap stream the monitor's and the adapter's callbacks hold
 it while the server plans, and in the README's closed loop the replans take about twice as long as with a process
-per node (``scripts/run_nodes.sh``, docs/benchmarks.md). The adapter drives the robot's controllers (``adapter`` parameter); set ``robot_adapter:autostart:=false`` to
-plan without executing.
+per node (``scripts/run_nodes.sh``, docs/benchmarks.md). The adapter drives the robot's controllers (``adapter``
+parameter); set ``robot_adapter:autostart:=false`` to plan without executing.
 
 Same parameters and topics as the separate nodes; one params file (``/**`` section shared, one section per node).
 """

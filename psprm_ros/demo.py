@@ -125,8 +125,8 @@ class ClosedLoop:
                  suite: str = "one-process"):
         if suite not in SUITE_SCRIPTS:
             raise ValueError(f"suite must be one of {', '.join(SUITE_SCRIPTS)}, got {suite!r}")
-        self.params_file, self.overrides, self.out, self.prefix, self.domain = params_file, overrides, out, prefix, domain
-        self.suite = suite
+        self.params_file, self.overrides, self.out, self.prefix = params_file, overrides, out, prefix
+        self.domain, self.suite = domain, suite
         self.procs: dict = {}
         self.ex = self.ctx = self.probe = None
 

@@ -362,8 +362,8 @@ def _adapter_on_sim(name: str, robot):
 def test_adapter_drives_sim_robot_through_the_controllers_and_tracks_the_base(name, load_robot):
     """The shipped adapter (forced to the topic interface sim_robot offers) executes a trajectory the test publishes:
     every message on every controller topic obeys that controller's rules, the base measured on /odom stays within
-    0.1 m / 0.1 rad of the published trajectory's path (:func:`path_errors`), the joints end at its last point; a stop then gives a zero twist
-    and a hold at the measured configuration, both accepted."""
+    0.1 m / 0.1 rad of the published trajectory's path (:func:`path_errors`), the joints end at its last point; a
+    stop then gives a zero twist and a hold at the measured configuration, both accepted."""
     robot = load_robot(name)
     with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
         time.sleep(0.3)
