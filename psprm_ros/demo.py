@@ -222,6 +222,7 @@ def main(args=None) -> int:
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
+    from .heap import freeze_long_lived
     from .mocap_replay import Replayer
     from .probe import InProcessSuite
     from .recordings import load_recording
@@ -261,6 +262,7 @@ def main(args=None) -> int:
         if not probe.wait_for(lambda: record.latest() is not None, 30):
             raise RuntimeError("no /joint_states + /odom from the simulated robot")
         replay = Replayer(probe.node, rec, loop=True, on_sample=record.on_sample)
+        freeze_long_lived()  # as the nodes do: no full collection walks the start-up's objects while it measures
         n0 = len(probe.trajectories)
         t_replay = time.perf_counter()
         replay.start()

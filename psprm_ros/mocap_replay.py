@@ -26,6 +26,7 @@ import numpy as np
 from psprm_core.errors import InputError
 
 from . import conversions as cv
+from .heap import freeze_long_lived
 from .recordings import Recording, load_recording
 
 
@@ -164,6 +165,7 @@ def main(args=None) -> int:
             time.sleep(0.05)
         log.info(f"replaying {a.recording}: bodies {rec.bodies}, {rec.duration:.1f} s, "
                  f"{rec.rate_hz(rec.bodies[0]):.0f} Hz, speed x{a.rate}")
+        freeze_long_lived()  # no full collection walks the start-up's objects while it streams at 120 Hz
         rp.start()
         while rp.running and rclpy.ok():
             rp.join(0.2)

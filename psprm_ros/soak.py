@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from . import conversions as cv
+from .heap import freeze_long_lived
 from .probe import claim_domain_id
 from .demo import GOAL_REASONS, SUITE_SCRIPTS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal, rss_mb
 
@@ -233,6 +234,7 @@ def main(args=None) -> int:
         probe.wait_subscribers("/mocap/person_face/pose", timeout=30)
         probe.wait_for(lambda: record.latest() is not None, 30)
         mem = {n: [] for n in procs}
+        freeze_long_lived()  # as the nodes do: no full collection walks the start-up's objects while it streams
         stream = Stream(probe, rec, scene, rng, record, a.walk_every).start()
         goals = [g.name for g in scene.goals]
         cur_goal = 1  # at_cabinet first
