@@ -231,7 +231,8 @@ class Replanner:
             self._target_step_ref[name] = (p.copy(), q.copy())
         if self.scene.target(name).obstacle and self._beyond(p, q, self._target_box_ref[name], s.obstacle_move_m,
                                                               s.obstacle_turn_rad):
-            old_box = self.planner.scene.target(name).as_box()  # where the roadmap last saw it
+            ref = self._target_box_ref[name]  # where the roadmap last saw it (re-checked there)
+            old_box = dataclasses.replace(self.scene.target(name), center=ref[0], quat=ref[1]).as_box()
             self.planner.set_scene(self.scene)
             self.planner.invalidate_near([self.scene.target(name).as_box()], old_boxes=[old_box])
             self._target_box_ref[name] = (p.copy(), q.copy())
@@ -253,9 +254,11 @@ class Replanner:
         if not self._beyond(p, q, self._obstacle_ref[name], self.settings.obstacle_move_m,
                             self.settings.obstacle_turn_rad):
             return False
-        old_box = self.planner.scene.obstacle(name)  # where the roadmap last saw it
-        self.planner.set_scene(self.scene)
         box = self.scene.obstacle(name)
+        ref = self._obstacle_ref[name]  # where the roadmap last saw it (re-checked there; the planner's scene may
+        # have been synced to a later pose below the thresholds by a trigger evaluation since)
+        old_box = dataclasses.replace(box, center=ref[0], quat=ref[1])
+        self.planner.set_scene(self.scene)
         self.planner.invalidate_near([box], old_boxes=[old_box])
         self._obstacle_ref[name] = (p.copy(), q.copy())
         self._moved_obstacles[name] = box
