@@ -365,15 +365,15 @@ def analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wal
             continue
         rx = [tt for tt, _ in trajs if tt <= t + 1e-6]
         e2e = at_client = None
-        if info.get("input_stamp") and rx and not info.get("kept_last") and not info.get("stop") \
-                and info.get("success"):
+        if info.get("input_stamp") and rx and not info.get("kept_last") and not info.get("kept") \
+                and not info.get("stop") and info.get("success"):
             # the suite's latency: the pose message's stamp to the trajectory's publication (the server's clock,
             # the same wall clock); and as this client received it (its own callbacks and the replay add to it)
             if info.get("published_stamp"):
                 e2e = (info["published_stamp"] - info["input_stamp"]) * 1e3
             at_client = (rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3
         rows.append({"t": round(t - t_replay, 2), "reasons": info.get("reasons"), "success": info.get("success"),
-                     "stop": bool(info.get("stop")), "goal_index": info.get("goal_index"),
+                     "stop": bool(info.get("stop")), "kept": bool(info.get("kept")), "goal_index": info.get("goal_index"),
                      "pose_to_trajectory_ms": None if e2e is None else round(e2e, 1),
                      "at_client_ms": None if at_client is None else round(at_client, 1),
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
@@ -383,7 +383,7 @@ def analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wal
     goal_names = [g.name for g in scene.goals]
     say("[demo] plans (t = seconds since the replay started):")
     for r in rows:
-        what = "STOP" if r["stop"] else ("plan" if r["success"] else "FAILED")
+        what = "STOP" if r["stop"] else ("kept" if r["kept"] else "plan" if r["success"] else "FAILED")
         gi = r["goal_index"]
         goal = goal_names[gi] if r["success"] and gi is not None and 0 <= gi < len(goal_names) else "-"
         lat = "" if r["pose_to_trajectory_ms"] is None else f", pose->trajectory {r['pose_to_trajectory_ms']:.0f} ms"
@@ -453,9 +453,10 @@ def analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wal
                 f"{np.mean(oracle0) if oracle0 else float('nan'):.3f}")
         except Exception as exc:  # detectors not installed: report and continue without
             say(f"[demo] oracle evaluation skipped: {exc}")
-    n_ok = sum(1 for r in rows if r["success"] and not r["stop"])
+    n_ok = sum(1 for r in rows if r["success"] and not r["stop"] and not r["kept"])
     summary = {
-        "plans_ok": n_ok, "replans": max(0, n_ok - 1), "stops": sum(r["stop"] for r in rows),
+        "plans_ok": n_ok, "replans": max(0, n_ok - 1), "kept": sum(r["kept"] for r in rows),
+        "stops": sum(r["stop"] for r in rows),
         "failed": sum(1 for r in rows if not r["success"] and not r["stop"]),
         "pose_to_trajectory_ms_median": round(float(np.median(lat)), 1) if len(lat) else None,
         "pose_to_trajectory_ms_p95": round(float(np.percentile(lat, 95)), 1) if len(lat) else None,
@@ -475,7 +476,8 @@ def analyse(a, scene, robot, probe, record, first, t_first, t_replay, t_end, wal
         "first_plan_only_oracle_mean": round(float(np.mean(oracle0)), 4) if oracle0 else None,
         "first_plan_only_views": len(oracle0),
     }
-    say(f"[demo] {n_ok} plans ({summary['replans']} replans), {summary['stops']} stops, {summary['failed']} failed; "
+    say(f"[demo] {n_ok} plans ({summary['replans']} replans), {summary['kept']} replans not adopted (no better than "
+        f"the trajectory under way), {summary['stops']} stops, {summary['failed']} failed; "
         f"pose->trajectory latency median {summary['pose_to_trajectory_ms_median']} ms, p95 "
         f"{summary['pose_to_trajectory_ms_p95']} ms, max {summary['pose_to_trajectory_ms_max']} ms "
         f"({len(lat)} plans triggered by a pose; goal -> trajectory {summary['goal_to_trajectory_ms']} ms); as "

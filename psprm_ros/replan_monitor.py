@@ -123,7 +123,7 @@ class ReplanMonitor:
         self._lock = threading.Lock()
         self.last_seen: dict = {}  # body -> monotonic time of the last good pose
         self.stale: set = set()
-        self.counts = {"forwarded": 0, "refused": 0, "plans": 0, "stops": 0, "failed": 0, "requests": 0,
+        self.counts = {"forwarded": 0, "refused": 0, "plans": 0, "kept": 0, "stops": 0, "failed": 0, "requests": 0,
                        "robot_states": 0}
         self.latencies: list = []
         self.plan_score: Optional[float] = None
@@ -385,6 +385,8 @@ class ReplanMonitor:
         with self._lock:
             if info.get("stop"):
                 self.counts["stops"] += 1
+            elif info.get("kept"):
+                self.counts["kept"] += 1
             elif info.get("success"):
                 self.counts["plans"] += 1
                 self.plan_score = info.get("mean_score")

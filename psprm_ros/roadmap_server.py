@@ -78,7 +78,12 @@ LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
                "goal_commit_s": "keep a chosen goal this long (s) unless no path reaches it",
                "goal_commit_growth": "each goal switch multiplies the next commitment by this (>= 1)",
                "final_approach_m": "no score-triggered replan within this base path length of the goal (m)",
-               "min_interval_s": "at most one score/move-triggered replan per interval (s)"}
+               "min_interval_s": "at most one score/move-triggered replan per interval (s)",
+               "keep_unless_better": "a replan the view alone triggered replaces the trajectory only when it sees more "
+                                     "or is shorter (else the robot keeps driving it)",
+               "keep_score_margin": "normalised mean score along the path a new plan must add to replace the current",
+               "keep_length_margin": "fraction of the remaining path's motion cost a new plan must save to replace "
+                                     "the current"}
 PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
                         "n_nodes": "roadmap nodes", "seed": "roadmap sampling seed",
                         "planner_settings": "PSPRMSettings YAML ('' = config/planners/psprm.yaml)",
@@ -202,7 +207,7 @@ class RoadmapServer:
         self._live: dict = {}  # parameter changes for the worker to apply
         self._transition: Optional[tuple] = None  # (kind, Event, result list) run by the worker
         self.last_latency_ms: Optional[float] = None
-        self.counts = {"plans": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "guard_stops": 0}
+        self.counts = {"plans": 0, "kept": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "guard_stops": 0}
         self.guard = None  # CollisionChecker of the stop guard (its own: the guard runs on the executor thread)
         self._pub_lock = threading.RLock()  # a trajectory and a stop are published one at a time
         self._input_t: dict = {}  # input label -> monotonic receipt time
@@ -626,13 +631,19 @@ class RoadmapServer:
     # ------------------------------------------------------------------------------------------------ planning
     def _plan(self, reasons: list, pend: dict) -> tuple:
         t0 = time.perf_counter()
-        res = self.rp.replan()
+        res = self.rp.replan(triggers=reasons)
         t1 = time.perf_counter()
         info = {"seq": self.seq, "reasons": reasons, "success": bool(res.success), "reason": res.reason,
                 "query_ms": _f(res.query_ms), "mean_score": _f(res.mean_score), "goal_index": int(res.goal_index),
                 "input_stamp": pend["stamp"], "input_age_ms": _f(pend.get("input_age_ms")), **pend.get("timing", {}),
                 "replan_ms": _f((t1 - t0) * 1e3)}
         self.seq += 1
+        if res.kept:  # the new plan saw no more and was no shorter: the robot keeps driving the current trajectory
+            self.counts["kept"] += 1
+            info.update(kept=True, stop=False)
+            self._publish_info(info)
+            self.status(f"plan {info['seq']} ({', '.join(reasons)}): {res.reason}")
+            return True, json.dumps(info)
         traj = res.trajectory if res.success else None
         if res.success and traj is None:  # already at the goal
             self._publish_stop("already at the goal", info)

@@ -350,6 +350,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
     lat = []
     for t, info in infos:
         if info.get("input_stamp") and info.get("success") and not info.get("stop") and not info.get("kept_last") \
+                and not info.get("kept") \
                 and not any(r in GOAL_REASONS for r in info.get("reasons") or []):
             if info.get("published_stamp"):  # the suite's: pose stamp to the trajectory's publication
                 lat.append((info["published_stamp"] - info["input_stamp"]) * 1e3)
@@ -412,7 +413,8 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
     pct = (lambda p: round(float(np.percentile(lat, p)), 1) if len(lat) else None)
     return {
         "duration_s": round(t_end - t0, 1), "trajectories_published": len(trajs),
-        "plans_ok": sum(1 for _, i in infos if i.get("success") and not i.get("stop")),
+        "plans_ok": sum(1 for _, i in infos if i.get("success") and not i.get("stop") and not i.get("kept")),
+        "kept": sum(1 for _, i in infos if i.get("kept")),
         "stops": sum(1 for _, i in infos if i.get("stop")), "failed": sum(1 for _, i in infos if not i.get("success")),
         "refused_unsafe": sum(1 for _, i in infos if "refused" in str(i.get("reason"))),
         "goals_reached": len(reached), "executed_configurations": len(ex), "executed_collisions": int(collided),

@@ -810,3 +810,64 @@ def test_the_replan_history_is_bounded(world, saved_roadmap, monkeypatch):
     assert all(r.success for r in results)
     assert rp.replans == 5 and len(rp.history) == 3
     assert [h["ms"] for h in rp.history] == pytest.approx([r.query_ms for r in results[-3:]])
+
+
+def _judged(robot, scene, scale: float, motion, dense: np.ndarray) -> tuple:
+    """The test's own measure of a path under the scene as the test moved it: (normalised mean score, motion cost).
+    Scores from a geometric scorer built from that scene, on camera poses of the robot model, normalised as c_p in
+    Eq. 1 with the roadmap's scale; motion cost by the differential-drive metric."""
+    q = torch.as_tensor(np.asarray(dense), dtype=torch.float64)
+    cams = robot.camera_poses(q)
+    sc = GeometricScorer(scene, "person_face", robot.config.intrinsics).score(cams).numpy()
+    length = float(motion.distance(q[:-1], q[1:]).sum()) if len(q) > 1 else 0.0
+    return float(np.clip(sc * scale, 0.0, 1.0).mean()), length
+
+
+@pytest.mark.parametrize("length_margin", [0.1, 1.0])  # 1.0: only the view can make a new plan better
+def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more_or_is_shorter(replanner, world,
+                                                                                               length_margin):
+    """The person turns step by step while the robot advances along its path. After each step a replan triggered by
+    the target's move either keeps the current plan (the robot's plan object unchanged, no new trajectory) or adopts
+    the new one. Judged by the test's own measure (:func:`_judged`, under the scene as the test turned it): a plan
+    turned down is no better than the remaining path by either margin and goes to the same goal, an adopted one is
+    better by one of them or goes to another goal. Both happen. A collision trigger is never turned down."""
+    scene, robot = world
+    rp = replanner
+    s = rp.update_settings(keep_length_margin=length_margin)
+    p = rp.planner
+    tol = 0.02  # the trigger scores at most score_samples configurations of the remaining path, the test all of them
+    motion, scale = p.motion, p.score_scale
+    outcomes = []
+    current_scene = scene
+    for k, yaw in enumerate(np.linspace(2.8, -2.4, 14)):
+        plan = rp.result
+        # the robot advances a little along its path
+        rp.set_robot_state(plan.dense[min(len(plan.dense) - 1, rp._progress + max(1, len(plan.dense) // 12))])
+        rem = rp.remaining().copy()
+        pp = person_pose(scene, PersonMotion(target="person_face", body="person_body"), float(yaw))
+        current_scene = current_scene.with_target_pose("person_face", *pp["target"])
+        rp.update_target("person_face", *pp["target"])
+        res = rp.replan(now=100.0 * k, triggers=["target_moved"])
+        assert res.success, res.reason
+        rem_score, rem_len = _judged(robot, current_scene, scale, motion, rem)
+        if res.kept:
+            assert rp.result is plan and res.trajectory is None and res.dense is None
+            new = res.declined
+            assert np.abs(new.dense[-1] - plan.dense[-1]).max() < 1e-6  # the same goal
+            new_score, new_len = _judged(robot, current_scene, scale, motion, new.dense)
+            assert new_score <= rem_score + s.keep_score_margin + tol, (new_score, rem_score)
+            assert new_len >= (1.0 - s.keep_length_margin) * rem_len - 1e-6, (new_len, rem_len)
+            outcomes.append("kept")
+        else:
+            assert rp.result is res and res.trajectory is not None
+            new_score, new_len = _judged(robot, current_scene, scale, motion, res.dense)
+            other_goal = np.abs(res.dense[-1] - plan.dense[-1]).max() > 1e-6
+            assert other_goal or new_score > rem_score + s.keep_score_margin - tol \
+                or new_len < (1.0 - s.keep_length_margin) * rem_len + 1e-6, (new_score, rem_score, new_len, rem_len)
+            outcomes.append("adopted")
+    assert "kept" in outcomes and "adopted" in outcomes, outcomes
+    # a collision trigger: the replan is adopted even when it is no better for the view
+    face = rp.scene.target("person_face")
+    rp.update_target("person_face", face.center + np.array([0.06, 0.0, 0.0]), face.quat)
+    res = rp.replan(now=1e4, triggers=["collision"])
+    assert res.success and not res.kept and rp.result is res

@@ -304,6 +304,7 @@ def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracl
     traj, traj_t0 = (res.trajectory, 0.0) if res.success else (None, 0.0)
     executed, frames_t, frames_q, frames_scene = [q.copy()], [], [], []
     collisions, n_plans, failures, latencies, reasons_log = 0, 1 if res.success else 0, 0 if res.success else 1, [res.query_ms], []
+    kept = 0  # replans whose new plan was no better: the robot kept its trajectory
     next_frame = 0.0
     reached = False
     checker = planner.checker
@@ -336,11 +337,13 @@ def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracl
         if replanning:
             why = rp.needs_replan(now=t)
             if why:
-                r = rp.replan(now=t)
+                r = rp.replan(now=t, triggers=why)
                 latencies.append(r.query_ms)
                 reasons_log.append({"t": t, "reasons": why, "success": r.success, "reason": r.reason,
-                                    "ms": r.query_ms})
-                if r.success:
+                                    "ms": r.query_ms, "kept": r.kept})
+                if r.kept:
+                    kept += 1
+                elif r.success:
                     traj, traj_t0 = r.trajectory, t
                     n_plans += 1
                 else:
@@ -352,8 +355,8 @@ def run_episode(scenario: Scenario, replanning: bool = True, planner=None, oracl
         if progress is not None:
             progress(t)
     out = {"executed": np.asarray(executed), "frames_t": np.asarray(frames_t), "frames_q": np.asarray(frames_q),
-           "frames_scene": frames_scene, "n_plans": n_plans, "failed_replans": failures, "latencies_ms": latencies,
-           "replans": reasons_log, "reached_goal": reached, "collision_steps": collisions, "sim_time_s": t,
+           "frames_scene": frames_scene, "n_plans": n_plans, "kept_replans": kept, "failed_replans": failures,
+           "latencies_ms": latencies, "replans": reasons_log, "reached_goal": reached, "collision_steps": collisions, "sim_time_s": t,
            "scene": scene, "robot": robot, "planner": planner, "replanner": rp}
     if oracle is not None:
         judge_frames(out, oracle, scenario.target)
@@ -387,7 +390,8 @@ def summarize(ep: dict) -> dict:
     length = float(motion.distance(torch.as_tensor(ex[:-1]), torch.as_tensor(ex[1:])).sum()) if len(ex) > 1 else 0.0
     lat = np.asarray(ep["latencies_ms"][1:] if len(ep["latencies_ms"]) > 1 else [], dtype=float)
     out = {
-        "n_plans": int(ep["n_plans"]), "failed_replans": int(ep["failed_replans"]),
+        "n_plans": int(ep["n_plans"]), "kept_replans": int(ep.get("kept_replans", 0)),
+        "failed_replans": int(ep["failed_replans"]),
         "det_rate": float(ep["detected"].mean()) if "detected" in ep and len(ep["detected"]) else float("nan"),
         "mean_confidence": float(ep["confidence"].mean()) if "confidence" in ep and len(ep["confidence"]) else float("nan"),
         "path_length_rad": length, "reached_goal": bool(ep["reached_goal"]), "time_s": float(ep["sim_time_s"]),

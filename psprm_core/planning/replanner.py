@@ -19,6 +19,13 @@ Triggers (:meth:`Replanner.needs_replan`): the remaining path collides with the 
 mean perception score along the remaining path is below ``score_min`` or has dropped by more than ``score_drop``
 since the plan; the target or an obstacle moved beyond its threshold; the goal changed. Every returned path is
 checked densely against the latest obstacle poses before it is handed out.
+
+A replan that only the view triggered (:data:`VIEW_TRIGGERS`) replaces the current plan only when it is better for
+the robot: it sees more along its path (``keep_score_margin``, normalised as c_p in Eq. 1) or it is shorter
+(``keep_length_margin`` of the remaining path's motion cost), or it leads to another goal (which the goal hysteresis
+allowed). Otherwise the robot keeps driving its trajectory (:attr:`PlanResult.kept`): a new trajectory starts from
+rest, and a person turning away every few seconds would otherwise restart the robot every second towards views
+that are gone before it gets there.
 """
 
 from __future__ import annotations
@@ -44,6 +51,8 @@ log = logging.getLogger(__name__)
 
 
 HEURISTICS = ("exact", "hop", "planner")
+#: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
+VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
 HISTORY = 1000  # replans kept in Replanner.history (a long-running node must not keep them all)
 
 
@@ -71,6 +80,10 @@ class ReplanSettings:
     goal_commit_growth: float = 2.0  # each switch between the candidate goals multiplies the next commitment by this
     # (1: constant); a new goal set starts again at goal_commit_s. Bounds the switching: a person who keeps turning
     # cannot keep the robot away from both goals
+    keep_unless_better: bool = True  # a replan triggered by the view alone (VIEW_TRIGGERS) is adopted only when it
+    # sees more (keep_score_margin) or is shorter (keep_length_margin) than the remaining path, or goes to another goal
+    keep_score_margin: float = 0.05  # normalised mean score along the path (c_p, Eq. 1) a new plan must add
+    keep_length_margin: float = 0.1  # fraction of the remaining path's motion cost a new plan must save
     min_interval_s: float = 1.0  # at most one replan per interval, except when the path collides or the goal changed
     score_samples: int = 200  # configurations of the remaining path scored for the score trigger
     repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
@@ -354,15 +367,18 @@ class Replanner:
             if np.linalg.norm(focus - p.constraint.target.numpy()) > self.settings.focus_move_m:
                 p.set_focus(focus)
 
-    def replan(self, now: Optional[float] = None) -> PlanResult:
+    def replan(self, now: Optional[float] = None, triggers: Sequence[str] = ()) -> PlanResult:
         """Plan from the robot's state to the best goal under the latest poses (never a colliding path).
-        ``now``: the caller's clock for the replanning interval (default: monotonic). Runs with torch's intra-op
+        ``now``: the caller's clock for the replanning interval (default: monotonic). ``triggers``: why the caller
+        replans (the reasons of :meth:`needs_replan`); when they are all :data:`VIEW_TRIGGERS` and
+        ``keep_unless_better`` is on, a new plan no better than the current one is not adopted (the result has
+        ``kept`` set, no trajectory, and the new plan as ``declined``; the module's docstring). Runs with torch's intra-op
         parallelism off, like a query (:func:`~psprm_core.fastpath.one_thread`): its re-scoring batches are a few
         thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
         with fastpath.one_thread(self.planner.device):
-            return self._replan(now)
+            return self._replan(now, tuple(triggers))
 
-    def _replan(self, now: Optional[float]) -> PlanResult:
+    def _replan(self, now: Optional[float], triggers: tuple = ()) -> PlanResult:
         t0 = time.perf_counter()
         self._last_plan_time = time.monotonic() if now is None else now
         reasons = sorted(self._pending) if self.result is not None else ["no_plan"]
@@ -402,13 +418,24 @@ class Replanner:
         plan_score = None
         if res.success:  # the plan's score feeds the hysteresis: scored inside the measured replan
             plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
+        kept = self._keep_current(res, plan_score, triggers) if res.success else None
         ms = (time.perf_counter() - t0) * 1e3
+        if kept is not None:
+            why, current_score = kept
+            res = PlanResult(True, why, goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                             declined=res)
+            self._plan_score = current_score  # the current plan, valued under the latest poses
+            self._pending.clear()
+            self._moved_obstacles.clear()
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
-                             "repair_rounds": rounds, **{k: v for k, v in info.items() if k == "rescore"}})
+                             "repair_rounds": rounds, "kept": res.kept,
+                             **{k: v for k, v in info.items() if k == "rescore"}})
         self.replans += 1
         self._last_failed = not res.success
-        if res.success:
+        if res.kept:
+            log.info("%s", res.reason)
+        elif res.success:
             self.result, self._progress = res, 0
             new_goal = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
             old_goal = self._goal_cfg
@@ -426,6 +453,29 @@ class Replanner:
             if self.result is not None and self.remaining_path_collides():
                 self.result = None  # the old plan is no longer safe: the caller must stop
         return res
+
+    def _keep_current(self, res: PlanResult, plan_score: float, triggers: tuple) -> Optional[tuple]:
+        """(why, the remaining path's normalised score) when the new plan ``res`` should not replace the current one
+        (the module's docstring), else None."""
+        s = self.settings
+        if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) or "goal_changed" in self._pending:
+            return None
+        rem = self.remaining()
+        if self.result is None or rem is None or len(rem) < 2 or res.dense is None or self._goal_cfg is None:
+            return None
+        if not 0 <= res.goal_index < len(self.goals) or self.goals[res.goal_index].shape != self._goal_cfg.shape \
+                or np.abs(self.goals[res.goal_index] - self._goal_cfg).max() >= 1e-6:
+            return None  # another goal: the goal hysteresis has decided
+        if self.remaining_path_collides():
+            return None
+        current = self.path_score(normalized=True)
+        motion = self.planner.motion
+        rem_len, new_len = (float(motion.distance(q[:-1], q[1:]).sum()) if len(q) > 1 else 0.0
+                            for q in (torch.as_tensor(np.asarray(d), dtype=torch.float64) for d in (rem, res.dense)))
+        if plan_score > current + s.keep_score_margin or new_len < (1.0 - s.keep_length_margin) * rem_len:
+            return None
+        return (f"kept the current plan: the new one sees {plan_score:.3f} along {new_len:.2f} against the remaining "
+                f"path's {current:.3f} along {rem_len:.2f}", current)
 
     def _committed_goal(self, now: float) -> Optional[np.ndarray]:
         """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s`` times
@@ -469,5 +519,7 @@ class Replanner:
         return np.where(same, 0.0, self.settings.goal_switch_margin * max(self.result.cost, 0.0))
 
     def step(self) -> Optional[PlanResult]:
-        """Replan when a trigger fires; returns the new result or None when the current plan is kept."""
-        return self.replan() if self.needs_replan() else None
+        """Replan when a trigger fires; returns the replan's result (``kept`` when the current plan stays) or None
+        when nothing triggered."""
+        why = self.needs_replan()
+        return self.replan(triggers=why) if why else None

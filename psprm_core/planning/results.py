@@ -31,6 +31,8 @@ class PlanResult:
     goal_index: int = -1
     route: str = ""  # with route selection: the search whose route this is ("motion@1", ...)
     route_candidates: dict = field(default_factory=dict, repr=False)  # search -> (route perception, path length)
+    kept: bool = False  # a replanner kept its current plan: the new one was no better (no path, no trajectory here)
+    declined: Optional["PlanResult"] = field(default=None, repr=False, compare=False)  # with ``kept``: that new plan
     score_fn: Optional[Callable[[np.ndarray], np.ndarray]] = field(default=None, repr=False, compare=False)
     _dense_scores: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
 
