@@ -372,9 +372,9 @@ class Replanner:
         ``now``: the caller's clock for the replanning interval (default: monotonic). ``triggers``: why the caller
         replans (the reasons of :meth:`needs_replan`); when they are all :data:`VIEW_TRIGGERS` and
         ``keep_unless_better`` is on, a new plan no better than the current one is not adopted (the result has
-        ``kept`` set, no trajectory, and the new plan as ``declined``; the module's docstring). Runs with torch's intra-op
-        parallelism off, like a query (:func:`~psprm_core.fastpath.one_thread`): its re-scoring batches are a few
-        thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
+        ``kept`` set, no trajectory, and the new plan as ``declined``; the module's docstring). Runs with torch's
+        intra-op parallelism off, like a query (:func:`~psprm_core.fastpath.one_thread`): its re-scoring batches are a
+        few thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
         with fastpath.one_thread(self.planner.device):
             return self._replan(now, tuple(triggers))
 
@@ -458,7 +458,8 @@ class Replanner:
         """(why, the remaining path's normalised score) when the new plan ``res`` should not replace the current one
         (the module's docstring), else None."""
         s = self.settings
-        if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) or "goal_changed" in self._pending:
+        if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) \
+                or "goal_changed" in self._pending:
             return None
         rem = self.remaining()
         if self.result is None or rem is None or len(rem) < 2 or res.dense is None or self._goal_cfg is None:
