@@ -446,3 +446,43 @@ def publish_diagnostics(pub, node, statuses: list) -> None:
         pub.publish(a)
     except Exception:  # shutting down
         pass
+
+
+# ---------------------------------------------------------------------------------------------------------- watchdogs
+class StallGrace:
+    """Keeps a periodic watchdog from blaming its inputs for a stall of its own process.
+
+    When a watchdog step runs late (more than ``late_periods`` periods after the previous one: a collection, another
+    thread holding the interpreter, the process not scheduled), the messages that arrived meanwhile may still wait in
+    the node's queue, so an input that looks stale may only be queued. :meth:`forgive` then puts the verdict off by
+    one step; a stale verdict at the next step stands (forgiven once per stall, never twice in a row)::
+
+        late = grace.step()                    # at every watchdog step
+        if stale and grace.forgive(late):      # decide at the next step
+            return
+        ...
+        grace.clear()                          # when the inputs are fresh
+    """
+
+    def __init__(self, period_s: float, late_periods: float = 3.0):
+        self.period_s, self.late_periods = float(period_s), float(late_periods)
+        self._last = -1.0  # monotonic time of the previous step
+        self._used = False  # a stale verdict was put off and no fresh step followed yet
+
+    def step(self, now: Optional[float] = None) -> bool:
+        """Record a watchdog step; True when it runs late."""
+        now = time.monotonic() if now is None else now
+        late = self._last > 0 and now - self._last > self.late_periods * self.period_s
+        self._last = now
+        return late
+
+    def forgive(self, late: bool) -> bool:
+        """True when a stale verdict of this (``late``) step is to be put off."""
+        if late and not self._used:
+            self._used = True
+            return True
+        return False
+
+    def clear(self) -> None:
+        """The inputs were fresh at this step: a later stall is forgiven again."""
+        self._used = False

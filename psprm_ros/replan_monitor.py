@@ -164,6 +164,7 @@ class ReplanMonitor:
         srv_cb = MutuallyExclusiveCallbackGroup()
         self.cli_plan = node.create_client(Trigger, f"/{core.SERVER_NAME}/plan", callback_group=srv_cb)
         self.cli_stop = node.create_client(Trigger, f"/{core.SERVER_NAME}/stop", callback_group=srv_cb)
+        self._grace = core.StallGrace(1.0 / max(0.5, self.p["check_rate_hz"]))
         node.create_timer(1.0 / max(0.5, self.p["check_rate_hz"]), self._check,
                           callback_group=MutuallyExclusiveCallbackGroup())
         node.create_timer(1.0, self._report, callback_group=MutuallyExclusiveCallbackGroup())
@@ -426,17 +427,24 @@ class ReplanMonitor:
 
     def _check(self) -> None:
         now = time.monotonic()
+        late = self._grace.step(now)
         with self._lock:
             seen = dict(self.last_seen)
             plan_score, path_score = self.plan_score, self.path_score
-        newly = []
+        newly = [key for key, t in seen.items()
+                 if now - t > self.p["stale_timeout_s"] and f"{key[0]} {key[1]}" not in self.stale]
+        if not newly:
+            self._grace.clear()
+        elif self._grace.forgive(late):
+            # this check runs late (the process stalled): the poses that arrived meanwhile may still wait in the
+            # queue; a body silent again at the next check is stale
+            newly = []
+        self.stale.update(f"{k[0]} {k[1]}" for k in newly)
         for key, t in seen.items():
             label = f"{key[0]} {key[1]}"
             if now - t > self.p["stale_timeout_s"]:
-                if label not in self.stale:
-                    self.stale.add(label)
-                    newly.append(key)
-            elif label in self.stale:
+                continue
+            if label in self.stale:
                 self.stale.discard(label)
                 self.status(f"{label} is live again")
                 if key[0] == "obstacle" and self.p["stop_on_stale_obstacle"]:

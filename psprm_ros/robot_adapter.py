@@ -91,8 +91,7 @@ class RobotAdapter:
         self._pending: dict = {}  # controller -> (t, P, V, start_at) waiting for its goal interval
         self._twist_pub = None
         self._zero_sent = 0
-        self._tick_mono = -1.0  # monotonic time of the last follower step
-        self._stall_grace = False  # one late step after a stall of this process was forgiven
+        self._grace: Optional[core.StallGrace] = None  # the follower step's stall grace (made at configure)
         self._last_replan_request = -1e9
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0,
                        "goals_deferred": 0, "twists": 0}
@@ -163,6 +162,7 @@ class RobotAdapter:
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
 
         # the follower runs on its own callback group: a burst of state messages never delays a control step
+        self._grace = core.StallGrace(1.0 / b.rate_hz)
         self._timer = self.node.create_timer(1.0 / b.rate_hz, self._tick,
                                              callback_group=MutuallyExclusiveCallbackGroup())
         self.status(f"configured: adapter {cfg.robot} ({len(cfg.controllers)} controllers: "
@@ -427,22 +427,18 @@ class RobotAdapter:
         if self.follower is None:
             return
         following = not self.follower.done
-        mono = time.monotonic()
-        late = self._tick_mono > 0 and mono - self._tick_mono > 3.0 / self.cfg.base.rate_hz
-        self._tick_mono = mono
+        late = self._grace.step()
         q, why = self.measured()
         if q is None:
             self.last_state_problem = why
-            if following and late and not self._stall_grace:
-                # this step itself comes late: the process was stalled (a collection, another thread holding the
-                # interpreter), so the state messages that arrived meanwhile may still wait in this node's queue.
-                # Decide at the next step, after they are taken; a second stale step in a row stops.
-                self._stall_grace = True
+            # a late step (this process stalled) may find the state messages still queued: decide at the next step,
+            # after they are taken; a second stale step in a row stops
+            if following and self._grace.forgive(late):
                 return
             if following:
                 self.stop(why)
             return
-        self._stall_grace = False
+        self._grace.clear()
         self.last_state_problem = ""
         with self._lock:
             v, w = self.follower.command(now, q[:3])

@@ -26,6 +26,7 @@ if str(ROOT) not in sys.path:
 pytest.importorskip("rclpy")
 
 from psprm_ros.probe import claim_domain_id  # noqa: E402
+from stalls import freeze_this_process  # noqa: E402
 
 from psprm_core.planning.timing import time_parameterize  # noqa: E402
 from psprm_ros import adapters as ad  # noqa: E402
@@ -86,6 +87,24 @@ def planned_trajectory(robot, q0, turn=math.pi / 2, drive=1.0, joint_delta=0.25)
 
 
 # ---------------------------------------------------------------------------------------------------------- pure
+def test_stall_grace_puts_off_one_stale_verdict_per_stall():
+    """Steps 0.1 s apart at a 0.1 s period are on time; a step 0.5 s after the previous one is late and its stale
+    verdict is put off once; a second late stale step in a row is not forgiven; after a fresh step the next stall is
+    forgiven again."""
+    from psprm_ros.core import StallGrace
+
+    g = StallGrace(0.1)
+    assert [g.step(t) for t in (1.0, 1.1, 1.2)] == [False, False, False]
+    assert not g.forgive(False)  # stale on time: stands
+    late = g.step(1.7)
+    assert late and g.forgive(late)
+    late = g.step(2.2)
+    assert late and not g.forgive(late)  # stale again at the next step: stands
+    g.clear()
+    late = g.step(2.7)
+    assert late and g.forgive(late)
+
+
 @pytest.mark.parametrize("name", sorted(EXPECTED))
 def test_shipped_adapter_owns_every_joint_once_under_the_drivers_names(name, load_robot):
     robot = load_robot(name)
@@ -424,24 +443,9 @@ def test_adapter_drives_sim_robot_through_the_controllers_and_tracks_the_base(na
         assert zero and zero[0].linear.x == 0.0 and zero[0].angular.z == 0.0
 
 
-def _hold_interpreter(seconds: float) -> float:
-    """Keep this process's interpreter lock for at least about ``seconds`` (one builtin call that never lets another
-    thread run: a stall as a long collection or a compilation makes it). Its length comes from the fastest of a few
-    timed runs, so a calibration slowed by the loaded machine makes the hold longer, never shorter. Returns how long
-    it took."""
-    per = float("inf")
-    for _ in range(5):
-        t0 = time.perf_counter()
-        sum(range(10**6))
-        per = min(per, max(time.perf_counter() - t0, 1e-4) / 10**6)
-    t0 = time.perf_counter()
-    sum(range(int(1.2 * seconds / per)))
-    return time.perf_counter() - t0
-
-
 def test_adapter_forgives_its_own_stall_but_stops_when_the_base_pose_goes_stale(load_robot):
-    """A stall of the adapter's own process (the interpreter held for longer than ``state_timeout_s``) leaves the
-    robot's /odom waiting in the adapter's queue: the base keeps following the trajectory and no zero twist goes out.
+    """A stall of the adapter's own process (every thread of it stopped for longer than ``state_timeout_s``, as a
+    machine that does not schedule it does) leaves the robot's /odom waiting in the adapter's queue: the base keeps following the trajectory and no zero twist goes out.
     A robot whose /odom really stops (its process frozen) is stopped with a zero twist within ``state_timeout_s``
     and two control periods of its last /odom. Judged from the test's own record of /odom and cmd_vel."""
     import os
@@ -463,7 +467,7 @@ def test_adapter_forgives_its_own_stall_but_stops_when_the_base_pose_goes_stale(
                 return rec.odom and np.hypot(*(rec.odom[-1][1][:2] - q0[:2])) > 0.15
         assert _wait(base_moved, 20), s.probe.statuses[-5:]
         n_tw = len(rec.twists)
-        held = _hold_interpreter(timeout + 0.3)
+        held = freeze_this_process(timeout + 0.3)
         assert held > timeout
         with rec.lock:
             x_after = rec.odom[-1][1][:2].copy()

@@ -307,6 +307,69 @@ def test_stale_obstacle_stops_the_robot(load_robot):
         state.stop()
 
 
+def test_the_monitor_forgives_its_own_stall_but_stops_when_the_obstacle_stream_stops(load_robot):
+    """The person's body streamed at 120 Hz by ``mocap_replay`` in its own process (as a mocap system is: it does not
+    wait for this one). A stall of the monitor's own process (every thread of it stopped for longer than
+    ``stale_timeout_s``) leaves the body's poses waiting in its queue: no stale warning, no stop. When the stream
+    really stops (the replay's process frozen), the server publishes a stop within ``stale_timeout_s`` and a few
+    watchdog periods of the last pose. Judged from the test's own record of the stream and of the trajectories."""
+    import os
+    import signal
+    import subprocess
+
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import qos_profile_sensor_data
+    from stalls import freeze_this_process
+
+    from psprm_core.paths import config_dir
+
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    stale = 0.4
+    params = dict(PARAMS, stale_timeout_s=stale, publish_markers=False)
+    domain = claim_domain_id()
+    with InProcessSuite(params, domain_id=domain, nodes=("server", "monitor")) as s:
+        assert s.server.ready.wait(180)
+        robot = load_robot("stretch2")
+        state = s.probe.hold_robot_state(start_configuration(robot, scene), robot.joint_names)
+        seen = []  # the test's own record of the stream: receipt times
+        s.probe.node.create_subscription(PoseStamped, "/mocap/person_body/pose",
+                                         lambda m: seen.append(time.perf_counter()), qos_profile_sensor_data)
+        root = str(Path(__file__).resolve().parents[1])
+        env = dict(os.environ, ROS_DOMAIN_ID=str(domain), PYTHONUNBUFFERED="1",
+                   PYTHONPATH=f"{root}{os.pathsep}{os.environ.get('PYTHONPATH', '')}")
+        replay = subprocess.Popen([sys.executable, "-m", "psprm_ros.mocap_replay",
+                                   str(config_dir() / "recordings" / "person_turning.csv"), "--loop", "--bodies",
+                                   "person_body", "--wait-subscribers", "20"], env=env, stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.DEVNULL, start_new_session=True)
+        try:
+            assert s.probe.wait_for(lambda: len(seen) > 120, 30), "no stream from mocap_replay"
+            n0 = len(s.probe.trajectories)
+            s.probe.publish_regions(["at_cabinet"])
+            assert next_plan(s, n0) is not None
+            time.sleep(1.0)
+            t_stall = time.perf_counter()
+            assert freeze_this_process(stale + 0.4) > stale
+            time.sleep(1.0)
+            assert not [x for x in s.probe.statuses if x[0] >= t_stall and "person_body stale" in x[2]], \
+                "the monitor called the body stale after its own stall"
+            assert not [m for t, m in s.probe.trajectories if t >= t_stall and len(m.points) == 1], "stopped"
+            # the stream stops for real
+            os.killpg(replay.pid, signal.SIGSTOP)
+            try:
+                time.sleep(stale + 1.5)
+                last = seen[-1]
+                stops = [t for t, m in s.probe.trajectories if t > last and len(m.points) == 1]
+            finally:
+                os.killpg(replay.pid, signal.SIGCONT)
+            assert stops, "no stop after the obstacle's stream stopped"
+            period = 1.0 / s.monitor.p["check_rate_hz"]
+            assert stops[0] - last <= stale + 3 * period + 0.3, stops[0] - last
+        finally:
+            state.stop()
+            os.killpg(replay.pid, signal.SIGTERM)
+            replay.wait(15)
+
+
 def test_server_keeps_the_last_safe_trajectory_when_a_goal_cannot_be_reached(suite, world):
     """Goal candidates straight to the server (past the monitor's collision filter), all inside the shelf: the
     planner fails, the server warns and keeps the last trajectory, which is still collision-free."""
