@@ -33,6 +33,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -322,6 +323,31 @@ CLOSING_WINDOW_S = 0.25  # the motion before a collision over which the closing 
 CLOSING_MPS = 0.02  # a robot closing in faster than this counts the collision as the robot's (else the person's)
 
 
+def _followed(t: float, q: np.ndarray, trajs: list, names: list, checker) -> Optional[dict]:
+    """The trajectory the robot was following at ``t`` (the last one received before it) and how far the executed
+    configuration ``q`` is from its path: the base distance to the nearest of its points, that point's heading and
+    joint differences, whether that point itself collides with the boxes ``checker`` holds now, and how many of the
+    trajectory's points do. Tells a collision of the plan from one of the tracking. None before any trajectory."""
+    import torch
+
+    prev = [(tt, m) for tt, m in trajs if tt <= t]
+    if not prev:
+        return None
+    t_m, m = prev[-1]
+    try:
+        idx = [list(m.joint_names).index(n) for n in names]
+    except ValueError:
+        return {"received_s_before": round(t - t_m, 2), "joint_names": list(m.joint_names)}
+    P = np.array([np.asarray(p.positions, float)[idx] for p in m.points])
+    i = int(np.argmin(np.hypot(P[:, 0] - q[0], P[:, 1] - q[1])))
+    bad = checker.check(torch.as_tensor(P, dtype=torch.float32)).cpu().numpy()
+    return {"received_s_before": round(t - t_m, 2), "points": len(P),
+            "base_off_m": round(float(np.hypot(*(P[i, :2] - q[:2]))), 3),
+            "heading_off_rad": round(abs(float((q[2] - P[i, 2] + np.pi) % (2 * np.pi) - np.pi)), 3),
+            "joints_off_max": round(float(np.abs(P[i, 3:] - q[3:]).max()), 3) if P.shape[1] > 3 else 0.0,
+            "nearest_point_collides": bool(bad[i]), "points_in_collision": int(bad.sum())}
+
+
 def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp: list, body_t: np.ndarray) -> tuple:
     """(robot, person) closing speeds (m/s) at an executed configuration ``q`` at time ``t`` in collision with the
     person: how fast the robot's base motion alone, and the person's walk alone, shrank the distance between the base
@@ -397,7 +423,9 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
                            "boxes": hit_boxes,
                            # m/s by which the robot's motion / the person's walk shrank their distance over the last
                            # CLOSING_WINDOW_S
-                           "closing_mps": None if closing is None else [round(float(c), 3) for c in closing]})
+                           "closing_mps": None if closing is None else [round(float(c), 3) for c in closing],
+                           # the trajectory the robot was following, and how far off it the robot was
+                           "followed": _followed(t, q, trajs, list(robot.joint_names), checker)})
     growth = {}
     for n, m in mem.items():
         v = [x for _, x in m if np.isfinite(x)]

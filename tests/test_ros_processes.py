@@ -229,6 +229,50 @@ def test_soak_tells_who_closed_the_gap_at_a_collision():
     assert abs(r) < 1e-9 and abs(p - 0.5) < 0.03
 
 
+def test_soak_reports_how_far_off_its_trajectory_a_colliding_robot_was(load_robot):
+    """For a collision the soak names the trajectory the robot was following and how far off it the robot was.
+    Made here: a straight base path past a box, a trajectory received 1 s before; a robot 0.12 m and 0.2 rad off
+    its nearest point, then the same path moved onto the box."""
+    from psprm_core.collision import CollisionChecker
+    from psprm_core.scene import Box
+    from psprm_ros import conversions as cv
+    from psprm_ros.soak import _followed
+
+    robot = load_robot("stretch2")
+    names = list(robot.joint_names)
+    q0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 3.0, -1.12, 0.17])  # lift up, arm and wrist stowed, head turned
+    P = np.repeat(q0[None], 11, 0)
+    P[:, 0] = np.linspace(0.0, 2.0, 11)  # drives +x along y = 0
+    box = Box(name="crate", center=np.array([1.0, 1.5, 0.4]), size=np.array([0.4, 0.4, 0.8]),
+              quat=np.array([0.0, 0.0, 0.0, 1.0]))
+    checker = CollisionChecker(robot, [box])
+
+    def msg_of(path):
+        from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+        m = JointTrajectory()
+        m.joint_names = names[::-1]  # any order: matched by name
+        for k, p in enumerate(path):
+            pt = JointTrajectoryPoint()
+            pt.positions = [float(v) for v in p[::-1]]
+            pt.time_from_start = cv.duration_msg(0.5 * k)
+            m.points.append(pt)
+        return m
+
+    q = P[5].copy()
+    q[1] += 0.12
+    q[2] += 0.2
+    f = _followed(10.0, q, [(8.0, msg_of(P[::-1])), (9.0, msg_of(P))], names, checker)
+    assert f["received_s_before"] == 1.0 and f["points"] == 11
+    assert abs(f["base_off_m"] - 0.12) < 1e-3 and abs(f["heading_off_rad"] - 0.2) < 1e-3 and f["joints_off_max"] == 0
+    assert not f["nearest_point_collides"] and f["points_in_collision"] == 0
+    onto = P.copy()
+    onto[:, 1] = 1.5  # through the crate
+    f = _followed(10.0, onto[5], [(9.5, msg_of(onto))], names, checker)
+    assert f["nearest_point_collides"] and f["points_in_collision"] > 0
+    assert _followed(10.0, q, [(11.0, msg_of(P))], names, checker) is None  # nothing received before
+
+
 def test_soak_walk_yields_to_the_robot_then_walks_on():
     """The soak's person walks at 0.5 m/s, never steps within 1 m of the robot's base (closer to it) for up to 20 s
     of waiting, then walks on; judged from the positions stepped here."""
