@@ -176,6 +176,7 @@ class Replanner:
         self.history: deque = deque(maxlen=HISTORY)  # the latest replans: reasons, timings, success
         self.replans = 0  # replans so far
         self._collides_cache: Optional[tuple] = None  # (result, progress, planner scene, remaining path collides)
+        self._score_cache: Optional[tuple] = None  # ((result, progress, planner scene, normalized), path score)
 
     def update_settings(self, settings: Optional[ReplanSettings] = None, **changes) -> ReplanSettings:
         """Adopt new settings (``settings``, else the current ones with ``changes``; validated as they are built) and
@@ -305,15 +306,23 @@ class Replanner:
 
     def path_score(self, normalized: bool = False) -> float:
         """Predicted mean perception score along the remaining path under the latest target/obstacle poses
-        (``normalized``: divided by the roadmap's 99th-percentile node score and clipped to [0, 1], as c_p in Eq. 1)."""
+        (``normalized``: divided by the roadmap's 99th-percentile node score and clipped to [0, 1], as c_p in Eq. 1).
+        Cached per (plan, progress, planner scene): the trigger evaluation and the keep decision of the replan that
+        follows it in the same cycle score the path once."""
         rem = self.remaining()
         if rem is None or len(rem) == 0:
             return float("nan")
-        step = max(1, len(rem) // max(1, self.settings.score_samples))
         self._sync_scene()
+        key = (self.result, self._progress, self.planner.scene, normalized)
+        c = self._score_cache
+        if c is not None and all(a is b for a, b in zip(c[0][:3], key[:3])) and c[0][3] == normalized:
+            return c[1]
+        step = max(1, len(rem) // max(1, self.settings.score_samples))
         q = torch.as_tensor(rem[::step], dtype=torch.float32)
         sc = self.planner.score_configs(q)
-        return float((self.planner.normalized_scores(sc) if normalized else sc).mean())
+        out = float((self.planner.normalized_scores(sc) if normalized else sc).mean())
+        self._score_cache = (key, out)
+        return out
 
     def _remaining_base_length(self) -> float:
         """Length (m) of the base's path still ahead (inf for a robot without a mobile base)."""
