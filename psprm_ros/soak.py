@@ -363,6 +363,106 @@ def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp
     return (d0 - np.linalg.norm(r1 - p0)) / dt, (d0 - np.linalg.norm(r0 - p1)) / dt
 
 
+def tracking_report(ex: list, trajs: list, names: list, checker, static_boxes: list) -> dict:
+    """How closely the robot executed the trajectories it was sent, judged from the record alone: for every executed
+    configuration, the trajectory it was following (the last one with more than one point received before it) and
+    the base's distance to that trajectory's base path (point to segment), the heading and joint differences there;
+    percentiles of each. Then the executed configurations inside the collision padding of the static boxes
+    (``checker`` pads them), split by whether the nearest point of the followed trajectory is inside it too (the plan
+    itself came that close, e.g. from a start inside the padding) or clear of it (the tracking error carried the
+    robot in)."""
+    import torch
+
+    if not ex or not trajs:
+        return {}
+    t_tr = np.array([t for t, _ in trajs])
+    paths = []
+    for _, m in trajs:
+        try:
+            paths.append(cv.joint_trajectory_positions(m, names))
+        except Exception:
+            paths.append(np.zeros((0, len(names))))
+    ex_t = np.array([t for t, _ in ex])
+    Q = np.array([q for _, q in ex], float)
+    which = np.searchsorted(t_tr, ex_t, side="right") - 1
+    base_off = np.full(len(Q), np.nan)
+    head_off = np.full(len(Q), np.nan)
+    joint_off = np.full(len(Q), np.nan)
+    nearest = np.full((len(Q), len(names)), np.nan)
+    for j in np.unique(which[which >= 0]):
+        P = paths[j]
+        if len(P) < 2:  # a stop: the robot holds, nothing to follow
+            continue
+        sel = np.nonzero(which == j)[0]
+        a, b = P[:-1, :2], P[1:, :2]  # base path segments
+        d = b - a
+        L2 = np.maximum((d * d).sum(1), 1e-12)
+        x = Q[sel, None, :2]
+        f = np.clip(((x - a) * d).sum(2) / L2, 0.0, 1.0)  # (n, segments)
+        dist = np.linalg.norm(a + f[..., None] * d - x, axis=2)
+        k = np.argmin(dist, axis=1)
+        fk = f[np.arange(len(sel)), k][:, None]
+        near = P[k] + fk * (P[k + 1] - P[k])
+        nearest[sel] = near
+        base_off[sel] = dist[np.arange(len(sel)), k]
+        head_off[sel] = np.abs(np.remainder(Q[sel, 2] - near[:, 2] + np.pi, 2 * np.pi) - np.pi)
+        if len(names) > 3:
+            joint_off[sel] = np.abs(Q[sel, 3:] - near[:, 3:]).max(1)
+    ok = np.isfinite(base_off)
+    if not ok.any():
+        return {}
+    bt = checker.box_tensors(static_boxes)
+    inside = np.zeros(len(Q), bool)
+    near_inside = np.zeros(len(Q), bool)
+    for s in range(0, len(Q), 4096):
+        qt = torch.as_tensor(Q[s:s + 4096], dtype=torch.float32)
+        inside[s:s + 4096] = checker.env_hits(qt, bt).cpu().numpy()
+    idx = np.nonzero(inside & ok)[0]
+    if len(idx):
+        near_inside[idx] = checker.env_hits(torch.as_tensor(nearest[idx], dtype=torch.float32), bt).cpu().numpy()
+    pct = (lambda v, p: round(float(np.percentile(v[ok], p)), 3))
+    return {
+        "configurations_following": int(ok.sum()),
+        "base_off_m": {f"p{p}": pct(base_off, p) for p in (50, 95, 99)} | {"max": round(float(base_off[ok].max()), 3)},
+        "heading_off_rad": {f"p{p}": pct(head_off, p) for p in (50, 95, 99)} | {"max": round(float(head_off[ok].max()), 3)},
+        "joints_off_max": {f"p{p}": pct(joint_off, p) for p in (50, 95, 99)} | {"max": round(float(joint_off[ok].max()), 3)},
+        "padding_m": float(checker.padding),
+        "inside_static_padding": int((inside & ok).sum()),
+        "inside_static_padding_plan_too": int((inside & near_inside).sum()),
+        "inside_static_padding_by_tracking": int((inside & ok & ~near_inside).sum()),
+        "base_off_when_inside_m_max": round(float(base_off[inside & ok].max()), 3) if (inside & ok).any() else None,
+    }
+
+
+def _params_padding(params_file: str) -> float:
+    """The roadmap server's ``collision_padding`` in the params file (0 when it sets none)."""
+    import yaml
+
+    data = yaml.safe_load(Path(params_file).read_text()) or {}
+    return float(((data.get("roadmap_server") or {}).get("ros__parameters") or {}).get("collision_padding", 0.0))
+
+
+def save_record(path: Path, ex: list, trajs: list, names: list) -> None:
+    """The soak's record for a replay: executed configurations (t, q) and every trajectory received (t, times from
+    its start, positions in the robot's joint order), times in seconds from the first executed configuration."""
+    t_ref = ex[0][0] if ex else 0.0
+    tt, off, P, T = [], [0], [], []
+    for t, m in trajs:
+        try:
+            pos = cv.joint_trajectory_positions(m, names)
+        except Exception:
+            continue
+        tt.append(t - t_ref)
+        P.append(pos)
+        T.append([cv.duration_to_sec(p.time_from_start) for p in m.points])
+        off.append(off[-1] + len(pos))
+    np.savez_compressed(path, joint_names=np.array(names), executed_t=np.array([t - t_ref for t, _ in ex]),
+                        executed_q=np.array([q for _, q in ex]).reshape(-1, len(names)),
+                        trajectory_t=np.array(tt), trajectory_offsets=np.array(off),
+                        trajectory_q=np.vstack(P) if P else np.zeros((0, len(names))),
+                        trajectory_time_from_start=np.concatenate(T) if T else np.zeros(0))
+
+
 def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
            wall_minus_perf) -> dict:
     import torch
@@ -426,6 +526,11 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
                            "closing_mps": None if closing is None else [round(float(c), 3) for c in closing],
                            # the trajectory the robot was following, and how far off it the robot was
                            "followed": _followed(t, q, trajs, list(robot.joint_names), checker)})
+    moving = {b for _, b, _, _ in poses}
+    padded = CollisionChecker(robot, workspace=scene.workspace, padding=_params_padding(a.params))
+    tracking = tracking_report(ex, trajs, list(robot.joint_names), padded,
+                               [b for b in scene.collision_boxes() if b.name not in moving])
+    save_record(Path(a.out) / "soak_record.npz", ex, trajs, list(robot.joint_names))
     growth = {}
     for n, m in mem.items():
         v = [x for _, x in m if np.isfinite(x)]
@@ -446,7 +551,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         "stops": sum(1 for _, i in infos if i.get("stop")), "failed": sum(1 for _, i in infos if not i.get("success")),
         "refused_unsafe": sum(1 for _, i in infos if "refused" in str(i.get("reason"))),
         "goals_reached": len(reached), "executed_configurations": len(ex), "executed_collisions": int(collided),
-        "executed_collisions_by": by, "collision_events": events,
+        "executed_collisions_by": by, "collision_events": events, "tracking": tracking,
         "latency_ms_p50": pct(50), "latency_ms_p90": pct(90), "latency_ms_p95": pct(95), "latency_ms_p99": pct(99),
         "latency_ms_max": round(float(lat.max()), 1) if len(lat) else None, "latency_samples": int(len(lat)),
         "suite": a.suite, "memory": growth, "restarts": len(exits) + left_active, "process_exits": exits,
