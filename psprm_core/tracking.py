@@ -1,0 +1,97 @@
+"""How far an executed configuration is from the configurations its trajectory was checked at.
+
+A planner that keeps a clearance ``padding`` from every obstacle (:class:`psprm_core.collision.CollisionChecker`
+with ``padding``: every box grown by it on every face) checks its path against the grown boxes. A point outside a
+box grown by ``padding`` is more than ``padding`` from the box itself, so an executed configuration none of whose
+points lies more than ``padding`` from where that point was in one checked configuration touches no obstacle,
+whatever the tracking error that put it there. The robot's collision geometry is oriented boxes fixed to its bodies
+(:attr:`psprm_core.robot.RobotModel.elements`); between two configurations a point of such a box moves by
+``|(R_a - R_b) p + (t_a - t_b)|``, a convex function of ``p``, so the largest move over the box is at one of its
+eight corners. :func:`displacement` is that largest move over every box; :class:`CheckedPath` holds the corners
+along a trajectory (sampled every ``step_s``) and answers, for a measured configuration at a time, the smallest such
+displacement over the trajectory's configurations within a window of that time (:meth:`CheckedPath.deviation`).
+Sampling is conservative: a minimum over samples is never below the minimum over the continuous path.
+
+The robot adapter stops the robot and asks for a new plan when the deviation exceeds its path tolerance (ros2_control's
+joint_trajectory_controller likewise aborts a goal whose path tolerance is violated), so that what the robot
+executes stays within the clearance of what was checked.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from .errors import InputError
+
+_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)  # (8, 3)
+
+
+def element_corners(robot, Q) -> np.ndarray:
+    """World positions (M, 8E, 3) of the corners of every collision box of ``robot`` at configurations ``Q``
+    (M, dof), by the robot model's forward kinematics."""
+    Q = np.asarray(Q, float).reshape(-1, robot.dof)
+    if not np.isfinite(Q).all():
+        raise InputError("configurations for the corner positions must be finite")
+    el = robot.elements
+    # (E, 8, 3): each box's corners in its body's frame
+    local = el.center[:, None, :] + np.einsum("eij,ekj->eki", el.rotation, _CORNER_SIGNS[None] * el.half[:, None, :])
+    with torch.no_grad():
+        R, t = robot.body_poses(torch.as_tensor(Q, dtype=torch.float64))
+    R, t = R.numpy(), t.numpy()
+    body = el.element_body
+    # (M, E, 8, 3): R_body (M, E, 3, 3) applied to the corners in the body frame, plus the body's position
+    world = np.einsum("meij,ekj->meki", R[:, body], local) + t[:, body][:, :, None, :]
+    return world.reshape(len(Q), -1, 3)
+
+
+def displacement(robot, q, Q) -> np.ndarray:
+    """The largest distance (M,) by which any point of the robot's collision boxes lies apart between configuration
+    ``q`` (dof,) and each configuration of ``Q`` (M, dof)."""
+    a = element_corners(robot, np.asarray(q, float)[None])[0]
+    b = element_corners(robot, Q)
+    return np.linalg.norm(b - a[None], axis=2).max(axis=1)
+
+
+class CheckedPath:
+    """A trajectory (``times`` (M,), ``positions`` (M, dof), linear between points, as the server checked it) with
+    the corners of the robot's collision boxes sampled every ``step_s`` along it, computed in blocks of ``block``
+    samples when a query first needs them (a long trajectory costs its first query only its first blocks)."""
+
+    def __init__(self, robot, times, positions, step_s: float = 0.05, block: int = 32):
+        t = np.asarray(times, float).reshape(-1)
+        P = np.asarray(positions, float).reshape(len(t), robot.dof)
+        if len(t) == 0 or np.any(np.diff(t) <= 0) or not np.isfinite(P).all():
+            raise InputError("checked path: times must be strictly increasing and positions finite")
+        if not step_s > 0:
+            raise InputError(f"checked path: step_s must be > 0, got {step_s}")
+        self.robot, self.block = robot, int(block)
+        t = t - t[0]
+        self.duration = float(t[-1])
+        n = int(np.ceil(self.duration / step_s)) + 1
+        # the points themselves too: a corner of the path (a stop between a rotation and a drive) is sampled exactly
+        self.ts = np.union1d(np.linspace(0.0, self.duration, max(n, 1)), t)
+        self.Q = np.stack([np.interp(self.ts, t, P[:, j]) for j in range(P.shape[1])], axis=1)
+        self._blocks: dict = {}  # block index -> corners (block, 8E, 3) float32
+
+    def corners(self, lo: int, hi: int) -> np.ndarray:
+        """Corners (hi - lo, 8E, 3) of the sampled configurations ``lo:hi``."""
+        b0, b1 = lo // self.block, (hi - 1) // self.block
+        for b in range(b0, b1 + 1):
+            if b not in self._blocks:
+                self._blocks[b] = element_corners(self.robot, self.Q[b * self.block:(b + 1) * self.block]
+                                                  ).astype(np.float32)
+        allc = np.concatenate([self._blocks[b] for b in range(b0, b1 + 1)])
+        return allc[lo - b0 * self.block:hi - b0 * self.block]
+
+    def deviation(self, q, tau: float, window_s: float = 2.0) -> tuple:
+        """(distance, time): the smallest displacement (:func:`displacement`) of the configuration ``q`` from the
+        path's sampled configurations within ``window_s`` of time ``tau`` (clamped to the path), and the time of
+        the nearest one."""
+        tau = float(np.clip(tau, 0.0, self.duration))
+        lo, hi = (int(i) for i in np.searchsorted(self.ts, [tau - window_s, tau + window_s], side="left"))
+        lo, hi = min(lo, len(self.ts) - 1), min(max(hi, lo + 1), len(self.ts))
+        a = element_corners(self.robot, np.asarray(q, float)[None])[0].astype(np.float32)
+        d = np.linalg.norm(self.corners(lo, hi) - a[None], axis=2).max(axis=1)
+        k = int(np.argmin(d))
+        return float(d[k]), float(self.ts[lo + k])
