@@ -84,6 +84,18 @@ class CheckedPath:
         allc = np.concatenate([self._blocks[b] for b in range(b0, b1 + 1)])
         return allc[lo - b0 * self.block:hi - b0 * self.block]
 
+    def deviations(self, Q, taus, window_s: float = 2.0) -> np.ndarray:
+        """:meth:`deviation` distances (N,) of configurations ``Q`` (N, dof) at times ``taus`` (N,), their forward
+        kinematics in one batch."""
+        A = element_corners(self.robot, Q).astype(np.float32)
+        taus = np.clip(np.asarray(taus, float).reshape(-1), 0.0, self.duration)
+        lo = np.minimum(np.searchsorted(self.ts, taus - window_s, side="left"), len(self.ts) - 1)
+        hi = np.minimum(np.maximum(np.searchsorted(self.ts, taus + window_s, side="left"), lo + 1), len(self.ts))
+        out = np.empty(len(A))
+        for i in range(len(A)):
+            out[i] = np.linalg.norm(self.corners(lo[i], hi[i]) - A[i][None], axis=2).max(axis=1).min()
+        return out
+
     def deviation(self, q, tau: float, window_s: float = 2.0) -> tuple:
         """(distance, time): the smallest displacement (:func:`displacement`) of the configuration ``q`` from the
         path's sampled configurations within ``window_s`` of time ``tau`` (clamped to the path), and the time of

@@ -392,6 +392,31 @@ def check_base_start(base: BaseConfig, first: np.ndarray, measured: np.ndarray) 
     return True, "base", max(d_xy, d_th)
 
 
+def braking_configurations(q: np.ndarray, velocity, limits, n: int = 4) -> np.ndarray:
+    """Configurations (n, dof) the base passes through when it brakes from ``velocity`` (v, omega) at the
+    ``limits``' accelerations (``linear_acceleration``, ``angular_acceleration``), the other joints held: a unicycle
+    decelerating uniformly on both axes, sampled at n equal fractions of the braking time, the last one where it
+    rests. A base that is sent a trajectory starting behind it, or that is stopped, first travels this far."""
+    q = np.asarray(q, float)
+    v, w = (float(x) for x in velocity)
+    tv = abs(v) / max(limits.linear_acceleration, 1e-9)
+    tw = abs(w) / max(limits.angular_acceleration, 1e-9)
+    T = max(tv, tw)
+    out = np.repeat(q[None], n, 0)
+    if T <= 0.0:
+        return out
+    for i, t in enumerate(np.linspace(T / n, T, n)):
+        # distance and turn after t of uniform deceleration on each axis (each stops at its own time)
+        a, b = min(t, tv), min(t, tw)
+        s = v * a - np.sign(v) * 0.5 * limits.linear_acceleration * a * a
+        phi = w * b - np.sign(w) * 0.5 * limits.angular_acceleration * b * b
+        th = q[2] + 0.5 * phi  # the chord's heading (exact for a uniform turn, close for a decelerating one)
+        out[i, 0] = q[0] + s * math.cos(th)
+        out[i, 1] = q[1] + s * math.sin(th)
+        out[i, 2] = q[2] + phi
+    return out
+
+
 def to_joint_trajectory(cmd: Command, frame_id: str = ""):
     """:class:`Command` -> ``trajectory_msgs/JointTrajectory``."""
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint

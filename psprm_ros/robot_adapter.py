@@ -15,6 +15,13 @@ adapter's ``rate_hz`` (Twist or TwistStamped on cmd_vel, within the base's veloc
 :mod:`psprm_ros.base_follower`). A one-point trajectory (the server's stop), a stale base pose or joint state, a
 deactivation and shutdown stop the robot: zero twist, a hold at the measured configuration with a positive
 time_from_start on every topic controller, and a cancel of every active action goal.
+
+The path tolerance keeps what the robot executes within the clearance of what the server checked: at every control
+step the measured configuration is compared with the trajectory's configurations within ``path_window_s`` of now
+(:class:`psprm_core.tracking.CheckedPath`: the largest distance any point of the robot's collision boxes lies apart);
+beyond ``path_tolerance_m`` (below the server's ``collision_padding``) the robot stops and a new plan is asked for,
+as a joint_trajectory_controller aborts a goal whose path tolerance is violated. A new trajectory whose start is
+already that far from the measured configuration is refused.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from typing import Optional
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.tracking import CheckedPath
 
 from . import adapters as ad
 from . import conversions as cv
@@ -54,6 +62,13 @@ ADAPTER_PARAMS = {
     "replan_request_interval_s": P(1.0, "at most one replan request per interval", live=True, lo=0.0),
     "plan_service": P(f"/{core.SERVER_NAME}/plan", "std_srvs/Trigger of the roadmap server", rebuild=True),
     "start_problem": P("", "scene problem whose start fills joints /joint_states does not carry"),
+    "path_tolerance_m": P(0.04, "stop and ask for a new plan when some point of the robot's collision boxes is this "
+                                "far (m) from where it was in every configuration of the trajectory within "
+                                "path_window_s of now (psprm_core.tracking); below the roadmap server's "
+                                "collision_padding, what executes stays clear of every obstacle (0 = off)",
+                          live=True, lo=0.0),
+    "path_window_s": P(2.0, "the trajectory's configurations this close in time count for path_tolerance_m (a "
+                            "base lagging its reference on the path is not off it)", live=True, lo=0.0),
     "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
 }
 
@@ -94,10 +109,13 @@ class RobotAdapter:
         self._grace: Optional[core.StallGrace] = None  # the follower step's stall grace (made at configure)
         self._last_replan_request = -1e9
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0,
-                       "goals_deferred": 0, "twists": 0}
+                       "goals_deferred": 0, "twists": 0, "off_path_stops": 0}
         self.last_refusal = ""
         self.last_state_problem = ""
         self.max_tracking_error = np.zeros(2)  # (m, rad) over the current path
+        self.checked: Optional[CheckedPath] = None  # the current trajectory's configurations, for path_tolerance_m
+        self.path_deviation = 0.0  # m, last measured (psprm_core.tracking.CheckedPath.deviation)
+        self.max_path_deviation = 0.0  # m, over the current trajectory
         self.pub_status = node.create_publisher(String, "~/status", 10)
         self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
         self.cb = MutuallyExclusiveCallbackGroup()
@@ -223,7 +241,8 @@ class RobotAdapter:
             level, msg = core.DIAG_OK, "following" if self.follower and not self.follower.done else "idle"
         vals = {"lifecycle": core.lifecycle_state(self.node), **self.counts,
                 "max_tracking_error_m": float(self.max_tracking_error[0]),
-                "max_tracking_error_rad": float(self.max_tracking_error[1])}
+                "max_tracking_error_rad": float(self.max_tracking_error[1]),
+                "path_deviation_m": float(self.path_deviation), "max_path_deviation_m": float(self.max_path_deviation)}
         core.publish_diagnostics(self.pub_diag, self.node, [
             core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
 
@@ -303,6 +322,16 @@ class RobotAdapter:
             ok, what, err = ad.check_base_start(self.cfg.base, P[0, :3], q[:3])
             if not ok:
                 return self._refuse(f"first point {err:.3f} from the measured {what}")
+        checked, tol = None, self.p["path_tolerance_m"]
+        if tol > 0 and self.robot.mobile:
+            # where the robot is and where it would brake to: a base still moving on its last command overshoots a
+            # trajectory that starts behind it (planned from where it was when planning began) by that much
+            checked = CheckedPath(self.robot, t, P)
+            probe = np.vstack([q[None], ad.braking_configurations(q, vel, self.follower.limits)])
+            d = max(checked.deviation(x, 0.0, self.p["path_window_s"])[0] for x in probe)
+            if d > tol:
+                return self._refuse(f"the robot, braking from where it is, comes {d:.3f} m from the trajectory's "
+                                    f"configurations near its start (path tolerance {tol:g} m)")
         now = self._now()
         start_at = now + lead
         with self._lock:
@@ -318,6 +347,7 @@ class RobotAdapter:
             if self.robot.mobile:
                 self.follower.set_path(BaseReference(t, P[:, :3]), start_at)
                 self.max_tracking_error = np.zeros(2)
+                self.checked, self.max_path_deviation = checked, 0.0
                 self._zero_sent = 0
         self.counts["executed"] += 1
         self.last_refusal = ""
@@ -380,6 +410,7 @@ class RobotAdapter:
         now = self._now()
         with self._lock:
             self._pending.clear()
+            self.checked = None
             if self.follower is not None:
                 self.follower.stop()
             self._publish_twist(0.0, 0.0)
@@ -448,6 +479,27 @@ class RobotAdapter:
             if following or self._zero_sent < 3:  # after the end: a few zero twists, then quiet
                 self._publish_twist(v, w)
                 self._zero_sent = 0 if following else self._zero_sent + 1
+            checked, t0 = self.checked, self.follower.t0
+        if following and checked is not None:
+            self._check_path(checked, q, now - t0)
+
+    def _check_path(self, checked: CheckedPath, q: np.ndarray, tau: float) -> None:
+        """The path tolerance: the measured configuration against the trajectory's configurations near ``tau``
+        (:meth:`psprm_core.tracking.CheckedPath.deviation`); beyond ``path_tolerance_m`` the robot stops and a new
+        plan is asked for, from where it is."""
+        tol = self.p["path_tolerance_m"]
+        try:
+            d, _ = checked.deviation(q, tau, self.p["path_window_s"])
+        except Exception as exc:  # never lose the control loop to the check; a check that fails stops the robot
+            self.stop(f"path check failed: {exc}")
+            return
+        self.path_deviation = d
+        self.max_path_deviation = max(self.max_path_deviation, d)
+        if tol > 0 and d > tol:
+            self.counts["off_path_stops"] += 1
+            why = f"off the checked path: {d:.3f} m from the trajectory's configurations (path tolerance {tol:g} m)"
+            self.stop(why)
+            self._request_replan(why)
 
     def destroy(self) -> None:
         try:

@@ -11,7 +11,9 @@ per the adapter; zero after ``cmd_vel_timeout_s`` without a command). It integra
 limits (joint velocity and position limits; base linear/angular velocity and acceleration) and publishes
 ``/joint_states`` (the robot's own joint names, plus the URDF joints they drive), ``/odom`` (``nav_msgs/Odometry``,
 frame ``odom``) and, when ``mocap_topic`` is set, a motion-capture style ``geometry_msgs/PoseStamped`` of a body on
-its base (frame ``mocap_frame``). It never reads psprm's own topics. Refused commands are counted and reported on
+its base (frame ``mocap_frame``). A ``geometry_msgs/Twist`` on ``~/disturbance`` (body frame, sideways too) is
+added to the base's motion for ``disturbance_timeout_s`` after each message: a push or wheel slip, which the
+robot's commands did not produce. It never reads psprm's own topics. Refused commands are counted and reported on
 ``~/status``.
 """
 
@@ -34,6 +36,8 @@ SIM_PARAMS = {
     "initial_base": [0.0],  # (x, y, theta) overriding the problem's start base (one value = unset)
     "rate_hz": 50.0,
     "cmd_vel_timeout_s": 0.5,
+    "disturbance_topic": "~/disturbance",  # geometry_msgs/Twist added to the base's motion (a push, wheel slip)
+    "disturbance_timeout_s": 0.2,  # ... for this long after each message
     "joint_states_topic": "/joint_states",
     "odom_topic": "/odom",
     "odom_frame": "odom",
@@ -81,6 +85,8 @@ class SimModel:
         self.rejected = {c.name: 0 for c in adapter.controllers}
         self.twists = 0
         self.last_reject = ""
+        self.disturbance = np.zeros(3)  # (vx, vy, omega) in the base frame, added to the commanded motion ...
+        self.disturbance_until = -math.inf  # ... until this time
 
     def accept_trajectory(self, ctrl: ControllerConfig, joint_names, stamp_sec: float, points, now: float) -> tuple:
         """(ok, reason). ``points``: list of (time_from_start, positions). The rules of ros2_control's
@@ -127,6 +133,13 @@ class SimModel:
         self.twist_t = now
         self.twists += 1
 
+    def set_disturbance(self, vx: float, vy: float, w: float, until: float) -> None:
+        """A motion the base makes on top of what it is commanded (body frame: forward, left, counter-clockwise)
+        until ``until``: what a push or slipping wheels do to a real base, which no command produced."""
+        d = np.array([vx, vy, w], float)
+        if np.isfinite(d).all():
+            self.disturbance, self.disturbance_until = d, float(until)
+
     def step(self, t: float, dt: float) -> None:
         r = self.robot
         for a in list(self.active.values()):
@@ -142,9 +155,11 @@ class SimModel:
             self.v = self.v + np.clip(target - self.v, -amax, amax)
             v, w = self.v
             th = self.q[2] + 0.5 * w * dt
-            self.q[0] += v * math.cos(th) * dt
-            self.q[1] += v * math.sin(th) * dt
-            self.q[2] += w * dt
+            dx, dy, dw = self.disturbance if t <= self.disturbance_until else (0.0, 0.0, 0.0)
+            c, s = math.cos(th), math.sin(th)
+            self.q[0] += ((v + dx) * c - dy * s) * dt
+            self.q[1] += ((v + dx) * s + dy * c) * dt
+            self.q[2] += (w + dw) * dt
 
     def joint_state(self) -> tuple:
         """(names, positions) as the robot publishes them: controller joints by their robot names, plus the URDF
@@ -194,6 +209,7 @@ class SimRobotNode:
         if self.robot.mobile and b.mode == "cmd_vel":
             node.create_subscription(TwistStamped if b.stamped else Twist, b.topic, self._twist_cb(b.stamped), 10,
                                      callback_group=cb)
+            node.create_subscription(Twist, self.p["disturbance_topic"], self._disturbance_cb, 10, callback_group=cb)
         self.pub_js = node.create_publisher(JointState, self.p["joint_states_topic"], 10)
         self.pub_odom = node.create_publisher(Odometry, self.p["odom_topic"], 10)
         self.pub_status = node.create_publisher(String, "~/status", 10)
@@ -230,6 +246,11 @@ class SimRobotNode:
             with self._lock:
                 self.model.set_twist(float(tw.linear.x), float(tw.angular.z), self._now())
         return cb
+
+    def _disturbance_cb(self, msg) -> None:
+        with self._lock:
+            self.model.set_disturbance(msg.linear.x, msg.linear.y, msg.angular.z,
+                                       self._now() + self.p["disturbance_timeout_s"])
 
     def _step(self) -> None:
         from nav_msgs.msg import Odometry

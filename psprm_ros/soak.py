@@ -363,16 +363,25 @@ def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp
     return (d0 - np.linalg.norm(r1 - p0)) / dt, (d0 - np.linalg.norm(r0 - p1)) / dt
 
 
-def tracking_report(ex: list, trajs: list, names: list, checker, static_boxes: list) -> dict:
+TRACK_WINDOW_S = 3.0
+
+
+def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -> dict:
     """How closely the robot executed the trajectories it was sent, judged from the record alone: for every executed
-    configuration, the trajectory it was following (the last one with more than one point received before it) and
-    the base's distance to that trajectory's base path (point to segment), the heading and joint differences there;
-    percentiles of each. Then the executed configurations inside the collision padding of the static boxes
+    configuration, the trajectory it was following (the last one with more than one point received before it), the
+    base's distance to that trajectory's base path (point to segment), and the deviation of the whole robot
+    (:class:`psprm_core.tracking.CheckedPath`: how far a point of its collision boxes is from where it was in the
+    nearest of the trajectory's configurations within ``TRACK_WINDOW_S`` of the time since it was received);
+    percentiles of both, and how often the deviation exceeded the padding, which is the clearance the plan kept.
+    Then the executed configurations inside the collision padding of the static boxes
     (``checker`` pads them), split by whether the nearest point of the followed trajectory is inside it too (the plan
     itself came that close, e.g. from a start inside the padding) or clear of it (the tracking error carried the
     robot in)."""
     import torch
 
+    from psprm_core.tracking import CheckedPath
+
+    names = list(robot.joint_names)
     if not ex or not trajs:
         return {}
     t_tr = np.array([t for t, _ in trajs])
@@ -386,14 +395,20 @@ def tracking_report(ex: list, trajs: list, names: list, checker, static_boxes: l
     Q = np.array([q for _, q in ex], float)
     which = np.searchsorted(t_tr, ex_t, side="right") - 1
     base_off = np.full(len(Q), np.nan)
-    head_off = np.full(len(Q), np.nan)
-    joint_off = np.full(len(Q), np.nan)
     nearest = np.full((len(Q), len(names)), np.nan)
+    deviation = np.full(len(Q), np.nan)
     for j in np.unique(which[which >= 0]):
         P = paths[j]
         if len(P) < 2:  # a stop: the robot holds, nothing to follow
             continue
         sel = np.nonzero(which == j)[0]
+        m = trajs[j][1]
+        T = np.array([cv.duration_to_sec(p.time_from_start) for p in m.points])
+        if np.all(np.diff(T) > 0):
+            # the robot's collision boxes against the trajectory's configurations within TRACK_WINDOW_S of the time
+            # since it was received (the adapter starts it a lead time later, spliced up to 1.5 s in)
+            path = CheckedPath(robot, T, P)
+            deviation[sel] = path.deviations(Q[sel], ex_t[sel] - t_tr[j], TRACK_WINDOW_S)
         a, b = P[:-1, :2], P[1:, :2]  # base path segments
         d = b - a
         L2 = np.maximum((d * d).sum(1), 1e-12)
@@ -405,9 +420,6 @@ def tracking_report(ex: list, trajs: list, names: list, checker, static_boxes: l
         near = P[k] + fk * (P[k + 1] - P[k])
         nearest[sel] = near
         base_off[sel] = dist[np.arange(len(sel)), k]
-        head_off[sel] = np.abs(np.remainder(Q[sel, 2] - near[:, 2] + np.pi, 2 * np.pi) - np.pi)
-        if len(names) > 3:
-            joint_off[sel] = np.abs(Q[sel, 3:] - near[:, 3:]).max(1)
     ok = np.isfinite(base_off)
     if not ok.any():
         return {}
@@ -424,8 +436,12 @@ def tracking_report(ex: list, trajs: list, names: list, checker, static_boxes: l
     return {
         "configurations_following": int(ok.sum()),
         "base_off_m": {f"p{p}": pct(base_off, p) for p in (50, 95, 99)} | {"max": round(float(base_off[ok].max()), 3)},
-        "heading_off_rad": {f"p{p}": pct(head_off, p) for p in (50, 95, 99)} | {"max": round(float(head_off[ok].max()), 3)},
-        "joints_off_max": {f"p{p}": pct(joint_off, p) for p in (50, 95, 99)} | {"max": round(float(joint_off[ok].max()), 3)},
+        # psprm_core.tracking: how far a point of the robot's boxes is from where it was in the nearest
+        # configuration of the followed trajectory (within TRACK_WINDOW_S of its receipt time)
+        "deviation_m": {f"p{p}": round(float(np.nanpercentile(deviation[ok], p)), 3) for p in (50, 95, 99)}
+        | {"max": round(float(np.nanmax(deviation[ok])), 3),
+           "over_padding": int(np.sum(deviation[ok] > checker.padding)),
+           "trajectories_over_padding": int(len(np.unique(which[ok & (deviation > checker.padding)])))},
         "padding_m": float(checker.padding),
         "inside_static_padding": int((inside & ok).sum()),
         "inside_static_padding_plan_too": int((inside & near_inside).sum()),
@@ -528,7 +544,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
                            "followed": _followed(t, q, trajs, list(robot.joint_names), checker)})
     moving = {b for _, b, _, _ in poses}
     padded = CollisionChecker(robot, workspace=scene.workspace, padding=_params_padding(a.params))
-    tracking = tracking_report(ex, trajs, list(robot.joint_names), padded,
+    tracking = tracking_report(ex, trajs, robot, padded,
                                [b for b in scene.collision_boxes() if b.name not in moving])
     save_record(Path(a.out) / "soak_record.npz", ex, trajs, list(robot.joint_names))
     growth = {}

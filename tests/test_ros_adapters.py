@@ -258,6 +258,29 @@ def test_base_follower_tracks_a_unicycle_within_its_limits(load_robot):
     assert f.done and math.hypot(x - tr.positions[-1, 0], y - tr.positions[-1, 1]) < 0.03
 
 
+@pytest.mark.parametrize("v, w", [(0.3, 0.0), (-0.2, 0.0), (0.0, -1.0), (0.25, 0.8), (0.1, -1.0)])
+def test_braking_configurations_end_where_a_decelerating_base_rests(v, w):
+    """The base braking from (v, omega) at its accelerations, integrated by the test in 1 ms steps (each axis
+    decelerating until it rests): the last braking configuration is where it rests, the others lie on its way."""
+    lim = Limits(0.3, 1.0, 0.5, 1.5)
+    q = np.array([1.0, 2.0, 0.4, 0.3, 0.1])
+    x, y, th, vv, ww, dt = 1.0, 2.0, 0.4, v, w, 1e-3
+    track = []
+    while abs(vv) > 0 or abs(ww) > 0:
+        x += vv * math.cos(th) * dt
+        y += vv * math.sin(th) * dt
+        th += ww * dt
+        vv = np.sign(vv) * max(0.0, abs(vv) - lim.linear_acceleration * dt)
+        ww = np.sign(ww) * max(0.0, abs(ww) - lim.angular_acceleration * dt)
+        track.append((x, y, th))
+    track = np.array(track)
+    B = ad.braking_configurations(q, (v, w), lim, n=4)
+    assert B.shape == (4, 5) and np.allclose(B[:, 3:], q[3:])
+    assert np.allclose(B[-1, :3], track[-1], atol=3e-3), (B[-1, :3], track[-1])
+    for b in B:  # on the way: within a few mm of the integrated track
+        assert np.min(np.hypot(track[:, 0] - b[0], track[:, 1] - b[1]) + np.abs(track[:, 2] - b[2])) < 5e-3
+
+
 def test_adapter_config_errors_name_the_field(tmp_path, load_robot):
     from psprm_core.errors import ConfigError
 
@@ -488,6 +511,60 @@ def test_adapter_forgives_its_own_stall_but_stops_when_the_base_pose_goes_stale(
             os.kill(sim_pid, signal.SIGCONT)
         assert zero, "no zero twist after the base pose went stale"
         assert zero[0] - last_odom <= timeout + 2 * period + 0.1, zero[0] - last_odom
+
+
+def test_a_push_off_the_path_stops_the_robot_within_the_path_tolerance(load_robot):
+    """While the base drives a straight trajectory, the robot is pushed sideways (sim_robot's ``~/disturbance``,
+    0.25 m/s to its left for 1.5 s: a differential drive cannot undo that with cmd_vel). The adapter stops the
+    robot (a zero twist, a hold on the controller) once it is off its path by the path tolerance: judged from the
+    test's own record of /odom against the trajectory it published, no zero twist comes before the push, the first
+    one comes while the base is at most one push period and the tolerance off the path, and the base then stays
+    where it stopped instead of driving on along the path. A robot that is not pushed drives such trajectories to
+    their end (the tracking test above)."""
+    from geometry_msgs.msg import Twist, Vector3
+
+    name = "stretch2"
+    robot = load_robot(name)
+    with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
+        tol = s.adapter.p["path_tolerance_m"]
+        assert tol > 0
+        push = s.probe.node.create_publisher(Twist, "/sim_robot/disturbance", 10)
+        time.sleep(0.3)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.5, joint_delta=0.0)
+        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+
+        def base_moved():
+            with rec.lock:
+                return rec.odom and np.hypot(*(rec.odom[-1][1][:2] - q0[:2])) > 0.3
+        assert _wait(base_moved, 20), s.probe.statuses[-5:]
+        now = lambda: s.probe.node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
+        n_holds = len(rec.traj[cfg.controllers[0].name])
+        t_push = now()
+        while now() < t_push + 1.5:
+            push.publish(Twist(linear=Vector3(y=0.25)))
+            time.sleep(0.05)
+        time.sleep(1.0)
+        with rec.lock:
+            odom = list(rec.odom)
+            twists = list(rec.twists)
+            holds = rec.traj[cfg.controllers[0].name][n_holds:]
+    T = np.array([t for t, _ in odom])
+    X = np.array([x for _, x in odom])
+    line = tr.positions[-1, :2] - tr.positions[0, :2]
+    line /= np.linalg.norm(line)
+    off = np.abs((X[:, 0] - q0[0]) * line[1] - (X[:, 1] - q0[1]) * line[0])  # the base's distance from the path
+    moving = min(t for t, tw in twists if tw.linear.x != 0.0)
+    zero = [t for t, tw in twists if t > moving and tw.linear.x == 0.0 and tw.angular.z == 0.0]
+    assert zero and zero[0] > t_push, ("no stop after the push" if not zero else "a stop before the push", zero[:3])
+    k = max(0, int(np.searchsorted(T, zero[0])) - 1)
+    assert off[k] <= tol + 0.25 * 0.1, {"off_at_stop_m": off[k], "tolerance": tol, "max_off_m": off.max()}
+    assert holds and len(holds[0][1].points) == 1  # the controller got a hold
+    after = T > zero[0] + 0.6  # braking from 0.3 m/s at 0.5 m/s^2 takes 0.6 s
+    along = (X[after, :2] - q0[:2]) @ line
+    assert np.ptp(along) < 0.02, "the base drove on along the path after the stop"
+    assert any("off the checked path" in st for _, n, st in s.probe.statuses if n == "robot_adapter"), \
+        s.probe.statuses[-5:]
 
 
 def start_sim_process(params: dict, domain: int):
