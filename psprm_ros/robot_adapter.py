@@ -41,6 +41,9 @@ from . import core
 from .base_follower import BaseFollower, BaseReference, Gains, Limits
 
 P = core.Param
+REST_MPS, REST_RADPS = 0.01, 0.02  # a base slower than this on both axes ...
+REST_S = 0.1  # ... for this long is at rest
+REST_WAIT_S = 2.0  # a replan pending "at rest" is asked for this long after the stop at the latest
 ADAPTER_PARAMS = {
     "adapter": P("", "adapter config name (config/ros/adapters, or share/psprm_ros/config/adapters when installed) "
                      "or YAML path ('' = the robot's name)", rebuild=True),
@@ -108,6 +111,11 @@ class RobotAdapter:
         self._zero_sent = 0
         self._grace: Optional[core.StallGrace] = None  # the follower step's stall grace (made at configure)
         self._last_replan_request = -1e9
+        # after a refusal or an off-path stop: the replan is asked for once the base has come to rest, so that the
+        # new plan starts where the robot stands, not where it was while braking (which it has passed by then)
+        self._replan_at_rest = ""
+        self._stop_t: Optional[float] = None
+        self._still_since: Optional[float] = None
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0,
                        "goals_deferred": 0, "twists": 0, "off_path_stops": 0}
         self.last_refusal = ""
@@ -351,6 +359,7 @@ class RobotAdapter:
                 self._zero_sent = 0
         self.counts["executed"] += 1
         self.last_refusal = ""
+        self._replan_at_rest, self._stop_t, self._still_since = "", None, None  # a new plan came meanwhile
         return True
 
     def _send(self, c: ad.ControllerConfig, t, P, V, start_at: float, now: float) -> None:
@@ -386,20 +395,22 @@ class RobotAdapter:
         self.counts["refused"] += 1
         self.last_refusal = why
         self.stop(f"trajectory refused: {why}")
-        self._request_replan(why)
+        self._replan_at_rest = why
         return False
 
-    def _request_replan(self, why: str) -> None:
+    def _request_replan(self, why: str) -> bool:
+        """Ask the roadmap server for a plan; False when the request interval or a missing server held it back."""
         from std_srvs.srv import Trigger
 
         if not self.p["replan_on_refusal"]:
-            return
+            return True
         now = time.monotonic()
         if now - self._last_replan_request < self.p["replan_request_interval_s"] or not self.cli_plan.service_is_ready():
-            return
+            return False
         self._last_replan_request = now
         fut = self.cli_plan.call_async(Trigger.Request())
         fut.add_done_callback(_retrieve)
+        return True
 
     def stop(self, why: str) -> None:
         """Stop every interface: zero twist, a hold at the measured configuration on every topic controller, cancel
@@ -471,6 +482,8 @@ class RobotAdapter:
             return
         self._grace.clear()
         self.last_state_problem = ""
+        if self._replan_at_rest:
+            self._ask_when_at_rest(now)
         with self._lock:
             v, w = self.follower.command(now, q[:3])
             if following:
@@ -482,6 +495,22 @@ class RobotAdapter:
             checked, t0 = self.checked, self.follower.t0
         if following and checked is not None:
             self._check_path(checked, q, now - t0)
+
+    def _ask_when_at_rest(self, now: float) -> None:
+        """Ask for the pending replan once the measured base velocity has stayed near zero for ``REST_S`` (or
+        ``REST_WAIT_S`` after the stop, for a base that does not settle); a request the interval holds back is
+        tried again at the next step."""
+        with self._lock:
+            v, w = (abs(float(x)) for x in self.tracker.base_velocity)
+        if self._stop_t is None:
+            self._stop_t = now
+        if v < REST_MPS and w < REST_RADPS:
+            self._still_since = now if self._still_since is None else self._still_since
+        else:
+            self._still_since = None
+        if (self._still_since is not None and now - self._still_since >= REST_S) or now - self._stop_t >= REST_WAIT_S:
+            if self._request_replan(self._replan_at_rest):
+                self._replan_at_rest, self._stop_t, self._still_since = "", None, None
 
     def _check_path(self, checked: CheckedPath, q: np.ndarray, tau: float) -> None:
         """The path tolerance: the measured configuration against the trajectory's configurations near ``tau``
@@ -499,7 +528,7 @@ class RobotAdapter:
             self.counts["off_path_stops"] += 1
             why = f"off the checked path: {d:.3f} m from the trajectory's configurations (path tolerance {tol:g} m)"
             self.stop(why)
-            self._request_replan(why)
+            self._replan_at_rest = why
 
     def destroy(self) -> None:
         try:

@@ -1,7 +1,7 @@
 """``soak``: the closed loop under a long, hostile input stream.
 
     python -m psprm_ros.soak [--duration 600] [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--out out]
-                             [--suite processes|one-process] [--seed 0] [--json]
+                             [--suite processes|one-process] [--seed 0] [--path-tolerance M] [--json]
 
 Starts the suite (server, scorer, monitor, robot adapter: ``run_nodes.sh``, a process per node, or
 ``run_all_in_one.sh`` with ``--suite one-process``) and ``sim_robot``, then for ``--duration`` seconds streams the
@@ -194,6 +194,8 @@ def main(args=None) -> int:
                     help="the node suite as a process per node (run_nodes.sh) or in one process (run_all_in_one.sh)")
     ap.add_argument("--walk-every", type=float, default=40.0, help="the person walks into the path this often (s)")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--path-tolerance", type=float, default=None,
+                    help="the robot adapter's path_tolerance_m (default: the params file's; 0 = off)")
     ap.add_argument("--out", default="out")
     ap.add_argument("--json", action="store_true", help="print only the JSON object")
     ap.add_argument("--domain-id", type=int, default=0)
@@ -215,12 +217,26 @@ def main(args=None) -> int:
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = RobotModel.load(scene.robot)
     domain = a.domain_id or claim_domain_id(100, 200)
-    loop = ClosedLoop(a.params, {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}, out, "soak",
-                      domain, suite=a.suite).start()
+    overrides = {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}
+    if a.path_tolerance is not None:
+        overrides["robot_adapter:path_tolerance_m"] = a.path_tolerance
+    loop = ClosedLoop(a.params, overrides, out, "soak", domain, suite=a.suite).start()
     procs, probe = loop.procs, loop.probe
     record = Record(probe.node, robot, "stretch2", _params_frames(a.params, scene.frame))
     from diagnostic_msgs.msg import DiagnosticArray
 
+    from trajectory_msgs.msg import JointTrajectory
+
+    from .adapters import load_adapter
+
+    # what the adapter sent the controllers (t, points): which trajectories it executed, which it refused (a hold)
+    commands, commands_lock = [], threading.Lock()
+
+    def on_command(m):
+        with commands_lock:
+            commands.append((time.perf_counter(), len(m.points)))
+    for c in load_adapter("stretch2", robot).with_interface("topic").controllers:
+        probe.node.create_subscription(JointTrajectory, c.topic, on_command, 50)
     diags: dict = {}
     probe.node.create_subscription(DiagnosticArray, "/diagnostics",
                                    lambda m: diags.update({s.name: (time.perf_counter(), s) for s in m.status}), 50)
@@ -304,7 +320,7 @@ def main(args=None) -> int:
         stream.stop()
         t_end = time.perf_counter()
         result = report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
-                        wall_minus_perf)
+                        wall_minus_perf, commands, commands_lock)
     finally:
         if stream is not None:
             stream.stop()
@@ -366,9 +382,24 @@ def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp
 TRACK_WINDOW_S = 3.0
 
 
+def executed_trajectories(trajs: list, commands: list) -> list:
+    """The server's trajectories (t, msg) the robot adapter executed: those followed by a controller command of
+    more than one point (a refused trajectory is followed by a hold instead), judged from the messages on the
+    controller's topic (``commands``: (t, number of points))."""
+    t_tr = np.array([t for t, _ in trajs])
+    out, seen = [], set()
+    for tc, n in commands:
+        j = int(np.searchsorted(t_tr, tc, side="right") - 1)
+        if n > 1 and j >= 0 and j not in seen:
+            seen.add(j)
+            out.append(trajs[j])
+    return out
+
+
 def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -> dict:
     """How closely the robot executed the trajectories it was sent, judged from the record alone: for every executed
-    configuration, the trajectory it was following (the last one with more than one point received before it), the
+    configuration, the trajectory it was following (the last of ``trajs``, those executed, received before it; the
+    motion after a stop counts against it too), the
     base's distance to that trajectory's base path (point to segment), and the deviation of the whole robot
     (:class:`psprm_core.tracking.CheckedPath`: how far a point of its collision boxes is from where it was in the
     nearest of the trajectory's configurations within ``TRACK_WINDOW_S`` of the time since it was received);
@@ -458,9 +489,10 @@ def _params_padding(params_file: str) -> float:
     return float(((data.get("roadmap_server") or {}).get("ros__parameters") or {}).get("collision_padding", 0.0))
 
 
-def save_record(path: Path, ex: list, trajs: list, names: list) -> None:
-    """The soak's record for a replay: executed configurations (t, q) and every trajectory received (t, times from
-    its start, positions in the robot's joint order), times in seconds from the first executed configuration."""
+def save_record(path: Path, ex: list, trajs: list, names: list, commands: list = ()) -> None:
+    """The soak's record for a replay: executed configurations (t, q), every trajectory received (t, times from its
+    start, positions in the robot's joint order) and the controller commands (t, number of points), times in seconds
+    from the first executed configuration."""
     t_ref = ex[0][0] if ex else 0.0
     tt, off, P, T = [], [0], [], []
     for t, m in trajs:
@@ -476,11 +508,13 @@ def save_record(path: Path, ex: list, trajs: list, names: list) -> None:
                         executed_q=np.array([q for _, q in ex]).reshape(-1, len(names)),
                         trajectory_t=np.array(tt), trajectory_offsets=np.array(off),
                         trajectory_q=np.vstack(P) if P else np.zeros((0, len(names))),
-                        trajectory_time_from_start=np.concatenate(T) if T else np.zeros(0))
+                        trajectory_time_from_start=np.concatenate(T) if T else np.zeros(0),
+                        command_t=np.array([t - t_ref for t, _ in commands]),
+                        command_points=np.array([n for _, n in commands], int))
 
 
 def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
-           wall_minus_perf) -> dict:
+           wall_minus_perf, commands: list, commands_lock) -> dict:
     import torch
 
     from psprm_core.collision import CollisionChecker
@@ -544,9 +578,11 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
                            "followed": _followed(t, q, trajs, list(robot.joint_names), checker)})
     moving = {b for _, b, _, _ in poses}
     padded = CollisionChecker(robot, workspace=scene.workspace, padding=_params_padding(a.params))
-    tracking = tracking_report(ex, trajs, robot, padded,
+    with commands_lock:
+        cmds = [(t, n) for t, n in commands if t0 <= t <= t_end]
+    tracking = tracking_report(ex, executed_trajectories(trajs, cmds), robot, padded,
                                [b for b in scene.collision_boxes() if b.name not in moving])
-    save_record(Path(a.out) / "soak_record.npz", ex, trajs, list(robot.joint_names))
+    save_record(Path(a.out) / "soak_record.npz", ex, trajs, list(robot.joint_names), cmds)
     growth = {}
     for n, m in mem.items():
         v = [x for _, x in m if np.isfinite(x)]

@@ -273,6 +273,65 @@ def test_soak_reports_how_far_off_its_trajectory_a_colliding_robot_was(load_robo
     assert _followed(10.0, q, [(11.0, msg_of(P))], names, checker) is None  # nothing received before
 
 
+def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robot_was(load_robot):
+    """The soak's tracking report, on a record made here: a straight drive along x received at 9 s and executed (the
+    controller then got 11 points), a second trajectory at 12 s that was refused (the controller got a hold). The
+    robot drove the first path 3 cm to its side until 13 s, then 8 cm: judged against the executed trajectory only,
+    the base is 3 and 8 cm off it (the shift is a translation, so the whole robot is as far off), the deviation
+    exceeds the 5 cm padding for the later configurations alone, and a box next to the path is reached only by them."""
+    from psprm_core.collision import CollisionChecker
+    from psprm_core.scene import Box
+    from psprm_ros import conversions as cv
+    from psprm_ros.soak import executed_trajectories, tracking_report
+
+    robot = load_robot("stretch2")
+    names = list(robot.joint_names)
+    q0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 3.0, -1.12, 0.17])
+    P = np.repeat(q0[None], 11, 0)
+    P[:, 0] = np.linspace(0.0, 2.0, 11)  # 2 m along +x in 10 s
+
+    def msg_of(path):
+        from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+        m = JointTrajectory()
+        m.joint_names = names
+        for k, p in enumerate(path):
+            pt = JointTrajectoryPoint(positions=[float(v) for v in p], time_from_start=cv.duration_msg(1.0 * k))
+            m.points.append(pt)
+        return m
+
+    away = P.copy()
+    away[:, 1] = 3.0  # the refused one: far from where the robot drives
+    trajs = [(9.0, msg_of(P)), (12.0, msg_of(away))]
+    ran = executed_trajectories(trajs, [(9.01, 11), (12.01, 1)])
+    assert len(ran) == 1 and ran[0][0] == 9.0
+    ex = []
+    for k in range(100):
+        t = 9.0 + 0.1 * k
+        q = q0.copy()
+        q[0] = 0.2 * (t - 9.0)
+        q[1] = 0.03 if t < 13.0 else 0.08
+        ex.append((t, q))
+    # a box beside the path whose near face is 9 cm beyond the robot's side when the robot is on the path: 6 cm from
+    # it when 3 cm off (outside the 5 cm padding), 1 cm when 8 cm off (inside it, not touching)
+    import torch
+
+    side = float(CollisionChecker(robot).robot_aabb(torch.as_tensor(q0[None], dtype=torch.float32))[0, 4])
+    box = Box(name="crate", center=np.array([1.5, side + 0.09 + 0.2, 0.4]), size=np.array([0.4, 0.4, 0.8]),
+              quat=np.array([0.0, 0.0, 0.0, 1.0]))
+    r = tracking_report(ex, ran, robot, CollisionChecker(robot, padding=0.05), [box])
+    assert r["configurations_following"] == 100
+    assert abs(r["base_off_m"]["p50"] - 0.08) < 1e-3 and abs(r["base_off_m"]["max"] - 0.08) < 1e-3
+    assert abs(r["deviation_m"]["max"] - 0.08) < 1e-3
+    assert r["deviation_m"]["over_padding"] == 60 and r["deviation_m"]["trajectories_over_padding"] == 1
+    assert r["inside_static_padding"] > 0
+    assert r["inside_static_padding"] == r["inside_static_padding_by_tracking"]
+    assert not CollisionChecker(robot, [box]).check(torch.as_tensor(np.array([q for _, q in ex]),
+                                                                    dtype=torch.float32)).any()
+    with_refused = tracking_report(ex, trajs, robot, CollisionChecker(robot, padding=0.05), [box])
+    assert with_refused["deviation_m"]["over_padding"] > 60  # the refused trajectory would have counted too
+
+
 def test_soak_walk_yields_to_the_robot_then_walks_on():
     """The soak's person walks at 0.5 m/s, never steps within 1 m of the robot's base (closer to it) for up to 20 s
     of waiting, then walks on; judged from the positions stepped here."""
