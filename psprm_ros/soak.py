@@ -383,23 +383,26 @@ TRACK_WINDOW_S = 3.0
 
 
 def executed_trajectories(trajs: list, commands: list) -> list:
-    """The server's trajectories (t, msg) the robot adapter executed: those followed by a controller command of
-    more than one point (a refused trajectory is followed by a hold instead), judged from the messages on the
-    controller's topic (``commands``: (t, number of points))."""
+    """The server's trajectories the robot adapter executed, as (t, msg, t_hold): those followed by a controller
+    command of more than one point (a refused trajectory is followed by a hold instead), and when the first hold
+    after it stopped the robot (inf if none did), judged from the messages on the controller's topic
+    (``commands``: (t, number of points))."""
     t_tr = np.array([t for t, _ in trajs])
     out, seen = [], set()
     for tc, n in commands:
         j = int(np.searchsorted(t_tr, tc, side="right") - 1)
-        if n > 1 and j >= 0 and j not in seen:
+        if n == 1 and out and out[-1][2] == np.inf:
+            out[-1] = (*out[-1][:2], tc)
+        elif n > 1 and j >= 0 and j not in seen:
             seen.add(j)
-            out.append(trajs[j])
+            out.append((*trajs[j], np.inf))
     return out
 
 
 def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -> dict:
     """How closely the robot executed the trajectories it was sent, judged from the record alone: for every executed
-    configuration, the trajectory it was following (the last of ``trajs``, those executed, received before it; the
-    motion after a stop counts against it too), the
+    configuration, the trajectory it was following (the last of ``trajs``, those executed, (t, msg) or (t, msg,
+    t_hold), received before it; the motion after a hold at ``t_hold`` counts against where it stopped), the
     base's distance to that trajectory's base path (point to segment), and the deviation of the whole robot
     (:class:`psprm_core.tracking.CheckedPath`: how far a point of its collision boxes is from where it was in the
     nearest of the trajectory's configurations within ``TRACK_WINDOW_S`` of the time since it was received);
@@ -415,9 +418,10 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     names = list(robot.joint_names)
     if not ex or not trajs:
         return {}
-    t_tr = np.array([t for t, _ in trajs])
+    t_tr = np.array([tr[0] for tr in trajs])
     paths = []
-    for _, m in trajs:
+    for tr in trajs:
+        m = tr[1]
         try:
             paths.append(cv.joint_trajectory_positions(m, names))
         except Exception:
@@ -439,7 +443,9 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
             # the robot's collision boxes against the trajectory's configurations within TRACK_WINDOW_S of the time
             # since it was received (the adapter starts it a lead time later, spliced up to 1.5 s in)
             path = CheckedPath(robot, T, P)
-            deviation[sel] = path.deviations(Q[sel], ex_t[sel] - t_tr[j], TRACK_WINDOW_S)
+            # after a hold the robot is no longer following: it is measured against where it was stopped
+            t_hold = trajs[j][2] if len(trajs[j]) > 2 else np.inf
+            deviation[sel] = path.deviations(Q[sel], np.minimum(ex_t[sel], t_hold) - t_tr[j], TRACK_WINDOW_S)
         a, b = P[:-1, :2], P[1:, :2]  # base path segments
         d = b - a
         L2 = np.maximum((d * d).sum(1), 1e-12)

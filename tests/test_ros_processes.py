@@ -304,7 +304,8 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
     away[:, 1] = 3.0  # the refused one: far from where the robot drives
     trajs = [(9.0, msg_of(P)), (12.0, msg_of(away))]
     ran = executed_trajectories(trajs, [(9.01, 11), (12.01, 1)])
-    assert len(ran) == 1 and ran[0][0] == 9.0
+    assert len(ran) == 1 and ran[0][0] == 9.0 and ran[0][2] == 12.01  # executed, then held by the refusal
+    ran = [(9.0, ran[0][1], np.inf)]  # here the robot drives on (a hold that did not stop it)
     ex = []
     for k in range(100):
         t = 9.0 + 0.1 * k
@@ -330,6 +331,11 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
                                                                     dtype=torch.float32)).any()
     with_refused = tracking_report(ex, trajs, robot, CollisionChecker(robot, padding=0.05), [box])
     assert with_refused["deviation_m"]["over_padding"] > 60  # the refused trajectory would have counted too
+    # stopped by a hold at 11 s where it stood 3 cm off: measured against the path where it stopped, not against the
+    # reference moving on without it
+    rest = [(t, ex[20][1] if t >= 11.0 else q) for t, q in ex]
+    held = tracking_report(rest, [(9.0, ran[0][1], 11.0)], robot, CollisionChecker(robot, padding=0.05), [box])
+    assert abs(held["deviation_m"]["max"] - 0.03) < 1e-3 and held["deviation_m"]["over_padding"] == 0
 
 
 def test_soak_walk_yields_to_the_robot_then_walks_on():
