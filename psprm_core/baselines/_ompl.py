@@ -1,6 +1,6 @@
 """OMPL 2.0.1 glue for the sampling-based baselines (RRT-Connect, optionally on a ``ProjectedStateSpace``).
 
-Follows the traps measured in ``/work/shared/notes/robots-and-planning-libs.md``: one goal state per solve, the RNG
+Avoids the known traps of OMPL's Python bindings: one goal state per solve, the RNG
 seeded with ``ou.RNG.setSeed`` before anything samples, a pure real-vector ambient space (the base as x, y, theta
 reals), Python validity checkers and motion validators only (no Python optimisation objective). OMPL's seed
 generator is re-seeded before every solve (:func:`reseed`), so that a solve's random streams depend on its seed
