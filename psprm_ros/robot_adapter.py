@@ -395,7 +395,10 @@ class RobotAdapter:
         self.counts["refused"] += 1
         self.last_refusal = why
         self.stop(f"trajectory refused: {why}")
-        self._replan_at_rest = why
+        if self.follower is not None:  # a base: asked for once it rests (_ask_when_at_rest)
+            self._replan_at_rest = why
+        else:
+            self._request_replan(why)
         return False
 
     def _request_replan(self, why: str) -> bool:
