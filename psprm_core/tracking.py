@@ -84,25 +84,26 @@ class CheckedPath:
         allc = np.concatenate([self._blocks[b] for b in range(b0, b1 + 1)])
         return allc[lo - b0 * self.block:hi - b0 * self.block]
 
+    def _windows(self, taus, window_s: float) -> tuple:
+        """Sample index ranges [lo, hi) (N,) within ``window_s`` of each time in ``taus`` (clamped to the path)."""
+        taus = np.clip(np.asarray(taus, float).reshape(-1), 0.0, self.duration)
+        lo = np.minimum(np.searchsorted(self.ts, taus - window_s, side="left"), len(self.ts) - 1)
+        hi = np.minimum(np.maximum(np.searchsorted(self.ts, taus + window_s, side="left"), lo + 1), len(self.ts))
+        return lo, hi
+
     def deviations(self, Q, taus, window_s: float = 2.0) -> np.ndarray:
         """:meth:`deviation` distances (N,) of configurations ``Q`` (N, dof) at times ``taus`` (N,), their forward
         kinematics in one batch."""
         A = element_corners(self.robot, Q).astype(np.float32)
-        taus = np.clip(np.asarray(taus, float).reshape(-1), 0.0, self.duration)
-        lo = np.minimum(np.searchsorted(self.ts, taus - window_s, side="left"), len(self.ts) - 1)
-        hi = np.minimum(np.maximum(np.searchsorted(self.ts, taus + window_s, side="left"), lo + 1), len(self.ts))
-        out = np.empty(len(A))
-        for i in range(len(A)):
-            out[i] = np.linalg.norm(self.corners(lo[i], hi[i]) - A[i][None], axis=2).max(axis=1).min()
-        return out
+        lo, hi = self._windows(taus, window_s)
+        return np.array([np.linalg.norm(self.corners(lo[i], hi[i]) - A[i][None], axis=2).max(axis=1).min()
+                         for i in range(len(A))])
 
     def deviation(self, q, tau: float, window_s: float = 2.0) -> tuple:
         """(distance, time): the smallest displacement (:func:`displacement`) of the configuration ``q`` from the
         path's sampled configurations within ``window_s`` of time ``tau`` (clamped to the path), and the time of
         the nearest one."""
-        tau = float(np.clip(tau, 0.0, self.duration))
-        lo, hi = (int(i) for i in np.searchsorted(self.ts, [tau - window_s, tau + window_s], side="left"))
-        lo, hi = min(lo, len(self.ts) - 1), min(max(hi, lo + 1), len(self.ts))
+        (lo,), (hi,) = self._windows([tau], window_s)
         a = element_corners(self.robot, np.asarray(q, float)[None])[0].astype(np.float32)
         d = np.linalg.norm(self.corners(lo, hi) - a[None], axis=2).max(axis=1)
         k = int(np.argmin(d))
