@@ -35,7 +35,7 @@ import math
 import time
 import dataclasses
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -43,8 +43,10 @@ import numpy as np
 import torch
 
 from .. import fastpath
-from ..errors import PsprmError
+from ..errors import InputError, PsprmError
+from ..prediction import PredictionSettings, TargetPredictor
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
+from .execution import commit_time, progress_time, splice
 from .psprm import PSPRM, PlanResult
 
 log = logging.getLogger(__name__)
@@ -100,10 +102,19 @@ class ReplanSettings:
     # checking the candidate shortcuts costs tens of ms per replan
     route_selection: bool = False  # the planner's route selection (PSPRMSettings.query.route_searches) in replans: off,
     # since every extra search adds a search's time to each replan
+    commit: bool = True  # a robot in motion replans from its committed state (planning.execution): the trajectory
+    # under way is kept to its first rest instant after planning and delivery, the new plan starts there
+    commit_horizon_s: float = 0.3  # planning and delivery time when the caller gives none (s)
+    predict_lead_s: float = 1.5  # the roadmap is scored against the target pose extrapolated this far ahead (s)
+    score_bins: int = 4  # a path's predicted score: its duration split into this many stretches, each scored against
+    # the targets' predicted poses (the mixture, prediction) at its middle
+    prediction: PredictionSettings = field(default_factory=PredictionSettings)
 
     def __post_init__(self):
         if not (self.goal_commit_growth >= 1.0 and math.isfinite(self.goal_commit_growth)):
             raise PsprmError(f"goal_commit_growth must be a finite factor >= 1, got {self.goal_commit_growth}")
+        if self.score_bins < 1:
+            raise PsprmError(f"score_bins must be >= 1, got {self.score_bins}")
         if self.heuristic not in HEURISTICS:
             raise PsprmError(f"replan heuristic must be one of {', '.join(HEURISTICS)}, got {self.heuristic!r}")
 
@@ -175,8 +186,19 @@ class Replanner:
         self._repaired_nodes = 0  # nodes added by repair so far (bounded by repair_budget_nodes)
         self.history: deque = deque(maxlen=HISTORY)  # the latest replans: reasons, timings, success
         self.replans = 0  # replans so far
+        self.adopted = 0  # replans whose plan replaced the current one
+        self.declined = 0  # replans that kept the current plan (kept)
+        self.goal_switches = 0  # adopted plans that went to another of the candidate goals
         self._collides_cache: Optional[tuple] = None  # (result, progress, planner scene, remaining path collides)
         self._score_cache: Optional[tuple] = None  # ((result, progress, planner scene, normalized), path score)
+        # target motion prediction: one predictor per target, fed by update_target; the latest pose stamp is the
+        # prediction's "now"
+        self.predictors = {t.name: TargetPredictor(self.settings.prediction, t.name) for t in self.scene.targets}
+        self._stamp: Optional[float] = None
+        self._t_along: Optional[float] = None  # the robot's time along the current trajectory (set_robot_state)
+        self._planning_scene = None  # (scene, stamp) -> the scene the roadmap is scored with (predicted targets)
+        self._new_plan_score: Optional[float] = None  # the keep decision's score of the replan's new plan
+        self._along_cache: Optional[tuple] = None  # (result, progress, time along it) estimated from the progress
 
     def update_settings(self, settings: Optional[ReplanSettings] = None, **changes) -> ReplanSettings:
         """Adopt new settings (``settings``, else the current ones with ``changes``; validated as they are built) and
@@ -190,6 +212,8 @@ class Replanner:
         if new.heuristic != "planner":
             options["heuristic"] = new.heuristic
         self.settings, self.plan_options = new, options
+        for pr in getattr(self, "predictors", {}).values():
+            pr.settings = new.prediction
         return new
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
@@ -201,12 +225,18 @@ class Replanner:
         except KeyError as e:
             raise PsprmError(str(e.args[0])) from None
 
-    def set_robot_state(self, q) -> None:
-        """Current configuration (dof,) of the planning joints; advances the progress along the current path."""
+    def set_robot_state(self, q, t_along: Optional[float] = None) -> None:
+        """Current configuration (dof,) of the planning joints; advances the progress along the current path.
+        ``t_along``: where the robot is along the current plan's trajectory (s from its start; the caller's
+        measurement, e.g. :func:`~.execution.progress_time`), which lets a replan start from the committed state
+        (:mod:`.execution`); None: the robot is taken to be at rest, and a replan starts where it is."""
         q = np.asarray(q, dtype=float).reshape(-1)
         if q.shape != (self.robot.dof,) or not np.isfinite(q).all():
             raise PsprmError(f"robot state must be {self.robot.dof} finite values")
+        if t_along is not None and not math.isfinite(t_along):
+            raise PsprmError(f"time along the trajectory must be finite, got {t_along}")
         self.q = q
+        self._t_along = None if t_along is None else max(0.0, float(t_along))
         if self.result is not None and self.result.dense is not None and len(self.result.dense):
             d = self.result.dense
             lo = self._progress
@@ -226,15 +256,21 @@ class Replanner:
             self._switches = 0
         self.goals = g
 
-    def update_target(self, name: str, position, quat=None) -> bool:
+    def update_target(self, name: str, position, quat=None, stamp: Optional[float] = None) -> bool:
         """New pose of a target. Returns True when it moved beyond the thresholds (``target_move_m`` /
         ``target_turn_rad``) since the last pose that returned True: a target turning steadily reports one step per
         threshold, not every pose after the first step. The roadmap's scores are stale once the target is beyond the
         thresholds from where they were computed. A target that is also a collision box is re-checked near the
         roadmap like an obstacle: when its box moved beyond ``obstacle_move_m`` / ``obstacle_turn_rad`` from where the
-        roadmap last saw it."""
+        roadmap last saw it. ``stamp``: the pose's time (s; default: monotonic), for the target's motion prediction
+        (:mod:`psprm_core.prediction`): a pose the predictor discards (a jump, time not advancing) still moves the
+        target here, but not its prediction."""
         self._known(self.scene.target, name)
         p, q = _pose(position, quat, f"target '{name}'")
+        stamp = time.monotonic() if stamp is None else float(stamp)
+        self.predictors[name].add(stamp, p, q)
+        if self._stamp is None or stamp > self._stamp:
+            self._stamp = stamp
         self.scene = self.scene.with_target_pose(name, p, q)
         s = self.settings
         if self._beyond(p, q, self._target_ref[name], s.target_move_m, s.target_turn_rad):
@@ -305,23 +341,111 @@ class Replanner:
         return hit
 
     def path_score(self, normalized: bool = False) -> float:
-        """Predicted mean perception score along the remaining path under the latest target/obstacle poses
-        (``normalized``: divided by the roadmap's 99th-percentile node score and clipped to [0, 1], as c_p in Eq. 1).
-        Cached per (plan, progress, planner scene): the trigger evaluation and the keep decision of the replan that
+        """Predicted mean perception score along the remaining path (``normalized``: divided by the roadmap's
+        99th-percentile node score and clipped to [0, 1], as c_p in Eq. 1), each stretch of it judged against the
+        targets' poses predicted for the time the robot passes there (:meth:`predicted_score`). Cached per (plan,
+        progress, time along it, planner scene): the trigger evaluation and the keep decision of the replan that
         follows it in the same cycle score the path once."""
         rem = self.remaining()
         if rem is None or len(rem) == 0:
             return float("nan")
         self._sync_scene()
-        key = (self.result, self._progress, self.planner.scene, normalized)
+        key = (self.result, self._progress, self.planner.scene, normalized, self._t_along)
         c = self._score_cache
-        if c is not None and all(a is b for a, b in zip(c[0][:3], key[:3])) and c[0][3] == normalized:
+        if c is not None and all(a is b for a, b in zip(c[0][:3], key[:3])) and c[0][3:] == key[3:]:
             return c[1]
-        step = max(1, len(rem) // max(1, self.settings.score_samples))
-        q = torch.as_tensor(rem[::step], dtype=torch.float32)
-        sc = self.planner.score_configs(q)
-        out = float((self.planner.normalized_scores(sc) if normalized else sc).mean())
+        traj = self.result.trajectory
+        if traj is not None:
+            out = self.predicted_score(traj, self._time_along(), normalized=normalized)
+        else:
+            step = max(1, len(rem) // max(1, self.settings.score_samples))
+            sc = self.planner.score_configs(torch.as_tensor(rem[::step], dtype=torch.float32))
+            out = float((self.planner.normalized_scores(sc) if normalized else sc).mean())
         self._score_cache = (key, out)
+        return out
+
+    def _time_along(self) -> float:
+        """The robot's time along the current trajectory: the caller's (:meth:`set_robot_state`), else estimated
+        from its progress along the dense path."""
+        traj = self.result.trajectory
+        if self._t_along is not None:
+            return min(self._t_along, float(traj.duration))
+        c = self._along_cache
+        if c is not None and c[0] is self.result and c[1] == self._progress:
+            return c[2]
+        n = len(self.result.dense) if self.result.dense is not None else 0
+        guess = float(traj.duration) * (self._progress / max(1, n - 1))
+        t = guess if self.q is None else progress_time(traj, self.q, guess, window_s=float(traj.duration),
+                                                       scale=self.robot.velocity,
+                                                       angle_cols=[2] if self.robot.mobile else [])
+        self._along_cache = (self.result, self._progress, t)
+        return t
+
+    def predicted_score(self, traj, t0: float = 0.0, lead_s: float = 0.0, normalized: bool = True) -> float:
+        """Time-integrated predicted perception of ``traj`` from its time ``t0`` to its end: the mean score of
+        configurations every 50 ms (at most ``score_samples``), each stretch of ``score_bins`` scored against the
+        targets' predicted pose mixture (:meth:`~psprm_core.prediction.TargetPredictor.mixture`) at the time the robot
+        will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp). Without prediction, the
+        targets' latest poses."""
+        T = float(traj.duration)
+        t0 = min(max(0.0, float(t0)), T)
+        n = int(max(2, min(self.settings.score_samples, (T - t0) / 0.05 + 1)))
+        ts = np.linspace(t0, T, n)
+        Q = traj.evaluate(ts)[0]
+        now = self._stamp if self._stamp is not None else 0.0
+        sc = self._score_timed(Q, now + lead_s + (ts - t0))
+        return float((self.planner.normalized_scores(sc) if normalized else sc).mean())
+
+    def _predicting(self) -> bool:
+        return self.settings.prediction.enabled and self._stamp is not None and \
+            any(pr.ready for pr in self.predictors.values())
+
+    def _score_timed(self, Q: np.ndarray, stamps: np.ndarray) -> torch.Tensor:
+        """Scores (K,) of configurations ``Q`` (K, dof), each against the targets' predicted mixture at its stamp
+        (expected score over the mixture), the mixture taken at the middle of each of ``score_bins`` stretches of
+        consecutive configurations. Each distinct set of predicted poses is scored once for all configurations (a
+        standing person's history components are the same in every stretch)."""
+        p = self.planner
+        self._sync_scene()
+        Qt = torch.as_tensor(np.asarray(Q), dtype=torch.float32)
+        if not self._predicting():
+            return p.score_configs(Qt).double()
+        out = torch.zeros(len(Q), dtype=torch.float64)
+        scored: dict = {}
+        restore = p.scene
+        try:
+            for idx in np.array_split(np.arange(len(Q)), min(self.settings.score_bins, len(Q))):
+                if not len(idx):
+                    continue
+                for w, key, scene in self._mixture_scenes(float(np.mean(stamps[idx]))):
+                    if key not in scored:
+                        p.set_scene(scene)
+                        scored[key] = p.score_configs(Qt).double()
+                    out[idx] += w * scored[key][idx]
+        finally:
+            p.set_scene(restore)
+        return out
+
+    def _mixture_scenes(self, t: float) -> list:
+        """[(weight, key, scene)]: the scene with every predicted target at its k-th mixture component at time ``t``
+        (the components of all targets taken together by index; the weights of the target with the most); ``key``
+        identifies the poses (2 cm, 0.02 rad)."""
+        from ..prediction import quat_yaw
+
+        mixes = {n: pr.mixture(t) for n, pr in self.predictors.items() if pr.ready}
+        if not mixes:
+            return [(1.0, (), self.scene)]
+        k_max = max(len(m) for m in mixes.values())
+        weights = next(m for m in mixes.values() if len(m) == k_max)
+        out = []
+        for k in range(k_max):
+            scene, key = self.scene, []
+            for name, m in mixes.items():
+                _, pos, quat = m[min(k, len(m) - 1)]
+                scene = scene.with_target_pose(name, pos, quat)
+                key.append((name, *np.round(np.asarray(pos) / 0.02).astype(int).tolist(),
+                            int(round(quat_yaw(quat) / 0.02))))
+            out.append((weights[k][0], tuple(key), scene))
         return out
 
     def _remaining_base_length(self) -> float:
@@ -367,17 +491,47 @@ class Replanner:
         return reasons
 
     # ---- planning ----------------------------------------------------------------------------------------------------
+    def planning_scene(self):
+        """The scene the roadmap is scored with: the latest poses, every target that is not a collision box moved to
+        its pose extrapolated ``predict_lead_s`` ahead (the mixture's first component; with prediction off, the
+        latest pose). Collision boxes always stay where they were measured."""
+        key = (self.scene, self._stamp)
+        if self._planning_scene is not None and self._planning_scene[0][0] is key[0] and \
+                self._planning_scene[0][1] == key[1]:
+            return self._planning_scene[1]
+        scene = self.scene
+        if self._predicting():
+            t = self._stamp + self.settings.predict_lead_s
+            for name, pr in self.predictors.items():
+                if pr.ready and not scene.target(name).obstacle:
+                    _, pos, quat = pr.mixture(t)[0]
+                    scene = scene.with_target_pose(name, pos, quat)
+        self._planning_scene = (key, scene)
+        return scene
+
     def _sync_scene(self) -> None:
-        """Push the latest scene to the planner (scorer occluders, collision boxes, focus)."""
+        """Push the planning scene (:meth:`planning_scene`) to the planner (scorer occluders, collision boxes,
+        focus)."""
         p = self.planner
-        if p.scene is not self.scene:
-            p.set_scene(self.scene)
+        scene = self.planning_scene()
+        if p.scene is not scene:
+            p.set_scene(scene)
             focus = np.mean([self.scene.target(t).center for t in self.targets], axis=0)
             if np.linalg.norm(focus - p.constraint.target.numpy()) > self.settings.focus_move_m:
                 p.set_focus(focus)
 
-    def replan(self, now: Optional[float] = None, triggers: Sequence[str] = ()) -> PlanResult:
-        """Plan from the robot's state to the best goal under the latest poses (never a colliding path).
+    def replan(self, now: Optional[float] = None, triggers: Sequence[str] = (),
+               horizon_s: Optional[float] = None) -> PlanResult:
+        """Plan to the best goal under the latest poses (never a colliding path).
+
+        A robot in motion (its time along the current trajectory given to :meth:`set_robot_state`) replans from its
+        committed state (:mod:`.execution`): the trajectory under way is kept up to its first rest instant at or after
+        ``horizon_s`` from now (planning and delivery; default ``commit_horizon_s``), the new plan starts there, and
+        the result's trajectory is the two spliced (:class:`~.execution.SplicedTrajectory`, time 0 = the robot's
+        time along the old one, :attr:`PlanResult.start_offset_s`). A committed stretch that an obstacle has moved
+        into fails the replan and drops the current plan: the caller must stop. A robot at rest replans from where
+        it is.
+
         ``now``: the caller's clock for the replanning interval (default: monotonic). ``triggers``: why the caller
         replans (the reasons of :meth:`needs_replan`); when they are all :data:`VIEW_TRIGGERS` and
         ``keep_unless_better`` is on, a new plan no better than the current one is not adopted (the result has
@@ -385,9 +539,56 @@ class Replanner:
         intra-op parallelism off, like a query (:func:`~psprm_core.fastpath.one_thread`): its re-scoring batches are a
         few thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
         with fastpath.one_thread(self.planner.device):
-            return self._replan(now, tuple(triggers))
+            return self._replan(now, tuple(triggers), horizon_s)
 
-    def _replan(self, now: Optional[float], triggers: tuple = ()) -> PlanResult:
+    def _commitment(self, horizon_s: Optional[float]) -> Optional[dict]:
+        """Where a replan of the robot in motion starts (:mod:`.execution`), or None (at rest, or no trajectory):
+        ``t_from`` (the robot's time along the current trajectory), ``t_commit``, ``q`` (the committed state, base
+        heading wrapped), and ``prefix`` (the committed configurations every 20 ms, for the safety check)."""
+        cur = self.result
+        if not (self.settings.commit and cur is not None and cur.trajectory is not None and self._t_along is not None):
+            return None
+        traj = cur.trajectory
+        T = float(traj.duration)
+        t_from = min(self._t_along, T)
+        if t_from >= T - 1e-6:
+            return None
+        h = self.settings.commit_horizon_s if horizon_s is None else max(0.0, float(horizon_s))
+        t_c = commit_time(traj, t_from, h)
+        ts = np.append(np.arange(t_from, t_c, 0.02), t_c)
+        prefix = traj.evaluate(ts)[0]
+        q = prefix[-1].copy()
+        if self.robot.mobile:
+            q[2] = (q[2] + np.pi) % (2 * np.pi) - np.pi
+        return {"t_from": t_from, "t_commit": t_c, "q": q, "prefix": prefix}
+
+    def _splice(self, res: PlanResult, commit: dict) -> PlanResult:
+        """``res`` (planned from the committed state) joined to the trajectory under way (:func:`~.execution.splice`):
+        a plan whose first knot is not the committed state (the planner re-aims the camera at a start) gets a move
+        there first, timed and densified like its edges."""
+        p = self.planner
+        q_c = commit["q"]
+        W, dense, traj = res.waypoints, res.dense, res.trajectory
+        if np.abs(W[0] - q_c).max() > 1e-6:
+            W = np.vstack([q_c, W])
+            lead, _ = p.pipeline.ctx.backend.dense_path(np.ascontiguousarray(W[:2]))
+            dense = np.vstack([lead, dense[1:]])
+            traj = p.pipeline.trajectory.timed(W)
+        cont = [i for i in range(self.robot.dof) if self.robot.continuous[i]]
+        if self.robot.mobile and 2 not in cont:
+            cont.append(2)
+        try:
+            spliced = splice(self.result.trajectory, commit["t_from"], commit["t_commit"], traj, cont)
+        except InputError as exc:
+            return PlanResult(False, f"internal: {exc}")
+        off = spliced.offset
+        out = dataclasses.replace(res, waypoints=np.vstack([commit["prefix"][:1], W + off]),
+                                  dense=np.vstack([commit["prefix"][:-1], dense + off]), trajectory=spliced,
+                                  start_offset_s=commit["t_from"], committed_s=commit["t_commit"] - commit["t_from"])
+        out.declined = None
+        return out
+
+    def _replan(self, now: Optional[float], triggers: tuple = (), horizon_s: Optional[float] = None) -> PlanResult:
         t0 = time.perf_counter()
         self._last_plan_time = time.monotonic() if now is None else now
         reasons = sorted(self._pending) if self.result is not None else ["no_plan"]
@@ -403,12 +604,25 @@ class Replanner:
             for t in self.scene.targets:
                 self._target_ref[t.name] = (t.center.copy(), t.quat.copy())
             self._score_stale = False
-        res = self._plan_goals(self._last_plan_time)
+        commit = self._commitment(horizon_s)
+        if commit is not None and bool(p.checker.check_unpadded(
+                torch.as_tensor(commit["prefix"], dtype=torch.float32)).any()):
+            # the motion the controllers already execute collides with the latest poses: no new plan can help
+            log.warning("the committed motion collides with a moved obstacle: the robot must stop")
+            self.result = None
+            self._last_failed = True
+            self.replans += 1
+            res = PlanResult(False, "the committed motion collides with the latest obstacle poses: stop")
+            res.query_ms = (time.perf_counter() - t0) * 1e3
+            return res
+        start = self.q if commit is None else commit["q"]
+        self._new_plan_score = None
+        res = self._plan_goals(self._last_plan_time, start)
         rounds = 0
         while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds
                and self._repaired_nodes < self.settings.repair_budget_nodes):
             rounds += 1
-            centers = ([b.center[:2] for b in self._moved_obstacles.values()] + [self.q[:2]]
+            centers = ([b.center[:2] for b in self._moved_obstacles.values()] + [start[:2]]
                        + [g[:2] for g in self.goals])
             rng = np.random.default_rng(self.replans * 7 + rounds)
             for c in centers:
@@ -416,45 +630,66 @@ class Replanner:
                              rng=rng)
                 self._repaired_nodes += got["added_nodes"]
                 info.setdefault("repair", []).append(got)
-            res = self._plan_goals(self._last_plan_time)
-        if res.success and res.dense is not None:
+            res = self._plan_goals(self._last_plan_time, start)
+        if commit is not None and res.success and res.trajectory is None:
+            # the committed state is the goal: the trajectory under way already ends there
+            res = PlanResult(True, "kept the current plan: the trajectory under way ends at the best goal",
+                             goal_index=self.result.goal_index, cost=self.result.cost, kept=True)
+        elif commit is not None and res.success:
+            fresh = res
+            res = self._splice(res, commit)
+            kept = self._keep_current(fresh, triggers, commit) if res.success else None
+            if kept is not None:
+                res = PlanResult(True, kept[0], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                                 declined=res)
+                self._plan_score = kept[1]
+        elif res.success:
+            kept = self._keep_current(res, triggers, None)
+            if kept is not None:
+                res = PlanResult(True, kept[0], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                                 declined=res)
+                self._plan_score = kept[1]
+        if res.success and not res.kept and res.dense is not None:
             # against the obstacles as they are: the planner's collision padding is a margin it plans with (a start
             # inside it is moved out of it by the path's first motion), not what makes a path unsafe
-            bad = p.checker.check_unpadded(torch.as_tensor(res.dense, dtype=torch.float32)).cpu().numpy()
+            check = res.dense if res.trajectory is None else np.vstack([res.dense, res.trajectory.positions])
+            bad = p.checker.check_unpadded(torch.as_tensor(check, dtype=torch.float32)).cpu().numpy()
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
                 log.error("replanned path collides at %d of %d dense configurations; rejected", bad.sum(), len(bad))
                 res = PlanResult(False, "internal: path failed the final collision check")
-        plan_score = None
-        if res.success:  # the plan's score feeds the hysteresis: scored inside the measured replan
-            plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
-        kept = self._keep_current(res, plan_score, triggers) if res.success else None
         ms = (time.perf_counter() - t0) * 1e3
-        if kept is not None:
-            why, current_score = kept
-            res = PlanResult(True, why, goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
-                             declined=res)
-            self._plan_score = current_score  # the current plan, valued under the latest poses
+        if res.kept:
             self._pending.clear()
             self._moved_obstacles.clear()
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
-                             "repair_rounds": rounds, "kept": res.kept,
+                             "repair_rounds": rounds, "kept": res.kept, "spliced": commit is not None,
                              **{k: v for k, v in info.items() if k == "rescore"}})
         self.replans += 1
         self._last_failed = not res.success
         if res.kept:
+            self.declined += 1
             log.info("%s", res.reason)
         elif res.success:
+            self.adopted += 1
             self.result, self._progress = res, 0
+            self._t_along = None  # until the caller reports the robot's progress along the new trajectory
             new_goal = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None
             old_goal = self._goal_cfg
             if new_goal is None or old_goal is None or old_goal.shape != new_goal.shape or \
                     np.abs(old_goal - new_goal).max() >= 1e-6:
                 if self._current_goal_mask() is not None:  # from one candidate goal to another
                     self._switches += 1
+                    self.goal_switches += 1
                 self._goal_since = self._last_plan_time
             self._goal_cfg = new_goal
-            self._plan_score = plan_score
+            # the hysteresis' reference: the adopted plan's predicted perception (outside the measured replan)
+            if self._new_plan_score is not None:  # scored by the keep decision (from the commit on)
+                self._plan_score = self._new_plan_score
+            elif res.trajectory is not None:
+                self._plan_score = self.predicted_score(res.trajectory)
+            else:
+                self._plan_score = float(np.mean(np.clip(res.dense_scores * getattr(p, "score_scale", 1.0), 0, 1)))
             self._pending.clear()
             self._moved_obstacles.clear()
         else:
@@ -463,29 +698,44 @@ class Replanner:
                 self.result = None  # the old plan is no longer safe: the caller must stop
         return res
 
-    def _keep_current(self, res: PlanResult, plan_score: float, triggers: tuple) -> Optional[tuple]:
-        """(why, the remaining path's normalised score) when the new plan ``res`` should not replace the current one
-        (the module's docstring), else None."""
+    def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Optional[tuple]:
+        """(why, the current plan's predicted score) when the new plan ``res`` (from the committed state, or from
+        the robot's state) should not replace the current one (the module's docstring), else None. Both are judged
+        from the same instant on, against the targets' predicted poses (:meth:`predicted_score`): the current plan
+        from the commit instant (or the robot's progress), the new one from its start."""
         s = self.settings
         if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) \
                 or "goal_changed" in self._pending:
             return None
-        rem = self.remaining()
-        if self.result is None or rem is None or len(rem) < 2 or res.dense is None or self._goal_cfg is None:
+        cur = self.result
+        if cur is None or cur.dense is None or res.dense is None or self._goal_cfg is None or res.trajectory is None:
             return None
-        if not 0 <= res.goal_index < len(self.goals) or self.goals[res.goal_index].shape != self._goal_cfg.shape \
-                or np.abs(self.goals[res.goal_index] - self._goal_cfg).max() >= 1e-6:
-            return None  # another goal: the goal hysteresis has decided
+        if not 0 <= res.goal_index < len(self.goals):
+            return None
         if self.remaining_path_collides():
             return None
-        current = self.path_score(normalized=True)
+        if commit is not None:
+            t_c, lead = commit["t_commit"], commit["t_commit"] - commit["t_from"]
+            if t_c >= float(cur.trajectory.duration) - 1e-6:
+                return None
+            rem = cur.trajectory.evaluate(np.linspace(t_c, float(cur.trajectory.duration), 200))[0]
+        elif cur.trajectory is not None:
+            t_c, lead = self._time_along(), 0.0
+            rem = self.remaining()
+        else:
+            return None
+        if rem is None or len(rem) < 2:
+            return None
+        current = self.predicted_score(cur.trajectory, t_c)
+        plan_score = self.predicted_score(res.trajectory, 0.0, lead_s=lead)
         motion = self.planner.motion
         rem_len, new_len = (float(motion.distance(q[:-1], q[1:]).sum()) if len(q) > 1 else 0.0
                             for q in (torch.as_tensor(np.asarray(d), dtype=torch.float64) for d in (rem, res.dense)))
+        self._new_plan_score = plan_score
         if plan_score > current + s.keep_score_margin or new_len < (1.0 - s.keep_length_margin) * rem_len:
             return None
-        return (f"kept the current plan: the new one sees {plan_score:.3f} along {new_len:.2f} against the remaining "
-                f"path's {current:.3f} along {rem_len:.2f}", current)
+        return (f"kept the current plan: the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} against "
+                f"the remaining path's {current:.3f} along {rem_len:.2f}", current)
 
     def _committed_goal(self, now: float) -> Optional[np.ndarray]:
         """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s`` times
@@ -504,17 +754,17 @@ class Replanner:
         same = np.abs(self.goals - cur).max(1) < 1e-6
         return same if same.any() else None
 
-    def _plan_goals(self, now: float) -> PlanResult:
-        """One search over the candidate goals: only the committed goal while its commitment lasts (all of them if no
-        path reaches it), otherwise all with the switching margin (:meth:`_goal_costs`)."""
+    def _plan_goals(self, now: float, start: np.ndarray) -> PlanResult:
+        """One search from ``start`` over the candidate goals: only the committed goal while its commitment lasts
+        (all of them if no path reaches it), otherwise all with the switching margin (:meth:`_goal_costs`)."""
         p = self.planner
         keep = self._committed_goal(now)
         if keep is not None:
-            res = p.plan(self.q, self.goals[keep], options=self.plan_options)
+            res = p.plan(start, self.goals[keep], options=self.plan_options)
             if res.success:
                 res.goal_index = int(np.nonzero(keep)[0][res.goal_index]) if res.goal_index >= 0 else -1
                 return res
-        return p.plan(self.q, self.goals, goal_costs=self._goal_costs(), options=self.plan_options)
+        return p.plan(start, self.goals, goal_costs=self._goal_costs(), options=self.plan_options)
 
     def _goal_costs(self) -> Optional[np.ndarray]:
         """Goal hysteresis as terminal costs (one search): with several candidate goals, every goal but the current

@@ -33,6 +33,9 @@ class PlanResult:
     route_candidates: dict = field(default_factory=dict, repr=False)  # search -> (route perception, path length)
     kept: bool = False  # a replanner kept its current plan: the new one was no better (no path, no trajectory here)
     declined: Optional["PlanResult"] = field(default=None, repr=False, compare=False)  # with ``kept``: that new plan
+    start_offset_s: float = 0.0  # a replan of a robot in motion: time 0 of ``trajectory`` is this far along the
+    # previous trajectory (planning.execution), 0 for a plan from the robot's state
+    committed_s: float = 0.0  # ... and its first this many seconds are the previous trajectory's (the commitment)
     score_fn: Optional[Callable[[np.ndarray], np.ndarray]] = field(default=None, repr=False, compare=False)
     _dense_scores: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
 

@@ -1,0 +1,161 @@
+"""Target motion prediction (psprm_core.prediction), judged against the motion the test itself generated: a turn in
+progress is extrapolated, a walk is extrapolated, a person turning back and forth is predicted, beyond a few
+seconds, to look where they have been looking in the proportions they have (the test's own quantiles of its own
+headings), a standing target stays; bad input (NaN, time going back, jumps, gaps) is discarded with a warning and the
+last good pose used; and the replanner's predicted path score changes with the predicted poses, not with the
+instantaneous one alone."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from psprm_core.errors import InputError
+from psprm_core.geometry import yaw_to_quat
+from psprm_core.prediction import PredictionSettings, TargetPredictor, quat_yaw, turned
+
+
+def _wrap(a):
+    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
+
+
+def _feed(pr, times, positions, yaws):
+    for t, p, y in zip(times, positions, yaws):
+        assert pr.add(t, p, yaw_to_quat(y))
+
+
+def _mix_yaws(mix):
+    return np.array([quat_yaw(q) for _, _, q in mix]), np.array([w for w, _, _ in mix])
+
+
+def test_quaternion_turn_about_the_vertical():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        y, d = rng.uniform(-3, 3, 2)
+        assert _wrap(quat_yaw(turned(yaw_to_quat(y), d)) - (y + d)) == pytest.approx(0.0, abs=1e-9)
+
+
+def test_a_turn_in_progress_is_extrapolated():
+    pr = TargetPredictor(PredictionSettings(components=1))
+    t = np.arange(0.0, 2.0, 1 / 60)
+    rate = 0.6  # rad/s, a person turning at a human pace
+    _feed(pr, t, np.zeros((len(t), 3)), 0.2 + rate * t)
+    truth = 0.2 + rate * (t[-1] + 0.3)
+    (w, p, q), = pr.mixture(t[-1] + 0.3)
+    held = 0.2 + rate * t[-1]
+    # nearer the truth than holding the last pose, and within 0.05 rad of it
+    assert abs(_wrap(quat_yaw(q) - truth)) < 0.05
+    assert abs(_wrap(quat_yaw(q) - truth)) < 0.5 * abs(_wrap(held - truth))
+
+
+def test_a_walk_is_extrapolated_and_a_standing_target_stays():
+    pr = TargetPredictor(PredictionSettings())
+    t = np.arange(0.0, 3.0, 1 / 60)
+    v = np.array([0.8, -0.3, 0.0])
+    P = np.array([1.0, 2.0, 1.6]) + t[:, None] * v
+    _feed(pr, t, P, np.full(len(t), 0.4))
+    for tau in (0.5, 1.0):
+        truth = P[-1] + v * tau
+        for w, p, q in pr.mixture(t[-1] + tau):
+            assert np.linalg.norm(p - truth) < 0.25 * np.linalg.norm(v * tau)
+            assert abs(_wrap(quat_yaw(q) - 0.4)) < 1e-6  # the heading never changed: every component keeps it
+    still = TargetPredictor(PredictionSettings())
+    _feed(still, t, np.tile([3.0, 1.0, 1.5], (len(t), 1)), np.full(len(t), -1.0))
+    for w, p, q in still.mixture(t[-1] + 10.0):
+        assert np.allclose(p, [3.0, 1.0, 1.5], atol=1e-9) and abs(_wrap(quat_yaw(q) + 1.0)) < 1e-6
+
+
+def test_a_person_turning_back_and_forth_is_predicted_by_what_they_looked_at():
+    s = PredictionSettings(history_s=20.0, components=4)
+    pr = TargetPredictor(s)
+    t = np.arange(0.0, 30.0, 1 / 60)
+    # dwelling at each side (the shipped recording's profile): -pi/2 -+ 1.3 rad
+    yaw = -math.pi / 2 - 1.3 * np.tanh(1.5 * np.cos(2 * np.pi * t / 20.0)) / np.tanh(1.5)
+    _feed(pr, t, np.zeros((len(t), 3)), yaw)
+    # the test's own quantiles of the headings of the last 20 s
+    recent = yaw[t >= t[-1] - 20.0]
+    expected = np.quantile(recent, (np.arange(3) + 0.5) / 3)
+    yaws, w = _mix_yaws(pr.mixture(t[-1] + 15.0))
+    assert w.sum() == pytest.approx(1.0)
+    assert w[0] < 0.01  # far ahead, the extrapolation has given way
+    assert np.abs(_wrap(np.sort(yaws[1:]) - np.sort(expected))).max() < 0.05
+    # the spread grows with the horizon, from nothing to the history's (the test's quantiles, equally weighted)
+    spreads = [pr.expected_yaw_spread(t[-1] + tau) for tau in (0.0, 0.5, 20.0)]
+    assert spreads[0] == pytest.approx(0.0, abs=1e-9) and spreads[1] > 0.1
+    c = math.atan2(np.sin(expected).mean(), np.cos(expected).mean())
+    assert spreads[2] == pytest.approx(math.sqrt(np.mean(_wrap(expected - c) ** 2)), abs=0.05)
+
+
+def test_bad_input_is_discarded_and_the_last_good_pose_used(caplog):
+    s = PredictionSettings(max_rejects=5)
+    pr = TargetPredictor(s, "face")
+    t = np.arange(0.0, 1.0, 0.02)
+    _feed(pr, t, np.tile([1.0, 1.0, 1.5], (len(t), 1)), np.zeros(len(t)))
+    caplog.set_level(logging.WARNING, logger="psprm_core.prediction")
+    assert not pr.add(1.0, [np.nan, 1.0, 1.5], yaw_to_quat(0.0))
+    assert not pr.add(0.5, [1.0, 1.0, 1.5], yaw_to_quat(0.0))  # time going back
+    assert not pr.add(1.01, [3.0, 1.0, 1.5], yaw_to_quat(0.0))  # 2 m in 20 ms
+    assert pr.discarded == 3 and "discarded" in caplog.text
+    (w, p, q), *_ = pr.mixture(2.0)
+    assert np.allclose(p, [1.0, 1.0, 1.5], atol=1e-6)
+    # a target that really was moved (the same jump, again and again) is taken after max_rejects samples
+    results = [pr.add(1.02 + 0.02 * k, [3.0, 1.0, 1.5], yaw_to_quat(0.0)) for k in range(5)]
+    assert results == [False, False, False, True, True]  # with the first jump: 5 in a row, then accepted
+    (w, p, q), *_ = pr.mixture(2.0)
+    assert np.allclose(p, [3.0, 1.0, 1.5], atol=1e-6)
+    # a gap restarts the rates: no extrapolation from the stale ones
+    turning = TargetPredictor(PredictionSettings(components=1))
+    tt = np.arange(0.0, 1.0, 0.02)
+    _feed(turning, tt, np.zeros((len(tt), 3)), 1.0 * tt)
+    assert turning.yaw_rate == pytest.approx(1.0, rel=0.05)
+    assert turning.add(5.0, [0.0, 0.0, 0.0], yaw_to_quat(1.0))
+    assert turning.yaw_rate == 0.0
+
+
+def test_settings_are_validated():
+    with pytest.raises(InputError):
+        PredictionSettings(history_s=0.0)
+    with pytest.raises(InputError):
+        PredictionSettings(components=0)
+    with pytest.raises(InputError):
+        TargetPredictor().mixture(0.0)  # no pose yet
+
+
+def test_the_replanners_path_score_uses_the_predicted_poses(load_robot):
+    """The same remaining path, the same latest pose: a person who has been looking at the robot's route for 20 s
+    and just turned away scores higher, predicted, than one who has always looked away (the history says they turn
+    back); with prediction off both score alike (the instantaneous view)."""
+    from psprm_core.paths import resolve_named
+    from psprm_core.perception.scoring import GeometricScorer
+    from psprm_core.planning.factory import problem_configurations
+    from psprm_core.planning.psprm import PSPRM, PSPRMSettings
+    from psprm_core.planning.replanner import Replanner, ReplanSettings
+    from psprm_core.scene import load_scene
+
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    robot = load_robot("stretch2")
+    face = scene.target("person_face")
+    scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
+    p = PSPRM(robot, scene, scorer, face.center, PSPRMSettings().changed(n_nodes=500, seed=2))
+    assert p.build()["success"]
+    start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    south = -math.pi / 2
+    away = math.pi / 2
+
+    def score(history_yaw, enabled=True):
+        rp = Replanner(p, ReplanSettings(prediction=PredictionSettings(enabled=enabled)), targets=["person_face"])
+        for k in range(600):  # 20 s at 30 Hz, then turned away for the last 0.2 s
+            y = history_yaw if k < 594 else away
+            rp.update_target("person_face", face.center, yaw_to_quat(y), stamp=k / 30)
+        rp.set_robot_state(start)
+        rp.set_goals(goals[:1])
+        res = rp.replan(now=0.0)
+        assert res.success
+        return rp.predicted_score(res.trajectory)
+
+    looked_at_robot, always_away = score(south), score(away)
+    assert looked_at_robot > always_away + 0.05
+    assert score(south, enabled=False) == pytest.approx(score(away, enabled=False), abs=1e-9)
