@@ -26,6 +26,7 @@ import dataclasses
 import json
 import threading
 import time
+from collections import deque
 from typing import Optional
 
 import numpy as np
@@ -63,6 +64,15 @@ SERVER_PARAMS = {
     "alpha": P(-1.0, "Eq. 2 weight of perception against motion cost (< 0: the planner variant's default)",
                live=True, lo=-1.0, hi=1.0),
     "diagnostics_period_s": P(1.0, "period of /diagnostics", lo=0.1),
+    "commit_horizon_min_s": P(0.25, "a replan of a robot in motion commits at least this far ahead (s): planning "
+                                    "and delivery, measured from recent replans, clamped to [min, max]", live=True,
+                              lo=0.0),
+    "commit_horizon_max_s": P(1.5, "... and at most this far", live=True, lo=0.0),
+    "progress_tolerance_m": P(0.025, "the robot counts as following the trajectory under way (and a replan starts "
+                                     "from its committed state) while no point of its collision boxes is further "
+                                     "than this from where the trajectory has it (m; below the adapter's path "
+                                     "tolerance) and it moves when the trajectory does; otherwise a replan starts "
+                                     "from where it is", live=True, lo=0.0),
     "heap_trim_period_s": P(60.0, "give the C heap's free memory back to the system this often, while the planner "
                                   "is idle (0 = never; psprm_ros.heap)", lo=0.0),
 }
@@ -83,7 +93,9 @@ LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
                                      "or is shorter (else the robot keeps driving it)",
                "keep_score_margin": "normalised mean score along the path a new plan must add to replace the current",
                "keep_length_margin": "fraction of the remaining path's motion cost a new plan must save to replace "
-                                     "the current"}
+                                     "the current",
+               "commit": "a robot in motion replans from its committed state: the trajectory under way is kept to its "
+                         "first rest instant after planning and delivery, the new plan is spliced on there"}
 PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
                         "n_nodes": "roadmap nodes", "seed": "roadmap sampling seed",
                         "planner_settings": "PSPRMSettings YAML ('' = config/planners/psprm.yaml)",
@@ -192,6 +204,9 @@ class RoadmapServer:
         self.safety = None  # CollisionChecker with the latest obstacle poses
         self.safety_scene = self.scene
         self.current = None  # dict: result, msg, t_pub, positions
+        self._along: Optional[tuple] = None  # (trajectory, time along it, perf_counter) of the last estimate
+        self._plan_s: deque = deque(maxlen=20)  # recent replans' time from their start to publication (s)
+        self._q_hist: deque = deque()  # (monotonic, q) of the robot states of about the last 0.3 s
         self.hold = False
         self._robot_check_t = 0.0
         self.seq = 0
@@ -281,7 +296,7 @@ class RoadmapServer:
     @staticmethod
     def _empty_pending() -> dict:
         return {"targets": {}, "obstacles": {}, "robot": None, "goals": None, "t_first": None, "stamp": None,
-                "guard": None}
+                "guard": None, "target_stamps": {}}
 
     def status(self, text: str, level: str = "info") -> None:
         core.report(self.log, self.pub_status, text, level)
@@ -310,6 +325,8 @@ class RoadmapServer:
                 self._input_t[f"{kind} {name}"] = time.monotonic()
                 pend = self._pending
                 pend["targets" if kind == "target" else "obstacles"][name] = (p, q)
+                if kind == "target":  # the pose's own time, for the target's motion prediction
+                    pend["target_stamps"][name] = cv.stamp_to_sec(msg.header.stamp)
                 if pend["t_first"] is None:
                     pend["t_first"] = t
                     pend["stamp"] = cv.stamp_to_sec(msg.header.stamp)
@@ -508,7 +525,7 @@ class RoadmapServer:
         # re-apply the scene state the new replanner has not seen (targets/obstacles moved since the YAML)
         for t in scene.targets:
             if t.name in self.targets:
-                self.rp.update_target(t.name, t.center, t.quat)
+                self.rp.update_target(t.name, t.center, t.quat, stamp=self._now())
         for o in self.p["dynamic_obstacles"]:
             b = scene.obstacle(o)
             self.rp.update_obstacle(o, b.center, b.quat)
@@ -542,7 +559,7 @@ class RoadmapServer:
         boxes_changed = moved = False  # any collision box updated / moved beyond the core's thresholds
         for name, (p, q) in pend["targets"].items():
             try:
-                moved |= self.rp.update_target(name, p, q) is not False
+                moved |= self.rp.update_target(name, p, q, stamp=pend["target_stamps"].get(name)) is not False
                 self.safety_scene = self.safety_scene.with_target_pose(name, p, q)
                 boxes_changed |= self.safety_scene.target(name).obstacle
             except (PsprmError, KeyError, ValueError) as exc:
@@ -558,7 +575,11 @@ class RoadmapServer:
             self.safety.set_boxes(self.safety_scene.collision_boxes())
         try:
             if pend["robot"] is not None:
-                self.rp.set_robot_state(pend["robot"])
+                now_q = time.monotonic()
+                self._q_hist.append((now_q, pend["robot"].copy()))
+                while len(self._q_hist) > 2 and now_q - self._q_hist[1][0] >= 0.3:
+                    self._q_hist.popleft()
+                self.rp.set_robot_state(pend["robot"], self._time_along(pend["robot"]))
                 self.q = pend["robot"]
             if pend["goals"] is not None:
                 self.rp.set_goals(pend["goals"])
@@ -629,14 +650,74 @@ class RoadmapServer:
         return ""
 
     # ------------------------------------------------------------------------------------------------ planning
+    def _time_along(self, q: np.ndarray) -> Optional[float]:
+        """Where the robot is along the trajectory under way (s from its start; its configuration nearest the
+        measured ``q``, searched forward from the last estimate), or None: no trajectory under way, it has ended, or
+        the robot is further than ``progress_tolerance`` from it (stopped, refused, pushed off): a replan then starts
+        where the robot is."""
+        from psprm_core.planning.execution import progress_time
+        from psprm_core.tracking import displacement
+
+        cur = self.current
+        res = None if cur is None else cur.get("result")
+        traj = None if res is None else res.trajectory
+        if traj is None or self.rp is None or self.rp.result is not res:
+            self._along = None
+            return None
+        now = time.perf_counter()
+        prev = self._along
+        if prev is None or prev[0] is not traj:
+            guess = max(0.0, now - cur.get("t_zero", cur["t_pub"]))
+        else:
+            guess = prev[1] + (now - prev[2])
+        t = progress_time(traj, q, guess, window_s=1.5, scale=self.robot.velocity, angle_cols=[2] if self.robot.mobile
+                          else [])
+        if prev is not None and prev[0] is traj:
+            t = max(t, prev[1])  # the robot does not go back along its trajectory
+        P, V, _ = (a[0] for a in traj.evaluate([t]))
+        off = float(displacement(self.robot, q, P[None])[0])
+        # a robot that stands while its trajectory moves (stopped by the adapter, held) does not follow it: a plan
+        # spliced on there would start it at speed
+        vmax = np.maximum(self.robot.velocity, 1e-6)
+        moving = float((np.abs(V) / vmax).max()) > 0.2
+        standing = self._measured_speed() < 0.02
+        if off > self.p["progress_tolerance_m"] or (moving and standing) or t >= float(traj.duration) - 1e-6:
+            self._along = None
+            return None
+        self._along = (traj, t, now)
+        return t
+
+    def _measured_speed(self) -> float:
+        """How fast the robot moved over its last robot states (the largest joint speed over its velocity limit; a
+        fraction of full speed), from the states the worker took (at least 0.1 s apart); 1 until known."""
+        h = self._q_hist
+        if len(h) < 2 or h[-1][0] - h[0][0] < 0.1:
+            return 1.0
+        d = np.abs(h[-1][1] - h[0][1])
+        if self.robot.mobile:
+            d[2] = abs((d[2] + np.pi) % (2 * np.pi) - np.pi)
+            d[0] = d[1] = float(np.hypot(*(h[-1][1][:2] - h[0][1][:2])))
+        return float((d / np.maximum(self.robot.velocity, 1e-6)).max()) / (h[-1][0] - h[0][0])
+
+    def _commit_horizon(self) -> float:
+        """Planning and delivery time of a replan (s): 1.5x the 90th percentile of the recent replans' time from
+        their start to the trajectory's publication, plus the adapter's lead time (0.15 s), clamped to
+        [commit_horizon_min_s, commit_horizon_max_s]."""
+        lo, hi = self.p["commit_horizon_min_s"], self.p["commit_horizon_max_s"]
+        if not self._plan_s:
+            return max(lo, min(hi, 0.5))
+        return max(lo, min(hi, 1.5 * float(np.percentile(list(self._plan_s), 90)) + 0.15))
+
     def _plan(self, reasons: list, pend: dict) -> tuple:
         t0 = time.perf_counter()
-        res = self.rp.replan(triggers=reasons)
+        horizon = self._commit_horizon()
+        res = self.rp.replan(triggers=reasons, horizon_s=horizon)
         t1 = time.perf_counter()
         info = {"seq": self.seq, "reasons": reasons, "success": bool(res.success), "reason": res.reason,
-                "query_ms": _f(res.query_ms), "mean_score": _f(res.mean_score), "goal_index": int(res.goal_index),
+                "query_ms": _f(res.query_ms), "goal_index": int(res.goal_index),
                 "input_stamp": pend["stamp"], "input_age_ms": _f(pend.get("input_age_ms")), **pend.get("timing", {}),
-                "replan_ms": _f((t1 - t0) * 1e3)}
+                "replan_ms": _f((t1 - t0) * 1e3), "spliced": bool(res.success and res.committed_s > 0),
+                "committed_s": _f(res.committed_s), "commit_horizon_s": _f(horizon)}
         self.seq += 1
         if res.kept:  # the new plan saw no more and was no shorter: the robot keeps driving the current trajectory
             self.counts["kept"] += 1
@@ -655,7 +736,10 @@ class RoadmapServer:
             # the trajectory starts at the measured state it was planned from (the planner re-aims the camera joints
             # at its start): a controller then never jumps, and the connecting move is checked below with the rest
             cont = [2] if self.robot.mobile else []
-            shift = cv.prepend_start(msg, self.rp.q, self.robot.velocity, self.robot.acceleration, cont)
+            # (a spliced trajectory starts on the one under way, where the robot was when the replan began: the
+            # adapter joins it at the robot's progress)
+            shift = 0.0 if info["spliced"] else cv.prepend_start(msg, self.rp.q, self.robot.velocity,
+                                                                 self.robot.acceleration, cont)
             info["start_shift_s"] = _f(shift)
             if shift > 0:
                 P = np.vstack([np.asarray(msg.points[0].positions, float), P])
@@ -669,8 +753,14 @@ class RoadmapServer:
             else:
                 with self._pub_lock:
                     self.pub_traj.publish(msg)
-                    self.current = {"result": res, "msg": msg, "t_pub": time.perf_counter(), "positions": P}
+                    t_pub = time.perf_counter()
+                    # when the robot is at the trajectory's time 0: the replan's start for a splice (the trajectory
+                    # begins where the robot was then), else the adapter's start, its lead time after publication
+                    self.current = {"result": res, "msg": msg, "t_pub": t_pub, "positions": P,
+                                    "t_zero": t0 if info["spliced"] else t_pub + 0.15}
                 t_pub = self.current["t_pub"]
+                self._plan_s.append(t_pub - t0)
+                self._along = None
                 info["published_stamp"] = self._now()  # node clock (the inputs' stamps are on it too)
                 if self.robot.mobile:  # built on the side thread: ~400 PoseStamped are pure Python
                     self._submit_side("base path", lambda P=P, stamp=stamp: self.pub_base_path.publish(
@@ -695,9 +785,12 @@ class RoadmapServer:
 
     def _after_publish(self, res, info: dict, reasons: list) -> None:
         """Plan info and status now; path camera poses and markers on the side thread (off the latency path)."""
+        info["mean_score"] = _f(res.mean_score)  # the planner's score along the path: after publication
         self._publish_info(info)
+        start = (f"spliced {info['committed_s']:.2f} s ahead" if info["spliced"] else "from the robot's state")
         self.status(f"plan {info['seq']} ({', '.join(reasons)}): {info['n_points']} points, "
-                    f"{info['duration_s']:.1f} s, predicted score {res.mean_score:.3f}, query {res.query_ms:.0f} ms")
+                    f"{info['duration_s']:.1f} s, {start}, predicted score {res.mean_score:.3f}, query "
+                    f"{res.query_ms:.0f} ms")
         self._submit_side("path markers", self._publish_path, res, self.safety_scene)
 
     def _submit_side(self, what: str, fn, *args) -> None:
