@@ -60,7 +60,8 @@ MONITOR_PARAMS = {
     "check_rate_hz": P(10.0, "watchdog rate", lo=0.5),
     "min_path_score_ratio": P(0.5, "ask for a plan when the path score < ratio x plan score (0 = off)", live=True,
                               lo=0.0, hi=1.0),
-    "deviation_tolerance": P(0.3, "ask for a plan when the base is this far (m) off the trajectory", live=True,
+    "deviation_tolerance": P(0.3, "ask for a plan when the base is this far (m) off the trajectory's path (its "
+                                  "points within 3 s of the trajectory's clock)", live=True,
                              lo=0.0),
     "replan_period_s": P(0.0, "periodic replan (0 = off)", live=True, lo=0.0),
     "min_request_interval_s": P(1.0, "at most one plan request per interval", live=True, lo=0.0),
@@ -419,9 +420,14 @@ class ReplanMonitor:
             tr = self.traj
         if tr is None or not self.robot.mobile:
             return
+        # off the path, not behind its schedule: the nearest point of the base's path within 3 s of the time the
+        # trajectory's clock says (a replan spliced onto the trajectory under way starts where the robot was when
+        # planning began, behind the receipt time; the robot running late is no reason to replan)
         el = min(time.monotonic() - tr["t0"], tr["t"][-1])
-        expect = np.array([np.interp(el, tr["t"], tr["P"][:, j]) for j in (0, 1)])
-        dev = float(np.linalg.norm(q[:2] - expect))
+        near = (tr["t"] >= el - 3.0) & (tr["t"] <= el + 3.0)
+        if not near.any():
+            near = np.ones(len(tr["t"]), dtype=bool)
+        dev = float(np.linalg.norm(tr["P"][near][:, :2] - q[:2], axis=1).min())
         if dev > self.p["deviation_tolerance"]:
             self._request("plan", f"robot {dev:.2f} m off the trajectory")
 

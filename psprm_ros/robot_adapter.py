@@ -44,6 +44,8 @@ P = core.Param
 REST_MPS, REST_RADPS = 0.01, 0.02  # a base slower than this on both axes ...
 REST_S = 0.1  # ... for this long is at rest
 REST_WAIT_S = 2.0  # a replan pending "at rest" is asked for this long after the stop at the latest
+SPLICE_TOL_M = 0.01  # a new trajectory this close to the one executing (whole robot) ...
+SPLICE_CHECK_S = 0.3  # ... over its first this many seconds continues it: a splice
 ADAPTER_PARAMS = {
     "adapter": P("", "adapter config name (config/ros/adapters, or share/psprm_ros/config/adapters when installed) "
                      "or YAML path ('' = the robot's name)", rebuild=True),
@@ -116,7 +118,7 @@ class RobotAdapter:
         self._replan_at_rest = ""
         self._stop_t: Optional[float] = None
         self._still_since: Optional[float] = None
-        self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0,
+        self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0, "spliced": 0,
                        "goals_deferred": 0, "twists": 0, "off_path_stops": 0}
         self.last_refusal = ""
         self.last_state_problem = ""
@@ -311,11 +313,15 @@ class RobotAdapter:
         if all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
             V = cv.joint_trajectory_positions(_Velocities(msg), self.names)
         lead = max([c.lead_time_s for c in self.cfg.controllers] + [self.cfg.base.lead_time_s])
+        # a splice (the new trajectory continues the one the robot executes): the base goes on from where it is now,
+        # and only the controllers' goals start a lead time ahead (controller_command trims them there)
+        splice_d = self._splice_deviation(t, P, q) if self.robot.mobile else None
+        base_lead = 0.0 if splice_d is not None else lead
         if self.robot.mobile:
             # the robot drove on since the plan started from its state: splice at its progress, not back at the start
             with self._lock:
                 vel = self.tracker.base_velocity.copy()
-            tau0 = ad.progress_offset(t, P, q, vel, lead, velocity_limits=self.robot.velocity)
+            tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity)
             if tau0 > 0:
                 t, P, V = ad.trim_from(t - t[0], P, V, tau0)
                 if len(t) <= 1:
@@ -332,16 +338,22 @@ class RobotAdapter:
                 return self._refuse(f"first point {err:.3f} from the measured {what}")
         checked, tol = None, self.p["path_tolerance_m"]
         if tol > 0 and self.robot.mobile:
-            # where the robot is and where it would brake to: a base still moving on its last command overshoots a
-            # trajectory that starts behind it (planned from where it was when planning began) by that much
             checked = CheckedPath(self.robot, t, P)
-            probe = np.vstack([q[None], ad.braking_configurations(q, vel, self.follower.limits)])
-            d = max(checked.deviation(x, 0.0, self.p["path_window_s"])[0] for x in probe)
+            d = splice_d
+            if d is not None:
+                # a splice: the robot keeps following the trajectory it executes, which the new one continues; only
+                # its distance from that one counts (as at every control step)
+                self.counts["spliced"] += 1
+            else:
+                # where the robot is and where it would brake to: a base still moving on its last command overshoots
+                # a trajectory that starts behind it (planned from where it was when planning began) by that much
+                probe = np.vstack([q[None], ad.braking_configurations(q, vel, self.follower.limits)])
+                d = max(checked.deviation(x, 0.0, self.p["path_window_s"])[0] for x in probe)
             if d > tol:
                 return self._refuse(f"the robot, braking from where it is, comes {d:.3f} m from the trajectory's "
                                     f"configurations near its start (path tolerance {tol:g} m)")
         now = self._now()
-        start_at = now + lead
+        start_at = now + base_lead
         with self._lock:
             for c in self.cfg.controllers:
                 item = (t, P, V, start_at)
@@ -361,6 +373,25 @@ class RobotAdapter:
         self.last_refusal = ""
         self._replan_at_rest, self._stop_t, self._still_since = "", None, None  # a new plan came meanwhile
         return True
+
+    def _splice_deviation(self, t: np.ndarray, P: np.ndarray, q: np.ndarray) -> Optional[float]:
+        """When a new trajectory continues the one being executed (each of its
+        configurations over its first ``SPLICE_CHECK_S`` within ``SPLICE_TOL_M``, whole robot, of the executing
+        trajectory's configurations near the robot's time along it): the measured configuration's deviation from the
+        executing trajectory there; else None. The roadmap server's replans of a robot in motion are such splices
+        (psprm_core.planning.execution): the trajectory under way up to a rest instant at least the planning and
+        delivery time ahead, then the new plan."""
+        with self._lock:
+            cur, t0, following = self.checked, self.follower.t0, not self.follower.done
+        if cur is None or not following:
+            return None
+        tau = self._now() - t0
+        w = self.p["path_window_s"]
+        ts = np.linspace(0.0, min(SPLICE_CHECK_S, float(t[-1])), 6)
+        X = np.stack([np.interp(ts, t, P[:, j]) for j in range(P.shape[1])], 1)
+        if cur.deviations(X, tau + ts, w).max() > SPLICE_TOL_M:
+            return None
+        return cur.deviation(q, tau, w)[0]
 
     def _send(self, c: ad.ControllerConfig, t, P, V, start_at: float, now: float) -> None:
         cmd = ad.controller_command(c, self.names, t, P, V, now=now, start_at=start_at)

@@ -567,6 +567,69 @@ def test_a_push_off_the_path_stops_the_robot_within_the_path_tolerance(load_robo
         s.probe.statuses[-5:]
 
 
+def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(load_robot):
+    """While the base drives a long straight stretch, the test publishes what the roadmap server publishes for a
+    replan of a robot in motion (:func:`psprm_core.planning.execution.splice`): the trajectory under way from where
+    the robot is, up to the end of that stretch (a rest instant), then a new trajectory from there (a turn and a drive
+    to the left). Judged from the test's own record: no zero twist (a stop) between the splice's publication and the
+    end of the stretch, the base never slower there than half the planned speed of the old trajectory at the same
+    place, and the base on the spliced trajectory's path within 0.1 m / 0.1 rad to its end."""
+    from psprm_core.planning.execution import commit_time, splice
+
+    name = "stretch2"
+    robot = load_robot(name)
+    with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
+        time.sleep(0.3)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.4, joint_delta=0.0)
+        now = lambda: s.probe.node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
+        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        assert _wait(lambda: rec.traj[cfg.controllers[0].name], 10)
+        with rec.lock:
+            t_rx, m0 = rec.traj[cfg.controllers[0].name][0]
+        st = cv.stamp_to_sec(m0.header.stamp)
+        start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
+        time.sleep(max(0.0, start + 2.5 - now()))  # mid-stretch, at full speed
+        t_from = now() - start
+        t_c = commit_time(tr, t_from, 0.5)
+        assert t_c - t_from > 1.5, "precondition: the stretch goes on for a while"
+        q_c = tr.evaluate([t_c])[0][0]
+        q1, q2 = q_c.copy(), q_c.copy()
+        q1[2] += math.pi / 2
+        q2[2] = q1[2]
+        q2[0] += 0.6 * math.cos(q1[2])
+        q2[1] += 0.6 * math.sin(q1[2])
+        b = robot.config.base
+        new = time_parameterize(np.array([q_c, q1, q2]), robot.velocity, robot.acceleration, dt=0.05,
+                                base_indices=(0, 1, 2), base_linear_limits=(b.linear_velocity, b.linear_acceleration),
+                                method="analytic")
+        sp = splice(tr, t_from, t_c, new, continuous=[2])
+        t_pub = now()
+        pub.publish(cv.trajectory_to_msg(sp, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        _wait(lambda: False, sp.duration + 1.5)
+        with rec.lock:
+            odom = list(rec.odom)
+            twists = list(rec.twists)
+    t_end_stretch = start + t_c - 0.3  # (the base decelerates into the stretch's end)
+    stops = [t for t, tw in twists if t_pub <= t <= t_end_stretch and tw.linear.x == 0.0 and tw.angular.z == 0.0]
+    assert not stops, f"the robot was stopped at {stops[:3]} (splice published at {t_pub:.2f})"
+    T = np.array([t for t, _ in odom])
+    X = np.array([x for _, x in odom])
+    sel = (T >= t_pub) & (T <= t_end_stretch - 0.3)
+    v = np.hypot(*np.diff(X[sel, :2], axis=0).T) / np.diff(T[sel])
+    # the old trajectory's own speed at the places the base passed (nearest base position along the stretch)
+    ts = np.arange(0.0, tr.duration, 0.01)
+    P, V, _ = tr.evaluate(ts)
+    k = [int(np.argmin(np.hypot(*(P[:, :2] - x[:2]).T))) for x in X[sel][1:]]
+    planned = np.hypot(V[k, 0], V[k, 1])
+    assert np.all(v >= 0.5 * planned - 0.02), {"slowest_ratio": float(np.min((v + 1e-9) / (planned + 1e-9)))}
+    # on the spliced path: the spliced trajectory's time 0 is the old one's t_from
+    sel2 = (T >= t_pub) & (T <= start + t_from + sp.duration + 1.0)
+    e_xy, e_th = path_errors(sp, T[sel2] - (start + t_from), X[sel2], window_s=1.0)
+    assert e_xy.max() < 0.1 and e_th.max() < 0.1, (e_xy.max(), e_th.max())
+    assert np.hypot(*(X[-1, :2] - q2[:2])) < 0.1  # it drove the new plan to its end
+
+
 def start_sim_process(params: dict, domain: int):
     import os
     import subprocess
