@@ -201,6 +201,11 @@ class PSPRM:
         """Adopt moved targets/obstacles (:meth:`.dynamics.Dynamics.set_scene`)."""
         self.pipeline.dynamics.set_scene(scene)
 
+    def set_scorer_scene(self, scene: Scene) -> None:
+        """Score against ``scene`` from now on, the collision checker left as it is: what-if scoring (a target's
+        predicted poses); :meth:`set_scene` puts both back in step."""
+        self.pipeline.ctx.scorer.set_scene(scene)
+
     def set_focus(self, focus) -> None:
         """Move the point the visibility constraint aims at (:meth:`.dynamics.Dynamics.set_focus`)."""
         self.pipeline.dynamics.set_focus(focus)

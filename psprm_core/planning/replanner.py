@@ -108,6 +108,7 @@ class ReplanSettings:
     predict_lead_s: float = 1.5  # the roadmap is scored against the target pose extrapolated this far ahead (s)
     score_bins: int = 4  # a path's predicted score: its duration split into this many stretches, each scored against
     # the targets' predicted poses (the mixture, prediction) at its middle
+    predict_samples: int = 64  # ... at this many configurations of the path, evenly in time
     prediction: PredictionSettings = field(default_factory=PredictionSettings)
 
     def __post_init__(self):
@@ -383,13 +384,13 @@ class Replanner:
 
     def predicted_score(self, traj, t0: float = 0.0, lead_s: float = 0.0, normalized: bool = True) -> float:
         """Time-integrated predicted perception of ``traj`` from its time ``t0`` to its end: the mean score of
-        configurations every 50 ms (at most ``score_samples``), each stretch of ``score_bins`` scored against the
+        configurations every 50 ms (at most ``predict_samples``, evenly in time), each stretch of ``score_bins`` scored against the
         targets' predicted pose mixture (:meth:`~psprm_core.prediction.TargetPredictor.mixture`) at the time the robot
         will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp). Without prediction, the
         targets' latest poses."""
         T = float(traj.duration)
         t0 = min(max(0.0, float(t0)), T)
-        n = int(max(2, min(self.settings.score_samples, (T - t0) / 0.05 + 1)))
+        n = int(max(2, min(self.settings.predict_samples, (T - t0) / 0.05 + 1)))
         ts = np.linspace(t0, T, n)
         Q = traj.evaluate(ts)[0]
         now = self._stamp if self._stamp is not None else 0.0
@@ -403,27 +404,33 @@ class Replanner:
     def _score_timed(self, Q: np.ndarray, stamps: np.ndarray) -> torch.Tensor:
         """Scores (K,) of configurations ``Q`` (K, dof), each against the targets' predicted mixture at its stamp
         (expected score over the mixture), the mixture taken at the middle of each of ``score_bins`` stretches of
-        consecutive configurations. Each distinct set of predicted poses is scored once for all configurations (a
-        standing person's history components are the same in every stretch)."""
+        consecutive configurations. Each distinct set of predicted poses is scored once, on the configurations of
+        the stretches that use it (a standing person's history components are the same in every stretch), in
+        batches the compiled scorer takes."""
         p = self.planner
         self._sync_scene()
         Qt = torch.as_tensor(np.asarray(Q), dtype=torch.float32)
         if not self._predicting():
             return p.score_configs(Qt).double()
+        groups: dict = {}  # pose key -> [scene, [(rows, weight), ...]]
+        for idx in np.array_split(np.arange(len(Q)), min(self.settings.score_bins, len(Q))):
+            if len(idx):
+                for w, key, scene in self._mixture_scenes(float(np.mean(stamps[idx]))):
+                    groups.setdefault(key, [scene, []])[1].append((idx, w))
         out = torch.zeros(len(Q), dtype=torch.float64)
-        scored: dict = {}
         restore = p.scene
         try:
-            for idx in np.array_split(np.arange(len(Q)), min(self.settings.score_bins, len(Q))):
-                if not len(idx):
-                    continue
-                for w, key, scene in self._mixture_scenes(float(np.mean(stamps[idx]))):
-                    if key not in scored:
-                        p.set_scene(scene)
-                        scored[key] = p.score_configs(Qt).double()
-                    out[idx] += w * scored[key][idx]
+            for scene, parts in groups.values():
+                rows = np.concatenate([idx for idx, _ in parts])
+                p.set_scorer_scene(scene)
+                sc = torch.cat([p.score_configs(Qt[rows[i:i + fastpath.MLP_MAX_ROWS]]).double()
+                                for i in range(0, len(rows), fastpath.MLP_MAX_ROWS)])
+                k = 0
+                for idx, w in parts:
+                    out[idx] += w * sc[k:k + len(idx)]
+                    k += len(idx)
         finally:
-            p.set_scene(restore)
+            p.set_scene(restore)  # the scorer back on the planning scene (the checker never left it)
         return out
 
     def _mixture_scenes(self, t: float) -> list:
