@@ -222,7 +222,8 @@ class RoadmapServer:
         self._live: dict = {}  # parameter changes for the worker to apply
         self._transition: Optional[tuple] = None  # (kind, Event, result list) run by the worker
         self.last_latency_ms: Optional[float] = None
-        self.counts = {"plans": 0, "kept": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "guard_stops": 0}
+        self.counts = {"plans": 0, "kept": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "guard_stops": 0,
+                       "spliced": 0}
         self.guard = None  # CollisionChecker of the stop guard (its own: the guard runs on the executor thread)
         self._pub_lock = threading.RLock()  # a trajectory and a stop are published one at a time
         self._input_t: dict = {}  # input label -> monotonic receipt time
@@ -766,6 +767,7 @@ class RoadmapServer:
                     self._submit_side("base path", lambda P=P, stamp=stamp: self.pub_base_path.publish(
                         cv.base_path_msg(P, self.frame, stamp)))
                 self.counts["plans"] += 1
+                self.counts["spliced"] += int(info["spliced"])
                 if pend["t_first"]:
                     self.last_latency_ms = (t_pub - pend["t_first"]) * 1e3
                 info.update(latency_ms=_f((t_pub - pend["t_first"]) * 1e3) if pend["t_first"] else None,
@@ -982,6 +984,9 @@ class RoadmapServer:
                 "robot_state_age_s": (now - rx) if rx is not None else "never", **ages,
                 "heap_trims": self.heap_trims, "last_heap_trim_ms": self.heap_trim_ms if self.heap_trim_ms is not None
                 else ""}
+        rp = self.rp
+        if rp is not None:  # the replanner's decisions: replans adopted / declined (kept), goal switches
+            vals.update(adopted_replans=rp.adopted, declined_replans=rp.declined, goal_switches=rp.goal_switches)
         core.publish_diagnostics(self.pub_diag, self.node, [
             core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
 
