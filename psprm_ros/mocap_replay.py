@@ -31,11 +31,13 @@ from .recordings import Recording, load_recording
 
 
 class Replayer:
-    """Publishes a :class:`Recording` through ``node`` (one publisher per body)."""
+    """Publishes a :class:`Recording` through ``node`` (one publisher per body: ``<prefix>/<body>/pose``, or the
+    topic ``topics`` names for it, e.g. the replan monitor's ``target_topics`` / ``obstacle_topics``)."""
 
     def __init__(self, node, rec: Recording, prefix: str = "/mocap", rate: float = 1.0, loop: bool = False,
                  bodies: Optional[list] = None, keep_stamps: bool = False,
-                 on_sample: Optional[Callable] = None, clock: bool = False, frame: str = ""):
+                 on_sample: Optional[Callable] = None, clock: bool = False, frame: str = "",
+                 topics: Optional[dict] = None):
         from geometry_msgs.msg import PoseStamped
         from rclpy.qos import qos_profile_sensor_data
 
@@ -54,7 +56,9 @@ class Replayer:
         if unknown:
             raise InputError(f"bodies not in the recording: {', '.join(sorted(unknown))} (have {rec.bodies})")
         self.selected = np.isin(rec.body, [rec.bodies.index(b) for b in want])
-        self.pubs = {i: node.create_publisher(PoseStamped, f"{prefix}/{b}/pose", qos_profile_sensor_data)
+        topics = topics or {}
+        self.topics = {b: topics.get(b) or f"{prefix}/{b}/pose" for b in rec.bodies if b in want}
+        self.pubs = {i: node.create_publisher(PoseStamped, self.topics[b], qos_profile_sensor_data)
                      for i, b in enumerate(rec.bodies) if b in want}
         self.published = 0
         self._stop = threading.Event()
