@@ -6,7 +6,8 @@ pose stream into a *predictive mixture* for any future instant: a few weighted p
 horizon.
 
 * **Position**: the target's velocity, fitted over the last ``rate_window_s`` (least squares), extrapolated with a
-  fading rate (time constant ``velocity_decay_s``): a walking person is expected to walk on, a standing one to stay.
+  fading rate (time constant ``velocity_decay_s``): a walking person is expected to walk on, a standing one to stay
+  (a fitted speed below ``still_mps`` is sway and mocap noise).
 * **Heading** (rotation about the vertical): the heading rate, fitted likewise, is extrapolated with a shorter
   fading time (``rate_decay_s``): a turn in progress continues for a moment. Over longer horizons the extrapolation
   gives way, with weight ``exp(-tau / revert_s)``, to the distribution of headings seen over the last
@@ -47,7 +48,8 @@ class PredictionSettings:
     rate_decay_s: float = 0.8  # the extrapolated heading rate fades with this time constant (s)
     velocity_decay_s: float = 4.0  # the extrapolated velocity fades with this time constant (s)
     revert_s: float = 2.0  # the extrapolated heading gives way to the history's headings with this time constant (s)
-    components: int = 4  # mixture poses: the extrapolation and (components - 1) quantiles of the history's headings
+    components: int = 3  # mixture poses: the extrapolation and (components - 1) quantiles of the history's headings
+    still_mps: float = 0.05  # a fitted speed below this is mocap noise and sway: the target stands
     max_speed_mps: float = 4.0  # a target faster than this between two samples jumped: the sample is discarded
     max_turn_rate: float = 10.0  # rad/s, likewise
     max_gap_s: float = 1.0  # a longer gap restarts the rate fit
@@ -55,7 +57,7 @@ class PredictionSettings:
 
     def __post_init__(self):
         for name in ("history_s", "rate_window_s", "rate_decay_s", "velocity_decay_s", "revert_s", "max_speed_mps",
-                     "max_turn_rate", "max_gap_s"):
+                     "max_turn_rate", "max_gap_s", "still_mps"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"prediction.{name} must be a positive number, got {v}")
@@ -161,6 +163,8 @@ class TargetPredictor:
         P = np.array([r[1] for r in self._recent])
         Y = np.array([r[2] for r in self._recent])
         self.velocity = (t @ (P - P.mean(0))) / den
+        if np.linalg.norm(self.velocity) < self.settings.still_mps:
+            self.velocity = np.zeros(3)
         self.yaw_rate = float(t @ (Y - Y.mean())) / den
 
     # ---- prediction --------------------------------------------------------------------------------------------------

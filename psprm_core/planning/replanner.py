@@ -108,7 +108,7 @@ class ReplanSettings:
     predict_lead_s: float = 1.5  # the roadmap is scored against the target pose extrapolated this far ahead (s)
     score_bins: int = 4  # a path's predicted score: its duration split into this many stretches, each scored against
     # the targets' predicted poses (the mixture, prediction) at its middle
-    predict_samples: int = 64  # ... at this many configurations of the path, evenly in time
+    predict_samples: int = 48  # ... at this many configurations of the path, evenly in time
     prediction: PredictionSettings = field(default_factory=PredictionSettings)
 
     def __post_init__(self):
@@ -436,7 +436,7 @@ class Replanner:
     def _mixture_scenes(self, t: float) -> list:
         """[(weight, key, scene)]: the scene with every predicted target at its k-th mixture component at time ``t``
         (the components of all targets taken together by index; the weights of the target with the most); ``key``
-        identifies the poses (2 cm, 0.02 rad)."""
+        identifies the poses (3 cm, 0.02 rad)."""
         from ..prediction import quat_yaw
 
         mixes = {n: pr.mixture(t) for n, pr in self.predictors.items() if pr.ready}
@@ -450,7 +450,7 @@ class Replanner:
             for name, m in mixes.items():
                 _, pos, quat = m[min(k, len(m) - 1)]
                 scene = scene.with_target_pose(name, pos, quat)
-                key.append((name, *np.round(np.asarray(pos) / 0.02).astype(int).tolist(),
+                key.append((name, *np.round(np.asarray(pos) / 0.03).astype(int).tolist(),
                             int(round(quat_yaw(quat) / 0.02))))
             out.append((weights[k][0], tuple(key), scene))
         return out
