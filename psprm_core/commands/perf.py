@@ -205,6 +205,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--threads", type=int, default=2)
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=_json_only(_replan))
+    rm = ps.add_parser("replan-motion", help="replans of a robot in motion (committed state, splice, keep decision) "
+                                             "with target prediction off and on, alternated")
+    rm.add_argument("--nodes", type=int, default=3000)
+    rm.add_argument("--replans", type=int, default=30)
+    rm.add_argument("--rounds", type=int, default=2)
+    rm.add_argument("--seed", type=int, default=0)
+    rm.add_argument("--threads", type=int, default=1)
+    rm.add_argument("--json", action="store_true")
+    rm.set_defaults(func=_json_only(_replan_motion))
     dg = ps.add_parser("digest", help="fixed-seed plans and replans on every shipped scene, written to a file or "
                                       "compared with an earlier one (identical paths, costs within --tol)")
     dg.add_argument("--out", default=None, help="write the record here")
@@ -249,6 +258,14 @@ def _replan(args) -> int:
 
     _print(replan_benchmark(args.scene, args.planner, nodes=args.nodes, updates=args.updates, seed=args.seed,
                             threads=args.threads, target=args.target, heuristic=args.heuristic), args.json)
+    return 0
+
+
+def _replan_motion(args) -> int:
+    from ..evaluation.motion_replan import motion_replan_benchmark
+
+    _print(motion_replan_benchmark(nodes=args.nodes, replans=args.replans, rounds=args.rounds, seed=args.seed,
+                                   threads=args.threads), args.json)
     return 0
 
 
