@@ -148,7 +148,11 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
         p = np.r_[body.center[:2] + 0.06 * np.array([np.cos(yaw), np.sin(yaw)]), face.center[2]]
         probe.publish_pose("person_face", p, cv.yaw_quat(yaw))
         assert probe.wait_trajectory(n1, 60) is not None
-        # the adapter process turned the plan into the robot's controller command (its JointTrajectory topic)
+        # the adapter process turned the plan into the robot's controller command (its JointTrajectory topic; it
+        # takes the trajectory when this process does, and may hold a goal back for the controller's goal interval)
+        deadline = time.monotonic() + 10
+        while not cmds and time.monotonic() < deadline:
+            time.sleep(0.1)
         assert cmds, "robot_adapter sent nothing to the stretch_controller topic"
         assert set(cmds[-1].joint_names) == {"joint_lift", "wrist_extension", "joint_wrist_yaw", "joint_head_pan",
                                              "joint_head_tilt"}
