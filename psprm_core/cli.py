@@ -23,6 +23,7 @@ SUBCOMMAND_MODULES = [
     "psprm_core.commands.surrogate",
     "psprm_core.commands.bench",
     "psprm_core.commands.simulate",
+    "psprm_core.commands.dynbench",
 ]
 
 
