@@ -13,7 +13,8 @@ horizon.
   gives way, with weight ``exp(-tau / revert_s)``, to the distribution of headings seen over the last
   ``history_s`` (its quantiles, one mixture component each): a person turning side to side is expected to look
   where they have been looking, in the proportion they have, not to keep turning. A target whose heading has not
-  changed has a history of one heading, and the mixture collapses to it.
+  changed has a history of one heading, and the mixture collapses to it. A target that walks (faster than
+  ``still_mps``) looks where it goes, not where it looked while standing: its mixture is the extrapolation alone.
 
 Every component keeps the latest pose's roll and pitch (rotation about the vertical only).
 
@@ -194,7 +195,8 @@ class TargetPredictor:
         dyaw_e = self.yaw_rate * s.rate_decay_s * (1.0 - math.exp(-tau / s.rate_decay_s))
         out = [(1.0, p, turned(self.q_last, dyaw_e))]
         m = s.components - 1
-        if m > 0 and len(self._hist) > 1:
+        walking = bool(np.linalg.norm(self.velocity) > 0.0)  # (below still_mps the fit is zeroed)
+        if m > 0 and len(self._hist) > 1 and not walking:
             w_e = math.exp(-tau / s.revert_s)
             out = [(w_e, p, out[0][2])]
             for y in self._history_quantiles(m):

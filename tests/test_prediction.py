@@ -62,6 +62,14 @@ def test_a_walk_is_extrapolated_and_a_standing_target_stays():
         for w, p, q in pr.mixture(t[-1] + tau):
             assert np.linalg.norm(p - truth) < 0.25 * np.linalg.norm(v * tau)
             assert abs(_wrap(quat_yaw(q) - 0.4)) < 1e-6  # the heading never changed: every component keeps it
+    # a person who stood looking elsewhere, then walks: looks where they go, not back where they looked
+    walker = TargetPredictor(PredictionSettings())
+    _feed(walker, t, np.tile([1.0, 2.0, 1.6], (len(t), 1)), np.full(len(t), 2.0))
+    turn = np.arange(3.0, 4.0, 1 / 60)
+    _feed(walker, turn, np.tile([1.0, 2.0, 1.6], (len(turn), 1)), np.linspace(2.0, 0.4, len(turn)))
+    _feed(walker, t + 4.0, np.array([1.0, 2.0, 1.6]) + t[:, None] * v, np.full(len(t), 0.4))
+    for w, p, q in walker.mixture(t[-1] + 4.0 + 5.0):
+        assert abs(_wrap(quat_yaw(q) - 0.4)) < 1e-6
     still = TargetPredictor(PredictionSettings())
     _feed(still, t, np.tile([3.0, 1.0, 1.5], (len(t), 1)), np.full(len(t), -1.0))
     for w, p, q in still.mixture(t[-1] + 10.0):
