@@ -14,7 +14,7 @@ horizon.
   ``history_s`` (its quantiles, one mixture component each): a person turning side to side is expected to look
   where they have been looking, in the proportion they have, not to keep turning. A target whose heading has not
   changed has a history of one heading, and the mixture collapses to it. A target that walks (faster than
-  ``still_mps``) looks where it goes, not where it looked while standing: its mixture is the extrapolation alone.
+  ``walk_mps``) looks where it goes, not where it looked while standing: its mixture is the extrapolation alone.
 
 Every component keeps the latest pose's roll and pitch (rotation about the vertical only).
 
@@ -51,6 +51,8 @@ class PredictionSettings:
     revert_s: float = 2.0  # the extrapolated heading gives way to the history's headings with this time constant (s)
     components: int = 3  # mixture poses: the extrapolation and (components - 1) quantiles of the history's headings
     still_mps: float = 0.05  # a fitted speed below this is mocap noise and sway: the target stands
+    walk_mps: float = 0.3  # a target faster than this walks: it looks where it goes (no history components); a face
+    # turning about its neck moves a few cm/s
     max_speed_mps: float = 4.0  # a target faster than this between two samples jumped: the sample is discarded
     max_turn_rate: float = 10.0  # rad/s, likewise
     max_gap_s: float = 1.0  # a longer gap restarts the rate fit
@@ -58,7 +60,7 @@ class PredictionSettings:
 
     def __post_init__(self):
         for name in ("history_s", "rate_window_s", "rate_decay_s", "velocity_decay_s", "revert_s", "max_speed_mps",
-                     "max_turn_rate", "max_gap_s", "still_mps"):
+                     "max_turn_rate", "max_gap_s", "still_mps", "walk_mps"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v > 0):
                 raise InputError(f"prediction.{name} must be a positive number, got {v}")
@@ -195,7 +197,7 @@ class TargetPredictor:
         dyaw_e = self.yaw_rate * s.rate_decay_s * (1.0 - math.exp(-tau / s.rate_decay_s))
         out = [(1.0, p, turned(self.q_last, dyaw_e))]
         m = s.components - 1
-        walking = bool(np.linalg.norm(self.velocity) > 0.0)  # (below still_mps the fit is zeroed)
+        walking = bool(np.linalg.norm(self.velocity) > s.walk_mps)
         if m > 0 and len(self._hist) > 1 and not walking:
             w_e = math.exp(-tau / s.revert_s)
             out = [(w_e, p, out[0][2])]
