@@ -41,7 +41,9 @@ from psprm_core.errors import InputError, UnknownNameError
 BASE_JOINTS = ("base_x", "base_y", "base_theta")
 INTERFACES = ("topic", "action")
 STAMP_MODES = ("zero", "lead")
-BASE_MODES = ("cmd_vel", "stretch_translate_rotate", "none")
+BASE_MODES = ("cmd_vel", "stretch_trajectory", "stretch_translate_rotate", "none")
+DRIVER_KINDS = ("none", "stretch")
+STRETCH_MODES = ("trajectory", "navigation")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +98,30 @@ class BaseConfig:
     action: str = ""  # stretch_translate_rotate: the FollowJointTrajectory action taking the base joints
     min_step_m: float = 0.005  # stretch_translate_rotate: smaller increments are skipped
     min_step_rad: float = 0.01
+    # stretch_trajectory: the base rides on the (single) action controller's goal as the multi-DOF joint 'position'
+    min_waypoint_interval_s: float = 0.9  # waypoints at least this far apart (the driver refuses <= 0.8 s)
+    max_goal_deviation_m: float = 0.02  # what the driver makes of the goal, this close to the planned trajectory
+
+
+@dataclasses.dataclass(frozen=True)
+class DriverConfig:
+    """The robot's driver, when it has modes of its own (``kind: stretch``: stretch_ros2's stretch_driver).
+
+    ``mode`` is the mode the adapter puts the driver in at activation (and leaves again at deactivation, back to the
+    one it found); goals and cmd_vel wait until ``mode_topic`` reports it. The stop calls ``stop_service`` (and, in
+    trajectory mode, re-enters trajectory mode, which drops the waypoint trajectories under way); a runstop reported
+    on ``runstop_topic`` stops everything until it is released."""
+
+    kind: str = "none"
+    mode: str = ""
+    mode_topic: str = "/mode"
+    runstop_topic: str = "/is_runstopped"
+    switch_service: str = "/switch_to_{mode}_mode"
+    stop_service: str = "/stop_the_robot"
+    mode_timeout_s: float = 5.0  # the driver must report the mode this long after the switch
+
+    def switch_name(self, mode: str) -> str:
+        return self.switch_service.replace("{mode}", mode)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,6 +131,7 @@ class AdapterConfig:
     controllers: tuple  # ControllerConfig
     base: BaseConfig
     description: str = ""
+    driver: DriverConfig = DriverConfig()
 
     def controller(self, name: str) -> ControllerConfig:
         for c in self.controllers:
@@ -134,10 +161,12 @@ class AdapterConfig:
             if interface == "action" and not c.action:
                 raise InputError(f"adapter {self.source}: controller '{c.name}' has no action")
             cs.append(dataclasses.replace(c, interface=interface))
-        base = self.base
-        if interface == "topic" and base.mode == "stretch_translate_rotate":
+        base, driver = self.base, self.driver
+        if interface == "topic" and base.mode in ("stretch_translate_rotate", "stretch_trajectory"):
             base = dataclasses.replace(base, mode="cmd_vel")
-        return dataclasses.replace(self, controllers=tuple(cs), base=base)
+        if interface == "topic":
+            driver = DriverConfig()  # the JointTrajectory topics of a ros2_control robot: no driver modes
+        return dataclasses.replace(self, controllers=tuple(cs), base=base, driver=driver)
 
 
 # ---------------------------------------------------------------------------------------------------------- loading
@@ -182,7 +211,7 @@ def load_adapter(name_or_path: str, robot=None) -> AdapterConfig:
     path = resolve_adapter(name_or_path)
     src = str(path)
     f = Fields(load_yaml(path), src)
-    f.check_keys(["robot", "description", "controllers", "base"])
+    f.check_keys(["robot", "description", "controllers", "base", "driver"])
     ctrls = []
     for i, c in enumerate(f.sub_list("controllers")):
         c.check_keys(_CTRL_KEYS)
@@ -238,11 +267,44 @@ def load_adapter(name_or_path: str, robot=None) -> AdapterConfig:
         raise b.error("rate_hz", f"the base follower runs at >= 20 Hz, got {base.rate_hz}")
     if base.mode == "stretch_translate_rotate" and not base.action:
         raise b.error("action", "required with mode: stretch_translate_rotate")
+    driver = _load_driver(f, src)
+    if base.mode == "stretch_trajectory":
+        acts = [c for c in ctrls if c.interface == "action"]
+        if len(ctrls) != 1 or not acts:
+            raise b.error("mode", "stretch_trajectory needs exactly one controller, on interface: action (the "
+                                  "driver's FollowJointTrajectory, which takes the base too)")
+        if base.min_waypoint_interval_s <= 0.8:
+            raise b.error("min_waypoint_interval_s", "must exceed 0.8 s (the driver refuses closer waypoints)")
+        if driver.kind != "stretch" or driver.mode != "trajectory":
+            raise b.error("mode", "stretch_trajectory needs driver: {kind: stretch, mode: trajectory}")
+    if driver.kind == "stretch" and driver.mode == "navigation" and base.mode != "cmd_vel":
+        raise b.error("mode", "in navigation mode the Stretch driver moves the base by cmd_vel only")
     cfg = AdapterConfig(robot=f.str("robot"), source=src, controllers=tuple(ctrls), base=base,
-                        description=f.str("description", ""))
+                        description=f.str("description", ""), driver=driver)
     if robot is not None:
         check_against_robot(cfg, robot)
     return cfg
+
+
+def _load_driver(f, src: str) -> DriverConfig:
+    if not f.has("driver"):
+        return DriverConfig()
+    d = f.sub("driver")
+    keys = [x.name for x in dataclasses.fields(DriverConfig)]
+    d.check_keys(keys)
+    kind = d.str("kind", "none")
+    if kind not in DRIVER_KINDS:
+        raise d.error("kind", f"must be one of {', '.join(DRIVER_KINDS)}")
+    kw = {"kind": kind}
+    for k in keys[1:]:
+        if d.has(k):
+            kw[k] = d.float(k, lo=0.1) if k == "mode_timeout_s" else d.str(k)
+    out = DriverConfig(**kw)
+    if kind == "stretch" and out.mode not in STRETCH_MODES:
+        raise d.error("mode", f"the Stretch adapter runs the driver in {' or '.join(STRETCH_MODES)} mode")
+    if "{mode}" not in out.switch_service:
+        raise d.error("switch_service", "must contain {mode} (e.g. /switch_to_{mode}_mode)")
+    return out
 
 
 def check_against_robot(cfg: AdapterConfig, robot) -> None:
@@ -266,8 +328,8 @@ def check_against_robot(cfg: AdapterConfig, robot) -> None:
     if missing:
         raise ConfigError(cfg.source, "controllers", f"no controller owns {', '.join(missing)}")
     if robot.mobile and cfg.base.mode == "none":
-        raise ConfigError(cfg.source, "base.mode", f"robot '{robot.name}' has a mobile base: cmd_vel or "
-                                                   "stretch_translate_rotate")
+        raise ConfigError(cfg.source, "base.mode", f"robot '{robot.name}' has a mobile base: cmd_vel, "
+                                                   "stretch_trajectory or stretch_translate_rotate")
 
 
 # ---------------------------------------------------------------------------------------------------------- commands

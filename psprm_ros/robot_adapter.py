@@ -119,7 +119,17 @@ class RobotAdapter:
         self._stop_t: Optional[float] = None
         self._still_since: Optional[float] = None
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0, "spliced": 0,
-                       "goals_deferred": 0, "twists": 0, "off_path_stops": 0}
+                       "goals_deferred": 0, "twists": 0, "off_path_stops": 0, "goals_rejected": 0, "goals_failed": 0,
+                       "runstops": 0, "mode_switches": 0}
+        # the robot's driver, when it has modes (Stretch): the mode it reports, the one found at activation, runstop
+        self.driver_mode = ""
+        self.found_mode = ""
+        self.runstopped = False
+        self._replan_when_ready = ""
+        self._last_switch_request = -1e9
+        self._driver_clients: dict = {}  # service name -> Trigger client
+        self._goal_seq: dict = {}  # controller -> sequence number of the newest goal sent
+        self.last_controller_error = ""
         self.last_refusal = ""
         self.last_state_problem = ""
         self.max_tracking_error = np.zeros(2)  # (m, rad) over the current path
@@ -160,7 +170,7 @@ class RobotAdapter:
         if cfg.base.mode == "stretch_translate_rotate":
             raise InputError("base.mode stretch_translate_rotate: its goals are built by "
                              "psprm_ros.adapters.stretch_base_steps / stretch_base_command; this node drives the "
-                             "base with cmd_vel (Stretch's navigation mode)")
+                             "base with cmd_vel or in Stretch's trajectory mode (base.mode stretch_trajectory)")
         fjt = None
         if any(c.interface == "action" for c in cfg.controllers):
             fjt = ad.import_follow_joint_trajectory()
@@ -183,8 +193,12 @@ class RobotAdapter:
 
                 self._clients[c.name] = ActionClient(self.node, fjt, c.action, callback_group=self.cb)
         b = cfg.base
+        if cfg.driver.kind == "stretch":
+            self._driver_interfaces(cfg.driver)
         if self.robot.mobile:
-            self._twist_pub = self.node.create_publisher(TwistStamped if b.stamped else Twist, b.topic, 10)
+            if b.mode == "cmd_vel":
+                self._twist_pub = self.node.create_publisher(TwistStamped if b.stamped else Twist, b.topic, 10)
+            # in trajectory mode the driver moves the base; the follower then only keeps the path's clock (t0, done)
             self.follower = BaseFollower(Limits.for_robot(self.robot, b), Gains(b.k_x, b.k_y, b.k_theta),
                                          b.goal_tolerance_m, b.goal_tolerance_rad, b.settle_s, b.preview_s)
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -200,11 +214,19 @@ class RobotAdapter:
     def on_activate(self, state) -> bool:
         self.active = True
         self.status("active: executing trajectories")
+        d = self.cfg.driver
+        if d.kind != "none":
+            self.found_mode = self.driver_mode
+            if self.driver_mode != d.mode:
+                self._switch_mode(d.mode)
+                self._replan_when_ready = "adapter activated"
+                return True
         self._request_replan("adapter activated")
         return True
 
     def on_deactivate(self, state) -> bool:
         self.stop("adapter deactivated")
+        self.restore_driver_mode()
         self.active = False
         return True
 
@@ -226,8 +248,107 @@ class RobotAdapter:
     def on_shutdown(self, state) -> bool:
         if self.cfg is not None:
             self.stop("shutting down")
+            self.restore_driver_mode()
         self.active = False
         return True
+
+    # ------------------------------------------------------------------------------------------------ driver modes
+    def _driver_interfaces(self, d) -> None:
+        """Stretch: the driver's mode and runstop topics, its mode switches and its stop (std_srvs/Trigger)."""
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from std_msgs.msg import Bool, String
+        from std_srvs.srv import Trigger
+
+        self.node.create_subscription(String, d.mode_topic, self._mode_cb, 10, callback_group=self.cb)
+        self.node.create_subscription(Bool, d.runstop_topic, self._runstop_cb, 10, callback_group=self.cb)
+        grp = MutuallyExclusiveCallbackGroup()
+        for name in [d.switch_name(m) for m in ("navigation", "position", "trajectory")] + [d.stop_service]:
+            self._driver_clients[name] = self.node.create_client(Trigger, name, callback_group=grp)
+
+    def driver_ready(self) -> tuple:
+        """(ready, why not): the driver reports the configured mode and no runstop."""
+        d = self.cfg.driver
+        if d.kind == "none":
+            return True, ""
+        if self.runstopped:
+            return False, "the robot is runstopped"
+        if self.driver_mode != d.mode:
+            return False, (f"the driver is in mode '{self.driver_mode or 'unknown'}', not '{d.mode}'"
+                           f"{' (waiting for ' + d.mode_topic + ')' if not self.driver_mode else ''}")
+        return True, ""
+
+    def _mode_cb(self, msg) -> None:
+        mode = str(msg.data)
+        if mode != self.driver_mode:
+            self.status(f"driver mode: {mode}")
+        self.driver_mode = mode
+        if self.cfg is None or not self.active:
+            return
+        d = self.cfg.driver
+        if mode != d.mode and mode != "runstopped" and not self.runstopped:
+            # someone switched the driver away: stop what runs (it would be refused) and switch back
+            if self.follower is not None and not self.follower.done:
+                self.stop(f"the driver left {d.mode} mode (now {mode})")
+            self._switch_mode(d.mode)
+            self._replan_when_ready = self._replan_when_ready or f"driver mode {mode}"
+        elif self._replan_when_ready and self.driver_ready()[0]:
+            if self._request_replan(self._replan_when_ready):
+                self._replan_when_ready = ""
+
+    def _runstop_cb(self, msg) -> None:
+        on = bool(msg.data)
+        if on == self.runstopped:
+            return
+        self.runstopped = on
+        if on:
+            self.counts["runstops"] += 1
+            if self.cfg is not None:
+                self.stop("runstop pressed")
+            self.status("runstopped: no trajectory is executed until the runstop is released", "error")
+        else:
+            self.status("runstop released: asking for a new plan")
+            self._replan_when_ready = "runstop released"
+
+    def _switch_mode(self, mode: str) -> None:
+        """Ask the driver for ``mode`` (at most once a second)."""
+        from std_srvs.srv import Trigger
+
+        now = time.monotonic()
+        if now - self._last_switch_request < 1.0:
+            return
+        name = self.cfg.driver.switch_name(mode)
+        cl = self._driver_clients.get(name)
+        if cl is None or not cl.service_is_ready():
+            self.status(f"cannot switch the driver to {mode} mode: {name} not available", "error")
+            return
+        self._last_switch_request = now
+        self.counts["mode_switches"] += 1
+        self.status(f"switching the driver to {mode} mode")
+        cl.call_async(Trigger.Request()).add_done_callback(_retrieve)
+
+    def _call_driver(self, name: str):
+        from std_srvs.srv import Trigger
+
+        cl = self._driver_clients.get(name)
+        if cl is None or not cl.service_is_ready():
+            self.status(f"driver service {name} not available", "error")
+            return None
+        fut = cl.call_async(Trigger.Request())
+        fut.add_done_callback(_retrieve)
+        return fut
+
+    def restore_driver_mode(self, timeout_s: float = 0.0) -> None:
+        """Put the driver back in the mode found at activation (when it was one of the driver's control modes); wait
+        up to ``timeout_s`` for the answer (only from outside the node's executor, e.g. at destruction)."""
+        if self.cfg is None or self.cfg.driver.kind == "none":
+            return
+        found, want = self.found_mode, self.cfg.driver.mode
+        if found and found != want and found in ("navigation", "position", "trajectory"):
+            fut = self._call_driver(self.cfg.driver.switch_name(found))
+            deadline = time.monotonic() + timeout_s
+            while fut is not None and not fut.done() and time.monotonic() < deadline:
+                time.sleep(0.02)
+            self.status(f"driver returned to {found} mode")
 
     def _apply_param(self, name: str, value) -> None:
         if name == "state_timeout_s" and self.tracker is not None:
@@ -309,10 +430,31 @@ class RobotAdapter:
         if len(P) <= 1:
             self.stop("stop trajectory received")
             return False
+        ready, why_not = self.driver_ready()
+        if not ready:
+            self.stop(f"trajectory not executed: {why_not}")
+            self._replan_when_ready = self._replan_when_ready or why_not
+            if not self.runstopped:
+                self._switch_mode(self.cfg.driver.mode)
+            return False
+        if self.cfg.driver.kind == "stretch" and self.cfg.driver.mode == "navigation":
+            # the driver aborts arm and head goals in navigation mode: only a plan that keeps them still runs
+            moved = np.abs(P[:, 3:] - q[None, 3:]).max(0) if self.robot.mobile else np.abs(P - q[None]).max(0)
+            k = int(np.argmax(moved))
+            tol = min(c.start_tolerance for c in self.cfg.controllers)
+            if moved[k] > tol:
+                j = self.names[(3 if self.robot.mobile else 0) + k]
+                return self._refuse(f"navigation mode moves the base only, the plan moves {j} by {moved[k]:.3f} "
+                                    f"(use the trajectory-mode adapter)")
+        for c in self.cfg.controllers:
+            if c.interface == "topic" and self._pubs[c.name].get_subscription_count() == 0:
+                return self._refuse(f"no controller listens on {c.topic} ({c.name})")
         V = None
         if all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
             V = cv.joint_trajectory_positions(_Velocities(msg), self.names)
         lead = max([c.lead_time_s for c in self.cfg.controllers] + [self.cfg.base.lead_time_s])
+        if self.cfg.base.mode == "stretch_trajectory":
+            lead = 0.0  # a trajectory-mode goal starts when the driver receives it
         # a splice (the new trajectory continues the one the robot executes): the base goes on from where it is now,
         # and only the controllers' goals start a lead time ahead (controller_command trims them there)
         splice_d = self._splice_deviation(t, P, q) if self.robot.mobile else None
@@ -354,8 +496,12 @@ class RobotAdapter:
                                     f"configurations near its start (path tolerance {tol:g} m)")
         now = self._now()
         start_at = now + base_lead
+        if self.cfg.base.mode == "stretch_trajectory":
+            return self._execute_trajectory_mode(t, P, V, q, now)
         with self._lock:
             for c in self.cfg.controllers:
+                if self.cfg.driver.mode == "navigation":
+                    continue  # the arm and head stay where they are (checked above)
                 item = (t, P, V, start_at)
                 out = self._gates[c.name].offer(item, now)
                 if out is None:
@@ -373,6 +519,84 @@ class RobotAdapter:
         self.last_refusal = ""
         self._replan_at_rest, self._stop_t, self._still_since = "", None, None  # a new plan came meanwhile
         return True
+
+    def _execute_trajectory_mode(self, t, P, V, q, now: float) -> bool:
+        """Stretch's trajectory mode: the trajectory from now on as one goal with the base
+        (:func:`psprm_ros.stretch.goal_for_controller`), its first waypoint where the joints are; what the driver makes
+        of it must stay within ``max_goal_deviation_m`` of the planned trajectory. Goals closer than the goal
+        interval wait for it (trimmed to the moment they leave)."""
+        c = self.cfg.controllers[0]
+        item = (t, P, V, now)
+        with self._lock:
+            out = self._gates[c.name].offer(item, now)
+            if out is None:
+                self._pending[c.name] = item
+                self.counts["goals_deferred"] += 1
+                self.counts["executed"] += 1
+                return True
+            self._pending.pop(c.name, None)
+        ok = self._send_trajectory_mode(c, *out, now=now)
+        if ok:
+            self.counts["executed"] += 1
+            self.last_refusal = ""
+            self._replan_at_rest, self._stop_t, self._still_since = "", None, None
+        return ok
+
+    def _send_trajectory_mode(self, c, t, P, V, start_at: float, now: float) -> bool:
+        from . import stretch
+
+        late = now - start_at
+        if late > 1e-6:
+            t, P, V = ad.trim_from(np.asarray(t, float) - t[0], P, V, late)
+            if len(t) <= 1:
+                return True
+        q, why = self.measured()
+        if q is None:
+            self.stop(f"trajectory not executed: {why}")
+            return False
+        b = self.cfg.base
+        t = np.asarray(t, float) - t[0]
+        try:
+            goal = stretch.goal_for_controller(c, self.names, t, P, V, b.min_waypoint_interval_s)
+        except InputError as exc:
+            return self._refuse(str(exc))
+        idx = [self.names.index(j) for j in c.joints]
+        goal.positions[0] = q[idx]  # the driver starts a joint only from where it is
+        dev = stretch.deviation_check(self.robot, goal, self.names, c.joints, t, P, P[0, :3], step_s=0.1,
+                                      window_s=self.p["path_window_s"])
+        if dev > b.max_goal_deviation_m:
+            return self._refuse(f"the driver's waypoints would take the robot {dev:.3f} m from the planned "
+                                f"trajectory (max_goal_deviation_m {b.max_goal_deviation_m:g})")
+        ts = np.arange(0.0, goal.duration + 1e-9, 0.05)
+        Pg = stretch.planned_positions(t, P, goal.planned_time(ts))
+        checked = CheckedPath(self.robot, ts, Pg) if self.p["path_tolerance_m"] > 0 else None
+        with self._lock:
+            self._send_goal(c, goal)
+            self.follower.set_path(BaseReference(ts, Pg[:, :3]), now)
+            self.checked, self.max_path_deviation = checked, 0.0
+            self.max_tracking_error = np.zeros(2)
+        return True
+
+    def _send_goal(self, c, goal) -> None:
+        """A trajectory-mode goal (joints and the base) on ``c``'s action."""
+        from . import stretch
+
+        cl = self._clients[c.name]
+        if not cl.server_is_ready():
+            self.status(f"{c.name}: action server {c.action} not available", "error")
+            return
+        jt, mt = stretch.goal_messages(goal)
+        g = self._fjt.Goal()
+        ad.fill_goal(g, {"trajectory": jt, "multi_dof_trajectory": mt,
+                         "goal_time_tolerance": cv.duration_msg(c.goal_time_tolerance_s)})
+        self._dispatch(c, cl, g)
+
+    def _dispatch(self, c, cl, goal) -> None:
+        seq = self._goal_seq.get(c.name, 0) + 1
+        self._goal_seq[c.name] = seq
+        fut = cl.send_goal_async(goal)
+        fut.add_done_callback(lambda f, name=c.name, n=seq: self._goal_response(name, f, n))
+        self.counts["goals_sent"] += 1
 
     def _splice_deviation(self, t: np.ndarray, P: np.ndarray, q: np.ndarray) -> Optional[float]:
         """When a new trajectory continues the one being executed (each of its
@@ -406,21 +630,52 @@ class RobotAdapter:
                 self.status(f"{c.name}: action server {c.action} not available", "warning")
                 return
             goal = ad.fill_goal(self._fjt.Goal(), ad.action_goal_fields(cmd, c.goal_time_tolerance_s))
-            fut = cl.send_goal_async(goal)
-            fut.add_done_callback(lambda f, name=c.name: self._goal_response(name, f))
+            self._dispatch(c, cl, goal)
+            return
         self.counts["goals_sent"] += 1
 
-    def _goal_response(self, name: str, fut) -> None:
+    def _goal_response(self, name: str, fut, seq: int) -> None:
         try:
             gh = fut.result()
         except Exception as exc:
             self.status(f"{name}: goal failed: {exc}", "warning")
             return
         if not gh.accepted:
-            self.status(f"{name}: goal rejected by the controller", "warning")
+            self.counts["goals_rejected"] += 1
+            if seq == self._goal_seq.get(name):
+                self._controller_failed(name, "goal rejected by the controller")
             return
         with self._lock:
             self._goal_handles[name] = gh
+        gh.get_result_async().add_done_callback(lambda f: self._goal_result(name, f, seq))
+
+    def _goal_result(self, name: str, fut, seq: int) -> None:
+        """The controller's verdict on a goal: an abort of the newest goal (a tolerance violated, a runstop, a goal
+        the driver could not start) stops the robot and asks for a new plan; aborts of goals that a newer one
+        replaced are the controllers' way of preempting and say nothing."""
+        from action_msgs.msg import GoalStatus
+
+        try:
+            r = fut.result()
+        except Exception as exc:
+            self.status(f"{name}: no result: {exc}", "warning")
+            return
+        if r is None or seq != self._goal_seq.get(name):
+            return
+        code, text = int(getattr(r.result, "error_code", 0)), str(getattr(r.result, "error_string", ""))
+        if r.status == GoalStatus.STATUS_ABORTED or code != 0:
+            self._controller_failed(name, f"goal aborted (error_code {code}{': ' + text if text else ''})")
+
+    def _controller_failed(self, name: str, why: str) -> None:
+        self.counts["goals_failed"] += 1
+        self.last_controller_error = f"{name}: {why}"
+        if not self.active:
+            return
+        self.stop(f"{name}: {why}")
+        if self.follower is not None:
+            self._replan_at_rest = why
+        else:
+            self._request_replan(why)
 
     def _refuse(self, why: str) -> bool:
         self.counts["refused"] += 1
@@ -467,9 +722,17 @@ class RobotAdapter:
                         self._pubs[c.name].publish(ad.to_joint_trajectory(ad.hold_command(c, self.names, q)))
                         self._gates[c.name].offer(None, now, urgent=True)
                 else:
+                    self._goal_seq[c.name] = self._goal_seq.get(c.name, 0) + 1  # what ends now is no failure
                     gh = self._goal_handles.pop(c.name, None)
                     if gh is not None:
                         gh.cancel_goal_async()
+        d = self.cfg.driver
+        if d.kind == "stretch" and self._driver_clients:
+            # the driver's own stop; a trajectory-mode goal ignores cancels, and re-entering trajectory mode drops
+            # the waypoint trajectories under way
+            self._call_driver(d.stop_service)
+            if d.mode == "trajectory" and self.driver_mode == "trajectory":
+                self._call_driver(d.switch_name("trajectory"))
         self.counts["stops"] += 1
         self.status(f"robot stopped: {why}", "warning")
 
@@ -495,10 +758,17 @@ class RobotAdapter:
             return
         now = self._now()
         with self._lock:
+            due = []
             for c in self.cfg.controllers:
                 item = self._gates[c.name].due(now) if c.name in self._pending else None
                 if item is not None:
                     self._pending.pop(c.name, None)
+                    due.append((c, item))
+        for c, item in due:
+            if self.cfg.base.mode == "stretch_trajectory":
+                self._send_trajectory_mode(c, *item, now=now)
+            else:
+                with self._lock:
                     self._send(c, *item, now=now)
         if self.follower is None:
             return

@@ -51,6 +51,10 @@ SIM_PARAMS = {
     "mocap_world.quat": [0.0, 0.0, 0.0, 1.0],
     "mocap_body_offset.xyz": [0.0, 0.0, 0.0],  # pose of base_link in the mocap body's frame
     "mocap_body_offset.quat": [0.0, 0.0, 0.0, 1.0],
+    "driver": "",  # "" = ros2_control JointTrajectory topics; "stretch" = Stretch 2's driver (psprm_ros.sim_stretch)
+    "driver_mode": "position",  # the Stretch driver's mode at start-up (its own default: position)
+    "runstop_service": "/runstop",  # std_srvs/SetBool of the Stretch driver
+    "status_rate_hz": 10.0,  # /mode and /is_runstopped of the Stretch driver
 }
 
 
@@ -140,14 +144,15 @@ class SimModel:
         if np.isfinite(d).all():
             self.disturbance, self.disturbance_until = d, float(until)
 
-    def step(self, t: float, dt: float) -> None:
+    def step(self, t: float, dt: float, base: bool = True) -> None:
+        """Advance by ``dt``: the joint trajectories under way, and (``base``) the base from its twist input."""
         r = self.robot
         for a in list(self.active.values()):
             want = a.desired(t)
             cur = self.q[a.idx]
             vmax = r.velocity[a.idx]
             self.q[a.idx] = np.clip(cur + np.clip(want - cur, -vmax * dt, vmax * dt), r.lower[a.idx], r.upper[a.idx])
-        if r.mobile:
+        if r.mobile and base:
             b = r.config.base
             target = self.twist if t - self.twist_t <= self.cmd_vel_timeout_s else np.zeros(2)
             target = np.clip(target, [-b.linear_velocity, -b.angular_velocity], [b.linear_velocity, b.angular_velocity])
@@ -192,7 +197,11 @@ class SimRobotNode:
         self.log = node.get_logger()
         self.p = core.declare_params(node, {**core.COMMON_PARAMS, **SIM_PARAMS})
         self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
-        self.adapter = load_adapter(self.p["adapter"] or self.robot.name, self.robot).with_interface("topic")
+        adapter = load_adapter(self.p["adapter"] or self.robot.name, self.robot)
+        self.driver = None
+        if self.p["driver"] not in ("", "stretch"):
+            raise ValueError(f"driver must be '' or 'stretch', got '{self.p['driver']}'")
+        self.adapter = adapter if self.p["driver"] == "stretch" else adapter.with_interface("topic")
         q0 = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
         if len(self.p["initial_base"]) == 3:
             q0[:3] = self.p["initial_base"]
@@ -203,10 +212,17 @@ class SimRobotNode:
         self.mocap_offset = (np.array(self.p["mocap_body_offset.xyz"], float),
                              _unit(self.p["mocap_body_offset.quat"]))
         cb = MutuallyExclusiveCallbackGroup()
-        for c in self.adapter.controllers:
-            node.create_subscription(JointTrajectory, c.topic, self._traj_cb(c), 10, callback_group=cb)
+        self._goal_futures: dict = {}
+        if self.p["driver"] == "stretch":
+            from .sim_stretch import StretchDriver
+
+            self.driver = StretchDriver(self.model, self.p["driver_mode"])
+            self._stretch_interfaces(cb)
+        else:
+            for c in self.adapter.controllers:
+                node.create_subscription(JointTrajectory, c.topic, self._traj_cb(c), 10, callback_group=cb)
         b = self.adapter.base
-        if self.robot.mobile and b.mode == "cmd_vel":
+        if self.robot.mobile and b.mode == "cmd_vel" and self.driver is None:
             node.create_subscription(TwistStamped if b.stamped else Twist, b.topic, self._twist_cb(b.stamped), 10,
                                      callback_group=cb)
             node.create_subscription(Twist, self.p["disturbance_topic"], self._disturbance_cb, 10, callback_group=cb)
@@ -226,6 +242,140 @@ class SimRobotNode:
 
     def status(self, text: str, level: str = "info") -> None:
         core.report(self.log, self.pub_status, text, level)
+
+    # ------------------------------------------------------------------------------------------------ Stretch driver
+    def _stretch_interfaces(self, cb) -> None:
+        """The Stretch driver's ROS interfaces (names from the adapter's ``driver`` section and action)."""
+        from rclpy.action import ActionServer
+        from rclpy.callback_groups import ReentrantCallbackGroup
+        from geometry_msgs.msg import Twist
+        from std_msgs.msg import Bool, String
+        from std_srvs.srv import SetBool, Trigger
+
+        from .adapters import import_follow_joint_trajectory
+
+        fjt = import_follow_joint_trajectory()
+        if fjt is None:
+            raise RuntimeError("the Stretch driver profile needs control_msgs (scripts/build_interfaces.sh)")
+        self._fjt = fjt
+        node, d = self.node, self.adapter.driver
+        action = next(c.action for c in self.adapter.controllers if c.action)
+        self._action_server = ActionServer(node, fjt, action, execute_callback=self._execute_goal,
+                                           goal_callback=self._goal_request, cancel_callback=self._cancel_request,
+                                           callback_group=ReentrantCallbackGroup())
+        for m in ("navigation", "position", "trajectory"):
+            node.create_service(Trigger, d.switch_name(m), self._switch_cb(m), callback_group=cb)
+        node.create_service(Trigger, d.stop_service, self._stop_cb, callback_group=cb)
+        node.create_service(SetBool, self.p["runstop_service"], self._runstop_cb, callback_group=cb)
+        self.pub_mode = node.create_publisher(String, d.mode_topic, 1)
+        self.pub_runstop = node.create_publisher(Bool, d.runstop_topic, 1)
+        self.pub_driver = node.create_publisher(String, "~/driver", 10)  # the driver's counts (JSON), for tests
+        if self.robot.mobile:
+            node.create_subscription(Twist, self.adapter.base.topic, self._stretch_twist_cb, 10, callback_group=cb)
+        node.create_timer(1.0 / max(1.0, self.p["status_rate_hz"]), self._driver_status, callback_group=cb)
+
+    def _driver_status(self) -> None:
+        from std_msgs.msg import Bool, String
+
+        import json
+
+        with self._lock:
+            mode, rs = self.driver.mode, self.driver.runstopped
+            rec = {"mode": mode, **self.driver.counts, "aborts": [list(a) for a in self.driver.aborts[-20:]]}
+        self.pub_mode.publish(String(data=mode))
+        self.pub_runstop.publish(Bool(data=rs))
+        self.pub_driver.publish(String(data=json.dumps(rec)))
+
+    def _switch_cb(self, mode: str):
+        def cb(req, resp):
+            with self._lock:
+                resp.success, resp.message = self.driver.switch_mode(mode, self._now())
+            self._wake_goals()
+            return resp
+        return cb
+
+    def _stop_cb(self, req, resp):
+        with self._lock:
+            self.driver.stop_the_robot(self._now())
+        resp.success, resp.message = True, "Stopped the robot."
+        return resp
+
+    def _runstop_cb(self, req, resp):
+        with self._lock:
+            self.driver.set_runstop(bool(req.data), self._now())
+        self._wake_goals()
+        resp.success, resp.message = True, f"is_runstopped: {bool(req.data)}"
+        return resp
+
+    def _stretch_twist_cb(self, msg) -> None:
+        with self._lock:
+            ok = self.driver.cmd_vel(float(msg.linear.x), float(msg.angular.z), self._now())
+        if not ok and self.driver.counts["cmd_vel_dropped"] in (1, 10, 100, 1000):
+            self.status(f"cmd_vel dropped: the driver must be in navigation mode (mode = {self.driver.mode})",
+                        "error")
+
+    def _goal_request(self, request):
+        from rclpy.action import GoalResponse
+
+        with self._lock:
+            ok = self.driver.goal_request(self._now())
+        if not ok:
+            self.status("goal rejected: another goal is active and the last one came less than 0.2 s ago",
+                        "warning")
+        return GoalResponse.ACCEPT if ok else GoalResponse.REJECT
+
+    def _cancel_request(self, goal_handle):
+        from rclpy.action import CancelResponse
+
+        with self._lock:
+            self.driver.cancel(self._now())
+        return CancelResponse.ACCEPT
+
+    async def _execute_goal(self, goal_handle):
+        from rclpy.task import Future
+
+        from .sim_stretch import BASE_JOINT
+
+        goal = goal_handle.request
+        tr, mt = goal.trajectory, goal.multi_dof_trajectory
+        pts = [(cv.duration_to_sec(p.time_from_start), list(p.positions), list(p.velocities)) for p in tr.points]
+        bpts = []
+        if BASE_JOINT in mt.joint_names:
+            i = list(mt.joint_names).index(BASE_JOINT)
+            for p in mt.points:
+                tf = p.transforms[i]
+                yaw = cv.yaw_of([tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w])
+                vel = (p.velocities[i].linear.x, p.velocities[i].angular.z) if len(p.velocities) > i else None
+                bpts.append((cv.duration_to_sec(p.time_from_start), (tf.translation.x, tf.translation.y, yaw), vel))
+        with self._lock:
+            g = self.driver.execute(cv.stamp_to_sec(tr.header.stamp), list(tr.joint_names), pts,
+                                    list(mt.joint_names), bpts, self._now())
+            fut = Future()
+            if g.outcome is None:
+                self._goal_futures[g.id] = (g, fut)
+        if g.outcome is None:
+            await fut
+        state, code, text = g.outcome
+        if state == "aborted" and code != 0:
+            self.status(f"goal aborted: {text}", "warning")
+        res = self._fjt.Result()
+        res.error_code, res.error_string = int(code), text
+        if state == "succeeded":
+            goal_handle.succeed()
+        elif state == "canceled":
+            goal_handle.canceled()
+        else:
+            goal_handle.abort()
+        return res
+
+    def _wake_goals(self) -> None:
+        """Complete the futures of goals that ended (the step and the services call this)."""
+        with self._lock:
+            done = [k for k, (g, f) in self._goal_futures.items() if g.outcome is not None]
+            futs = [self._goal_futures.pop(k)[1] for k in done]
+        for f in futs:
+            if not f.done():
+                f.set_result(True)
 
     def _traj_cb(self, ctrl: ControllerConfig):
         def cb(msg):
@@ -260,10 +410,16 @@ class SimRobotNode:
         with self._lock:
             dt = 0.0 if self._last_t is None else min(max(t - self._last_t, 0.0), 0.2)
             self._last_t = t
-            self.model.step(t, dt)
+            if self.driver is not None:
+                self.driver.step(t, dt)
+                self.model.step(t, dt, base=self.driver.mode == "navigation")
+            else:
+                self.model.step(t, dt)
             q = self.model.q.copy()
             v = self.model.v.copy()
             names, pos = self.model.joint_state()
+        if self._goal_futures:
+            self._wake_goals()
         stamp = self.node.get_clock().now().to_msg()
         js = JointState()
         js.header.stamp = stamp

@@ -113,7 +113,12 @@ def test_shipped_adapter_owns_every_joint_once_under_the_drivers_names(name, loa
     assert got == EXPECTED[name]
     owned = [j for c in cfg.controllers for j in c.joints]
     assert sorted(owned) == sorted(robot.joint_names[3:])  # every non-base planning joint, once
-    assert cfg.base.mode == "cmd_vel" and cfg.base.rate_hz >= 20
+    if name == "stretch2":
+        # stretch_core: cmd_vel is taken only in navigation mode, whole-body goals only in trajectory mode
+        assert cfg.base.mode == "stretch_trajectory" and cfg.driver.kind == "stretch"
+        assert cfg.driver.mode == "trajectory" and [c.interface for c in cfg.controllers] == ["action"]
+    else:
+        assert cfg.base.mode == "cmd_vel" and cfg.base.rate_hz >= 20
 
 
 @pytest.mark.parametrize("name", sorted(EXPECTED))
