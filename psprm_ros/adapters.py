@@ -77,7 +77,7 @@ class BaseConfig:
     """How the base is driven (``mode``) and the follower's settings."""
 
     mode: str = "cmd_vel"
-    topic: str = "/cmd_vel"
+    topic: str = "cmd_vel"
     stamped: bool = False  # geometry_msgs/TwistStamped (Jazzy's diff_drive_controller) instead of Twist
     frame_id: str = "base_link"  # header.frame_id of a TwistStamped
     rate_hz: float = 30.0  # follower rate (>= 20 Hz)

@@ -36,17 +36,17 @@ class Param:
 
 
 #: topics shared by the nodes (absolute, so the nodes can be started in any namespace layout)
-STATE_PREFIX = "/psprm/state"
-TRAJECTORY_TOPIC = "/psprm/trajectory"
-ROADMAP_CAMERAS_TOPIC = "/psprm/roadmap/camera_poses"
-ROADMAP_SCORES_TOPIC = "/psprm/roadmap/scores"
-PATH_CAMERAS_TOPIC = "/psprm/path/camera_poses"
-PATH_SCORE_TOPIC = "/psprm/path/score"
-PLAN_INFO_TOPIC = "/psprm/plan_info"
-SERVER_STATE_TOPIC = "/psprm/server_state"  # latched std_msgs/String: "building ...", "ready: ...", "error: ..."
+STATE_PREFIX = "psprm/state"
+TRAJECTORY_TOPIC = "psprm/trajectory"
+ROADMAP_CAMERAS_TOPIC = "psprm/roadmap/camera_poses"
+ROADMAP_SCORES_TOPIC = "psprm/roadmap/scores"
+PATH_CAMERAS_TOPIC = "psprm/path/camera_poses"
+PATH_SCORE_TOPIC = "psprm/path/score"
+PLAN_INFO_TOPIC = "psprm/plan_info"
+SERVER_STATE_TOPIC = "psprm/server_state"  # latched std_msgs/String: "building ...", "ready: ...", "error: ..."
 SERVER_NAME = "roadmap_server"
 
-BASE_PATH_TOPIC = "/psprm/base_path"  # nav_msgs/Path of the planned base route (latched)
+BASE_PATH_TOPIC = "psprm/base_path"  # nav_msgs/Path of the planned base route (latched)
 
 
 def _common_params() -> dict:

@@ -71,8 +71,8 @@ class Record:
         self.executed: list = []  # (t, q)
         self.poses: list = []  # (t, body, p, q) as replayed, in the scene frame
         self.adapter_diagnostics: list = []  # (t, {key: value}) of the robot adapter's /diagnostics
-        node.create_subscription(Odometry, "/odom", self._odom, 50)
-        node.create_subscription(JointState, "/joint_states", self._joints, 50)
+        node.create_subscription(Odometry, "odom", self._odom, 50)
+        node.create_subscription(JointState, "joint_states", self._joints, 50)
         node.create_subscription(DiagnosticArray, core.DIAGNOSTICS_TOPIC, self._diagnostics, 20)
 
     def _odom(self, m):
@@ -366,7 +366,7 @@ def main(args=None) -> int:
         say(f"[demo] suite ready {t_ready - t_start:.1f} s after start: {ready.split(': ', 1)[-1]}")
         for b in rec.bodies:
             probe.wait_subscribers(cfg.body_topics[b], timeout=30)
-        probe.wait_subscribers("/psprm/goal_regions" if cfg.goal_regions else "/psprm/goal", timeout=30)
+        probe.wait_subscribers("psprm/goal_regions" if cfg.goal_regions else "psprm/goal", timeout=30)
         if not probe.wait_for(lambda: record.latest() is not None, 30):
             raise RuntimeError("no /joint_states + /odom from the simulated robot")
         replay = Replayer(probe.node, rec, loop=True, on_sample=record.on_sample, topics=cfg.body_topics)

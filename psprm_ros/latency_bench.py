@@ -59,7 +59,7 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
         face, body = scene.target("person_face"), scene.obstacle("person_body")
         off = float(np.linalg.norm((face.center - body.center)[:2]))
         s.probe.wait_subscribers("/mocap/person_face/pose")
-        s.probe.wait_subscribers("/psprm/goal_regions")
+        s.probe.wait_subscribers("psprm/goal_regions")
         from .core import start_configuration
 
         robot = s.server.robot  # a robot standing at the start: its /joint_states and /odom

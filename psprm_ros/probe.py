@@ -67,11 +67,11 @@ class Probe:
         node.create_subscription(String, core.SERVER_STATE_TOPIC, self._rec(self.server_state, lambda m: m.data),
                                  latched)
         for n in ("roadmap_server", "perception_scorer", "replan_monitor", "robot_adapter", "sim_robot"):
-            node.create_subscription(String, f"/{n}/status", self._status_cb(n), 50)
+            node.create_subscription(String, f"{n}/status", self._status_cb(n), 50)
         from geometry_msgs.msg import PoseStamped
 
-        self.pub_goal = node.create_publisher(PoseStamped, "/psprm/goal", 10)
-        self.pub_regions = node.create_publisher(String, "/psprm/goal_regions", 10)
+        self.pub_goal = node.create_publisher(PoseStamped, "psprm/goal", 10)
+        self.pub_regions = node.create_publisher(String, "psprm/goal_regions", 10)
 
     # ---------------------------------------------------------------------------------------------- recording
     def _rec(self, store: list, conv: Optional[Callable] = None):
@@ -180,8 +180,8 @@ class StatePublisher:
         self.node, self.names, self.rate, self.odom_frame = node, list(names), rate_hz, odom_frame
         self.q = list(map(float, q))
         self.mobile = self.names[:3] == ["base_x", "base_y", "base_theta"]
-        self.pub_js = node.create_publisher(JointState, "/joint_states", 10)
-        self.pub_odom = node.create_publisher(Odometry, "/odom", 10)
+        self.pub_js = node.create_publisher(JointState, "joint_states", 10)
+        self.pub_odom = node.create_publisher(Odometry, "odom", 10)
         self._stop = threading.Event()
         self.published = 0
 
@@ -225,9 +225,9 @@ class InProcessSuite:
     s.probe.publish_pose(...)``."""
 
     def __init__(self, params: dict, domain_id: Optional[int] = None, nodes=("server", "scorer", "monitor"),
-                 params_file: Optional[str] = None, autostart: bool = True):
+                 params_file: Optional[str] = None, autostart: bool = True, namespace: str = ""):
         self.params, self.domain_id, self.which = params, domain_id, nodes
-        self.params_file, self.autostart = params_file, autostart
+        self.params_file, self.autostart, self.namespace = params_file, autostart, namespace
 
     def __enter__(self) -> "InProcessSuite":
         import rclpy
@@ -242,6 +242,8 @@ class InProcessSuite:
         self.context.init(args=args, domain_id=self.domain_id)
         overrides = [Parameter(k, value=v) for k, v in self.params.items()]
         kw = {"context": self.context, "parameter_overrides": overrides}
+        if self.namespace:
+            kw["namespace"] = self.namespace
         from .spinning import NodeSpinner
 
         self.executor = NodeSpinner(self.context)
@@ -259,7 +261,8 @@ class InProcessSuite:
                 self.nodes.append(n)
                 self.executor.add(n.node)
             frame = self.server.frame if self.server else "map"
-            self.probe = Probe(frame=frame, context=self.context)
+            self.probe = Probe(frame=frame, context=self.context,
+                               **({"namespace": self.namespace} if self.namespace else {}))
             self.executor.add(self.probe.node)
         except Exception:
             self.__exit__(None, None, None)

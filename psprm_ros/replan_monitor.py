@@ -36,18 +36,18 @@ MONITOR_PARAMS = {
     "base_pose_source": P("odom", "where the base pose comes from: odom (nav_msgs/Odometry on odom_topic), pose (a "
                                   "mocap PoseStamped of a body on the base, robot_pose_topic) or joint_states "
                                   "(base_x/base_y/base_theta in /joint_states)"),
-    "odom_topic": P("/odom", "nav_msgs/Odometry of the base (base_pose_source odom)"),
+    "odom_topic": P("odom", "nav_msgs/Odometry of the base (base_pose_source odom)"),
     "robot_pose_topic": P("", "the robot's own rigid body (base_pose_source pose)"),
     "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz"),
     "base_body_offset.quat": P([0.0, 0.0, 0.0, 1.0], "... and quaternion (x, y, z, w)"),
     "adapter": P("", "adapter config whose name maps translate /joint_states names ('' = the robot's, 'none')"),
-    "joint_states_topic": P("/joint_states", "sensor_msgs/JointState of the robot"),
+    "joint_states_topic": P("joint_states", "sensor_msgs/JointState of the robot"),
     "robot_state_timeout_s": P(0.5, "a base pose or joint state older than this is stale: no robot state is "
                                     "forwarded (nothing is planned)", live=True, lo=0.01),
     "robot_state_rate_hz": P(20.0, "forward the robot state at most this often (0 = every /joint_states message)",
                              live=True, lo=0.0),
-    "goal_topic": P("/psprm/goal", "PoseStamped base goal (x, y, yaw)"),
-    "goal_regions_topic": P("/psprm/goal_regions", "String: comma-separated goal regions of the scene"),
+    "goal_topic": P("psprm/goal", "PoseStamped base goal (x, y, yaw)"),
+    "goal_regions_topic": P("psprm/goal_regions", "String: comma-separated goal regions of the scene"),
     "max_pose_age_s": P(1.0, "refuse poses older than this (0 = no check)", live=True, lo=0.0),
     # forwarding of the mocap stream: a pose that moved more than the deadband since the last forwarded one goes out
     # at once; otherwise at most relay_keepalive_hz (keeps the downstream nodes' CPU for planning; the core's move
@@ -163,8 +163,8 @@ class ReplanMonitor:
         node.create_subscription(Float32, core.PATH_SCORE_TOPIC, self._score_cb, 10, callback_group=cb)
         node.create_subscription(JointTrajectory, core.TRAJECTORY_TOPIC, self._traj_cb, latched, callback_group=cb)
         srv_cb = MutuallyExclusiveCallbackGroup()
-        self.cli_plan = node.create_client(Trigger, f"/{core.SERVER_NAME}/plan", callback_group=srv_cb)
-        self.cli_stop = node.create_client(Trigger, f"/{core.SERVER_NAME}/stop", callback_group=srv_cb)
+        self.cli_plan = node.create_client(Trigger, f"{core.SERVER_NAME}/plan", callback_group=srv_cb)
+        self.cli_stop = node.create_client(Trigger, f"{core.SERVER_NAME}/stop", callback_group=srv_cb)
         self._grace = core.StallGrace(1.0 / max(0.5, self.p["check_rate_hz"]))
         node.create_timer(1.0 / max(0.5, self.p["check_rate_hz"]), self._check,
                           callback_group=MutuallyExclusiveCallbackGroup())
@@ -214,7 +214,7 @@ class ReplanMonitor:
                 "base_pose_age_s": (now - bt) if bt is not None else "never",
                 **{f"age_s {k}": v for k, v in seen.items()}}
         core.publish_diagnostics(self.pub_diag, self.node, [
-            core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
+            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot.name, level, msg, vals)])
 
     def _topics(self, kind, names, topics) -> list:
         if topics and len(topics) != len(names):

@@ -988,7 +988,7 @@ class RoadmapServer:
         if rp is not None:  # the replanner's decisions: replans adopted / declined (kept), goal switches
             vals.update(adopted_replans=rp.adopted, declined_replans=rp.declined, goal_switches=rp.goal_switches)
         core.publish_diagnostics(self.pub_diag, self.node, [
-            core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
+            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot.name, level, msg, vals)])
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def destroy(self) -> None:

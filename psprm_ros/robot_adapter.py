@@ -55,17 +55,17 @@ ADAPTER_PARAMS = {
     "trajectory_topic": P(core.TRAJECTORY_TOPIC, "the planned trajectories", rebuild=True),
     "base_pose_source": P("odom", "odom (nav_msgs/Odometry on odom_topic), pose (mocap PoseStamped on "
                                   "robot_pose_topic) or joint_states", rebuild=True),
-    "odom_topic": P("/odom", "nav_msgs/Odometry of the base", rebuild=True),
+    "odom_topic": P("odom", "nav_msgs/Odometry of the base", rebuild=True),
     "robot_pose_topic": P("", "mocap rigid body on the base (base_pose_source pose)", rebuild=True),
     "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz", rebuild=True),
     "base_body_offset.quat": P([0.0, 0.0, 0.0, 1.0], "... and quaternion (x, y, z, w)", rebuild=True),
-    "joint_states_topic": P("/joint_states", "sensor_msgs/JointState of the robot", rebuild=True),
+    "joint_states_topic": P("joint_states", "sensor_msgs/JointState of the robot", rebuild=True),
     "state_timeout_s": P(0.5, "a base pose or joint state older than this is stale: the robot stops", live=True,
                          lo=0.01),
     "max_pose_age_s": P(1.0, "refuse base poses whose stamp is older than this (0 = no check)", live=True, lo=0.0),
     "replan_on_refusal": P(True, "request a replan (roadmap_server ~/plan) after refusing a trajectory", live=True),
     "replan_request_interval_s": P(1.0, "at most one replan request per interval", live=True, lo=0.0),
-    "plan_service": P(f"/{core.SERVER_NAME}/plan", "std_srvs/Trigger of the roadmap server", rebuild=True),
+    "plan_service": P(f"{core.SERVER_NAME}/plan", "std_srvs/Trigger of the roadmap server", rebuild=True),
     "start_problem": P("", "scene problem whose start fills joints /joint_states does not carry"),
     "path_tolerance_m": P(0.04, "stop and ask for a new plan when some point of the robot's collision boxes is this "
                                 "far (m) from where it was in every configuration of the trajectory within "
@@ -375,7 +375,7 @@ class RobotAdapter:
                 "max_tracking_error_rad": float(self.max_tracking_error[1]),
                 "path_deviation_m": float(self.path_deviation), "max_path_deviation_m": float(self.max_path_deviation)}
         core.publish_diagnostics(self.pub_diag, self.node, [
-            core.diagnostic_status(f"psprm: {self.node.get_name()}", self.robot.name, level, msg, vals)])
+            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot.name, level, msg, vals)])
 
     # ------------------------------------------------------------------------------------------------ inputs
     def _joints_cb(self, msg) -> None:

@@ -38,8 +38,8 @@ SIM_PARAMS = {
     "cmd_vel_timeout_s": 0.5,
     "disturbance_topic": "~/disturbance",  # geometry_msgs/Twist added to the base's motion (a push, wheel slip)
     "disturbance_timeout_s": 0.2,  # ... for this long after each message
-    "joint_states_topic": "/joint_states",
-    "odom_topic": "/odom",
+    "joint_states_topic": "joint_states",
+    "odom_topic": "odom",
     "odom_frame": "odom",
     "base_frame": "base_link",
     "odom_origin.xyz": [0.0, 0.0, 0.0],  # pose of the odom frame in the scene frame
@@ -100,10 +100,8 @@ class SimModel:
         if len(set(names)) != len(names) or set(names) != set(own):
             return self._reject(ctrl, f"joint set {names} is not the controller's {own}")
         idx_msg = [names.index(j) for j in own]
-        if not points:  # an empty trajectory: hold where the robot is
-            self.active.pop(ctrl.name, None)
-            self.accepted[ctrl.name] += 1
-            return True, "empty trajectory: holding"
+        if not points:  # Jazzy's joint_trajectory_controller discards an empty trajectory
+            return self._reject(ctrl, "empty trajectory discarded")
         t = np.array([p[0] for p in points], float)
         try:
             P = np.array([[p[1][i] for i in idx_msg] for p in points], float)

@@ -79,7 +79,7 @@ def test_no_plan_without_a_fresh_base_pose(load_robot):
             def diag(name, needle):
                 for t, m in reversed(diags):
                     for st in m.status:
-                        if st.name == f"psprm: {name}" and needle in st.message and t > t0:
+                        if st.name == f"psprm: /{name}" and needle in st.message and t > t0:
                             return st
                 return None
             st = s.probe.wait_for(lambda: diag("roadmap_server", "waiting for base pose"), 5)
