@@ -63,6 +63,9 @@ class ControllerConfig:
     start_tolerance: float = 0.15  # max |first point - measured| over the controller's joints (rad or m)
     hold_time_s: float = 0.25  # time_from_start of the stop (hold) point
     goal_time_tolerance_s: float = 1.0  # FollowJointTrajectory goal_time_tolerance
+    # a controller that slows its trajectories by a speed scaling (UR's scaled_joint_trajectory_controller): the
+    # std_msgs/Float64 (percent) the driver publishes; the base then follows its path at the same rate
+    speed_scaling_topic: str = ""
 
     def robot_name(self, planning_name: str) -> str:
         return self.prefix + dict(self.name_map).get(planning_name, planning_name)
@@ -236,7 +239,8 @@ def load_adapter(name_or_path: str, robot=None) -> AdapterConfig:
             lead_time_s=c.float("lead_time_s", 0.1, lo=0.0), min_goal_interval_s=c.float("min_goal_interval_s", 0.0,
                                                                                             lo=0.0),
             start_tolerance=c.float("start_tolerance", 0.15, lo=0.0), hold_time_s=c.float("hold_time_s", 0.25, lo=1e-3),
-            goal_time_tolerance_s=c.float("goal_time_tolerance_s", 1.0, lo=0.0))
+            goal_time_tolerance_s=c.float("goal_time_tolerance_s", 1.0, lo=0.0),
+            speed_scaling_topic=c.str("speed_scaling_topic", ""))
         if interface == "topic" and not cc.topic:
             raise c.error("topic", "required with interface: topic")
         if interface == "action" and not cc.action:

@@ -130,6 +130,8 @@ class RobotAdapter:
         self._driver_clients: dict = {}  # service name -> Trigger client
         self._goal_seq: dict = {}  # controller -> sequence number of the newest goal sent
         self.last_controller_error = ""
+        self.speed_scaling = 1.0  # the controllers' speed scaling (0..1), which the base's path clock follows
+        self._last_tick: Optional[float] = None
         self.last_refusal = ""
         self.last_state_problem = ""
         self.max_tracking_error = np.zeros(2)  # (m, rad) over the current path
@@ -195,6 +197,13 @@ class RobotAdapter:
         b = cfg.base
         if cfg.driver.kind == "stretch":
             self._driver_interfaces(cfg.driver)
+        scaling = sorted({c.speed_scaling_topic for c in cfg.controllers if c.speed_scaling_topic})
+        if len(scaling) > 1:
+            raise InputError(f"controllers name different speed scaling topics {scaling}: one robot, one scaling")
+        if scaling:
+            from std_msgs.msg import Float64
+
+            self.node.create_subscription(Float64, scaling[0], self._scaling_cb, 10, callback_group=self.cb)
         if self.robot.mobile:
             if b.mode == "cmd_vel":
                 self._twist_pub = self.node.create_publisher(TwistStamped if b.stamped else Twist, b.topic, 10)
@@ -294,6 +303,14 @@ class RobotAdapter:
         elif self._replan_when_ready and self.driver_ready()[0]:
             if self._request_replan(self._replan_when_ready):
                 self._replan_when_ready = ""
+
+    def _scaling_cb(self, msg) -> None:
+        """UR's speed scaling in percent: the scaled controllers run their trajectories at that rate."""
+        v = float(msg.data)
+        if not np.isfinite(v) or v < 0.0:
+            self.status(f"ignored speed scaling {v}", "warning")
+            return
+        self.speed_scaling = min(v / 100.0, 1.0)
 
     def _runstop_cb(self, msg) -> None:
         on = bool(msg.data)
@@ -773,6 +790,11 @@ class RobotAdapter:
         if self.follower is None:
             return
         following = not self.follower.done
+        dt, self._last_tick = (0.0 if self._last_tick is None else now - self._last_tick), now
+        if following and self.speed_scaling < 1.0 and 0.0 < dt < 1.0:
+            # the path clock runs at the controllers' speed scaling: the base stays in step with a slowed arm
+            with self._lock:
+                self.follower.t0 += dt * (1.0 - self.speed_scaling)
         late = self._grace.step()
         q, why = self.measured()
         if q is None:

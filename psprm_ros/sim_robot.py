@@ -55,6 +55,7 @@ SIM_PARAMS = {
     "driver_mode": "position",  # the Stretch driver's mode at start-up (its own default: position)
     "runstop_service": "/runstop",  # std_srvs/SetBool of the Stretch driver
     "status_rate_hz": 10.0,  # /mode and /is_runstopped of the Stretch driver
+    "speed_scaling": 100.0,  # percent: scaled controllers (speed_scaling_topic) run at this rate, published there
 }
 
 
@@ -62,11 +63,13 @@ class _Active:
     """A joint trajectory being executed: planning indices, start time, knot times/positions (the robot's position at
     acceptance prepended at time 0 when the first point lies in the future)."""
 
-    def __init__(self, idx, t_start, times, positions):
+    def __init__(self, idx, t_start, times, positions, scaled: bool = False):
         self.idx, self.t_start, self.times, self.positions = idx, t_start, times, positions
+        self.scaled = scaled  # a scaled controller: its own clock ``tau`` advances at the speed scaling
+        self.tau: Optional[float] = None
 
     def desired(self, t: float) -> np.ndarray:
-        tau = t - self.t_start
+        tau = t - self.t_start if self.tau is None else self.tau
         if tau <= self.times[0]:
             return self.positions[0]
         if tau >= self.times[-1]:
@@ -91,6 +94,7 @@ class SimModel:
         self.last_reject = ""
         self.disturbance = np.zeros(3)  # (vx, vy, omega) in the base frame, added to the commanded motion ...
         self.disturbance_until = -math.inf  # ... until this time
+        self.speed_scaling = 1.0  # what scaled controllers (speed_scaling_topic) run at
 
     def accept_trajectory(self, ctrl: ControllerConfig, joint_names, stamp_sec: float, points, now: float) -> tuple:
         """(ok, reason). ``points``: list of (time_from_start, positions). The rules of ros2_control's
@@ -119,7 +123,10 @@ class SimModel:
             t = np.r_[0.0, t]
             P = np.vstack([self.q[pidx], P])
         # a start in the past (not ended): sampled from the current time on, as a JTC does
-        self.active[ctrl.name] = _Active(pidx, start, t, P)
+        a = _Active(pidx, start, t, P, scaled=bool(ctrl.speed_scaling_topic))
+        if a.scaled:
+            a.tau = now - start
+        self.active[ctrl.name] = a
         self.accepted[ctrl.name] += 1
         return True, "ok"
 
@@ -146,6 +153,8 @@ class SimModel:
         """Advance by ``dt``: the joint trajectories under way, and (``base``) the base from its twist input."""
         r = self.robot
         for a in list(self.active.values()):
+            if a.scaled:
+                a.tau += dt * self.speed_scaling
             want = a.desired(t)
             cur = self.q[a.idx]
             vmax = r.velocity[a.idx]
@@ -233,6 +242,12 @@ class SimRobotNode:
             node.create_timer(1.0 / max(1.0, self.p["mocap_rate_hz"]), self._mocap,
                               callback_group=MutuallyExclusiveCallbackGroup())
         self._last_t: Optional[float] = None
+        self.model.speed_scaling = min(max(self.p["speed_scaling"], 0.0), 100.0) / 100.0
+        self.pub_scaling = []
+        for topic in sorted({c.speed_scaling_topic for c in self.adapter.controllers if c.speed_scaling_topic}):
+            from std_msgs.msg import Float64
+
+            self.pub_scaling.append(node.create_publisher(Float64, topic, 10))
         node.create_timer(1.0 / max(1.0, self.p["rate_hz"]), self._step, callback_group=cb)
 
     def _now(self) -> float:
@@ -418,6 +433,11 @@ class SimRobotNode:
             names, pos = self.model.joint_state()
         if self._goal_futures:
             self._wake_goals()
+        if self.pub_scaling:
+            from std_msgs.msg import Float64
+
+            for pub in self.pub_scaling:
+                pub.publish(Float64(data=100.0 * self.model.speed_scaling))
         stamp = self.node.get_clock().now().to_msg()
         js = JointState()
         js.header.stamp = stamp

@@ -15,6 +15,7 @@ import sys
 import threading
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pytest
@@ -383,7 +384,7 @@ def _wait(pred, timeout):
 
 
 @contextlib.contextmanager
-def _adapter_on_sim(name: str, robot):
+def _adapter_on_sim(name: str, robot, sim_params: Optional[dict] = None):
     """The shipped adapter (forced to the topic interface) in this process, active on a ``sim_robot`` in its own
     process (as a robot is: its clock and integration do not wait for this one), with the test's recorder and a
     publisher of /psprm/trajectory. Yields (suite, adapter config, recorder, publisher, the robot's process id)."""
@@ -394,7 +395,7 @@ def _adapter_on_sim(name: str, robot):
     params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
               "initial_base": [1.0, 1.0, 0.3], "input_frames": ["odom"]}
     domain = claim_domain_id()
-    sim = start_sim_process(params, domain)
+    sim = start_sim_process({**params, **(sim_params or {})}, domain)
     try:
         with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:
             rec = Recorder(s.probe.node, cfg)
@@ -633,6 +634,65 @@ def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(
     e_xy, e_th = path_errors(sp, T[sel2] - (start + t_from), X[sel2], window_s=1.0)
     assert e_xy.max() < 0.1 and e_th.max() < 0.1, (e_xy.max(), e_th.max())
     assert np.hypot(*(X[-1, :2] - q2[:2])) < 0.1  # it drove the new plan to its end
+
+
+def test_the_base_runs_at_the_speed_scaling_of_the_arms_controller(load_robot):
+    """UR's scaled_joint_trajectory_controller at 50 % (sim_robot publishes the scaling on the driver's topic and
+    runs the arm at it): the base follows its path at the same rate, so the whole robot stays on the published
+    trajectory's configurations at the scaled time (judged from /odom and /joint_states, whole-robot distance) and
+    takes twice the planned time, without an off-path stop."""
+    from sensor_msgs.msg import JointState
+
+    from psprm_core.tracking import CheckedPath
+
+    robot = load_robot("ur5_mobile")
+    with _adapter_on_sim("ur5_mobile", robot, {"speed_scaling": 50.0}) as (s, cfg, rec, pub, sim_pid):
+        joints = []
+        sub = s.probe.node.create_subscription(
+            JointState, "/joint_states", lambda m: joints.append((cv.stamp_to_sec(m.header.stamp), m)), 50)
+        try:
+            assert _wait(lambda: s.adapter.speed_scaling == 0.5, 10), s.adapter.speed_scaling
+            time.sleep(0.3)
+            q0 = s.adapter.measured()[0]
+            tr = planned_trajectory(robot, q0, turn=0.6, drive=0.6, joint_delta=0.3)
+            pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map",
+                                             s.probe.node.get_clock().now().to_msg(), 0.1))
+            got = _wait(lambda: rec.traj[cfg.controllers[0].name], 10)
+            assert got
+            t_rx, m0 = rec.traj[cfg.controllers[0].name][0]
+            start = cv.stamp_to_sec(m0.header.stamp)
+            _wait(lambda: False, 2.0 * tr.times[-1] + 1.0)
+            with rec.lock:
+                odom = list(rec.odom)
+            js = list(joints)
+        finally:
+            s.probe.node.destroy_subscription(sub)
+        assert not [x for x in s.probe.statuses if "off the checked path" in x[2]]
+        names = robot.joint_names
+        T = np.array([t for t, _ in odom])
+        X = np.array([x for _, x in odom])
+        sel = (T >= start) & (T <= start + 2.0 * tr.times[-1])
+        assert sel.sum() > 20
+        # the whole configuration at each odometry instant: the base from /odom, the arm from the nearest
+        # /joint_states
+        tj = np.array([t for t, _ in js])
+        checked = CheckedPath(robot, tr.times, tr.positions)
+        devs = []
+        for t, x in zip(T[sel], X[sel]):
+            m = js[int(np.argmin(np.abs(tj - t)))][1]
+            q = np.array(q0, float)
+            q[:3] = x
+            for j, v in zip(m.name, m.position):
+                if j in names:
+                    q[names.index(j)] = v
+            devs.append(checked.deviation(q, 0.5 * (t - start), 0.5)[0])
+        assert max(devs) < 0.04, max(devs)  # the path tolerance
+        # it took the scaled time: at the planned end it is about half way, the end is reached at twice the time
+        k = int(np.argmin(np.abs(T - (start + tr.times[-1]))))
+        s_half = np.hypot(*(X[k, :2] - tr.positions[0, :2]))
+        s_all = np.hypot(*(tr.positions[-1, :2] - tr.positions[0, :2]))
+        assert 0.2 * s_all < s_half < 0.8 * s_all, (s_half, s_all)
+        assert np.hypot(*(X[-1, :2] - tr.positions[-1, :2])) < 0.05
 
 
 def start_sim_process(params: dict, domain: int):
