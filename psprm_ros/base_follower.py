@@ -121,6 +121,9 @@ class BaseFollower:
         self.done = True
         self.error = np.zeros(3)  # last (e_x, e_y, e_theta)
         self._periods: list = []  # recent control periods (the braking margin covers the longest of them)
+        # the rate at which the caller's path clock runs (a controller's speed scaling): the reference velocities
+        # are taken times this rate
+        self.rate = 1.0
 
     def set_path(self, ref: BaseReference, t0: float) -> None:
         self.ref, self.t0, self.done = ref, float(t0), False
@@ -145,7 +148,8 @@ class BaseFollower:
         (xr, yr, thr), _, _ = self.ref.sample(tau)
         # feed-forward velocities a little ahead: the command reaches the wheels one control period and one
         # acceleration ramp later (without it the base lags the reference by that much at every speed change)
-        _, vr, wr = self.ref.sample(tau + self.preview_s)
+        _, vr, wr = self.ref.sample(tau + self.preview_s * self.rate)
+        vr, wr = vr * self.rate, wr * self.rate
         c, s = math.cos(th), math.sin(th)
         ex = c * (xr - x) + s * (yr - y)
         ey = -s * (xr - x) + c * (yr - y)

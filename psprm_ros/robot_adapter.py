@@ -223,6 +223,9 @@ class RobotAdapter:
     def on_activate(self, state) -> bool:
         self.active = True
         self.status("active: executing trajectories")
+        missing = self.missing_controllers()
+        if missing:  # reported before anything is sent; trajectories are refused while it lasts
+            self.status("; ".join(missing), "warning")
         d = self.cfg.driver
         if d.kind != "none":
             self.found_mode = self.driver_mode
@@ -273,6 +276,23 @@ class RobotAdapter:
         grp = MutuallyExclusiveCallbackGroup()
         for name in [d.switch_name(m) for m in ("navigation", "position", "trajectory")] + [d.stop_service]:
             self._driver_clients[name] = self.node.create_client(Trigger, name, callback_group=grp)
+
+    def missing_controllers(self) -> list:
+        """What cannot take a command now: a JointTrajectory topic no controller subscribes to, an action server
+        that is not there, the base's cmd_vel without a subscriber."""
+        if self.cfg is None:
+            return []
+        out = []
+        for c in self.cfg.controllers:
+            if self.cfg.driver.mode == "navigation":
+                continue  # nothing is sent to them
+            if c.interface == "topic" and self._pubs[c.name].get_subscription_count() == 0:
+                out.append(f"no controller listens on {c.topic} ({c.name})")
+            if c.interface == "action" and not self._clients[c.name].server_is_ready():
+                out.append(f"action server {c.action} not available ({c.name})")
+        if self._twist_pub is not None and self._twist_pub.get_subscription_count() == 0:
+            out.append(f"no base controller listens on {self.cfg.base.topic}")
+        return out
 
     def driver_ready(self) -> tuple:
         """(ready, why not): the driver reports the configured mode and no runstop."""
@@ -463,9 +483,9 @@ class RobotAdapter:
                 j = self.names[(3 if self.robot.mobile else 0) + k]
                 return self._refuse(f"navigation mode moves the base only, the plan moves {j} by {moved[k]:.3f} "
                                     f"(use the trajectory-mode adapter)")
-        for c in self.cfg.controllers:
-            if c.interface == "topic" and self._pubs[c.name].get_subscription_count() == 0:
-                return self._refuse(f"no controller listens on {c.topic} ({c.name})")
+        missing = self.missing_controllers()
+        if missing:
+            return self._refuse("; ".join(missing))
         V = None
         if all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
             V = cv.joint_trajectory_positions(_Velocities(msg), self.names)
@@ -600,7 +620,7 @@ class RobotAdapter:
 
         cl = self._clients[c.name]
         if not cl.server_is_ready():
-            self.status(f"{c.name}: action server {c.action} not available", "error")
+            self._controller_failed(c.name, f"action server {c.action} not available")
             return
         jt, mt = stretch.goal_messages(goal)
         g = self._fjt.Goal()
@@ -644,7 +664,7 @@ class RobotAdapter:
         else:
             cl = self._clients[c.name]
             if not cl.server_is_ready():
-                self.status(f"{c.name}: action server {c.action} not available", "warning")
+                self._controller_failed(c.name, f"action server {c.action} not available")
                 return
             goal = ad.fill_goal(self._fjt.Goal(), ad.action_goal_fields(cmd, c.goal_time_tolerance_s))
             self._dispatch(c, cl, goal)
@@ -795,6 +815,7 @@ class RobotAdapter:
             # the path clock runs at the controllers' speed scaling: the base stays in step with a slowed arm
             with self._lock:
                 self.follower.t0 += dt * (1.0 - self.speed_scaling)
+        self.follower.rate = self.speed_scaling
         late = self._grace.step()
         q, why = self.measured()
         if q is None:
