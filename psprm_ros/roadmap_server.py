@@ -580,8 +580,12 @@ class RoadmapServer:
                 self._q_hist.append((now_q, pend["robot"].copy()))
                 while len(self._q_hist) > 2 and now_q - self._q_hist[1][0] >= 0.3:
                     self._q_hist.popleft()
-                self.rp.set_robot_state(pend["robot"], self._time_along(pend["robot"]))
-                self.q = pend["robot"]
+                q_now = pend["robot"]
+                along = self._time_along(q_now)
+                # a base that moves with no trajectory under way brakes from a stop: plan from where it will rest
+                q_plan = q_now if along is not None else self._rest_point(q_now)
+                self.rp.set_robot_state(q_plan, along)
+                self.q = q_plan
             if pend["goals"] is not None:
                 self.rp.set_goals(pend["goals"])
                 self.goals = pend["goals"]
@@ -687,6 +691,25 @@ class RoadmapServer:
             return None
         self._along = (traj, t, now)
         return t
+
+    def _rest_point(self, q: np.ndarray) -> np.ndarray:
+        """Where a mobile base moving at the velocity of its last robot states (at least 0.1 s apart) comes to rest
+        braking at the robot config's base accelerations (:func:`psprm_ros.adapters.braking_configurations`); ``q``
+        itself for a fixed base or a base at rest."""
+        from .adapters import braking_configurations
+        from .base_follower import Limits
+
+        h = self._q_hist
+        if not self.robot.mobile or len(h) < 2 or h[-1][0] - h[0][0] < 0.1:
+            return q
+        dt = h[-1][0] - h[0][0]
+        a, b = h[0][1], h[-1][1]
+        th = 0.5 * (a[2] + b[2])
+        v = ((b[0] - a[0]) * np.cos(th) + (b[1] - a[1]) * np.sin(th)) / dt
+        w = float((b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi) / dt
+        if abs(v) < 0.02 and abs(w) < 0.05:
+            return q
+        return braking_configurations(q, (v, w), Limits.for_robot(self.robot))[-1]
 
     def _measured_speed(self) -> float:
         """How fast the robot moved over its last robot states (the largest joint speed over its velocity limit; a

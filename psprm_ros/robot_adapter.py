@@ -120,7 +120,7 @@ class RobotAdapter:
         self._still_since: Optional[float] = None
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0, "spliced": 0,
                        "goals_deferred": 0, "twists": 0, "off_path_stops": 0, "goals_rejected": 0, "goals_failed": 0,
-                       "runstops": 0, "mode_switches": 0}
+                       "runstops": 0, "mode_switches": 0, "held_until_rest": 0}
         # the robot's driver, when it has modes (Stretch): the mode it reports, the one found at activation, runstop
         self.driver_mode = ""
         self.found_mode = ""
@@ -130,6 +130,7 @@ class RobotAdapter:
         self._driver_clients: dict = {}  # service name -> Trigger client
         self._goal_seq: dict = {}  # controller -> sequence number of the newest goal sent
         self.last_controller_error = ""
+        self._held = None  # (trajectory message, when) held until the braking base rests
         self.speed_scaling = 1.0  # the controllers' speed scaling (0..1), which the base's path clock follows
         self._last_tick: Optional[float] = None
         self.last_refusal = ""
@@ -465,8 +466,18 @@ class RobotAdapter:
             self.stop(f"trajectory not executed: {why}")
             return False
         if len(P) <= 1:
+            self._held = None
             self.stop("stop trajectory received")
             return False
+        if self.robot.mobile and self._braking():
+            # a plan that arrives while the base still brakes from a stop was made from where the base was, which it
+            # has passed by now: it waits until the base rests (at most REST_WAIT_S), then starts from there
+            if self._held is None:
+                self.counts["held_until_rest"] += 1
+                self.status("trajectory held until the base rests (it is braking from a stop)")
+            self._held = (msg, self._now())
+            return True
+        self._held = None
         ready, why_not = self.driver_ready()
         if not ready:
             self.stop(f"trajectory not executed: {why_not}")
@@ -635,6 +646,24 @@ class RobotAdapter:
         fut.add_done_callback(lambda f, name=c.name, n=seq: self._goal_response(name, f, n))
         self.counts["goals_sent"] += 1
 
+    def _braking(self) -> bool:
+        """The base moves (measured) while no trajectory runs: it brakes after a stop."""
+        if self.follower is None or not self.follower.done:
+            return False
+        with self._lock:
+            v, w = (abs(float(x)) for x in self.tracker.base_velocity)
+        return v >= REST_MPS or w >= REST_RADPS
+
+    def _release_held(self, now: float) -> None:
+        msg, since = self._held
+        if self._braking() and now - since < REST_WAIT_S:
+            return
+        self._held = None
+        try:
+            self.execute(msg)
+        except Exception as exc:
+            self.stop(f"cannot execute the trajectory: {exc}")
+
     def _splice_deviation(self, t: np.ndarray, P: np.ndarray, q: np.ndarray) -> Optional[float]:
         """When a new trajectory continues the one being executed (each of its
         configurations over its first ``SPLICE_CHECK_S`` within ``SPLICE_TOL_M``, whole robot, of the executing
@@ -745,6 +774,7 @@ class RobotAdapter:
             return
         q, _ = self.measured() if self.tracker is not None else (None, "")
         now = self._now()
+        self._held = None
         with self._lock:
             self._pending.clear()
             self.checked = None
@@ -829,6 +859,8 @@ class RobotAdapter:
             return
         self._grace.clear()
         self.last_state_problem = ""
+        if self._held is not None:
+            self._release_held(now)
         if self._replan_at_rest:
             self._ask_when_at_rest(now)
         with self._lock:

@@ -56,6 +56,10 @@ SIM_PARAMS = {
     "runstop_service": "/runstop",  # std_srvs/SetBool of the Stretch driver
     "status_rate_hz": 10.0,  # /mode and /is_runstopped of the Stretch driver
     "speed_scaling": 100.0,  # percent: scaled controllers (speed_scaling_topic) run at this rate, published there
+    "interface": "topic",  # the controllers as JointTrajectory topics, or as FollowJointTrajectory actions ("action")
+    "path_tolerance": 0.2,  # action goals: a joint this far (rad or m) from its trajectory aborts the goal
+    "goal_tolerance": 0.05,  # ... and this far from the last point when the trajectory ends
+    "joint_disturbance_topic": "~/joint_disturbance",  # sensor_msgs/JointState: offsets added to joints (a push)
 }
 
 
@@ -135,6 +139,13 @@ class SimModel:
         self.last_reject = f"{ctrl.name}: {why}"
         return False, why
 
+    def hold(self, name: str) -> None:
+        """The controller ``name`` holds where its joints are (a JTC after an aborted goal)."""
+        a = self.active.get(name)
+        if a is not None:
+            q = self.q[a.idx].copy()
+            self.active[name] = _Active(a.idx, -1e9, np.array([0.0]), q[None])
+
     def set_twist(self, v: float, w: float, now: float) -> None:
         if not (math.isfinite(v) and math.isfinite(w)):
             return
@@ -208,7 +219,9 @@ class SimRobotNode:
         self.driver = None
         if self.p["driver"] not in ("", "stretch"):
             raise ValueError(f"driver must be '' or 'stretch', got '{self.p['driver']}'")
-        self.adapter = adapter if self.p["driver"] == "stretch" else adapter.with_interface("topic")
+        if self.p["interface"] not in ("topic", "action"):
+            raise ValueError(f"interface must be 'topic' or 'action', got '{self.p['interface']}'")
+        self.adapter = adapter if self.p["driver"] == "stretch" else adapter.with_interface(self.p["interface"])
         q0 = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
         if len(self.p["initial_base"]) == 3:
             q0[:3] = self.p["initial_base"]
@@ -225,9 +238,13 @@ class SimRobotNode:
 
             self.driver = StretchDriver(self.model, self.p["driver_mode"])
             self._stretch_interfaces(cb)
+        elif self.p["interface"] == "action":
+            self._jtc_actions()
         else:
             for c in self.adapter.controllers:
                 node.create_subscription(JointTrajectory, c.topic, self._traj_cb(c), 10, callback_group=cb)
+        node.create_subscription(JointState, self.p["joint_disturbance_topic"], self._joint_disturbance_cb, 10,
+                                 callback_group=cb)
         b = self.adapter.base
         if self.robot.mobile and b.mode == "cmd_vel" and self.driver is None:
             node.create_subscription(TwistStamped if b.stamped else Twist, b.topic, self._twist_cb(b.stamped), 10,
@@ -255,6 +272,129 @@ class SimRobotNode:
 
     def status(self, text: str, level: str = "info") -> None:
         core.report(self.log, self.pub_status, text, level)
+
+    # ------------------------------------------------------------------------------------------------ JTC actions
+    def _jtc_actions(self) -> None:
+        """FollowJointTrajectory servers as ros2_control's joint_trajectory_controller offers them: a goal whose
+        joint set or times break the topic rules is rejected; an accepted goal replaces the one under way (which
+        ends canceled); a joint further than ``path_tolerance`` from its trajectory aborts the goal with
+        PATH_TOLERANCE_VIOLATED (the controller then holds where the robot is), one further than
+        ``goal_tolerance`` from the last point when the trajectory ends with GOAL_TOLERANCE_VIOLATED; a cancel
+        holds."""
+        from rclpy.action import ActionServer
+        from rclpy.callback_groups import ReentrantCallbackGroup
+
+        from .adapters import import_follow_joint_trajectory
+
+        fjt = import_follow_joint_trajectory()
+        if fjt is None:
+            raise RuntimeError("interface action needs control_msgs (scripts/build_interfaces.sh)")
+        self._fjt = fjt
+        self._jtc_goals: dict = {}  # controller -> [goal id, outcome or None]
+        self._jtc_next = 0
+        self._action_servers = []
+        for c in self.adapter.controllers:
+            self._action_servers.append(ActionServer(
+                self.node, fjt, c.action, execute_callback=self._jtc_execute(c),
+                goal_callback=self._jtc_goal_request(c), cancel_callback=lambda gh: _accept_cancel(),
+                callback_group=ReentrantCallbackGroup()))
+
+    def _jtc_goal_request(self, ctrl):
+        from rclpy.action import GoalResponse
+
+        def cb(request):
+            names = list(request.trajectory.joint_names)
+            own = ctrl.robot_joints
+            ok = len(set(names)) == len(names) and set(names) == set(own) and len(request.trajectory.points) > 0
+            if not ok:
+                self.status(f"{ctrl.name}: goal rejected: joint set {names} is not {own}", "warning")
+            return GoalResponse.ACCEPT if ok else GoalResponse.REJECT
+        return cb
+
+    def _jtc_execute(self, ctrl):
+        from rclpy.task import Future
+
+        async def execute(goal_handle):
+            tr = goal_handle.request.trajectory
+            pts = [(cv.duration_to_sec(p.time_from_start), list(p.positions)) for p in tr.points]
+            res = self._fjt.Result()
+            with self._lock:
+                ok, why = self.model.accept_trajectory(ctrl, tr.joint_names, cv.stamp_to_sec(tr.header.stamp), pts,
+                                                       self._now())
+                self._jtc_next += 1
+                rec = [self._jtc_next, None if ok else ("aborted", -1, why)]
+                prev = self._jtc_goals.get(ctrl.name)
+                if ok and prev is not None and prev[1] is None:
+                    prev[1] = ("canceled", 0, "replaced by a newer goal")
+                if ok:
+                    self._jtc_goals[ctrl.name] = rec
+                fut = Future()
+                rec += [fut, goal_handle]
+            if rec[1] is None:
+                await fut
+            state, code, text = rec[1]
+            res.error_code, res.error_string = int(code), text
+            if state == "succeeded":
+                goal_handle.succeed()
+            elif state == "canceled":
+                goal_handle.canceled() if goal_handle.is_cancel_requested else goal_handle.abort()
+            else:
+                goal_handle.abort()
+            return res
+        return execute
+
+    def _jtc_check(self, t: float) -> None:
+        """Tolerances of the action goals under way (after each step), as the JTC checks them."""
+        ended = []
+        with self._lock:
+            for c in self.adapter.controllers:
+                rec = self._jtc_goals.get(c.name)
+                if rec is None or rec[1] is not None:
+                    continue
+                a = self.model.active.get(c.name)
+                if rec[3].is_cancel_requested:
+                    self.model.hold(c.name)
+                    rec[1] = ("canceled", 0, "canceled: holding")
+                    ended.append(rec)
+                    continue
+                if a is None:
+                    rec[1] = ("canceled", 0, "held")
+                    ended.append(rec)
+                    continue
+                err = np.abs(self.model.q[a.idx] - a.desired(t))
+                k = int(np.argmax(err))
+                if err[k] > self.p["path_tolerance"]:
+                    rec[1] = ("aborted", -4, f"State tolerances failed for joint {c.robot_joints[k]}: position "
+                                             f"error {err[k]:.4f}, tolerance {self.p['path_tolerance']:g}")
+                    self.model.hold(c.name)
+                    ended.append(rec)
+                elif t - a.t_start >= a.times[-1]:
+                    end_err = np.abs(self.model.q[a.idx] - a.positions[-1])
+                    if end_err.max() <= self.p["goal_tolerance"]:
+                        rec[1] = ("succeeded", 0, "Goal successfully reached!")
+                        ended.append(rec)
+                    elif t - a.t_start >= a.times[-1] + 1.0:  # goal_time_tolerance
+                        rec[1] = ("aborted", -5, f"goal tolerance failed by {end_err.max():.4f}")
+                        ended.append(rec)
+        for rec in ended:
+            if rec[1][0] == "aborted":
+                self.status(f"goal aborted: {rec[1][2]}", "warning")
+            if len(rec) > 2 and not rec[2].done():
+                rec[2].set_result(True)
+
+    def _joint_disturbance_cb(self, msg) -> None:
+        """A push: each named joint moved by the given offset at once."""
+        with self._lock:
+            names = self.robot.joint_names
+            rmap = {}
+            for c in self.adapter.controllers:
+                for j in c.joints:
+                    rmap[c.robot_name(j)] = j
+            for n, d in zip(msg.name, msg.position):
+                j = rmap.get(n, n)
+                if j in names and np.isfinite(d):
+                    i = names.index(j)
+                    self.model.q[i] = float(np.clip(self.model.q[i] + d, self.robot.lower[i], self.robot.upper[i]))
 
     # ------------------------------------------------------------------------------------------------ Stretch driver
     def _stretch_interfaces(self, cb) -> None:
@@ -433,6 +573,8 @@ class SimRobotNode:
             names, pos = self.model.joint_state()
         if self._goal_futures:
             self._wake_goals()
+        if getattr(self, "_jtc_goals", None):
+            self._jtc_check(t)
         if self.pub_scaling:
             from std_msgs.msg import Float64
 
@@ -468,6 +610,12 @@ class SimRobotNode:
 
     def destroy(self) -> None:
         self.node.destroy_node()
+
+
+def _accept_cancel():
+    from rclpy.action import CancelResponse
+
+    return CancelResponse.ACCEPT
 
 
 def _unit(q) -> np.ndarray:

@@ -695,6 +695,42 @@ def test_the_base_runs_at_the_speed_scaling_of_the_arms_controller(load_robot):
         assert np.hypot(*(X[-1, :2] - tr.positions[-1, :2])) < 0.05
 
 
+def test_a_plan_arriving_while_the_base_brakes_waits_for_rest_instead_of_being_refused(load_robot):
+    """A stop while driving at speed, then at once a plan that starts where the braking base will rest (as the server
+    plans after a stop): when it arrives the base is still several centimetres short of that point, beyond the path
+    tolerance. The adapter holds the plan until the base rests and runs it from there: no refusal, and the robot
+    reaches the plan's end (judged from /odom)."""
+    robot = load_robot("stretch2")
+    with _adapter_on_sim("stretch2", robot) as (s, cfg, rec, pub, sim_pid):
+        time.sleep(0.3)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.0, joint_delta=0.0)
+        names = robot.joint_names
+        pub.publish(cv.trajectory_to_msg(tr, names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        assert _wait(lambda: rec.odom and abs(s.adapter.tracker.base_velocity[0]) > 0.25, 15), "never at speed"
+        q1 = s.adapter.measured()[0]
+        with rec.lock:
+            v = float(np.hypot(*(rec.odom[-1][1][:2] - rec.odom[-6][1][:2])) / (rec.odom[-1][0] - rec.odom[-6][0]))
+        pub.publish(cv.stop_trajectory(q1, names, "map"))
+        # where it will rest: uniform braking at the robot config's linear acceleration along its heading
+        brake = v * v / (2.0 * robot.config.base.linear_acceleration)
+        assert brake > 0.045  # beyond the 0.04 m path tolerance
+        q_rest = q1.copy()
+        q_rest[:2] += brake * np.array([math.cos(q1[2]), math.sin(q1[2])])
+        tr2 = planned_trajectory(robot, q_rest, turn=math.pi / 2, drive=0.5, joint_delta=0.0)
+        n_refused = s.adapter.counts["refused"]
+        assert _wait(lambda: s.adapter.follower.done, 2)
+        pub.publish(cv.trajectory_to_msg(tr2, names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        _wait(lambda: False, tr2.times[-1] + 3.0)
+        with rec.lock:
+            odom = list(rec.odom)
+        assert s.adapter.counts["refused"] == n_refused, [x[2] for x in s.probe.statuses[-6:]]
+        assert s.adapter.counts["held_until_rest"] >= 1
+        # where it stood when the stop came, and where it ended: the second plan's end
+        X = np.array([x for _, x in odom])
+        assert np.hypot(*(X[-1, :2] - tr2.positions[-1, :2])) < 0.05, (X[-1], tr2.positions[-1, :3])
+
+
 def start_sim_process(params: dict, domain: int):
     import os
     import subprocess
