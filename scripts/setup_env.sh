@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Create or refresh the project's virtual environment (.venv): pinned requirements, psprm itself (editable) and the
 # perception oracle's detector models (scripts/install_detectors.sh, cached under ~/.cache/psprm).
-# Idempotent: re-installs only when requirements.txt, pyproject.toml or the detector installer changed.
+# Idempotent: re-installs only when requirements.txt, pyproject.toml or the detector installer changed. Then the ROS 2
+# interfaces that are not on PyPI (control_msgs, tf2_msgs: scripts/build_interfaces.sh) are generated into the venv;
+# that script keeps its own stamp and rebuilds only when their definitions, itself or its pins changed.
 set -euo pipefail
 exec </dev/null
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -29,3 +31,5 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   bash "$root/scripts/install_detectors.sh" "$venv/bin/python" >&2
   echo "$want" > "$stamp"
 fi
+# control_msgs/tf2_msgs from their definitions in ros2_ws/interfaces/ (a no-op in a fraction of a second when built)
+bash "$root/scripts/build_interfaces.sh" "$venv/bin/python"
