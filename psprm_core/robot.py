@@ -27,8 +27,8 @@ from . import fastpath
 from .errors import ConfigError, InputError, RobotModelError, UnknownNameError
 from .geometry import axis_angle_matrix_torch
 from .robot_config import (BASE_JOINTS, BaseConfig, CollisionConfig, PlanningJoint, RobotConfig,
-                           _example_robot_data_root, _generate_mobile_arm, _resolve_source, image_roll,
-                           load_robot_config, urdf_path_for)
+                           _example_robot_data_root, _generate_mobile_arm, _resolve_source, check_description,
+                           description_urdf, image_roll, load_robot_config, urdf_path_for)
 from .urdf import Urdf, parse_urdf
 from .yamlio import load_yaml
 
@@ -160,11 +160,36 @@ class RobotModel:
 
     # ---- construction ------------------------------------------------------------------------------------------
     @classmethod
-    def load(cls, name_or_path: str) -> "RobotModel":
-        """Load a robot by config name (``stretch2``) or YAML path; raises PsprmError subclasses on bad input."""
+    def load(cls, name_or_path: str, urdf_text: Optional[str] = None,
+             origin: str = "robot description") -> "RobotModel":
+        """Load a robot by config name (``stretch2``) or YAML path; raises PsprmError subclasses on bad input.
+
+        With ``urdf_text`` (a robot's own URDF, e.g. from ``/robot_description``), the model is built from that text
+        instead of the config's packaged URDF: :meth:`from_description`."""
         cfg = load_robot_config(name_or_path)
+        if urdf_text is not None:
+            return cls.from_description(cfg, urdf_text, origin)
         urdf = parse_urdf(urdf_path_for(cfg))
         return cls(cfg, urdf)
+
+    @classmethod
+    def from_description(cls, config: RobotConfig, urdf_text: str,
+                         origin: str = "robot description") -> "RobotModel":
+        """The robot model of ``config`` built from a URDF given as text (a calibrated unit's own description).
+
+        The text is checked against the config before anything is built (planning joints' URDF joints, fixed
+        joints, camera link, the collision model's links, the root link): a mismatch raises
+        :class:`RobotModelError` naming what is missing and the config field that asked for it. Mesh URIs are
+        resolved from the packaged URDF's location or by file name among its meshes; visual meshes that are not
+        found are left out, a collision mesh that is not found is an error (the collision model needs it).
+        ``origin`` names the text in messages (a topic name). See
+        :func:`~psprm_core.robot_config.description_urdf`."""
+        path = description_urdf(config, urdf_text, origin)
+        try:
+            urdf = parse_urdf(path)
+        except (AttributeError, TypeError, ValueError) as exc:  # a tag without its attributes / a bad number
+            raise RobotModelError(f"{origin}: malformed URDF ({path}): {exc!r}") from None
+        return cls(config, urdf)
 
     def _build_bodies(self) -> None:
         cfg, urdf = self.config, self.urdf

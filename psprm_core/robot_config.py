@@ -261,3 +261,148 @@ def urdf_path_for(cfg: RobotConfig) -> Path:
     if "generator" in cfg.urdf:
         raise ConfigError(cfg.source, "urdf.generator", f"unknown generator '{cfg.urdf['generator']}' (mobile_arm)")
     return _resolve_source(cfg.urdf, cfg.source)
+
+
+# ------------------------------------------------------------------------------------------------------------------
+# A robot's own description (URDF text)
+# ------------------------------------------------------------------------------------------------------------------
+_MOVABLE = ("revolute", "continuous", "prismatic")
+
+
+def check_description(cfg: RobotConfig, root, packaged, origin: str = "robot description") -> None:
+    """Check a URDF given as text (its parsed XML ``root``) against the robot config ``cfg`` and the config's packaged
+    URDF ``packaged`` (a :class:`~psprm_core.urdf.Urdf`), before anything is built from it.
+
+    Required: every URDF joint a planning joint drives (movable), every ``fixed_joints`` entry, the camera link, every
+    link the collision model uses (the packaged URDF's links with collision geometry, less ``collision.ignore_links``:
+    present, with collision geometry), no other link with collision geometry (the allowed self-collision matrix was
+    made without it) and the packaged URDF's root link as the root (the base pose places it).
+    Raises :class:`RobotModelError` listing everything missing, each with the config field that asked for it."""
+    links = {}
+    for el in root.findall("link"):
+        links[el.get("name")] = any(c.find("geometry") is not None and len(c.find("geometry"))
+                                    for c in el.findall("collision"))
+    joints, children = {}, set()
+    for el in root.findall("joint"):
+        joints[el.get("name")] = el.get("type")
+        child = el.find("child")
+        if child is not None:
+            children.add(child.get("link"))
+    problems = []
+    for i, pj in enumerate(cfg.joints):
+        for uj, _ in pj.drives:
+            asked = f"driven by planning joint '{pj.name}', field 'joints[{i}]'"
+            if uj not in joints:
+                problems.append(f"no joint '{uj}' ({asked})")
+            elif joints[uj] not in _MOVABLE:
+                problems.append(f"joint '{uj}' is {joints[uj]!s}, not movable ({asked})")
+    for k in cfg.fixed_joints:
+        if k not in joints:
+            problems.append(f"no joint '{k}' (field 'fixed_joints.{k}')")
+    if cfg.camera_link not in links:
+        problems.append(f"no link '{cfg.camera_link}' (field 'camera.link')")
+    ignored = set(cfg.collision.ignore_links)
+    for link, geoms in packaged.links.items():
+        if not geoms or link in ignored:
+            continue
+        asked = f"used by the collision model: a collision link of {packaged.path.name} not in field " \
+                "'collision.ignore_links'"
+        if link not in links:
+            problems.append(f"no link '{link}' ({asked})")
+        elif not links[link]:
+            problems.append(f"link '{link}' has no collision geometry ({asked})")
+    acm = f"the allowed self-collision matrix ({cfg.collision.acm_file}) and " if cfg.collision.acm_file else ""
+    extra = [link for link, has in links.items() if has and link not in ignored and not packaged.links.get(link)]
+    if extra:
+        problems.append(f"collision geometry on links that {packaged.path.name} has none on: "
+                        f"{', '.join(repr(x) for x in extra)} ({acm}the collision model are made without them: list "
+                        f"them in field 'collision.ignore_links', or use a robot config made for this robot)")
+    roots = [name for name in links if name not in children]
+    if roots != [packaged.root]:
+        problems.append(f"root link {', '.join(repr(r) for r in roots) or 'none'} instead of '{packaged.root}' "
+                        f"(the root of {packaged.path.name}, where the base pose places the robot)")
+    if problems:
+        raise RobotModelError(f"{origin} does not match the robot config {cfg.source}: " + "; ".join(problems))
+
+
+def description_urdf(cfg: RobotConfig, urdf_text: str, origin: str = "robot description") -> Path:
+    """A URDF given as text (a robot's own ``/robot_description``) as a file the robot model is built from.
+
+    The text is checked against the config first (:func:`check_description`). Its mesh URIs are then resolved: the
+    robot's ``package://`` URIs as :func:`~psprm_core.urdf.find_mesh` finds them from the packaged URDF's location
+    (a ROS install's packages included), else by file name among the meshes the packaged URDF uses (a robot's
+    ``package://stretch_description/meshes/base_link.STL`` is the packaged ``meshes/base_link.STL``). A visual mesh
+    that is not found is dropped (planning does not use visual geometry). A collision mesh is needed (the collision
+    model bounds each collision mesh with a box): one that is not found raises :class:`RobotModelError` naming the
+    link and the URI, unless its link is in ``collision.ignore_links`` (then it is dropped too).
+
+    The result, with absolute mesh paths, is written to ``<cache>/urdf/<robot>_description_<hash>.urdf`` (keyed by
+    its content), so pybullet, pytorch-kinematics and :meth:`RobotModel.hash` read it as they read a packaged URDF.
+    """
+    import os
+    import tempfile
+    import xml.etree.ElementTree as ET
+
+    from .urdf import find_mesh, parse_urdf
+
+    if not isinstance(urdf_text, str) or not urdf_text.strip():
+        raise RobotModelError(f"{origin}: empty URDF")
+    try:
+        root = ET.fromstring(urdf_text.encode("utf-8"))
+    except ET.ParseError as exc:
+        raise RobotModelError(f"{origin}: cannot parse the URDF: {exc}") from None
+    if root.tag != "robot":
+        raise RobotModelError(f"{origin}: not a URDF (root element <{root.tag}>, expected <robot>)")
+    packaged_path = urdf_path_for(cfg)
+    packaged = parse_urdf(packaged_path)
+    check_description(cfg, root, packaged, origin)
+
+    by_name: dict = {}
+    try:
+        packaged_root = ET.parse(packaged_path).getroot()
+    except (ET.ParseError, OSError) as exc:
+        raise RobotModelError(f"{packaged_path}: cannot read URDF: {exc}") from None
+    for m in packaged_root.iter("mesh"):
+        p = find_mesh(m.get("filename") or "", packaged_path)
+        if p is not None:
+            by_name.setdefault(p.name, p)
+            by_name.setdefault(p.name.lower(), p)
+    ignored = set(cfg.collision.ignore_links)
+    missing, dropped = [], 0
+    for link in root.findall("link"):
+        for kind in ("visual", "collision"):
+            for el in list(link.findall(kind)):
+                for mesh in el.iter("mesh"):
+                    uri = mesh.get("filename") or ""
+                    name = uri.replace("\\", "/").rsplit("/", 1)[-1]
+                    p = find_mesh(uri, packaged_path) or by_name.get(name) or by_name.get(name.lower())
+                    if p is not None:
+                        mesh.set("filename", str(p.resolve()))
+                    elif kind == "visual" or link.get("name") in ignored:
+                        link.remove(el)
+                        dropped += 1
+                        break
+                    else:
+                        missing.append(f"link '{link.get('name')}': '{uri}'")
+    if missing:
+        raise RobotModelError(
+            f"{origin}: collision mesh files not found ({'; '.join(missing)}); the collision model bounds every "
+            f"collision mesh with a box and needs the files: a URI is looked up from {packaged_path.parent} (and in "
+            f"the ROS packages on AMENT_PREFIX_PATH / ROS_PACKAGE_PATH), then by file name among the meshes of "
+            f"{packaged_path.name}")
+    if dropped:
+        log.info("%s: %d visual meshes not found, left out (planning does not use them)", origin, dropped)
+    data = ET.tostring(root, encoding="unicode")
+    key = hashlib.sha256(f"{cfg.name}\n{packaged_path}\n{data}".encode()).hexdigest()[:16]
+    out = cache_dir() / "urdf" / f"{cfg.name}_description_{key}.urdf"
+    if not out.is_file():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=out.stem, suffix=".tmp", dir=out.parent)
+        try:
+            with os.fdopen(fd, "w", encoding="utf-8") as f:
+                f.write(data)
+            os.replace(tmp, out)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    return out

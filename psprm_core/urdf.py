@@ -100,6 +100,39 @@ def resolve_mesh(filename: str, urdf_path: Path) -> Path:
     return p if p.is_absolute() else (urdf_path.parent / p).resolve()
 
 
+def find_mesh(filename: str, urdf_path: Path) -> Optional[Path]:
+    """The existing file a mesh URI of a URDF at ``urdf_path`` names, or None (never raises).
+
+    Tried in order: ``file://`` and absolute paths; ``package://pkg/rest`` by :func:`resolve_mesh` (a folder
+    ``pkg`` above the URDF), then under ``share/pkg`` of every prefix on ``AMENT_PREFIX_PATH`` (a ROS 2 install;
+    read from the environment, nothing of ROS imported) and in every ``pkg`` folder on ``ROS_PACKAGE_PATH``; a
+    relative path next to the URDF."""
+    import os
+
+    candidates = []
+    try:
+        candidates.append(resolve_mesh(filename, urdf_path))
+    except RobotModelError:
+        pass
+    if filename.startswith("package://"):
+        pkg, _, rest = filename[len("package://"):].partition("/")
+        for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+            if prefix:
+                candidates.append(Path(prefix) / "share" / pkg / rest)
+        for root in os.environ.get("ROS_PACKAGE_PATH", "").split(os.pathsep):
+            if root:
+                candidates.append(Path(root) / pkg / rest)
+                if Path(root).name == pkg:
+                    candidates.append(Path(root) / rest)
+    for c in candidates:
+        try:
+            if c.is_file():
+                return c
+        except OSError:
+            continue
+    return None
+
+
 def parse_urdf(path: str | Path) -> Urdf:
     """Parse a URDF file. Raises :class:`RobotModelError` naming the file on malformed input."""
     path = Path(path)

@@ -59,6 +59,19 @@ def _common_params() -> dict:
         "torch_threads": P(2, "torch intra-op threads", lo=1),
         "autostart": P(True, "configure and activate the lifecycle node at start-up (as a lifecycle manager with "
                              "autostart would)"),
+        "robot_description": P("package", "the URDF the robot model is built from: 'package' (the URDF the robot "
+                                          "config names, installed with psprm), 'topic' (the robot's own URDF, e.g. "
+                                          "its calibrated one from robot_state_publisher, on robot_description_topic; "
+                                          "the node waits for it at start-up and stays unconfigured without one or "
+                                          "with one that does not match the robot config), 'auto' (the topic's URDF "
+                                          "when one arrives within robot_description_timeout_s, else the packaged "
+                                          "one)", rebuild=True),
+        "robot_description_topic": P("robot_description", "std_msgs/String topic of the robot's URDF (transient "
+                                                          "local, reliable, as robot_state_publisher publishes it); "
+                                                          "a relative name follows the node's namespace",
+                                     rebuild=True),
+        "robot_description_timeout_s": P(10.0, "longest start-up wait for the robot's URDF on the topic (s; "
+                                               "robot_description 'topic' or 'auto')", rebuild=True, lo=0.0),
     }
 
 
@@ -215,11 +228,18 @@ def share_dir() -> Optional[Path]:
         return None
 
 
-def load_scene_and_robot(scene_name: str, robot_name: str = ""):
+def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, params: Optional[dict] = None):
+    """The scene and its robot model (``robot_name``, or the scene's robot). With ``node`` and its parameter values
+    ``params``, the robot model is built as the node's ``robot_description`` parameters say
+    (:func:`psprm_ros.robot_description.robot_from_params`: the packaged URDF, or the robot's own from its topic)."""
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
     scene = load_scene(resolve_scene(scene_name))
+    if node is not None:
+        from .robot_description import robot_from_params
+
+        return scene, robot_from_params(node, {**(params or {}), "robot": robot_name}, scene)
     robot = RobotModel.load(robot_name or scene.robot)
     return scene, robot
 
@@ -346,27 +366,48 @@ def make_replanner(planner, settings_path: str = ""):
 def lifecycle_node(owner, node_name: str, **node_kwargs):
     """An ``rclpy.lifecycle.LifecycleNode`` whose transitions call ``owner.on_configure(state)``,
     ``on_activate``, ``on_deactivate``, ``on_cleanup``, ``on_shutdown`` (those the owner has). A callback returning
-    False fails the transition; one raising is reported on the log and fails it too (the node stays usable)."""
+    False fails the transition; one raising is reported on the log and fails it too (the node stays usable).
+    ``node.refuse_configure(reason)`` makes every configure fail with ``reason`` (log, ``owner.status``, and
+    ``owner.set_state("error: ...")`` where the owner has one) without calling the owner."""
     from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
+    def failed(name, text):
+        node.get_logger().error(f"{name[3:]} failed: {text}")
+        status = getattr(owner, "status", None)
+        if status is not None:
+            try:
+                status(f"{name[3:]} failed: {text}", "error")
+            except Exception:
+                pass
+
     def call(name, state):
+        if name == "on_configure" and node.configure_refusal:
+            failed(name, node.configure_refusal)
+            set_state = getattr(owner, "set_state", None)  # the roadmap server's latched state
+            if set_state is not None:
+                try:
+                    set_state(f"error: {node.configure_refusal}")
+                except Exception:
+                    pass
+            return TransitionCallbackReturn.FAILURE
         fn = getattr(owner, name, None)
         if fn is None:
             return TransitionCallbackReturn.SUCCESS
         try:
             ok = fn(state)
         except Exception as exc:  # a configuration error: the transition fails, the node lives on
-            node.get_logger().error(f"{name[3:]} failed: {exc}")
-            status = getattr(owner, "status", None)
-            if status is not None:
-                try:
-                    status(f"{name[3:]} failed: {exc}", "error")
-                except Exception:
-                    pass
+            failed(name, exc)
             return TransitionCallbackReturn.FAILURE
         return TransitionCallbackReturn.FAILURE if ok is False else TransitionCallbackReturn.SUCCESS
 
     class _Managed(LifecycleNode):
+        #: why this node cannot be configured (set at construction, e.g. a robot description that does not match
+        #: the robot config): every configure then fails with it, so the node never activates
+        configure_refusal: str = ""
+
+        def refuse_configure(self, reason: str) -> None:
+            self.configure_refusal = str(reason)
+
         def on_configure(self, state):
             return call("on_configure", state)
 

@@ -45,7 +45,7 @@ class PerceptionScorer:
         self.p = core.declare_params(node, self.spec)
         self.active = False
         torch.set_num_threads(max(1, self.p["torch_threads"]))
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
         self.frame = self.scene.frame
         self.targets = core.scene_targets(self.scene, self.p["targets"])
         ck = self.p["checkpoint"] or None

@@ -149,7 +149,7 @@ class RoadmapServer:
         self.p.update(core.declare_params(node, self.spec_params))
         torch.set_num_threads(max(1, self.p["torch_threads"]))
         self.spec = core.PlannerSpec(**{k: self.p[k] for k in core.PLANNER_PARAMS})
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
         self.frame = self.scene.frame
         self.targets = core.scene_targets(self.scene, self.p["targets"])
         for o in self.p["dynamic_obstacles"]:
