@@ -94,7 +94,7 @@ class ReplanMonitor:
         self.log = node.get_logger()
         self.spec = {**core.common_params(), **MONITOR_PARAMS}
         self.p = core.declare_params(node, self.spec)
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
         self.frame = self.scene.frame
         self.frames = declare_frame_params(node, self.frame)
         self.targets = core.scene_targets(self.scene, self.p["targets"])

@@ -95,7 +95,7 @@ class RobotAdapter:
         self.log = node.get_logger()
         self.spec = {**core.common_params(), **ADAPTER_PARAMS}
         self.p = core.declare_params(node, self.spec)
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"])
+        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
         self.frame = self.scene.frame
         self.frames = declare_frame_params(node, self.frame)
         self.names = list(self.robot.joint_names)
