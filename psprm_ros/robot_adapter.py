@@ -349,20 +349,14 @@ class RobotAdapter:
 
     def _switch_mode(self, mode: str) -> None:
         """Ask the driver for ``mode`` (at most once a second)."""
-        from std_srvs.srv import Trigger
-
         now = time.monotonic()
         if now - self._last_switch_request < 1.0:
             return
-        name = self.cfg.driver.switch_name(mode)
-        cl = self._driver_clients.get(name)
-        if cl is None or not cl.service_is_ready():
-            self.status(f"cannot switch the driver to {mode} mode: {name} not available", "error")
+        if self._call_driver(self.cfg.driver.switch_name(mode)) is None:
             return
         self._last_switch_request = now
         self.counts["mode_switches"] += 1
         self.status(f"switching the driver to {mode} mode")
-        cl.call_async(Trigger.Request()).add_done_callback(_retrieve)
 
     def _call_driver(self, name: str):
         from std_srvs.srv import Trigger
@@ -375,18 +369,14 @@ class RobotAdapter:
         fut.add_done_callback(_retrieve)
         return fut
 
-    def restore_driver_mode(self, timeout_s: float = 0.0) -> None:
-        """Put the driver back in the mode found at activation (when it was one of the driver's control modes); wait
-        up to ``timeout_s`` for the answer (only from outside the node's executor, e.g. at destruction)."""
+    def restore_driver_mode(self) -> None:
+        """Put the driver back in the mode found at activation (when it was one of the driver's control modes)."""
         if self.cfg is None or self.cfg.driver.kind == "none":
             return
         found, want = self.found_mode, self.cfg.driver.mode
         if found and found != want and found in ("navigation", "position", "trajectory"):
-            fut = self._call_driver(self.cfg.driver.switch_name(found))
-            deadline = time.monotonic() + timeout_s
-            while fut is not None and not fut.done() and time.monotonic() < deadline:
-                time.sleep(0.02)
-            self.status(f"driver returned to {found} mode")
+            if self._call_driver(self.cfg.driver.switch_name(found)) is not None:
+                self.status(f"driver returned to {found} mode")
 
     def _apply_param(self, name: str, value) -> None:
         if name == "state_timeout_s" and self.tracker is not None:
@@ -583,14 +573,14 @@ class RobotAdapter:
                 self.counts["executed"] += 1
                 return True
             self._pending.pop(c.name, None)
-        ok = self._send_trajectory_mode(c, *out, now=now)
+        ok = self._send_trajectory_mode(c, *out, now=now, q=q)
         if ok:
             self.counts["executed"] += 1
             self.last_refusal = ""
             self._replan_at_rest, self._stop_t, self._still_since = "", None, None
         return ok
 
-    def _send_trajectory_mode(self, c, t, P, V, start_at: float, now: float) -> bool:
+    def _send_trajectory_mode(self, c, t, P, V, start_at: float, now: float, q=None) -> bool:
         from . import stretch
 
         late = now - start_at
@@ -598,10 +588,11 @@ class RobotAdapter:
             t, P, V = ad.trim_from(np.asarray(t, float) - t[0], P, V, late)
             if len(t) <= 1:
                 return True
-        q, why = self.measured()
-        if q is None:
-            self.stop(f"trajectory not executed: {why}")
-            return False
+        if q is None:  # a goal released by the goal interval: the state now (execute passes the one it checked)
+            q, why = self.measured()
+            if q is None:
+                self.stop(f"trajectory not executed: {why}")
+                return False
         b = self.cfg.base
         t = np.asarray(t, float) - t[0]
         try:
@@ -610,14 +601,16 @@ class RobotAdapter:
             return self._refuse(str(exc))
         idx = [self.names.index(j) for j in c.joints]
         goal.positions[0] = q[idx]  # the driver starts a joint only from where it is
+        # one CheckedPath of the planned trajectory on the goal's clock: for the goal's check and the path tolerance
+        ts, Pg = stretch.planned_on_goal_clock(goal, t, P)
+        checked = CheckedPath(self.robot, ts, Pg)
         dev = stretch.deviation_check(self.robot, goal, self.names, c.joints, t, P, P[0, :3], step_s=0.1,
-                                      window_s=self.p["path_window_s"])
+                                      window_s=self.p["path_window_s"], checked=checked)
         if dev > b.max_goal_deviation_m:
             return self._refuse(f"the driver's waypoints would take the robot {dev:.3f} m from the planned "
                                 f"trajectory (max_goal_deviation_m {b.max_goal_deviation_m:g})")
-        ts = np.arange(0.0, goal.duration + 1e-9, 0.05)
-        Pg = stretch.planned_positions(t, P, goal.planned_time(ts))
-        checked = CheckedPath(self.robot, ts, Pg) if self.p["path_tolerance_m"] > 0 else None
+        if self.p["path_tolerance_m"] <= 0:
+            checked = None
         with self._lock:
             self._send_goal(c, goal)
             self.follower.set_path(BaseReference(ts, Pg[:, :3]), now)

@@ -111,6 +111,7 @@ class StretchDriver:
                        "cmd_vel_dropped": 0, "stops": 0, "cancels_ignored": 0, "preempted": 0}
         self.aborts: list = []  # (error_code, error_string)
         self._base_done = (0.0, 0.0)  # the active base segment's translation and rotation made so far
+        self._pos_base_done = 0.0  # position mode: the base increment made so far
 
     # ------------------------------------------------------------------------------------------------ modes
     def switch_mode(self, mode: str, now: float) -> tuple:
@@ -317,7 +318,6 @@ class StretchDriver:
     def _trajectory_base(self, g: Goal, tau: float, dt: float) -> None:
         """The base integrated from the wheel motion of the segment under way: its driving distance or its turn,
         cubic in time, applied as an increment to the present pose."""
-        q = self.sim.q
         while g.base and tau >= g.base[0][1]:
             t0, t1, trans, rot, v0, v1 = g.base.pop(0)
             self._advance(trans - self._base_done[0], rot - self._base_done[1])
@@ -334,7 +334,6 @@ class StretchDriver:
         self._advance(d_tr, d_rot)
         self._base_done = (s_tr, s_rot)
         self.sim.v = np.array([d_tr / dt if dt > 0 else 0.0, d_rot / dt if dt > 0 else 0.0])
-        del q
 
     def _advance(self, d_tr: float, d_rot: float) -> None:
         q = self.sim.q
@@ -346,7 +345,7 @@ class StretchDriver:
     def _position_base(self, base: tuple, dt: float) -> None:
         name, inc = base
         b = self.sim.robot.config.base
-        done = getattr(self, "_pos_base_done", 0.0)
+        done = self._pos_base_done
         speed = b.linear_velocity if name == "translate_mobile_base" else b.angular_velocity
         step = float(np.clip(inc - done, -speed * dt, speed * dt))
         if name == "translate_mobile_base":

@@ -278,20 +278,26 @@ def goal_for_controller(ctrl, planning_names: Sequence[str], times, positions, v
     return trajectory_mode_goal(ctrl.robot_joints, t, P[:, cols], None if V is None else V[:, cols], min_interval_s)
 
 
+def planned_on_goal_clock(goal: TrajectoryModeGoal, times, positions, step_s: float = 0.05) -> tuple:
+    """(ts, positions (M, dof)): the planned trajectory sampled every ``step_s`` on the goal's (stretched) clock."""
+    ts = np.arange(0.0, goal.duration + 1e-9, step_s)
+    return ts, planned_positions(times, positions, goal.planned_time(ts))
+
+
 def deviation_check(robot, goal: TrajectoryModeGoal, planning_names: Sequence[str], ctrl_joints: Sequence[str],
-                    times, positions, start_base: np.ndarray, step_s: float = 0.05,
-                    window_s: float = 2.0) -> float:
+                    times, positions, start_base: np.ndarray, step_s: float = 0.05, window_s: float = 2.0,
+                    checked=None) -> float:
     """The largest distance (m) any point of the robot's collision boxes lies, along what the driver executes from
-    ``goal`` (base starting at ``start_base``), from every planned configuration within ``window_s`` of the same
-    instant (:class:`psprm_core.tracking.CheckedPath`, on the planned trajectory stretched to the goal's clock)."""
+    ``goal`` (base starting at ``start_base``, sampled every ``step_s``), from every planned configuration within
+    ``window_s`` of the same instant (``checked``: a :class:`psprm_core.tracking.CheckedPath` of the planned
+    trajectory on the goal's clock, built here when not given)."""
     from psprm_core.tracking import CheckedPath
 
-    ts = np.arange(0.0, goal.duration + 1e-9, step_s)
-    tp = goal.planned_time(ts)
-    planned = planned_positions(times, positions, tp)
+    ts, planned = planned_on_goal_clock(goal, times, positions, step_s)
+    if checked is None:
+        checked = CheckedPath(robot, ts, planned)
     B, J = executed(goal, start_base, ts)
     X = planned.copy()
     X[:, :3] = B
     X[:, controller_columns(planning_names, ctrl_joints)] = J
-    checked = CheckedPath(robot, ts, planned)
     return float(checked.deviations(X, ts, window_s).max())
