@@ -757,3 +757,112 @@ def stop_process(proc):
         proc.wait(15)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
+
+
+# ---------------------------------------------------------------------------------------------------------- Stretch
+OLD_STRETCH_CONFIG = """robot: stretch2
+controllers:
+  - name: stretch_controller
+    interface: action
+    action: /stretch_controller/follow_joint_trajectory
+    topic: /stretch_controller/joint_trajectory
+    joints: [joint_lift, arm_extension, joint_wrist_yaw, joint_head_pan, joint_head_tilt]
+    name_map: {arm_extension: wrist_extension}
+    stamp: zero
+    lead_time_s: 0.15
+    min_goal_interval_s: 0.2
+base:
+  mode: cmd_vel
+  topic: /stretch/cmd_vel
+"""
+
+
+@contextlib.contextmanager
+def _stretch_on_driver(adapter: str):
+    """The adapter ``adapter`` (its own interfaces) in this process, on a sim_robot process with Stretch's driver
+    profile started in the driver's default position mode; the test's record of /odom and of the driver's counts."""
+    import json
+
+    from std_msgs.msg import String
+
+    from psprm_ros.heap import freeze_long_lived
+    from psprm_ros.probe import InProcessSuite
+
+    params = {"scene": "dynamic_person", "robot": "stretch2", "adapter": adapter, "initial_base": [1.0, 1.0, 0.3],
+              "input_frames": ["odom"]}
+    domain = claim_domain_id()
+    sim = start_sim_process({**params, "driver": "stretch", "driver_mode": "position"}, domain)
+    try:
+        with InProcessSuite(params, domain_id=domain, nodes=("adapter",)) as s:
+            cfg = ad.load_adapter(adapter, s.adapter.robot).with_interface("topic")
+            rec = Recorder(s.probe.node, cfg)
+            counts = []
+            sub = s.probe.node.create_subscription(String, "/sim_robot/driver",
+                                                   lambda m: counts.append(json.loads(m.data)), 10)
+            try:
+                assert _wait(lambda: s.adapter.active and s.adapter.measured()[0] is not None, 60), sim.poll()
+                freeze_long_lived()  # as in _adapter_on_sim: no full collection of the test's heap mid-motion
+                yield s, rec, counts, _latched_pub(s.probe.node)
+            finally:
+                gc.unfreeze()
+                s.probe.node.destroy_subscription(sub)
+                rec.close()
+    finally:
+        stop_process(sim)
+
+
+def test_stretch_adapter_runs_the_driver_in_trajectory_mode_and_its_stop_halts(load_robot):
+    """The shipped Stretch adapter against sim_robot's Stretch driver profile (started in position mode, as the
+    driver starts): it switches the driver to trajectory mode, the plan runs as one goal with no goal refused, no
+    cmd_vel dropped and no abort (the driver's own counts), the base follows the plan (/odom), and a stop halts the
+    base (/odom) at once."""
+    robot = load_robot("stretch2")
+    with _stretch_on_driver("stretch2") as (s, rec, counts, pub):
+        assert _wait(lambda: counts and counts[-1]["mode"] == "trajectory", 15), counts[-1:] or "no counts"
+        assert _wait(lambda: s.adapter.driver_ready()[0], 5), s.adapter.driver_ready()
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.8, drive=1.2, joint_delta=0.1)
+        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(),
+                                         0.1))
+        assert _wait(lambda: s.adapter.counts["goals_sent"] >= 1, 10), [x[2] for x in s.probe.statuses[-5:]]
+        t_sent = s.probe.node.get_clock().now().nanoseconds * 1e-9
+        # halfway through the straight drive: stop
+        _wait(lambda: False, 0.55 * tr.times[-1])
+        q_stop = s.adapter.measured()[0]
+        t_stop = s.probe.node.get_clock().now().nanoseconds * 1e-9
+        pub.publish(cv.stop_trajectory(q_stop, robot.joint_names, "map"))
+        _wait(lambda: False, 1.5)
+        with rec.lock:
+            odom = list(rec.odom)
+        c = counts[-1]
+        assert c["goals_rejected"] == 0 and c["cmd_vel_dropped"] == 0 and not c["aborts"], c
+        assert c["goals_accepted"] >= 1 and c["stops"] >= 1
+        T = np.array([t for t, _ in odom])
+        X = np.array([x for _, x in odom])
+        run = (T >= t_sent) & (T < t_stop)
+        e_xy, e_th = path_errors(tr, T[run] - t_sent, X[run], window_s=1.0)
+        assert e_xy.max() < 0.1 and e_th.max() < 0.1, (e_xy.max(), e_th.max())
+        moved = np.hypot(*(X[run][-1, :2] - X[run][0, :2]))
+        assert moved > 0.2  # it was driving when the stop came
+        # halted: from 0.1 s after the stop on (the stop's delivery and one service call), the base stands
+        after = T >= t_stop + 0.1
+        assert after.sum() > 10
+        assert np.hypot(*np.ptp(X[after, :2], axis=0)) < 0.005, np.ptp(X[after, :2], axis=0)
+
+
+def test_the_cmd_vel_plus_action_config_is_refused_by_the_stretch_driver(load_robot, tmp_path):
+    """The same driver profile with an adapter that sends the arm by the action and the base by cmd_vel without
+    switching modes: the driver, in its position mode, drops every cmd_vel (its own count), so the base never
+    moves."""
+    cfg_file = tmp_path / "old_stretch.yaml"
+    cfg_file.write_text(OLD_STRETCH_CONFIG)
+    robot = load_robot("stretch2")
+    with _stretch_on_driver(str(cfg_file)) as (s, rec, counts, pub):
+        time.sleep(0.5)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.0, drive=0.8, joint_delta=0.0)
+        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(),
+                                         0.1))
+        _wait(lambda: False, 3.0)
+        assert counts and counts[-1]["cmd_vel_dropped"] > 0, counts[-1:]
+        assert np.hypot(*(s.adapter.measured()[0][:2] - q0[:2])) < 0.01
