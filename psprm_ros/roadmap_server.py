@@ -738,6 +738,7 @@ class RoadmapServer:
         res = self.rp.replan(triggers=reasons, horizon_s=horizon)
         t1 = time.perf_counter()
         info = {"seq": self.seq, "reasons": reasons, "success": bool(res.success), "reason": res.reason,
+                "failure": res.failure.value,
                 "query_ms": _f(res.query_ms), "goal_index": int(res.goal_index),
                 "input_stamp": pend["stamp"], "input_age_ms": _f(pend.get("input_age_ms")), **pend.get("timing", {}),
                 "replan_ms": _f((t1 - t0) * 1e3), "spliced": bool(res.success and res.committed_s > 0),

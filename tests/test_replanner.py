@@ -22,6 +22,7 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
+from psprm_core.planning.results import Failure
 from psprm_core.scene import load_scene
 
 from judges import Judge, SentPoses, limit_ratios, same_config, wrap  # noqa: E402
@@ -444,7 +445,8 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     def first_fails(*a, **k):
         calls.append(1)
         if len(calls) == 1:
-            return PlanResult(False, "no goal is reachable from start 0: different connected component", query_ms=1.0)
+            return PlanResult(False, "no goal is reachable from start 0: different connected component",
+                              Failure.UNREACHABLE, query_ms=1.0)
         return real(*a, **k)
 
     monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
@@ -459,10 +461,11 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     on_line = (lateral < 1e-4) & (np.abs(np.angle(np.exp(1j * (cfg[:, 2] - q[2])))) < 1e-4)
     assert on_line.any() and (np.linalg.norm(d[on_line], axis=1) <= p.settings.recovery.query_repair_radius + 1e-6).all()
     assert p.checker.valid(torch.as_tensor(cfg, dtype=torch.float32)).all()
-    monkeypatch.setattr(p.pipeline.query, "plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)"))
+    monkeypatch.setattr(p.pipeline.query, "plan_once", lambda *a, **k: PlanResult(False, "start configuration invalid (self)",
+                                                                                   Failure.START_BLOCKED))
     assert not p.plan(q, goals).success and p.n_roadmap_nodes == n0 + len(new)  # other failures: no repair
     # a repair that fails is rolled back: its nodes are removed and the budget is not used up ...
-    unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap")  # noqa: E731
+    unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap", Failure.UNREACHABLE)  # noqa: E731
     monkeypatch.setattr(p.pipeline.query, "plan_once", unreachable)
     kept, valid0 = p.pipeline.rm.repair_added, p.roadmap_node_ids()
     p.update_settings(p.settings.changed(query_repair_failures=p.pipeline.rm.repair_failed + 2))
@@ -496,7 +499,7 @@ def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkey
         calls.append((k.get("extra_candidates"), k.get("connect_k")))
         if k.get("connect_k") == 150 and k.get("extra_candidates") == {}:
             return real(*a, **k)
-        return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
+        return PlanResult(False, "no goal is reachable from start 0", Failure.UNREACHABLE, query_ms=1.0)
 
     monkeypatch.setattr(p.pipeline.query, "plan_once", only_wide_succeeds)
     s0 = p.settings
@@ -534,7 +537,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     def first_fails(*a, **k):
         calls.append((k.get("extra_candidates"), k.get("connect_k") or p.settings.query.connect_k))
         if len(calls) == 1:
-            return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
+            return PlanResult(False, "no goal is reachable from start 0", Failure.UNREACHABLE, query_ms=1.0)
         seen.clear()
         return real_once(*a, **k)
 
@@ -588,7 +591,7 @@ def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
     def fails_twice(*a, **k):
         extras.append({e: ids.copy() for e, ids in (k.get("extra_candidates") or {}).items()})
         if len(extras) <= 2:
-            return PlanResult(False, "no goal is reachable from start 0", query_ms=1.0)
+            return PlanResult(False, "no goal is reachable from start 0", Failure.UNREACHABLE, query_ms=1.0)
         return real_once(*a, **k)
 
     monkeypatch.setattr(p.pipeline.builder, "grow", grow)

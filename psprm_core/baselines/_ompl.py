@@ -160,7 +160,8 @@ def rrt_connect(space: ActiveSpace, start: np.ndarray, goal: np.ndarray, state_v
     plan_s = time.perf_counter() - t0
     if not ss.haveExactSolutionPath():
         log.debug("RRT-Connect failed: %s", counts)
-        reason = f"timeout ({timeout_s:.1f} s) without an exact solution" if plan_s >= timeout_s * 0.95 \
+        counts["timed_out"] = plan_s >= timeout_s * 0.95
+        reason = f"timeout ({timeout_s:.1f} s) without an exact solution" if counts["timed_out"] \
             else f"no solution ({ss.getLastPlannerStatus()})"
         return None, reason, counts
     if simplify:
@@ -195,14 +196,15 @@ def plan_to_goals(space_for: Callable[[np.ndarray], ActiveSpace], start: np.ndar
                   timeout_s: float, motion, **kw) -> tuple:
     """Try the goals nearest-first with one RRT-Connect solve each, sharing the time budget.
 
-    Returns (waypoints or None, reason, goal index into ``goals`` or -1, stats)."""
+    Returns (waypoints or None, reason, goal index into ``goals`` or -1, stats); ``stats["timed_out"]`` when the
+    time budget ended the search."""
     t0 = time.perf_counter()
     order = nearest_goals(motion, start, goals)
     reason, stats = "no goal", {}
     for g in order:
         left = timeout_s - (time.perf_counter() - t0)
         if left <= 0:
-            reason = f"timeout ({timeout_s:.1f} s)"
+            reason, stats = f"timeout ({timeout_s:.1f} s)", {"timed_out": True}
             break
         W, reason, stats = rrt_connect(space_for(g), start, g, timeout_s=left, **kw)
         if W is not None:

@@ -45,6 +45,7 @@ from ..motion import DiffDriveMotion
 from ..planning.constraints import ProjectionSettings, VisibilityConstraint
 from ..planning.constraints import camera_joint_mask
 from ..planning.psprm import PlanResult
+from ..planning.results import Failure
 from ..robot import RobotModel
 from ..scene import Scene
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
@@ -159,10 +160,11 @@ def resolve_settings(cls: Type[S], section: str, settings: Optional[S] = None, s
     return settings
 
 
-def failure(reason: str, t0: Optional[float] = None) -> PlanResult:
-    """A failed :class:`PlanResult` (query time from ``t0`` = ``time.perf_counter()`` at the start, if given)."""
+def failure(reason: str, t0: Optional[float] = None, kind: Failure = Failure.NO_SOLUTION) -> PlanResult:
+    """A failed :class:`PlanResult` of failure ``kind`` (query time from ``t0`` = ``time.perf_counter()`` at the
+    start, if given)."""
     ms = (time.perf_counter() - t0) * 1e3 if t0 is not None else float("nan")
-    return PlanResult(False, reason, query_ms=ms)
+    return PlanResult(False, reason, kind, query_ms=ms)
 
 
 def path_length(motion: DiffDriveMotion, dense: np.ndarray) -> float:
@@ -341,17 +343,18 @@ class PlanningContext:
             start = np.asarray(start, float).reshape(dof)
             goals = np.asarray(goals, float).reshape(-1, dof)
         except ValueError:
-            return None, None, failure(f"start/goal must have {dof} joint values")
+            return None, None, failure(f"start/goal must have {dof} joint values", kind=Failure.INVALID_INPUT)
         if not (np.isfinite(start).all() and np.isfinite(goals).all()):
-            return start, goals, failure("start or goal contains NaN/inf")
+            return start, goals, failure("start or goal contains NaN/inf", kind=Failure.INVALID_INPUT)
         qs = torch.as_tensor(np.vstack([start, goals]), dtype=torch.float32)
         det = self.checker.check_detailed(qs)
         bad = (det["limits"] | det["environment"] | det["self"]).numpy()
         if bad[0]:
             why = ", ".join(k for k in ("limits", "environment", "self") if bool(det[k][0]))
-            return start, goals, failure(f"start configuration invalid ({why})")
+            return start, goals, failure(f"start configuration invalid ({why})", kind=Failure.START_BLOCKED)
         if bad[1:].all():
-            return start, goals, failure("every goal configuration is in collision or outside the limits")
+            return start, goals, failure("every goal configuration is in collision or outside the limits",
+                                         kind=Failure.GOAL_BLOCKED)
         return start, goals[~bad[1:]], None
 
     # ---- execution -------------------------------------------------------------------------------------------------

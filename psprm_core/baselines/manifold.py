@@ -26,6 +26,7 @@ import torch
 
 from ..planning.psprm import PlanResult
 from ._ompl import ActiveSpace, _ompl
+from ..planning.results import Failure
 from .base import ContextPlanner, PlanningContext, failure
 
 log = logging.getLogger(__name__)
@@ -140,23 +141,23 @@ class _ManifoldPlanner(ContextPlanner):
         from ._ompl import rrt_connect
 
         t_left = timeout_s
-        W, reason, gi = None, "no goal", -1
+        W, reason, gi, timed_out, stats = None, "no goal", -1, False, {}
         for k, g in enumerate(ok_goals if len(ok_goals) == 1 else ok_goals[np.argsort(
                 ctx.motion.distance(torch.as_tensor(start[None]), torch.as_tensor(ok_goals)).numpy())]):
             t_left = timeout_s - (time.perf_counter() - t0)
             if t_left <= 0:
-                reason = f"timeout ({timeout_s:.1f} s)"
+                reason, timed_out = f"timeout ({timeout_s:.1f} s)", True
                 break
             sp = space_for(g)
-            W, reason, _ = rrt_connect(sp, start, g, state_valid=self._state_ok, motion_valid=self._motion_ok,
-                                       timeout_s=t_left, range_=s.range, seed=s.seed, simplify=s.simplify,
-                                       constraint=sp.constraint, delta=s.delta, lambda_=s.lambda_)
+            W, reason, stats = rrt_connect(sp, start, g, state_valid=self._state_ok, motion_valid=self._motion_ok,
+                                           timeout_s=t_left, range_=s.range, seed=s.seed, simplify=s.simplify,
+                                           constraint=sp.constraint, delta=s.delta, lambda_=s.lambda_)
             if W is not None:
                 gi = int(np.nonzero(np.all(np.isclose(goals, g), axis=1))[0][0])
                 break
         self._constraints = []
         if W is None:
-            return failure(reason, t0)
+            return failure(reason, t0, Failure.TIMEOUT if timed_out or stats.get("timed_out") else Failure.NO_SOLUTION)
         res = ctx.execute(W, aim=self.kind, aim_iters=s.aim_iters, view_tolerance=s.constraint_tolerance, t0=t0)
         if res.success:
             if not self.on_manifold(res.dense).all():

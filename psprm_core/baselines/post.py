@@ -16,6 +16,7 @@ import numpy as np
 
 from ..planning.psprm import PlanResult
 from ._ompl import ActiveSpace, plan_to_goals
+from ..planning.results import Failure
 from .base import ContextPlanner, failure
 
 log = logging.getLogger(__name__)
@@ -44,14 +45,14 @@ class PostPlanner(ContextPlanner):
     def _plan(self, start: np.ndarray, goals: np.ndarray, ok_goals: np.ndarray, timeout_s: float,
               t0: float) -> PlanResult:
         ctx, s = self.ctx, self.settings
-        W, reason, gi, _ = plan_to_goals(
+        W, reason, gi, stats = plan_to_goals(
             lambda g: ActiveSpace(start, self._cols(start, g), ctx.lower, ctx.upper), start, goals,
             timeout_s, ctx.motion,
             state_valid=lambda q: bool(ctx.valid(q)[0]),
             motion_valid=lambda a, b: ctx.motion_ok(a, b),
             range_=s.range, seed=s.seed + self._queries, simplify=s.simplify)
         if W is None:
-            return failure(reason, t0)
+            return failure(reason, t0, Failure.TIMEOUT if stats.get("timed_out") else Failure.NO_SOLUTION)
         res = ctx.execute(W, aim="line", aim_iters=s.aim_iters, view_tolerance=s.aim_tolerance, t0=t0)
         res.goal_index = gi if res.success else -1
         return res

@@ -16,6 +16,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..planning.psprm import PlanResult
+from ..planning.results import Failure
 from .base import failure, path_length
 
 log = logging.getLogger(__name__)
@@ -91,12 +92,12 @@ class PSPRMBenchPlanner:
     def plan(self, start: np.ndarray, goals: np.ndarray, timeout_s: float = 60.0) -> PlanResult:
         t0 = time.perf_counter()
         if not self._built:
-            return failure("roadmap not built", t0)
+            return failure("roadmap not built", t0, Failure.NOT_BUILT)
         self._fresh = False
         res = self.planner.plan(start, goals, timing=False)
         if res.success and res.dense is not None:
             res.path_length = path_length(self.planner.motion, res.dense)
         if res.success and (time.perf_counter() - t0) > timeout_s:
             log.info("%s query exceeded the %.1f s cap", self.name, timeout_s)
-            return failure(f"timeout ({timeout_s:.1f} s)", t0)
+            return failure(f"timeout ({timeout_s:.1f} s)", t0, Failure.TIMEOUT)
         return res

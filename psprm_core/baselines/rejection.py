@@ -18,6 +18,7 @@ import numpy as np
 
 from ..planning.psprm import PlanResult
 from ._ompl import ActiveSpace, plan_to_goals
+from ..planning.results import Failure
 from .base import ContextPlanner, failure
 
 log = logging.getLogger(__name__)
@@ -52,13 +53,13 @@ class RejectionPlanner(ContextPlanner):
     def _plan(self, start: np.ndarray, goals: np.ndarray, ok_goals: np.ndarray, timeout_s: float,
               t0: float) -> PlanResult:
         ctx, s = self.ctx, self.settings
-        W, reason, gi, _ = plan_to_goals(
+        W, reason, gi, stats = plan_to_goals(
             lambda g: ActiveSpace(start, self._cols(start, g), ctx.lower, ctx.upper), start, ok_goals,
             timeout_s, ctx.motion, state_valid=self._state_ok,
             motion_valid=lambda a, b: ctx.motion_ok(a, b, view="frustum", view_slack=s.view_slack, aim="frustum"),
             range_=s.range, seed=s.seed + self._queries, simplify=s.simplify)
         if W is None:
-            return failure(reason, t0)
+            return failure(reason, t0, Failure.TIMEOUT if stats.get("timed_out") else Failure.NO_SOLUTION)
         res = ctx.execute(W, aim="frustum", require_view="frustum", view_slack=s.view_slack, t0=t0)
         if res.success:
             res.goal_index = int(np.nonzero(np.all(np.isclose(goals, ok_goals[gi]), axis=1))[0][0])

@@ -38,6 +38,7 @@ import torch
 
 from .rl_settings import PPOSettings
 from ..errors import InputError
+from ..planning.results import Failure
 
 log = logging.getLogger(__name__)
 
@@ -250,7 +251,7 @@ class PPOPlanner:
 
         t0 = time.perf_counter()
         if self.model is None:
-            return failure("policy not trained (call prepare() first)", t0)
+            return failure("policy not trained (call prepare() first)", t0, Failure.NOT_BUILT)
         timeout_s = self.settings.timeout_s if timeout_s is None else float(timeout_s)
         given = goals
         start, goals, fail = self.ctx.check_problem(start, goals)
@@ -265,7 +266,7 @@ class PPOPlanner:
         rejected, steps = 0, 0
         for _ in range(self.settings.max_steps):
             if time.perf_counter() - t0 > timeout_s:
-                return failure(f"timeout after {steps} policy steps", t0)
+                return failure(f"timeout after {steps} policy steps", t0, Failure.TIMEOUT)
             action, _ = self.model.predict(self.normalize(obs), deterministic=True)
             obs, _, terminated, truncated, info = env.step(action)
             steps += 1

@@ -58,6 +58,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 from ..errors import InputError
+from ..planning.results import Failure
 
 log = logging.getLogger(__name__)
 
@@ -254,10 +255,11 @@ class TrajOptPlanner:
         if fail is not None:
             return fail
         cost = [path_cost(np.stack([start, g]), self.w_rot, self.robot.mobile) for g in goals]
-        reasons = []
+        reasons, kind = [], Failure.NO_SOLUTION
         for gi in np.argsort(cost):
             if time.perf_counter() - t0 >= timeout_s:
                 reasons.append("timeout")
+                kind = Failure.TIMEOUT
                 break
             try:
                 res = self._solve(start, goals[gi], t0, t0 + timeout_s)
@@ -269,8 +271,9 @@ class TrajOptPlanner:
                 res.query_ms = (time.perf_counter() - t0) * 1e3
                 return res
             reasons.append(res.reason)
+            kind = res.failure
         reason = reasons[0] if len(set(reasons)) == 1 else "; ".join(f"goal {i}: {r}" for i, r in enumerate(reasons))
-        return failure(reason, t0)
+        return failure(reason, t0, kind)
 
     # ---- optimisation --------------------------------------------------------------------------------------------
     def initial_path(self, start: np.ndarray, goal: np.ndarray, attempt: int = 0) -> np.ndarray:
@@ -327,7 +330,7 @@ class TrajOptPlanner:
         reasons = []
         for attempt in range(1 + (self.settings.restarts if self.robot.mobile else 0)):
             res = self._solve_from(start, goal, attempt, t0, deadline)
-            if res.success or res.reason.startswith("timeout"):
+            if res.success or res.failure is Failure.TIMEOUT:
                 break
             reasons.append(res.reason)
         if not res.success and len(reasons) > 1:
@@ -353,7 +356,7 @@ class TrajOptPlanner:
             nfev = 0
             while nfev < s.max_nfev:
                 if time.perf_counter() > deadline:
-                    return failure("timeout before the optimisation converged", t0)
+                    return failure("timeout before the optimisation converged", t0, Failure.TIMEOUT)
                 chunk = min(25, s.max_nfev - nfev)
                 sol = least_squares(problem.fun, x, jac=problem.jac, method="lm", max_nfev=chunk, ftol=s.ftol,
                                     xtol=s.xtol, gtol=1e-10)

@@ -30,6 +30,7 @@ from .graph import Roadmap
 from .hops import heuristic_consistency_gap, hop_distances, hop_heuristic
 from .objectives import (_CMIN_SAFETY, OBJECTIVES, combined_weight, edge_perception, edge_weight, motion_heuristic,
                          motion_weighted)
+from .results import Failure
 from .search_types import (ArrayLike, Backend, EdgeCheck, SearchResult, VerifyCallback, _compiled, _node_ids,
                            _scipy_matrix, _weights_array, _weights_list, min_edge_cost, path_cost)
 
@@ -174,9 +175,9 @@ def _astar_core(
     return None, parent, pedge, inf, expanded, False
 
 
-def _fail(reason: str, expanded: int = 0) -> SearchResult:
+def _fail(reason: str, failure: Failure, expanded: int = 0) -> SearchResult:
     logger.debug("search failed: %s", reason)
-    return SearchResult(path=[], cost=math.inf, expanded=expanded, success=False, reason=reason)
+    return SearchResult(path=[], cost=math.inf, expanded=expanded, success=False, reason=reason, failure=failure)
 
 
 def _run_astar(
@@ -192,16 +193,17 @@ def _run_astar(
     :class:`SearchResult`."""
     node_valid = np.asarray(graph.node_valid)
     if not node_valid[start]:
-        return _fail(f"start node {start} has been removed from the roadmap")
+        return _fail(f"start node {start} has been removed from the roadmap", Failure.START_BLOCKED)
     goal_ids = goal_ids[node_valid[goal_ids]]
     if goal_ids.size == 0:
-        return _fail("goal set is empty (or all goal nodes were removed)")
+        return _fail("goal set is empty (or all goal nodes were removed)", Failure.GOAL_BLOCKED)
     goal_set = set(goal_ids.tolist())
     if start in goal_set:
         return SearchResult(path=[start], cost=0.0, expanded=1, success=True, reason="ok: start is a goal",
                             goal=start)
     if h_arr is not None and not np.isfinite(h_arr[start]):
-        return _fail(f"no goal is reachable from start {start}: different connected component")
+        return _fail(f"no goal is reachable from start {start}: different connected component",
+                     Failure.UNREACHABLE)
     if w_list is None:
         nbr, eid, deg = graph.array_adjacency()
         rows = deg.shape[0]
@@ -214,7 +216,8 @@ def _run_astar(
             nbr, eid, deg, np.ascontiguousarray(w_arr, dtype=np.float64), np.ascontiguousarray(h_k, dtype=np.float64),
             h_arr is not None, start, goal_mask, -1 if max_expansions is None else int(max_expansions))
         if goal == -2:
-            return _fail("heap capacity exceeded by reopened nodes (inconsistent heuristic)", int(expanded))
+            return _fail("heap capacity exceeded by reopened nodes (inconsistent heuristic)", Failure.INTERNAL,
+                         int(expanded))
         goal = None if goal < 0 else int(goal)
         parent, pedge = par, pe
     else:
@@ -225,9 +228,9 @@ def _run_astar(
         )
     if goal is None:
         if hit_limit:
-            return _fail(f"expansion limit {max_expansions} reached", int(expanded))
+            return _fail(f"expansion limit {max_expansions} reached", Failure.SEARCH_LIMIT, int(expanded))
         return _fail(f"no goal is reachable from start {start} (disconnected or all connecting edges invalid)",
-                     int(expanded))
+                     Failure.UNREACHABLE, int(expanded))
     path = [goal]
     edges: list[int] = []
     while path[-1] != start:
@@ -434,7 +437,7 @@ def lazy_astar(
         raise InputError("lazy_astar supports heuristic 'hop', 'exact', 'zero' or a per-node array")
     c_min = min_edge_cost(graph, w_arr) if use_hop else 0.0
     total_expanded = 0
-    result = _fail("max_iterations is 0")
+    result = _fail("max_iterations is 0", Failure.SEARCH_LIMIT)
     h_arr = fixed_h
     h_cmin = None  # the c_min the hop heuristic was scaled with: hop distances found once stay lower bounds (the
     # structure only loses edges while the search runs), so the heuristic is only rescaled when c_min drops
@@ -509,7 +512,7 @@ def lazy_astar(
             result.reason = "ok" if it == 1 else f"ok after {it} lazy searches"
             break
     else:
-        result = _fail(f"lazy A* did not converge in {max_iterations} iterations", total_expanded)
+        result = _fail(f"lazy A* did not converge in {max_iterations} iterations", Failure.SEARCH_LIMIT, total_expanded)
         result.iterations = max_iterations
     result.invalidated_edges = invalidated
     result.updated_edges = updated

@@ -23,7 +23,7 @@ from .sampling import Sampling
 from .scoring import Scoring
 from .selection import RouteSelection
 from .shortcut import Shortcut
-from .results import PlanResult
+from .results import Failure, PlanResult
 from .settings import QUERY_OPTIONS
 from .state import PlannerContext, QueryContext, one_thread
 from .trajectory import Trajectory
@@ -121,7 +121,7 @@ class Pipeline:
         collide (the arm re-aiming the camera sweeps a shelf) is kept with its untracked knots (the camera joints
         interpolated plainly) when those are collision-free; the first query and the repaired ones are unchanged."""
         res = self.query.plan_once(start, goals, timing, goal_costs)
-        if res.success or "reachable" not in res.reason or self.rm.graph is None:
+        if res.success or res.failure is not Failure.UNREACHABLE or self.rm.graph is None:
             return res
         t0 = time.perf_counter()
         s = self.ctx.settings
@@ -136,11 +136,11 @@ class Pipeline:
                 out = escaped
         if not out.success:
             out = self.recovery.repair_query(start, goals, timing, goal_costs, res)
-        if (not out.success and "reachable" in out.reason and k > s.recovery.query_repair_connect_k
+        if (not out.success and out.failure is Failure.UNREACHABLE and k > s.recovery.query_repair_connect_k
                 and self.rm.repair_failed < s.recovery.query_repair_failures):
             wide = self.query.plan_once(start, goals, timing, goal_costs, extra_candidates={}, connect_k=k,
                                   untracked=s.recovery.query_untracked_fallback)
-            if wide.success or "reachable" not in wide.reason:
+            if wide.success or wide.failure is not Failure.UNREACHABLE:
                 out = wide
                 if wide.success:
                     out.reason = f"ok after connecting to the {k} nearest roadmap nodes"

@@ -11,7 +11,7 @@ import torch
 
 from ..errors import InputError
 from .graph_search import astar, edge_perception, lazy_astar, min_edge_cost
-from .results import PlanResult
+from .results import Failure, PlanResult
 from .state import NP_DTYPE, Stage
 
 
@@ -57,14 +57,14 @@ class Query(Stage):
         """
         t0 = time.perf_counter()
         if self.rm.graph is None:
-            return PlanResult(False, "roadmap not built")
+            return PlanResult(False, "roadmap not built", Failure.NOT_BUILT)
         start = np.asarray(start, float).reshape(-1)
         goals = np.asarray(goals, float).reshape(-1, self.ctx.robot.dof)
         # the query's small arrays stay numpy (rounded to the planner's dtype as torch would); only the batched
         # work (metric, collision, scores) goes through the tensor paths
         Q = np.vstack([start, goals]).astype(NP_DTYPE[self.ctx.dtype])
         if not np.isfinite(Q).all():
-            return PlanResult(False, "start or goal contains NaN/inf")
+            return PlanResult(False, "start or goal contains NaN/inf", Failure.INVALID_INPUT)
         det = self.ctx.backend.check_detailed(Q)
         bad = det["limits"] | det["environment"] | det["self"]
         fix = origin = None
@@ -72,17 +72,19 @@ class Query(Stage):
             why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
             pad = self.ctx.checker.padding
             if why != "environment" or pad == 0 or bool(self.ctx.checker.check_unpadded(self.ctx.t(Q[:1]))[0]):
-                return PlanResult(False, f"start configuration invalid ({why})")
+                return PlanResult(False, f"start configuration invalid ({why})", Failure.START_BLOCKED)
             # inside the clearance kept from the obstacles, not touching them: the start fix moves it out first
             fix = self.pl.recovery.move_out(Q[0])
             if fix is None:
                 return PlanResult(False, f"start configuration within the collision padding ({pad:g} m) of an "
                                          f"obstacle, and no motion out of it was found within "
-                                         f"{self.ctx.settings.recovery.start_fix_radius:g} (start_fix_radius)")
+                                         f"{self.ctx.settings.recovery.start_fix_radius:g} (start_fix_radius)",
+                                  Failure.START_BLOCKED)
             origin, Q = Q[0].copy(), Q.copy()
             Q[0] = fix[0]
         if bad[1:].all():
-            return PlanResult(False, "every goal configuration is in collision or outside the limits")
+            return PlanResult(False, "every goal configuration is in collision or outside the limits",
+                              Failure.GOAL_BLOCKED)
         g = self.rm.graph
         added_nodes, added_edges = [], []
         try:
@@ -203,6 +205,7 @@ class Query(Stage):
                     res = astar(g, search_start, search_goals, heuristic=heur)
             if res is None or not res.success:
                 return PlanResult(False, "goal not reachable on the roadmap" if res is None else res.reason,
+                                  Failure.UNREACHABLE if res is None else res.failure,
                                   query_ms=(time.perf_counter() - t0) * 1e3)
             path, cost, goal = res.path, res.cost, res.goal
             if sink_w is not None:  # drop the virtual sink and its terminal edge

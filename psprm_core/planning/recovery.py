@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from .knots import no_knots
-from .results import EscapeResult, PlanResult
+from .results import EscapeResult, Failure, PlanResult
 from .state import NP_DTYPE, Stage, large_batches
 
 log = logging.getLogger(__name__)
@@ -89,7 +89,7 @@ class Recovery(Stage):
         self.rm.compact()
         ids, lab = self.rm.components()
         if len(ids) == 0:
-            return PlanResult(False, "goal not reachable on the roadmap (empty roadmap)")
+            return PlanResult(False, "goal not reachable on the roadmap (empty roadmap)", Failure.UNREACHABLE)
         targets = ids[lab == int(np.argmax(np.bincount(lab)))]
         q_end = self.ctx.t(np.stack(ends))
         bad = self.ctx.checker.check(q_end).cpu().numpy()
@@ -120,6 +120,7 @@ class Recovery(Stage):
             res.reason = f"ok after an escape search ({n} intermediate configurations)"
         elif why:  # the ends that could not get out say why the query fails
             res.reason = "; ".join(why)
+            res.failure = Failure.START_BLOCKED if why[0].startswith("start") else Failure.GOAL_BLOCKED
         log.debug("escape search: %s", res.reason)
         return res
 
@@ -346,7 +347,7 @@ class Recovery(Stage):
             # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
             again = self.pl.query.plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
                                             connect_k=max(s.query.connect_k, s.recovery.query_repair_connect_k))
-            if again.success or "reachable" not in again.reason:
+            if again.success or again.failure is not Failure.UNREACHABLE:
                 break
         if again is None:
             return res

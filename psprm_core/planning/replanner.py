@@ -48,6 +48,7 @@ from ..prediction import PredictionSettings, TargetPredictor
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .execution import commit_time, progress_time, splice
 from .psprm import PSPRM, PlanResult
+from .results import Failure
 
 log = logging.getLogger(__name__)
 
@@ -587,7 +588,7 @@ class Replanner:
         try:
             spliced = splice(self.result.trajectory, commit["t_from"], commit["t_commit"], traj, cont)
         except InputError as exc:
-            return PlanResult(False, f"internal: {exc}")
+            return PlanResult(False, f"internal: {exc}", Failure.INTERNAL)
         off = spliced.offset
         out = dataclasses.replace(res, waypoints=np.vstack([commit["prefix"][:1], W + off]),
                                   dense=np.vstack([commit["prefix"][:-1], dense + off]), trajectory=spliced,
@@ -600,9 +601,9 @@ class Replanner:
         self._last_plan_time = time.monotonic() if now is None else now
         reasons = sorted(self._pending) if self.result is not None else ["no_plan"]
         if self.q is None:
-            return PlanResult(False, "robot state unknown: call set_robot_state first")
+            return PlanResult(False, "robot state unknown: call set_robot_state first", Failure.INVALID_INPUT)
         if self.goals is None:
-            return PlanResult(False, "no goal: call set_goals first")
+            return PlanResult(False, "no goal: call set_goals first", Failure.INVALID_INPUT)
         p = self.planner
         self._sync_scene()
         info = {}
@@ -619,14 +620,15 @@ class Replanner:
             self.result = None
             self._last_failed = True
             self.replans += 1
-            res = PlanResult(False, "the committed motion collides with the latest obstacle poses: stop")
+            res = PlanResult(False, "the committed motion collides with the latest obstacle poses: stop",
+                             Failure.COMMITTED_COLLISION)
             res.query_ms = (time.perf_counter() - t0) * 1e3
             return res
         start = self.q if commit is None else commit["q"]
         self._new_plan_score = None
         res = self._plan_goals(self._last_plan_time, start)
         rounds = 0
-        while (not res.success and "reachable" in res.reason and rounds < self.settings.repair_rounds
+        while (not res.success and res.failure is Failure.UNREACHABLE and rounds < self.settings.repair_rounds
                and self._repaired_nodes < self.settings.repair_budget_nodes):
             rounds += 1
             centers = ([b.center[:2] for b in self._moved_obstacles.values()] + [start[:2]]
@@ -663,7 +665,7 @@ class Replanner:
             bad = p.checker.check_unpadded(torch.as_tensor(check, dtype=torch.float32)).cpu().numpy()
             if bad.any():  # defence in depth: the lazy checks make this unreachable; never hand out such a path
                 log.error("replanned path collides at %d of %d dense configurations; rejected", bad.sum(), len(bad))
-                res = PlanResult(False, "internal: path failed the final collision check")
+                res = PlanResult(False, "internal: path failed the final collision check", Failure.INTERNAL)
         ms = (time.perf_counter() - t0) * 1e3
         if res.kept:
             self._pending.clear()

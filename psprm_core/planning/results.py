@@ -3,11 +3,29 @@
 
 from __future__ import annotations
 
+import enum
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Sequence
 
 import numpy as np
 import torch
+
+
+class Failure(str, enum.Enum):
+    """What kind of failure a query ended with (beside its human ``reason``); control flow reads this, never the
+    reason's text. ``NONE`` for a success."""
+
+    NONE = "none"
+    NOT_BUILT = "not_built"  # no roadmap yet
+    INVALID_INPUT = "invalid_input"  # NaN/inf, no robot state, no goal
+    START_BLOCKED = "start_blocked"  # the start is invalid, inside the padding, or boxed in
+    GOAL_BLOCKED = "goal_blocked"  # every goal is invalid, or no goal end gets out to the roadmap
+    UNREACHABLE = "unreachable"  # no route on the roadmap (disconnected, or every connecting edge invalid)
+    SEARCH_LIMIT = "search_limit"  # the search's expansion or iteration limit
+    TIMEOUT = "timeout"  # a planner's time budget ran out
+    COMMITTED_COLLISION = "committed_collision"  # the motion already under way collides: the robot must stop
+    NO_SOLUTION = "no_solution"  # a baseline found none (optimisation failed, no valid trajectory, ...)
+    INTERNAL = "internal"  # a defect: an exception or a path failing the final check
 
 
 @dataclass
@@ -21,6 +39,7 @@ class PlanResult:
 
     success: bool
     reason: str = "ok"
+    failure: Failure = Failure.NONE  # with ``success`` False: the kind (control flow reads this, not ``reason``)
     path_nodes: list = field(default_factory=list)
     waypoints: Optional[np.ndarray] = None  # (M, dof) roadmap path incl. diff-drive corners
     dense: Optional[np.ndarray] = None  # (K, dof) configurations every ``edge_resolution`` along the path
@@ -39,6 +58,10 @@ class PlanResult:
     score_fn: Optional[Callable[[np.ndarray], np.ndarray]] = field(default=None, repr=False, compare=False)
     _dense_scores: Optional[np.ndarray] = field(default=None, init=False, repr=False, compare=False)
 
+    def __post_init__(self):
+        if not self.success and self.failure is Failure.NONE:  # a failure always has a kind
+            self.failure = Failure.NO_SOLUTION
+
     @property
     def dense_scores(self) -> Optional[np.ndarray]:
         """(K,) planner's perception score along ``dense`` (scored on first access)."""
@@ -54,7 +77,7 @@ class PlanResult:
         return float(ds.mean()) if ds is not None and len(ds) else float("nan")
 
     def to_dict(self, joint_names: Sequence[str] | None = None) -> dict:
-        d = {"success": self.success, "reason": self.reason, "cost": self.cost,
+        d = {"success": self.success, "reason": self.reason, "failure": self.failure.value, "cost": self.cost,
              "path_length_rad": self.path_length, "mean_perception_score": self.mean_score,
              "query_ms": self.query_ms, "goal_index": self.goal_index, "n_waypoints": 0}
         if self.route:

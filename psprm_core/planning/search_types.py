@@ -11,6 +11,7 @@ from ..errors import InputError
 from . import search_kernels
 from .graph import Roadmap
 from .objectives import ArrayLike
+from .results import Failure
 
 Backend = str  # "auto" (compiled when numba is available) or "python"
 
@@ -31,6 +32,8 @@ class SearchResult:
         Whether a path was found.
     reason : str
         Human-readable status (why it failed, or ``"ok"``).
+    failure : Failure
+        The kind of failure (``Failure.NONE`` on success).
     edges : list of int
         Edge ids along ``path``.
     goal : int or None
@@ -50,6 +53,7 @@ class SearchResult:
     expanded: int
     success: bool
     reason: str
+    failure: Failure = Failure.NONE
     edges: list[int] = field(default_factory=list)
     goal: int | None = None
     iterations: int = 1
