@@ -36,6 +36,9 @@ from . import core
 from .heap import release_free_heap
 
 P = core.Param
+# a spliced trajectory reaches the robot this long after the server is done with it (publication, the adapter's
+# checks) at most, on top of the age of the robot state the splice was measured from
+SPLICE_DELIVERY_S = 0.25
 SERVER_PARAMS = {
     "start_problem": P("", "scene problem whose start is the template of the roadmap build; planning waits for the "
                            "measured robot state (/psprm/state/robot)"),
@@ -222,7 +225,7 @@ class RoadmapServer:
         self._live: dict = {}  # parameter changes for the worker to apply
         self._transition: Optional[tuple] = None  # (kind, Event, result list) run by the worker
         self.last_latency_ms: Optional[float] = None
-        self.counts = {"plans": 0, "kept": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "guard_stops": 0,
+        self.counts = {"plans": 0, "kept": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "late_splices": 0, "guard_stops": 0,
                        "spliced": 0}
         self.guard = None  # CollisionChecker of the stop guard (its own: the guard runs on the executor thread)
         self._pub_lock = threading.RLock()  # a trajectory and a stop are published one at a time
@@ -772,9 +775,21 @@ class RoadmapServer:
             self._take_fresh_obstacles()
             unsafe = self._unsafe(P)
             info.update(msg_ms=_f((t2 - t1) * 1e3), check_ms=_f((time.perf_counter() - t2) * 1e3))
+            late = info["spliced"] and time.perf_counter() - t0 + SPLICE_DELIVERY_S > res.committed_s
+            if unsafe or late:
+                # not handed to the robot: the replanner goes back to the trajectory the robot executes, so that the
+                # next replan commits along that one
+                self.rp.withdraw(res)
             if unsafe:
                 info.update(success=False, reason="planner output in collision with the latest obstacles: refused")
                 self.counts["refused_unsafe"] += 1
+            elif late:
+                # the robot passes the splice instant before the trajectory reaches it: it keeps what it executes
+                self._plan_s.append(time.perf_counter() - t0)  # the next commitment covers a replan this slow
+                info.update(success=False, failure="late_splice",
+                            reason=f"ready {time.perf_counter() - t0:.2f} s after the replan began, too late for its "
+                                   f"splice {res.committed_s:.2f} s ahead: not published")
+                self.counts["late_splices"] += 1
             else:
                 with self._pub_lock:
                     self.pub_traj.publish(msg)

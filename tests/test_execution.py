@@ -184,3 +184,32 @@ def test_splice_refuses_trajectories_that_do_not_meet_at_rest(world, saved_roadm
         splice(traj, 0.0, moving, traj)  # the commitment is not a rest instant
     with pytest.raises(InputError):
         Execution(float("nan"))
+
+
+def test_a_withdrawn_replan_leaves_the_trajectory_under_way_current(world, saved_roadmap):
+    """A caller that cannot hand a replan to the robot (its final check refused it, or it came too late to splice)
+    withdraws it: the next replan commits along the trajectory the robot executes (the one the test holds), not
+    along the withdrawn one, and the goal change that asked for the replan is still pending."""
+    scene, robot = world
+    rp, start, goals = _replanner(world, saved_roadmap)
+    old = rp.result.trajectory
+    t_robot = 0.3 * old.duration
+    rp.set_robot_state(old.evaluate([t_robot])[0][0], t_along=t_robot)
+    rp.set_goals(goals[1:])
+    refused = rp.replan(now=5.0, triggers=["goal_changed"], horizon_s=0.4)
+    assert refused.success and not refused.kept and rp.result is refused
+    # the robot goes on along the old trajectory
+    assert rp.withdraw(refused) and rp.withdrawn == 1
+    assert rp.result.trajectory is old and not rp.withdraw(refused)
+    assert rp.needs_replan(now=5.1), "the goal change is still pending"
+    t2 = t_robot + refused.committed_s + 1.0  # past the withdrawn plan's splice: the two have parted
+    assert t2 < old.duration - 2.0
+    rp.set_robot_state(old.evaluate([t2])[0][0], t_along=t2)
+    res = rp.replan(now=5.5, triggers=["goal_changed"], horizon_s=0.4)
+    assert res.success and not res.kept, res.reason
+    ts = np.linspace(0.0, res.committed_s, 40)
+    assert np.abs(res.trajectory.evaluate(ts)[0] - old.evaluate(ts + t2)[0]).max() < 1e-9
+    # the withdrawn plan's own motion from that time differs (else the check above could not tell them apart)
+    other = refused.trajectory.evaluate(ts + t2 - t_robot)[0]
+    assert np.abs(other - old.evaluate(ts + t2)[0]).max() > 0.01
+    assert same_config(res.trajectory.evaluate([res.trajectory.duration])[0][0], goals[1], tol=2e-3)

@@ -30,10 +30,11 @@ that are gone before it gets there.
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import logging
 import math
 import time
-import dataclasses
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -144,6 +145,11 @@ def _pose(position, quat, what: str) -> tuple:
     return p, q / n
 
 
+# what adopting a plan changes, restored by Replanner.withdraw
+_ADOPTION_STATE = ("result", "_progress", "_t_along", "_goal_cfg", "_goal_since", "_switches", "goal_switches",
+                   "_plan_score", "_pending", "_moved_obstacles", "adopted")
+
+
 class Replanner:
     """Keeps a PS-PRM plan valid while the world changes.
 
@@ -201,6 +207,8 @@ class Replanner:
         self._planning_scene = None  # (scene, stamp) -> the scene the roadmap is scored with (predicted targets)
         self._new_plan_score: Optional[float] = None  # the keep decision's score of the replan's new plan
         self._along_cache: Optional[tuple] = None  # (result, progress, time along it) estimated from the progress
+        self._adopted_over: Optional[tuple] = None  # (the latest adopted plan, the state it replaced): withdraw()
+        self.withdrawn = 0  # adopted plans the caller withdrew (refused by its own check, or too late to splice)
 
     def update_settings(self, settings: Optional[ReplanSettings] = None, **changes) -> ReplanSettings:
         """Adopt new settings (``settings``, else the current ones with ``changes``; validated as they are built) and
@@ -680,6 +688,7 @@ class Replanner:
             self.declined += 1
             log.info("%s", res.reason)
         elif res.success:
+            self._adopted_over = (res, {k: copy.copy(getattr(self, k)) for k in _ADOPTION_STATE})
             self.adopted += 1
             self.result, self._progress = res, 0
             self._t_along = None  # until the caller reports the robot's progress along the new trajectory
@@ -706,6 +715,19 @@ class Replanner:
             if self.result is not None and self.remaining_path_collides():
                 self.result = None  # the old plan is no longer safe: the caller must stop
         return res
+
+    def withdraw(self, res: PlanResult) -> bool:
+        """Undo the adoption of ``res``, the latest replan's plan, when the caller could not hand it to the robot
+        (its own final check refused it, or it was ready too late to splice onto the motion under way): the plan the
+        robot executes stays the current one (the next replan commits along it), and the reasons that asked for the
+        replan stay pending. False when ``res`` is not the latest adopted plan (nothing changes)."""
+        if self._adopted_over is None or self._adopted_over[0] is not res or self.result is not res:
+            return False
+        for k, v in self._adopted_over[1].items():
+            setattr(self, k, v)
+        self._adopted_over = None
+        self.withdrawn += 1
+        return True
 
     def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Optional[tuple]:
         """(why, the current plan's predicted score) when the new plan ``res`` (from the committed state, or from
