@@ -34,8 +34,10 @@ MONITOR_PARAMS = {
     "target_topics": P([], "one per target (same order); [] = defaults from mocap_prefix"),
     "obstacle_topics": P([], "one per dynamic obstacle (same order)"),
     "base_pose_source": P("odom", "where the base pose comes from: odom (nav_msgs/Odometry on odom_topic), pose (a "
-                                  "mocap PoseStamped of a body on the base, robot_pose_topic) or joint_states "
-                                  "(base_x/base_y/base_theta in /joint_states)"),
+                                  "mocap PoseStamped of a body on the base, robot_pose_topic), joint_states "
+                                  "(base_x/base_y/base_theta in /joint_states) or tf (the pose of base_frame in the "
+                                  "scene frame from the topics tf and tf_static)"),
+    "base_frame": P("base_link", "the robot's base frame in tf (base_pose_source tf)"),
     "odom_topic": P("odom", "nav_msgs/Odometry of the base (base_pose_source odom)"),
     "robot_pose_topic": P("", "the robot's own rigid body (base_pose_source pose)"),
     "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz"),
@@ -115,7 +117,7 @@ class ReplanMonitor:
         self.tracker = RobotStateTracker(
             self.robot, self.frames, self.p["base_pose_source"], name_map,
             offset_from_params(self.p["base_body_offset.xyz"], self.p["base_body_offset.quat"]),
-            self.p["robot_state_timeout_s"], template=self.q)
+            self.p["robot_state_timeout_s"], template=self.q, base_frame=self.p["base_frame"])
         self.active = False
         self.robot_state_problem = "waiting for base pose"
         self._robot_fwd_t = 0.0
@@ -156,6 +158,10 @@ class ReplanMonitor:
             node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
         if self.robot.mobile and src == "odom":
             node.create_subscription(Odometry, self.p["odom_topic"], self._odom_cb, 10, callback_group=cb)
+        if self.robot.mobile and src == "tf":
+            from .tf_tree import subscribe_tf
+
+            subscribe_tf(node, self._tf_cb, cb)
         node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
         node.create_subscription(PoseStamped, self.p["goal_topic"], self._goal_cb, 10, callback_group=cb)
         node.create_subscription(String, self.p["goal_regions_topic"], self._regions_cb, 10, callback_group=cb)
@@ -300,6 +306,12 @@ class ReplanMonitor:
         except Exception as exc:
             self.warn_limited(f"odom {_kind_of(exc)}", f"ignored {exc}")
             return
+
+    def _tf_cb(self, msg, static: bool) -> None:
+        with self._lock:
+            dropped = self.tracker.update_tf(msg, static, time.monotonic())
+        for text in dropped:
+            self.warn_limited(f"tf {text}", f"ignored {text}")
 
     def _joints_cb(self, msg) -> None:
         try:

@@ -54,7 +54,9 @@ ADAPTER_PARAMS = {
                    rebuild=True),
     "trajectory_topic": P(core.TRAJECTORY_TOPIC, "the planned trajectories", rebuild=True),
     "base_pose_source": P("odom", "odom (nav_msgs/Odometry on odom_topic), pose (mocap PoseStamped on "
-                                  "robot_pose_topic) or joint_states", rebuild=True),
+                                  "robot_pose_topic), joint_states or tf (the pose of base_frame in the scene frame "
+                                  "from the topics tf and tf_static)", rebuild=True),
+    "base_frame": P("base_link", "the robot's base frame in tf (base_pose_source tf)", rebuild=True),
     "odom_topic": P("odom", "nav_msgs/Odometry of the base", rebuild=True),
     "robot_pose_topic": P("", "mocap rigid body on the base (base_pose_source pose)", rebuild=True),
     "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz", rebuild=True),
@@ -102,6 +104,7 @@ class RobotAdapter:
         self.active = False
         self.cfg: Optional[ad.AdapterConfig] = None
         self.tracker = None
+        self.tf_tree = None  # base_pose_source tf: the links received, kept for the tracker made at configure
         self.follower: Optional[BaseFollower] = None
         self._lock = threading.RLock()
         self._pubs: dict = {}  # controller -> JointTrajectory publisher
@@ -151,6 +154,11 @@ class RobotAdapter:
         if self.robot.mobile and self.p["base_pose_source"] == "pose":
             node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._pose_cb, qos_profile_sensor_data,
                                      callback_group=self.cb)
+        if self.robot.mobile and self.p["base_pose_source"] == "tf":
+            from .tf_tree import TfTree, subscribe_tf
+
+            self.tf_tree = TfTree()
+            subscribe_tf(node, self._tf_cb, self.cb)
         from std_srvs.srv import Trigger
 
         self.cli_plan = node.create_client(Trigger, self.p["plan_service"],
@@ -186,7 +194,8 @@ class RobotAdapter:
             self.robot, self.frames, self.p["base_pose_source"], cfg.name_map(),
             offset_from_params(self.p["base_body_offset.xyz"], self.p["base_body_offset.quat"]),
             self.p["state_timeout_s"],
-            template=core.start_configuration(self.robot, self.scene, self.p["start_problem"]))
+            template=core.start_configuration(self.robot, self.scene, self.p["start_problem"]),
+            base_frame=self.p["base_frame"], tf=self.tf_tree)
         for c in cfg.controllers:
             self._gates[c.name] = ad.GoalGate(c.min_goal_interval_s)
             if c.interface == "topic":
@@ -432,6 +441,15 @@ class RobotAdapter:
                 self.tracker.update_pose(msg, self._now(), self._now(), self.p["max_pose_age_s"])
         except Exception as exc:
             self.status(f"ignored base pose: {exc}", "warning")
+
+    def _tf_cb(self, msg, static: bool) -> None:
+        with self._lock:
+            if self.tracker is None:  # not configured yet: the tree keeps the links (tf_static comes once)
+                self.tf_tree.update(msg, static, self._now())
+                return
+            dropped = self.tracker.update_tf(msg, static, self._now())
+        for text in dropped:
+            self.status(f"ignored {text}", "warning")
 
     def _traj_cb(self, msg) -> None:
         self.counts["trajectories"] += 1
