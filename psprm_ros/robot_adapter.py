@@ -513,7 +513,7 @@ class RobotAdapter:
             lead = 0.0  # a trajectory-mode goal starts when the driver receives it
         # a splice (the new trajectory continues the one the robot executes): the base goes on from where it is now,
         # and only the controllers' goals start a lead time ahead (controller_command trims them there)
-        splice_d = self._splice_deviation(t, P, q) if self.robot.mobile else None
+        splice_d, not_splice = self._splice_deviation(t, P, q) if self.robot.mobile else (None, "")
         base_lead = 0.0 if splice_d is not None else lead
         if self.robot.mobile:
             # the robot drove on since the plan started from its state: splice at its progress, not back at the start
@@ -549,7 +549,8 @@ class RobotAdapter:
                 d = max(checked.deviation(x, 0.0, self.p["path_window_s"])[0] for x in probe)
             if d > tol:
                 return self._refuse(f"the robot, braking from where it is, comes {d:.3f} m from the trajectory's "
-                                    f"configurations near its start (path tolerance {tol:g} m)")
+                                    f"configurations near its start (path tolerance {tol:g} m; not a continuation "
+                                    f"of the motion under way: {not_splice})")
         now = self._now()
         start_at = now + base_lead
         if self.cfg.base.mode == "stretch_trajectory":
@@ -675,24 +676,27 @@ class RobotAdapter:
         except Exception as exc:
             self.stop(f"cannot execute the trajectory: {exc}")
 
-    def _splice_deviation(self, t: np.ndarray, P: np.ndarray, q: np.ndarray) -> Optional[float]:
-        """When a new trajectory continues the one being executed (each of its
+    def _splice_deviation(self, t: np.ndarray, P: np.ndarray, q: np.ndarray) -> tuple:
+        """(deviation, why not): when a new trajectory continues the one being executed (each of its
         configurations over its first ``SPLICE_CHECK_S`` within ``SPLICE_TOL_M``, whole robot, of the executing
         trajectory's configurations near the robot's time along it): the measured configuration's deviation from the
-        executing trajectory there; else None. The roadmap server's replans of a robot in motion are such splices
-        (psprm_core.planning.execution): the trajectory under way up to a rest instant at least the planning and
-        delivery time ahead, then the new plan."""
+        executing trajectory there and ""; else None and the reason. The roadmap server's replans of a robot in
+        motion are such splices (psprm_core.planning.execution): the trajectory under way up to a rest instant at
+        least the planning and delivery time ahead, then the new plan."""
         with self._lock:
             cur, t0, following = self.checked, self.follower.t0, not self.follower.done
-        if cur is None or not following:
-            return None
+        if cur is None:
+            return None, "no trajectory under way"
+        if not following:
+            return None, "the trajectory under way has ended or was stopped"
         tau = self._now() - t0
         w = self.p["path_window_s"]
         ts = np.linspace(0.0, min(SPLICE_CHECK_S, float(t[-1])), 6)
         X = np.stack([np.interp(ts, t, P[:, j]) for j in range(P.shape[1])], 1)
-        if cur.deviations(X, tau + ts, w).max() > SPLICE_TOL_M:
-            return None
-        return cur.deviation(q, tau, w)[0]
+        off = float(cur.deviations(X, tau + ts, w).max())
+        if off > SPLICE_TOL_M:
+            return None, f"its first {ts[-1]:.1f} s lie {off:.3f} m from it (splice tolerance {SPLICE_TOL_M:g} m)"
+        return cur.deviation(q, tau, w)[0], ""
 
     def _send(self, c: ad.ControllerConfig, t, P, V, start_at: float, now: float) -> None:
         cmd = ad.controller_command(c, self.names, t, P, V, now=now, start_at=start_at)
