@@ -18,6 +18,7 @@ import numpy as np
 
 from . import conversions as cv
 from . import core
+from .replan_monitor import declare_reconfigurable_params, load_configured_scene_and_robot
 
 P = core.Param
 SCORER_PARAMS = {
@@ -30,51 +31,116 @@ SCORER_PARAMS = {
 
 
 class PerceptionScorer:
-    def __init__(self, node_name: str = "perception_scorer", **node_kwargs):
-        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-        from geometry_msgs.msg import PoseArray, PoseStamped
-        from std_msgs.msg import Float32, Float32MultiArray, String
-        import torch
+    """The scorer as a lifecycle node. Construction declares the parameters and makes ``~/status``; configure reads
+    the parameters, loads the scene, the robot model and the scorer (the surrogate's weights), and makes the pose and
+    camera subscriptions, the score publishers and the rescoring timer; activate/deactivate gate scoring; cleanup
+    destroys what configure made and drops the models, so a configure after it follows changed parameters. Until
+    configure, ``scene``, ``robot`` and ``scorer`` are None."""
 
-        from psprm_core.planning.factory import make_scorer
+    def __init__(self, node_name: str = "perception_scorer", **node_kwargs):
+        from std_msgs.msg import String
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
         self.spec = {**core.common_params(), **SCORER_PARAMS}
-        self.p = core.declare_params(node, self.spec)
         self.active = False
-        torch.set_num_threads(max(1, self.p["torch_threads"]))
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
-        self.frame = self.scene.frame
-        self.targets = core.scene_targets(self.scene, self.p["targets"])
-        ck = self.p["checkpoint"] or None
-        self.scorer = make_scorer(self.p["scorer"], self.scene, self.targets, self.robot.config.intrinsics, ck)
         self._lock = threading.Lock()
+        # made at configure, dropped at cleanup
+        self.scene = self.robot = self.scorer = None
+        self.frame: Optional[str] = None
+        self.targets: list = []
+        self.obstacles: list = []
+        self.pub_scores = self.pub_path = self.pub_path_scores = None
+        self._subs: list = []
+        self._pubs: list = []
+        self._timers: list = []
         self._scene_dirty = False
         self._roadmap: Optional[np.ndarray] = None
         self._path: Optional[np.ndarray] = None
         self._rm_dirty = self._path_dirty = False
         self._last_rm = 0.0
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_scores = node.create_publisher(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, latched)
-        self.pub_path = node.create_publisher(Float32, core.PATH_SCORE_TOPIC, 10)
-        self.pub_path_scores = node.create_publisher(Float32MultiArray, "~/path_scores", 10)
+        self.p = declare_reconfigurable_params(node, self.spec, lambda k, v: None)
         self.pub_status = node.create_publisher(String, "~/status", 10)
+
+    # ------------------------------------------------------------------------------------------------ lifecycle
+    def on_configure(self, state) -> bool:
+        """Read the parameters, load the scene, robot model and scorer, make the subscriptions, publishers and
+        timer. A bad parameter or a missing file raises: the configure fails with the reason on ``~/status``, the
+        node stays unconfigured with nothing made, and can be configured again."""
+        try:
+            self._configure()
+        except Exception:
+            self._release()
+            raise
+        return True
+
+    def _configure(self) -> None:
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from geometry_msgs.msg import PoseArray, PoseStamped
+        from std_msgs.msg import Float32, Float32MultiArray
+        import torch
+
+        from psprm_core.planning.factory import make_scorer
+
+        node, p = self.node, dict(self.p)
+        torch.set_num_threads(max(1, p["torch_threads"]))
+        scene, robot = load_configured_scene_and_robot(node, p)
+        targets = core.scene_targets(scene, p["targets"])
+        obstacles = list(p["dynamic_obstacles"])
+        for o in obstacles:
+            scene.obstacle(o)
+        scorer = make_scorer(p["scorer"], scene, targets, robot.config.intrinsics, p["checkpoint"] or None)
+        with self._lock:
+            self.scene, self.robot, self.scorer, self.frame = scene, robot, scorer, scene.frame
+            self.targets, self.obstacles = targets, obstacles
+            self._scene_dirty = False
+            self._roadmap = self._path = None
+            self._rm_dirty = self._path_dirty = False
+            self._last_rm = 0.0
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_scores = self._publisher(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, latched)
+        self.pub_path = self._publisher(Float32, core.PATH_SCORE_TOPIC, 10)
+        self.pub_path_scores = self._publisher(Float32MultiArray, "~/path_scores", 10)
         cb = MutuallyExclusiveCallbackGroup()
-        for t in self.targets:
-            node.create_subscription(PoseStamped, core.target_topic(t), self._pose_cb("target", t),
-                                     qos_profile_sensor_data, callback_group=cb)
-        for o in self.p["dynamic_obstacles"]:
-            self.scene.obstacle(o)
-            node.create_subscription(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
-                                     qos_profile_sensor_data, callback_group=cb)
-        node.create_subscription(PoseArray, core.ROADMAP_CAMERAS_TOPIC, self._cams_cb("roadmap"), latched,
-                                 callback_group=cb)
-        node.create_subscription(PoseArray, core.PATH_CAMERAS_TOPIC, self._cams_cb("path"), latched, callback_group=cb)
-        period = 1.0 / max(0.1, self.p["rescore_rate_hz"])
-        node.create_timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup())
-        core.install_param_callback(node, self.spec, self.p, lambda k, v: None)
+        for t in targets:
+            self._subscribe(PoseStamped, core.target_topic(t), self._pose_cb("target", t), qos_profile_sensor_data,
+                            callback_group=cb)
+        for o in obstacles:
+            self._subscribe(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
+                            qos_profile_sensor_data, callback_group=cb)
+        self._subscribe(PoseArray, core.ROADMAP_CAMERAS_TOPIC, self._cams_cb("roadmap"), latched, callback_group=cb)
+        self._subscribe(PoseArray, core.PATH_CAMERAS_TOPIC, self._cams_cb("path"), latched, callback_group=cb)
+        period = 1.0 / max(0.1, p["rescore_rate_hz"])
+        self._timers.append(node.create_timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup()))
+        self.status(f"configured: scene {scene.name}, robot {robot.name}, {p['scorer']} scorer of "
+                    f"{', '.join(targets)}" + (f"; obstacles {', '.join(obstacles)}" if obstacles else ""))
+
+    def _subscribe(self, *args, **kwargs):
+        s = self.node.create_subscription(*args, **kwargs)
+        self._subs.append(s)
+        return s
+
+    def _publisher(self, *args, **kwargs):
+        pub = self.node.create_publisher(*args, **kwargs)
+        self._pubs.append(pub)
+        return pub
+
+    def _release(self) -> None:
+        """Destroy the subscriptions, publishers and timer configure made and drop the models."""
+        for t in self._timers:
+            self.node.destroy_timer(t)
+        for s in self._subs:
+            self.node.destroy_subscription(s)
+        for pub in self._pubs:
+            self.node.destroy_publisher(pub)
+        self._subs, self._pubs, self._timers = [], [], []
+        with self._lock:
+            self.pub_scores = self.pub_path = self.pub_path_scores = None
+            self.scene = self.robot = self.scorer = self.frame = None
+            self.targets, self.obstacles = [], []
+            self._roadmap = self._path = None
+            self._scene_dirty = self._rm_dirty = self._path_dirty = False
 
     def on_activate(self, state) -> bool:
         self.active = True
@@ -84,6 +150,16 @@ class PerceptionScorer:
 
     def on_deactivate(self, state) -> bool:
         self.active = False
+        return True
+
+    def on_cleanup(self, state) -> bool:
+        self._release()
+        self.status("unconfigured: subscriptions, publishers and models released")
+        return True
+
+    def on_shutdown(self, state) -> bool:
+        self.active = False
+        self._release()
         return True
 
     def status(self, text: str, level: str = "info") -> None:

@@ -16,6 +16,7 @@ It reports a JSON summary on ``~/status`` once per second (plans, stops, latenci
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import threading
 import time
@@ -74,56 +75,99 @@ MONITOR_PARAMS = {
 }
 
 
+class _SpecWhileUnconfigured(dict):
+    """A node's parameter spec as :func:`core.install_param_callback` sees it: while the node is unconfigured every
+    parameter may be set (a configure reads them all), once configured only the ``live`` ones are applied and the
+    others are refused with their reason (read when the node is configured / needs a rebuild)."""
+
+    def __init__(self, spec: dict, node):
+        super().__init__(spec)
+        self._node = node
+
+    def get(self, name, default=None):
+        item = super().get(name, default)
+        if item is None or core.lifecycle_state(self._node) != "unconfigured":
+            return item
+        p = item if isinstance(item, core.Param) else core.Param(item)
+        return dataclasses.replace(p, live=True)
+
+
+def declare_reconfigurable_params(node, spec: dict, apply) -> dict:
+    """Declare ``spec`` on a lifecycle node that reads its parameters at configure and return their values (the
+    dict is kept up to date by the set-parameters callback, which hands accepted changes to ``apply(name, value)``).
+
+    Set while the node is unconfigured (before its first configure, or after a cleanup), any of them is taken and
+    used by the next configure; that is why the ``rebuild`` ones are not declared read-only here. While the node is
+    configured (inactive or active), live ones are applied and the others are refused with the reason."""
+    declared = {k: dataclasses.replace(v, rebuild=False) if isinstance(v, core.Param) else v for k, v in spec.items()}
+    values = core.declare_params(node, declared)
+    core.install_param_callback(node, _SpecWhileUnconfigured(spec, node), values, apply)
+    return values
+
+
+def load_configured_scene_and_robot(node, p: dict):
+    """The scene and robot model of a node's parameters ``p``, loaded at configure. A robot description the node
+    cannot use (robot_description ``topic``/``auto``) fails this configure with the reason; the next configure
+    checks the description again (the node does not refuse every later configure, as a node that loads its model
+    at construction does)."""
+    from psprm_core.errors import RobotModelError
+
+    scene, robot = core.load_scene_and_robot(p["scene"], p["robot"], node=node, params=p)
+    refusal = getattr(node, "configure_refusal", "")
+    if refusal:
+        node.configure_refusal = ""
+        raise RobotModelError(refusal)
+    return scene, robot
+
+
 class ReplanMonitor:
+    """The monitor as a lifecycle node. Construction declares the parameters and makes ``~/status``, the
+    ``/diagnostics`` publisher, the plan/stop service clients and the 1 Hz summary; configure reads the parameters,
+    loads the scene and robot model, and makes the input subscriptions, the forwarding publishers and the watchdog
+    and diagnostics timers; activate/deactivate gate forwarding; cleanup destroys what configure made and drops the
+    models, so a configure after it follows changed parameters. Until configure, the scene, robot model, tracker and
+    frame table are None (``robot``: see :attr:`robot`)."""
+
     def __init__(self, node_name: str = "replan_monitor", **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
-        from nav_msgs.msg import Odometry
-        from sensor_msgs.msg import JointState
-        from std_msgs.msg import Float32, String
+        from std_msgs.msg import String
         from std_srvs.srv import Trigger
-        from trajectory_msgs.msg import JointTrajectory
 
-        from psprm_core.collision import CollisionChecker
-
-        from .adapters import load_adapter
         from .frames import declare_frame_params
-        from .robot_state import RobotStateTracker, offset_from_params
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
         self.spec = {**core.common_params(), **MONITOR_PARAMS}
-        self.p = core.declare_params(node, self.spec)
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
-        self.frame = self.scene.frame
-        self.frames = declare_frame_params(node, self.frame)
-        self.targets = core.scene_targets(self.scene, self.p["targets"])
-        self.obstacles = list(self.p["dynamic_obstacles"])
-        for o in self.obstacles:
-            self.scene.obstacle(o)
-        self.names = list(self.robot.joint_names)
-        self.checker = CollisionChecker(self.robot, self.scene.collision_boxes(), workspace=self.scene.workspace)
-        self.q = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
-        name_map = {}
-        if self.p["adapter"] != "none":
-            try:
-                name_map = load_adapter(self.p["adapter"] or self.robot.name, self.robot).name_map()
-            except Exception as exc:  # no adapter config for this robot: planning/URDF names only
-                if self.p["adapter"]:
-                    raise
-                self.log.info(f"no adapter name map ({exc})")
-        self.tracker = RobotStateTracker(
-            self.robot, self.frames, self.p["base_pose_source"], name_map,
-            offset_from_params(self.p["base_body_offset.xyz"], self.p["base_body_offset.quat"]),
-            self.p["robot_state_timeout_s"], template=self.q, base_frame=self.p["base_frame"])
         self.active = False
-        self.robot_state_problem = "waiting for base pose"
+        self._lock = threading.Lock()
+        # made at configure, dropped at cleanup
+        self.scene = None
+        self._robot = None
+        self.frame: Optional[str] = None
+        self.frames = None
+        self.targets: list = []
+        self.obstacles: list = []
+        self.names: list = []
+        self.checker = None
+        self.q: Optional[np.ndarray] = None
+        self.tracker = None
+        self.relay: dict = {}
+        self.topics: dict = {}
+        self.pub_goals = self.pub_robot = None
+        self._grace: Optional[core.StallGrace] = None
+        self._subs: list = []
+        self._pubs: list = []
+        self._timers: list = []
+        self.p = declare_reconfigurable_params(node, self.spec, self._apply_param)
+        try:
+            declare_frame_params(node, "")  # the parameters only: the frame table is made at configure
+        except Exception:  # a malformed transform: configure reports it
+            pass
+        self.robot_state_problem = "not configured"
         self._robot_fwd_t = 0.0
         self._warned: dict = {}  # warning kind -> monotonic time of its last report
         self.base: Optional[np.ndarray] = None
-        self._lock = threading.Lock()
         self.last_seen: dict = {}  # body -> monotonic time of the last good pose
         self.stale: set = set()
         self.counts = {"forwarded": 0, "refused": 0, "plans": 0, "kept": 0, "stops": 0, "failed": 0, "requests": 0,
@@ -135,52 +179,147 @@ class ReplanMonitor:
         self.last_plan_t = time.monotonic()
         self.last_request_t = 0.0
         self.last_warning = ""
-
-        sensor = qos_profile_sensor_data
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_status = node.create_publisher(String, "~/status", 10)
-        self.pub_goals = node.create_publisher(JointTrajectory, core.GOALS_TOPIC, latched)
-        self.pub_robot = node.create_publisher(JointState, core.ROBOT_STATE_TOPIC, sensor)
-        self.relay = {}
         self._last_fwd: dict = {}  # (kind, name) -> (monotonic t, p, q) of the last forwarded pose
-        cb = MutuallyExclusiveCallbackGroup()
-        pairs = self._topics("target", self.targets, self.p["target_topics"]) + \
-            self._topics("obstacle", self.obstacles, self.p["obstacle_topics"])
-        for kind, name, topic in pairs:
-            out = core.target_topic(name) if kind == "target" else core.obstacle_topic(name)
-            self.relay[(kind, name)] = node.create_publisher(PoseStamped, out, sensor)
-            node.create_subscription(PoseStamped, topic, self._pose_cb(kind, name), sensor, callback_group=cb)
-        self.topics = {f"{k}:{n}": t for k, n, t in pairs}
-        src = self.p["base_pose_source"]
-        if self.robot.mobile and src == "pose":
-            if not self.p["robot_pose_topic"]:
-                raise InputError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
-            node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
-        if self.robot.mobile and src == "odom":
-            node.create_subscription(Odometry, self.p["odom_topic"], self._odom_cb, 10, callback_group=cb)
-        if self.robot.mobile and src == "tf":
-            from .tf_tree import subscribe_tf
 
-            subscribe_tf(node, self._tf_cb, cb)
-        node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
-        node.create_subscription(PoseStamped, self.p["goal_topic"], self._goal_cb, 10, callback_group=cb)
-        node.create_subscription(String, self.p["goal_regions_topic"], self._regions_cb, 10, callback_group=cb)
-        node.create_subscription(String, core.PLAN_INFO_TOPIC, self._info_cb, 10, callback_group=cb)
-        node.create_subscription(Float32, core.PATH_SCORE_TOPIC, self._score_cb, 10, callback_group=cb)
-        node.create_subscription(JointTrajectory, core.TRAJECTORY_TOPIC, self._traj_cb, latched, callback_group=cb)
+        self.pub_status = node.create_publisher(String, "~/status", 10)
+        self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
         srv_cb = MutuallyExclusiveCallbackGroup()
         self.cli_plan = node.create_client(Trigger, f"{core.SERVER_NAME}/plan", callback_group=srv_cb)
         self.cli_stop = node.create_client(Trigger, f"{core.SERVER_NAME}/stop", callback_group=srv_cb)
-        self._grace = core.StallGrace(1.0 / max(0.5, self.p["check_rate_hz"]))
-        node.create_timer(1.0 / max(0.5, self.p["check_rate_hz"]), self._check,
-                          callback_group=MutuallyExclusiveCallbackGroup())
         node.create_timer(1.0, self._report, callback_group=MutuallyExclusiveCallbackGroup())
-        self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
-        node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
-                          callback_group=MutuallyExclusiveCallbackGroup())
-        core.install_param_callback(node, self.spec, self.p, self._apply_param)
+
+    @property
+    def robot(self):
+        """The robot model configure built. Before configure (or after cleanup) the node holds none: asked then (a
+        caller comparing the nodes' robots), the packaged model of the robot the parameters name is loaded for the
+        caller and not kept."""
+        if self._robot is not None:
+            return self._robot
+        return core.load_scene_and_robot(self.p["scene"], self.p["robot"])[1]
 
     # ------------------------------------------------------------------------------------------------ lifecycle
+    def on_configure(self, state) -> bool:
+        """Read the parameters, load the scene and robot model, make the subscriptions, publishers and timers. A
+        bad parameter or a missing file raises: the configure fails with the reason on ``~/status``, the node stays
+        unconfigured with nothing made, and can be configured again."""
+        try:
+            self._configure()
+        except Exception:
+            self._release()
+            raise
+        return True
+
+    def _configure(self) -> None:
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float32, String
+        from trajectory_msgs.msg import JointTrajectory
+
+        from psprm_core.collision import CollisionChecker
+
+        from .adapters import load_adapter
+        from .frames import declare_frame_params
+        from .robot_state import RobotStateTracker, offset_from_params
+
+        node, p = self.node, dict(self.p)
+        scene, robot = load_configured_scene_and_robot(node, p)
+        frames = declare_frame_params(node, scene.frame)
+        targets = core.scene_targets(scene, p["targets"])
+        obstacles = list(p["dynamic_obstacles"])
+        for o in obstacles:
+            scene.obstacle(o)
+        q = core.start_configuration(robot, scene, p["start_problem"])
+        name_map = {}
+        if p["adapter"] != "none":
+            try:
+                name_map = load_adapter(p["adapter"] or robot.name, robot).name_map()
+            except Exception as exc:  # no adapter config for this robot: planning/URDF names only
+                if p["adapter"]:
+                    raise
+                self.log.info(f"no adapter name map ({exc})")
+        tracker = RobotStateTracker(
+            robot, frames, p["base_pose_source"], name_map,
+            offset_from_params(p["base_body_offset.xyz"], p["base_body_offset.quat"]),
+            p["robot_state_timeout_s"], template=q, base_frame=p["base_frame"])
+        pairs = self._topics("target", targets, p["target_topics"]) + \
+            self._topics("obstacle", obstacles, p["obstacle_topics"])
+        src = p["base_pose_source"]
+        if robot.mobile and src == "pose" and not p["robot_pose_topic"]:
+            raise InputError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
+        checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+        with self._lock:
+            self.scene, self._robot, self.frame, self.frames = scene, robot, scene.frame, frames
+            self.targets, self.obstacles, self.names = targets, obstacles, list(robot.joint_names)
+            self.checker, self.q, self.tracker = checker, q, tracker
+            self.robot_state_problem = "waiting for base pose"
+            self.base, self.traj, self.plan_score, self.path_score = None, None, None, None
+            self.last_seen, self.stale, self._last_fwd, self._warned = {}, set(), {}, {}
+            self.last_plan_t = time.monotonic()
+
+        sensor = qos_profile_sensor_data
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_goals = self._publisher(JointTrajectory, core.GOALS_TOPIC, latched)
+        self.pub_robot = self._publisher(JointState, core.ROBOT_STATE_TOPIC, sensor)
+        cb = MutuallyExclusiveCallbackGroup()
+        for kind, name, topic in pairs:
+            out = core.target_topic(name) if kind == "target" else core.obstacle_topic(name)
+            self.relay[(kind, name)] = self._publisher(PoseStamped, out, sensor)
+            self._subscribe(PoseStamped, topic, self._pose_cb(kind, name), sensor, callback_group=cb)
+        self.topics = {f"{k}:{n}": t for k, n, t in pairs}
+        if robot.mobile and src == "pose":
+            self._subscribe(PoseStamped, p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
+        if robot.mobile and src == "odom":
+            self._subscribe(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
+        if robot.mobile and src == "tf":
+            from .tf_tree import subscribe_tf
+
+            self._subs.extend(subscribe_tf(node, self._tf_cb, cb))
+        self._subscribe(JointState, p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
+        self._subscribe(PoseStamped, p["goal_topic"], self._goal_cb, 10, callback_group=cb)
+        self._subscribe(String, p["goal_regions_topic"], self._regions_cb, 10, callback_group=cb)
+        self._subscribe(String, core.PLAN_INFO_TOPIC, self._info_cb, 10, callback_group=cb)
+        self._subscribe(Float32, core.PATH_SCORE_TOPIC, self._score_cb, 10, callback_group=cb)
+        self._subscribe(JointTrajectory, core.TRAJECTORY_TOPIC, self._traj_cb, latched, callback_group=cb)
+        self._grace = core.StallGrace(1.0 / max(0.5, p["check_rate_hz"]))
+        self._timers.append(node.create_timer(1.0 / max(0.5, p["check_rate_hz"]), self._check,
+                                              callback_group=MutuallyExclusiveCallbackGroup()))
+        self._timers.append(node.create_timer(p["diagnostics_period_s"], self._diagnostics,
+                                              callback_group=MutuallyExclusiveCallbackGroup()))
+        bodies = ", ".join(f"{k} {n} on {t}" for k, n, t in pairs) or "no bodies"
+        self.status(f"configured: scene {scene.name}, robot {robot.name}; {bodies}; base pose from {src}")
+
+    def _subscribe(self, *args, **kwargs):
+        s = self.node.create_subscription(*args, **kwargs)
+        self._subs.append(s)
+        return s
+
+    def _publisher(self, *args, **kwargs):
+        pub = self.node.create_publisher(*args, **kwargs)
+        self._pubs.append(pub)
+        return pub
+
+    def _release(self) -> None:
+        """Destroy the subscriptions, publishers and timers configure made and drop the models."""
+        for t in self._timers:
+            self.node.destroy_timer(t)
+        for s in self._subs:
+            self.node.destroy_subscription(s)
+        for pub in self._pubs:
+            self.node.destroy_publisher(pub)
+        self._subs, self._pubs, self._timers = [], [], []
+        with self._lock:
+            self.relay, self.topics = {}, {}
+            self.pub_goals = self.pub_robot = None
+            self.scene = self._robot = self.frame = self.frames = None
+            self.targets, self.obstacles, self.names = [], [], []
+            self.checker = self.q = self.tracker = self._grace = None
+            self.base = self.traj = None
+            self.last_seen, self.stale, self._last_fwd = {}, set(), {}
+            self.robot_state_problem = "not configured"
+
     def on_activate(self, state) -> bool:
         self.active = True
         self.status("active: forwarding inputs")
@@ -191,8 +330,18 @@ class ReplanMonitor:
         self.status("inactive: inputs are no longer forwarded")
         return True
 
+    def on_cleanup(self, state) -> bool:
+        self._release()
+        self.status("unconfigured: subscriptions, publishers and models released")
+        return True
+
+    def on_shutdown(self, state) -> bool:
+        self.active = False
+        self._release()
+        return True
+
     def _apply_param(self, name: str, value) -> None:
-        if name == "robot_state_timeout_s":
+        if name == "robot_state_timeout_s" and self.tracker is not None:
             self.tracker.timeout_s = float(value)
 
     def warn_limited(self, kind: str, text: str) -> None:
@@ -219,8 +368,8 @@ class ReplanMonitor:
         vals = {"lifecycle": core.lifecycle_state(self.node), **counts,
                 "base_pose_age_s": (now - bt) if bt is not None else "never",
                 **{f"age_s {k}": v for k, v in seen.items()}}
-        core.publish_diagnostics(self.pub_diag, self.node, [
-            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot.name, level, msg, vals)])
+        core.publish_diagnostics(self.pub_diag, self.node, [core.diagnostic_status(
+            f"psprm: {self.node.get_fully_qualified_name()}", self._robot.name, level, msg, vals)])
 
     def _topics(self, kind, names, topics) -> list:
         if topics and len(topics) != len(names):
@@ -255,6 +404,8 @@ class ReplanMonitor:
         from .frames import validated_pose_in
 
         def cb(msg):
+            if self.frames is None:  # released by a cleanup while this message was on its way
+                return
             try:
                 p, q = validated_pose_in(msg, self.frames, self._now(), self.p["max_pose_age_s"], f"{kind} {name}")
             except Exception as exc:
@@ -293,6 +444,8 @@ class ReplanMonitor:
         return hz > 0 and now - t >= 1.0 / hz
 
     def _base_cb(self, msg) -> None:
+        if self.tracker is None:  # released by a cleanup while this message was on its way
+            return
         try:
             with self._lock:
                 self.tracker.update_pose(msg, time.monotonic(), self._now(), self.p["max_pose_age_s"])
@@ -300,6 +453,8 @@ class ReplanMonitor:
             self.warn_limited(f"base {_kind_of(exc)}", f"ignored {exc}")
 
     def _odom_cb(self, msg) -> None:
+        if self.tracker is None:  # released by a cleanup while this message was on its way
+            return
         try:
             with self._lock:
                 self.tracker.update_odometry(msg, time.monotonic(), self._now(), self.p["max_pose_age_s"])
@@ -308,12 +463,16 @@ class ReplanMonitor:
             return
 
     def _tf_cb(self, msg, static: bool) -> None:
+        if self.tracker is None:  # released by a cleanup while this message was on its way
+            return
         with self._lock:
             dropped = self.tracker.update_tf(msg, static, time.monotonic())
         for text in dropped:
             self.warn_limited(f"tf {text}", f"ignored {text}")
 
     def _joints_cb(self, msg) -> None:
+        if self.tracker is None:  # released by a cleanup while this message was on its way
+            return
         try:
             with self._lock:
                 self.tracker.update_joints(msg, time.monotonic())
@@ -326,6 +485,8 @@ class ReplanMonitor:
         """Forward the measured configuration when joints and base pose are fresh; otherwise report why not
         (nothing is planned then)."""
         with self._lock:
+            if self.tracker is None:
+                return
             q, why = self.tracker.state(time.monotonic())
             was = self.robot_state_problem
             self.robot_state_problem = "" if q is not None else why
@@ -352,10 +513,10 @@ class ReplanMonitor:
             from .frames import validated_pose_in
 
             p, q = validated_pose_in(msg, self.frames, None, 0.0, "goal")
-            if not self.robot.mobile:
+            if not self._robot.mobile:
                 raise cv.InputError("goal poses need a mobile base; use goal regions")
             vals = {"base_x": p[0], "base_y": p[1], "base_theta": cv.yaw_of(q)}
-            G = self.robot.configuration(vals)[None]
+            G = self._robot.configuration(vals)[None]
             self._send_goals(G, f"goal ({p[0]:.2f}, {p[1]:.2f}, yaw {vals['base_theta']:.2f})")
         except Exception as exc:
             self.status(f"ignored {exc}", "warning")
@@ -366,7 +527,7 @@ class ReplanMonitor:
             if not names:
                 raise cv.InputError("goal regions: empty")
             try:
-                G = core.goal_region_configurations(self.robot, self.scene, names)
+                G = core.goal_region_configurations(self._robot, self.scene, names)
             except KeyError as exc:
                 raise cv.InputError(f"goal regions: {exc}") from None
             self._send_goals(G, f"goal regions {', '.join(names)}")
@@ -377,8 +538,8 @@ class ReplanMonitor:
         import torch
 
         ws = self.scene.workspace
-        if self.robot.mobile and not ((G[:, 0] >= ws[0, 0]) & (G[:, 0] <= ws[0, 1]) & (G[:, 1] >= ws[1, 0]) &
-                                      (G[:, 1] <= ws[1, 1])).any():
+        if self._robot.mobile and not ((G[:, 0] >= ws[0, 0]) & (G[:, 0] <= ws[0, 1]) & (G[:, 1] >= ws[1, 0]) &
+                                       (G[:, 1] <= ws[1, 1])).any():
             raise cv.InputError(f"{what}: outside the workspace {ws.tolist()}")
         with self._lock:
             self.checker.set_boxes(self.scene.collision_boxes())
@@ -429,8 +590,8 @@ class ReplanMonitor:
     # ------------------------------------------------------------------------------------------------ triggers
     def _check_deviation(self, q: np.ndarray) -> None:
         with self._lock:
-            tr = self.traj
-        if tr is None or not self.robot.mobile:
+            tr, robot = self.traj, self._robot
+        if tr is None or robot is None or not robot.mobile:
             return
         # off the path, not behind its schedule: the nearest point of the base's path within 3 s of the time the
         # trajectory's clock says (a replan spliced onto the trajectory under way starts where the robot was when

@@ -203,3 +203,266 @@ def test_live_parameters_change_behaviour_and_rebuild_parameters_are_refused(loa
             assert s.server.planner.n_roadmap_nodes == 500
         finally:
             state.stop()
+
+
+# ---------------------------------------------------------------------------------------------------------------------
+# the monitor and the scorer set up in configure and release in cleanup (as Nav2's lifecycle nodes do)
+class _Loads:
+    """Counts what the process loads: scenes, robot models, perception scorers (the surrogate's weights)."""
+
+    def __init__(self, monkeypatch):
+        import psprm_core.planning.factory as factory
+        import psprm_core.scene as scene_mod
+        from psprm_core.robot import RobotModel
+
+        self.counts = {"scene": 0, "robot": 0, "scorer": 0}
+
+        def counted(kind, fn):
+            def wrapper(*a, **kw):
+                self.counts[kind] += 1
+                return fn(*a, **kw)
+            return wrapper
+
+        monkeypatch.setattr(scene_mod, "load_scene", counted("scene", scene_mod.load_scene))
+        monkeypatch.setattr(RobotModel, "load", staticmethod(counted("robot", RobotModel.load)))
+        monkeypatch.setattr(factory, "make_scorer", counted("scorer", factory.make_scorer))
+
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+
+class _Lone:
+    """One lifecycle node (``factory``: the monitor or the scorer, parameters ``params``) and an observer node in a
+    context of their own: the observer calls the node's lifecycle and parameter services, records its ``~/status`` and
+    reads the ROS graph."""
+
+    def __init__(self, factory, name: str, params: dict):
+        import rclpy
+        from rclpy.parameter import Parameter
+        from std_msgs.msg import String
+
+        from psprm_ros.spinning import NodeSpinner
+
+        self.name = name
+        self.ctx = rclpy.Context()
+        self.ctx.init(domain_id=claim_domain_id())
+        self.owner = factory(context=self.ctx, parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
+        self.obs = rclpy.create_node("lifecycle_observer", context=self.ctx)
+        self.statuses: list = []  # (perf_counter, text)
+        self._lock = threading.Lock()
+
+        def on_status(msg):
+            with self._lock:
+                self.statuses.append((time.perf_counter(), msg.data))
+
+        self.obs.create_subscription(String, f"/{name}/status", on_status, 50)
+        self.spinner = NodeSpinner(self.ctx)
+        self.spinner.add(self.owner.node)
+        self.spinner.add(self.obs)
+        self.spinner.start()
+        self.srv = Services(self.obs)
+
+    def close(self) -> None:
+        self.spinner.shutdown(timeout_sec=2.0)
+        self.owner.destroy()
+        self.obs.destroy_node()
+        self.ctx.try_shutdown()
+
+    # graph
+    def subscribers(self, topic: str) -> set:
+        """Names of the nodes with a subscription on ``topic`` (as the observer's graph sees it)."""
+        return {i.node_name for i in self.obs.get_subscriptions_info_by_topic(topic)}
+
+    def node_subscriptions(self) -> set:
+        """The topics the node subscribes to (empty until the observer has discovered it)."""
+        try:
+            return {t for t, _ in self.obs.get_subscriber_names_and_types_by_node(self.name, "/")}
+        except Exception:  # not discovered yet
+            return set()
+
+    def node_publishers(self) -> set:
+        try:
+            return {t for t, _ in self.obs.get_publisher_names_and_types_by_node(self.name, "/")}
+        except Exception:
+            return set()
+
+    def wait(self, predicate, timeout: float = 10.0):
+        deadline = time.monotonic() + timeout
+        while True:
+            r = predicate()
+            if r or time.monotonic() > deadline:
+                return r
+            time.sleep(0.05)
+
+    def status_after(self, t0: float, needle: str, timeout: float = 10.0):
+        def find():
+            with self._lock:
+                return next((s for t, s in self.statuses if t >= t0 and needle in s), None)
+        return self.wait(find, timeout)
+
+    def transition(self, tid) -> bool:
+        return self.srv.transition(self.name, tid)
+
+    def state(self) -> str:
+        return self.srv.state(self.name)
+
+    def set_params(self, **values):
+        return self.srv.set_params(self.name, **values)
+
+
+#: what the nodes may subscribe to before configure: nothing of the suite
+_BASE_TOPICS = {"/parameter_events", "/clock"}
+
+
+def _unconfigured_and_idle(lone: _Lone, loads: _Loads) -> None:
+    """(a) built, not configured: the node is on the graph with its ~/status and subscribes to no input topic;
+    nothing (scene, robot model, scorer) was loaded."""
+    assert lone.wait(lambda: f"/{lone.name}/status" in lone.node_publishers()), lone.node_publishers()
+    time.sleep(0.5)  # entities made with the status publisher would be discovered with it
+    assert lone.node_subscriptions() <= _BASE_TOPICS, lone.node_subscriptions()
+    assert lone.state() == "unconfigured"
+    assert loads.total() == 0, loads.counts
+
+
+def test_monitor_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
+    """The monitor built: no subscription, nothing loaded. Configure: the mocap, robot state and goal subscriptions
+    appear; cleanup: they are gone; configure again after changing the targets and their topics (refused while
+    configured, taken while unconfigured): the subscriptions follow; active, a pose on the new topic is forwarded."""
+    from lifecycle_msgs.msg import Transition
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.qos import qos_profile_sensor_data
+
+    from psprm_ros.replan_monitor import ReplanMonitor
+
+    loads = _Loads(monkeypatch)
+    lone = _Lone(ReplanMonitor, "replan_monitor", {"scene": "home", "targets": ["tv"], "adapter": "stretch2"})
+    try:
+        _unconfigured_and_idle(lone, loads)
+        inputs = {"/mocap/tv/pose", "/joint_states", "/odom", "/psprm/goal", "/psprm/goal_regions"}
+        # (b) configure: the subscriptions exist, the models are loaded
+        t0 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.status_after(t0, "configured: scene home"), lone.statuses[-3:]
+        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        assert "replan_monitor" in lone.subscribers("/mocap/tv/pose")
+        assert loads.counts["scene"] >= 1 and loads.counts["robot"] >= 1
+        # configured: the targets' topics are read at configure, a change is refused with the reason
+        r = lone.set_params(targets=["cup"], target_topics=["/elsewhere/cup"])
+        assert not r[0].successful and "configure" in r[0].reason, r[0].reason
+        # cleanup: every input subscription is gone
+        t0 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CLEANUP)
+        assert lone.state() == "unconfigured"
+        assert lone.status_after(t0, "unconfigured")
+        assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
+        assert not lone.subscribers("/mocap/tv/pose")
+        # unconfigured: the change is taken, and the next configure follows it
+        r = lone.set_params(targets=["cup"], target_topics=["/elsewhere/cup"], odom_topic="odom_2")
+        assert all(x.successful for x in r), [x.reason for x in r]
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        want = {"/elsewhere/cup", "/odom_2", "/joint_states"}
+        assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
+        time.sleep(0.3)
+        subs = lone.node_subscriptions()
+        assert not {"/mocap/tv/pose", "/mocap/cup/pose", "/odom"} & subs, subs
+        # active: a pose on the new topic is forwarded as the cup's state (behaviour while active unchanged)
+        assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
+        got = []
+        lone.obs.create_subscription(PoseStamped, "/psprm/state/targets/cup", got.append, qos_profile_sensor_data)
+        pub = lone.obs.create_publisher(PoseStamped, "/elsewhere/cup", qos_profile_sensor_data)
+        assert lone.wait(lambda: pub.get_subscription_count() >= 1)
+
+        def forwarded():
+            pub.publish(cv.pose_stamped([1.0, 2.0, 0.8], [0.0, 0.0, 0.0, 1.0], "map",
+                                        lone.obs.get_clock().now().to_msg()))
+            return got
+        assert lone.wait(forwarded, 10), "the pose on the reconfigured topic was not forwarded"
+        assert np.allclose(cv.pose_to_numpy(got[-1].pose)[0], [1.0, 2.0, 0.8])
+        # deactivate then cleanup from active use releases too
+        assert lone.transition(Transition.TRANSITION_DEACTIVATE)
+        assert lone.transition(Transition.TRANSITION_CLEANUP)
+        assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
+    finally:
+        lone.close()
+
+
+def test_scorer_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
+    """The scorer built: no subscription, no scene, robot or surrogate loaded. Configure: it subscribes to its
+    targets' states and the camera poses and loads the surrogate; cleanup: all gone; configure again with other
+    targets and an obstacle: the subscriptions follow."""
+    from lifecycle_msgs.msg import Transition
+
+    from psprm_ros.perception_scorer import PerceptionScorer
+
+    loads = _Loads(monkeypatch)
+    lone = _Lone(PerceptionScorer, "perception_scorer", {"scene": "home", "targets": ["tv"], "scorer": "neural"})
+    try:
+        _unconfigured_and_idle(lone, loads)
+        inputs = {"/psprm/state/targets/tv", "/psprm/roadmap/camera_poses", "/psprm/path/camera_poses"}
+        t0 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.status_after(t0, "configured: scene home"), lone.statuses[-3:]
+        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        assert lone.wait(lambda: "/psprm/roadmap/scores" in lone.node_publishers())
+        assert loads.counts["scorer"] == 1 and loads.counts["robot"] >= 1
+        r = lone.set_params(targets=["cup"])
+        assert not r[0].successful, "a rebuild parameter changed while configured"
+        assert lone.transition(Transition.TRANSITION_CLEANUP)
+        assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
+        assert lone.wait(lambda: "/psprm/roadmap/scores" not in lone.node_publishers())
+        assert not lone.subscribers("/psprm/state/targets/tv")
+        r = lone.set_params(targets=["cup"], dynamic_obstacles=["sofa"])
+        assert all(x.successful for x in r), [x.reason for x in r]
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        want = {"/psprm/state/targets/cup", "/psprm/state/obstacles/sofa", "/psprm/roadmap/camera_poses"}
+        assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
+        time.sleep(0.3)
+        assert "/psprm/state/targets/tv" not in lone.node_subscriptions()
+        assert loads.counts["scorer"] == 2
+        assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
+    finally:
+        lone.close()
+
+
+@pytest.mark.parametrize("which", ["monitor", "scorer"])
+def test_configure_with_a_bad_parameter_fails_and_the_node_lives_on(which):
+    """An unknown scene (monitor) or robot (scorer): the node is built, configure fails with the reason on
+    ``~/status`` and subscribes to nothing; it stays unconfigured, takes the fixed parameter and then configures."""
+    from lifecycle_msgs.msg import Transition
+
+    if which == "monitor":
+        from psprm_ros.replan_monitor import ReplanMonitor as factory
+
+        name, bad, needle, fix = "replan_monitor", {"scene": "no_such_scene"}, "unknown scene 'no_such_scene'", \
+            {"scene": "dynamic_person"}
+        topic = "/mocap/person_face/pose"
+    else:
+        from psprm_ros.perception_scorer import PerceptionScorer as factory
+
+        name, bad, needle, fix = "perception_scorer", {"robot": "no_such_robot"}, "unknown robot 'no_such_robot'", \
+            {"robot": ""}
+        topic = "/psprm/state/targets/person_face"
+    lone = _Lone(factory, name, {"scene": "dynamic_person", **bad})
+    try:
+        assert lone.wait(lambda: f"/{name}/status" in lone.node_publishers())
+        time.sleep(0.3)  # the observer's status subscription is matched
+        t0 = time.perf_counter()
+        assert not lone.transition(Transition.TRANSITION_CONFIGURE)
+        msg = lone.status_after(t0, needle)
+        assert msg is not None and msg.startswith("error: configure failed"), lone.statuses[-3:]
+        assert lone.state() == "unconfigured"
+        time.sleep(0.3)
+        assert lone.node_subscriptions() <= _BASE_TOPICS, lone.node_subscriptions()
+        # a second try with the same parameter fails the same way: the node is not stuck, nor half configured
+        t1 = time.perf_counter()
+        assert not lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.status_after(t1, needle)
+        r = lone.set_params(**fix)
+        assert all(x.successful for x in r), [x.reason for x in r]
+        t2 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.status_after(t2, "configured: scene dynamic_person"), lone.statuses[-3:]
+        assert lone.wait(lambda: topic in lone.node_subscriptions()), lone.node_subscriptions()
+        assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
+    finally:
+        lone.close()
