@@ -192,7 +192,8 @@ def test_a_withdrawn_replan_leaves_the_trajectory_under_way_current(world, saved
     along the withdrawn one, and the goal change that asked for the replan is still pending."""
     scene, robot = world
     rp, start, goals = _replanner(world, saved_roadmap)
-    old = rp.result.trajectory
+    current = rp.result
+    old = current.trajectory
     t_robot = 0.3 * old.duration
     rp.set_robot_state(old.evaluate([t_robot])[0][0], t_along=t_robot)
     rp.set_goals(goals[1:])
@@ -200,7 +201,7 @@ def test_a_withdrawn_replan_leaves_the_trajectory_under_way_current(world, saved
     assert refused.success and not refused.kept and rp.result is refused
     # the robot goes on along the old trajectory
     assert rp.withdraw(refused) and rp.withdrawn == 1
-    assert rp.result.trajectory is old and not rp.withdraw(refused)
+    assert rp.result is current and not rp.withdraw(refused)
     assert rp.needs_replan(now=5.1), "the goal change is still pending"
     t2 = t_robot + refused.committed_s + 1.0  # past the withdrawn plan's splice: the two have parted
     assert t2 < old.duration - 2.0

@@ -150,6 +150,11 @@ _ADOPTION_STATE = ("result", "_progress", "_t_along", "_goal_cfg", "_goal_since"
                    "_plan_score", "_pending", "_moved_obstacles", "adopted")
 
 
+def _snapshot(value):
+    """A container (set, dict, array) copied, anything else (a PlanResult, a number) as it is."""
+    return copy.copy(value) if isinstance(value, (set, dict, list, np.ndarray)) else value
+
+
 class Replanner:
     """Keeps a PS-PRM plan valid while the world changes.
 
@@ -688,7 +693,8 @@ class Replanner:
             self.declined += 1
             log.info("%s", res.reason)
         elif res.success:
-            self._adopted_over = (res, {k: copy.copy(getattr(self, k)) for k in _ADOPTION_STATE})
+            # the plan objects themselves (callers compare them by identity), copies of the containers adoption clears
+            self._adopted_over = (res, {k: _snapshot(getattr(self, k)) for k in _ADOPTION_STATE})
             self.adopted += 1
             self.result, self._progress = res, 0
             self._t_along = None  # until the caller reports the robot's progress along the new trajectory
