@@ -304,60 +304,105 @@ def _f64(row: np.ndarray):
     return array.array("d", np.ascontiguousarray(row, dtype=np.float64).tobytes())
 
 
-def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: float = 0.1,
-                      with_positions: bool = False):
-    """A :class:`psprm_core.planning.timing.Trajectory` -> ``trajectory_msgs/JointTrajectory`` (samples from
-    :func:`trajectory_samples`; the last point at rest). ``with_positions``: (msg, the points' positions (M, dof))
-    without reading them back from the message."""
-    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
-
+def published_samples(traj, dt: float = 0.1) -> tuple:
+    """The samples of ``traj`` as the server publishes them: :func:`trajectory_samples` copied to float64 arrays,
+    the last point at rest (zero velocity and acceleration). Returns (times, positions, velocities,
+    accelerations)."""
     t, pos, vel, acc = trajectory_samples(traj, dt)
-    vel = vel.copy()
-    acc = acc.copy()
+    t, pos = np.array(t, float), np.array(pos, float)
+    vel, acc = np.array(vel, float), np.array(acc, float)
     vel[-1] = 0.0
     acc[-1] = 0.0
+    return t, pos, vel, acc
+
+
+def joint_trajectory_msg(times, positions, velocities, accelerations, names: Sequence[str], frame: str,
+                         stamp=None):
+    """Sample arrays (M,), (M, dof) x 3 -> ``trajectory_msgs/JointTrajectory``, one point per sample, unchanged."""
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
     m = JointTrajectory()
     m.header.frame_id = frame
     if stamp is not None:
         m.header.stamp = stamp
     m.joint_names = list(names)
     pts = []
-    for k in range(len(t)):
+    for k in range(len(times)):
         p = JointTrajectoryPoint()
-        p.positions, p.velocities, p.accelerations = _f64(pos[k]), _f64(vel[k]), _f64(acc[k])
-        p.time_from_start = duration_msg(float(t[k]))
+        p.positions, p.velocities = _f64(positions[k]), _f64(velocities[k])
+        p.accelerations = _f64(accelerations[k])
+        p.time_from_start = duration_msg(float(times[k]))
         pts.append(p)
     m.points = pts
-    return (m, np.asarray(pos, float)) if with_positions else m
+    return m
 
 
-def prepend_start(msg, q: np.ndarray, velocity_limits: np.ndarray, acceleration_limits: np.ndarray,
-                  continuous: Optional[Sequence[int]] = None, tol: float = 1e-3) -> float:
-    """Make ``msg`` (a JointTrajectory of all planning joints, in ``q``'s order) start exactly at ``q``: when its
-    first point differs (the planner re-aims the camera joints at the start), a point at ``q`` is put first, at time
-    0, and every other point is shifted by the time a rest-to-rest move to the old first point takes within the
-    limits (the slowest joint's trapezoid). Returns that shift (0 when nothing was added). The new segment is part of
-    the published trajectory, so the final collision check covers it."""
-    from trajectory_msgs.msg import JointTrajectoryPoint
+def trajectory_to_msg(traj, names: Sequence[str], frame: str, stamp=None, dt: float = 0.1,
+                      with_positions: bool = False):
+    """A :class:`psprm_core.planning.timing.Trajectory` -> ``trajectory_msgs/JointTrajectory`` (the samples of
+    :func:`published_samples`). ``with_positions``: (msg, the points' positions (M, dof)) without reading them back
+    from the message."""
+    t, pos, vel, acc = published_samples(traj, dt)
+    m = joint_trajectory_msg(t, pos, vel, acc, names, frame, stamp)
+    return (m, pos) if with_positions else m
 
-    if not msg.points:
-        return 0.0
-    first = np.asarray(msg.points[0].positions, float)
+
+def start_move(first: np.ndarray, q: np.ndarray, velocity_limits: np.ndarray, acceleration_limits: np.ndarray,
+               continuous: Optional[Sequence[int]] = None, tol: float = 1e-3) -> Optional[tuple]:
+    """The move from ``q`` to a trajectory's ``first`` configuration: None when they agree within ``tol`` (largest
+    joint difference; ``continuous`` joints compared modulo 2 pi), else (duration, start) with the duration of a
+    rest-to-rest move within the limits (the slowest joint's trapezoid, at least 0.05 s) and ``start`` = ``q`` with
+    the continuous joints on ``first``'s branch."""
+    first = np.asarray(first, float)
     d = first - np.asarray(q, float)
     for j in continuous or ():
         d[j] = (d[j] + math.pi) % (2.0 * math.pi) - math.pi
     if np.abs(d).max() <= tol:
-        return 0.0
+        return None
     v = np.asarray(velocity_limits, float)
     a = np.asarray(acceleration_limits, float)
     ad = np.abs(d)
     # rest to rest: triangular when the distance is short, trapezoidal otherwise
     t = np.where(ad < v * v / a, 2.0 * np.sqrt(ad / a), ad / v + v / a)
-    shift = float(max(t.max(), 0.05))
+    return float(max(t.max(), 0.05)), first - d
+
+
+def prepend_start_samples(times, positions, velocities, accelerations, q: np.ndarray, velocity_limits: np.ndarray,
+                          acceleration_limits: np.ndarray, continuous: Optional[Sequence[int]] = None,
+                          tol: float = 1e-3) -> tuple:
+    """Sample arrays that start exactly at ``q``: when the first sample differs (the planner re-aims the camera
+    joints at the start), a sample at ``q`` at rest is put first, at time 0, and every other sample is shifted by
+    the :func:`start_move` time. Returns (times, positions, velocities, accelerations, shift); shift 0 and the
+    arrays unchanged when nothing was added. The added segment is part of what is published, so the final
+    collision check covers it."""
+    times, positions = np.asarray(times, float), np.asarray(positions, float)
+    velocities, accelerations = np.asarray(velocities, float), np.asarray(accelerations, float)
+    move = start_move(positions[0], q, velocity_limits, acceleration_limits, continuous, tol) if len(times) else None
+    if move is None:
+        return times, positions, velocities, accelerations, 0.0
+    shift, start = move
+    zero = np.zeros((1, positions.shape[1]))
+    return (np.r_[0.0, times + shift], np.vstack([start[None], positions]), np.vstack([zero, velocities]),
+            np.vstack([zero, accelerations]), shift)
+
+
+def prepend_start(msg, q: np.ndarray, velocity_limits: np.ndarray, acceleration_limits: np.ndarray,
+                  continuous: Optional[Sequence[int]] = None, tol: float = 1e-3) -> float:
+    """:func:`prepend_start_samples` on a message: make ``msg`` (a JointTrajectory of all planning joints, in
+    ``q``'s order) start exactly at ``q`` (a point at ``q`` first, at time 0, every other point shifted by the
+    :func:`start_move` time). Returns that shift (0 when nothing was added)."""
+    from trajectory_msgs.msg import JointTrajectoryPoint
+
+    if not msg.points:
+        return 0.0
+    move = start_move(np.asarray(msg.points[0].positions, float), q, velocity_limits, acceleration_limits,
+                      continuous, tol)
+    if move is None:
+        return 0.0
+    shift, start = move
     for p in msg.points:
         p.time_from_start = duration_msg(duration_to_sec(p.time_from_start) + shift)
     p0 = JointTrajectoryPoint()
-    start = first - d  # q, with continuous joints on the first point's branch
     p0.positions = _f64(start)
     p0.velocities = _f64(np.zeros(len(start)))
     p0.accelerations = _f64(np.zeros(len(start)))

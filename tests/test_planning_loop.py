@@ -1,0 +1,303 @@
+"""The roadmap server's planning loop driven directly (no ROS): inputs as values, outputs recorded by the test.
+
+Every judgement comes from the test's own record: the robot states and poses it sent, the samples it received (the
+exact arrays a node turns into the JointTrajectory message), and pybullet (the project's reference collision model)
+holding the scene loaded afresh from its file with the poses the test sent. The loop's own state is never read to
+judge; its replanner is only wrapped to make a replan slow (fault injection).
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TESTS = Path(__file__).resolve().parent
+for _p in (ROOT, TESTS):
+    if str(_p) not in sys.path:
+        sys.path.insert(0, str(_p))
+
+pytest.importorskip("pybullet")
+
+from judges import SentPoses, same_config  # noqa: E402
+from psprm_core.evaluation.reference import PybulletWorld  # noqa: E402
+from psprm_core.paths import resolve_named  # noqa: E402
+from psprm_core.planning.factory import problem_configurations  # noqa: E402
+from psprm_core.scene import load_scene  # noqa: E402
+from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros import core  # noqa: E402
+from psprm_ros.planning_loop import Outputs, PlanningLoop, TrajectorySamples  # noqa: E402
+
+SCENE = "dynamic_person"
+STEP = 0.05  # spacing (m / rad) of the configurations the test checks along a trajectory's polyline
+#: quiet, deterministic loops: replans only on a goal, a request or a trajectory the scene invalidated
+PARAMS = {"publish_markers": False, "auto_replan": False, "robot_state_timeout_s": 600.0}
+
+
+class Record(Outputs):
+    """Every output the loop produced, as copies, with the test's perf_counter time of receipt."""
+
+    def __init__(self):
+        self.events: list = []  # (time, kind, payload)
+        self.cond = threading.Condition()
+
+    def _add(self, kind: str, payload) -> None:
+        with self.cond:
+            self.events.append((time.perf_counter(), kind, payload))
+            self.cond.notify_all()
+
+    def trajectory(self, samples) -> None:
+        self._add("trajectory", TrajectorySamples(*(np.array(a, float) for a in samples)))
+
+    def stop(self, q, hold_s) -> None:
+        self._add("stop", (np.array(q, float), float(hold_s)))
+
+    def info(self, info) -> None:
+        self._add("info", dict(info))
+
+    def status(self, text, level="info") -> None:
+        self._add("status", (level, text))
+
+    def since(self, t: float, kinds=("trajectory", "stop", "info")) -> list:
+        with self.cond:
+            return [e for e in self.events if e[0] >= t and e[1] in kinds]
+
+    def wait(self, t: float, kinds, timeout: float):
+        """The first event of ``kinds`` received at or after ``t`` (waits at most ``timeout`` s), else None."""
+        deadline = time.monotonic() + timeout
+        with self.cond:
+            while True:
+                got = [e for e in self.events if e[0] >= t and e[1] in kinds]
+                if got:
+                    return got[0]
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return None
+                self.cond.wait(left)
+
+
+class World:
+    """pybullet with the scene loaded afresh and the poses the test sent."""
+
+    def __init__(self, robot):
+        self.sent = SentPoses(SCENE)
+        self.world = PybulletWorld(robot, self.sent.boxes())
+        self.bodies = {name: body for body, name in self.world.box_bodies.items()}
+
+    def send(self, loop: PlanningLoop, name: str, p, q) -> float:
+        """Record the pose, hand it to the loop; returns the time just before the hand-over."""
+        self.sent.sent(name, p, q)
+        t = time.perf_counter()
+        loop.obstacle_pose(name, np.asarray(p, float), np.asarray(q, float) / np.linalg.norm(q), stamp=time.time())
+        return t
+
+    def colliding(self, positions: np.ndarray) -> np.ndarray:
+        """Collision flags of the configurations along the polyline through ``positions`` (every ``STEP``)."""
+        for b in self.sent.boxes():
+            self.world.p.resetBasePositionAndOrientation(self.bodies[b.name], list(b.center), list(b.quat),
+                                                         physicsClientId=self.world.cid)
+        return self.world.in_collision(cv.densify_linear(np.asarray(positions, float), STEP))
+
+    def close(self) -> None:
+        self.world.close()
+
+
+def at_time(s: TrajectorySamples, t: float) -> np.ndarray:
+    """The configuration of received samples at time ``t``, interpolated linearly (as a controller does)."""
+    t = float(np.clip(t, s.times[0], s.times[-1]))
+    return np.array([np.interp(t, s.times, s.positions[:, j]) for j in range(s.positions.shape[1])])
+
+
+def time_on(s: TrajectorySamples, q: np.ndarray) -> tuple:
+    """(distance from ``q`` to the polyline of ``s``, the time of the nearest point on it)."""
+    A, B = s.positions[:-1], s.positions[1:]
+    AB = B - A
+    f = np.clip(np.einsum("ij,ij->i", q - A, AB) / np.maximum(np.einsum("ij,ij->i", AB, AB), 1e-18), 0.0, 1.0)
+    d = np.linalg.norm(A + f[:, None] * AB - q, axis=1)
+    k = int(np.argmin(d))
+    return float(d[k]), float(s.times[k] + f[k] * (s.times[k + 1] - s.times[k]))
+
+
+@pytest.fixture(scope="module")
+def world_models(load_robot):
+    scene = load_scene(resolve_named("scene", SCENE))
+    robot = load_robot("stretch2")
+    start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    return robot, start, goals
+
+
+@pytest.fixture(scope="module")
+def roadmap_file(tmp_path_factory):
+    return str(tmp_path_factory.mktemp("roadmap") / "dynamic_person_400.npz")
+
+
+@pytest.fixture
+def make_loop(world_models, roadmap_file):
+    """Factory: a configured, active loop (the roadmap built once per module, then loaded) and its Record."""
+    robot, start, _ = world_models
+    made = []
+
+    def make(**params):
+        rec = Record()
+        spec = core.PlannerSpec(n_nodes=400, seed=0, roadmap_file=roadmap_file)
+        loop = PlanningLoop(load_scene(resolve_named("scene", SCENE)), robot, ["person_face"], spec, rec,
+                            obstacles=["person_body"], q0=start, params={**PARAMS, **params})
+        made.append(loop)
+        assert loop.transition("configure", timeout=300), [e for e in rec.events if e[1] == "status"]
+        assert loop.transition("activate")
+        return loop, rec
+
+    yield make
+    for loop in made:
+        loop.close()
+
+
+@pytest.fixture
+def world(world_models):
+    w = World(world_models[0])
+    yield w
+    w.close()
+
+
+def _first_trajectory(loop, rec, q, goals, timeout=60.0) -> TrajectorySamples:
+    t0 = time.perf_counter()
+    loop.robot_state(q)
+    loop.goals(goals)
+    ev = rec.wait(t0, ("trajectory", "stop"), timeout)
+    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
+    return ev[2]
+
+
+def test_goals_and_a_robot_state_give_one_trajectory_from_that_state_free_in_pybullet(make_loop, world,
+                                                                                       world_models):
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    q = start.copy()  # a state the roadmap was not templated on: moved base, head turned away
+    q[0] += 0.1
+    q[robot.index("joint_head_pan")] += 0.6
+    assert not world.colliding(q[None]).any()  # precondition: a free state
+    t0 = time.perf_counter()
+    s = _first_trajectory(loop, rec, q, goals)
+    time.sleep(1.0)
+    assert len(rec.since(t0, ("trajectory", "stop"))) == 1  # one output for one goal
+    assert same_config(s.positions[0], q, 1e-5), (s.positions[0], q)  # (float32 planner values)
+    assert s.times[0] == 0.0 and np.all(np.diff(s.times) > 0)
+    assert len(s.times) == len(s.positions) == len(s.velocities) == len(s.accelerations)
+    assert not np.any(s.velocities[-1]) and not np.any(s.accelerations[-1])  # ends at rest
+    assert min(np.hypot(*(s.positions[-1, :2] - g[:2])) for g in goals) < 0.05  # reaches one of the goals
+    bad = world.colliding(s.positions)
+    assert not bad.any(), f"{int(bad.sum())} configurations along the trajectory collide in pybullet"
+
+
+def test_an_obstacle_moved_into_the_path_never_gets_a_colliding_trajectory(make_loop, world, world_models):
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    s = _first_trajectory(loop, rec, start, goals)
+    # the person stepping onto the path, several seconds ahead of the robot (beyond the stop guard's horizon)
+    k = int(np.searchsorted(s.times, 0.55 * s.times[-1]))
+    assert s.times[k] > 3.0, "precondition: a path longer than the guard's horizon"
+    body = world.sent.scene.obstacle("person_body")
+    p, q = np.r_[s.positions[k, :2], body.center[2]], body.quat
+    world.sent.sent("person_body", p, q)
+    assert world.colliding(s.positions).any(), "precondition: the pose blocks the published path"
+    t0 = world.send(loop, "person_body", p, q)
+    ev = rec.wait(t0, ("trajectory", "stop"), 60.0)
+    assert ev is not None, f"neither a trajectory nor a stop: {rec.since(t0)}"
+    time.sleep(1.0)
+    for _, kind, out in rec.since(t0, ("trajectory",)):
+        bad = world.colliding(out.positions)
+        assert not bad.any(), f"a trajectory through the person: {int(bad.sum())} configurations collide"
+    if ev[1] == "stop":
+        assert same_config(ev[2][0], start, 1e-9)  # held where the robot is
+
+
+def test_a_late_splice_is_withdrawn_and_the_next_replan_starts_on_the_published_trajectory(make_loop,
+                                                                                           world_models):
+    robot, start, goals = world_models
+    loop, rec = make_loop(robot_state_timeout_s=1.0)
+    s1 = _first_trajectory(loop, rec, start, goals)
+    t_rx = rec.since(0.0, ("trajectory",))[0][0]
+    lead = 0.15  # the robot starts the trajectory this long after receiving it
+    running = threading.Event()
+    running.set()
+    sent: list = []  # (perf_counter, time along s1, q): the robot's states as the test sent them
+
+    def follow():  # the robot drives the received samples, reporting its state at 20 Hz
+        while running.is_set():
+            now = time.perf_counter()
+            tau = max(0.0, now - t_rx - lead)
+            q = at_time(s1, tau)
+            sent.append((now, tau, q))
+            loop.robot_state(q)
+            time.sleep(0.05)
+
+    th = threading.Thread(target=follow, daemon=True)
+    th.start()
+    try:
+        assert s1.times[-1] > 8.0, "precondition: a trajectory long enough to replan along"
+        while not sent or sent[-1][1] < 1.0:  # well under way
+            time.sleep(0.05)
+        orig = loop.rp.replan
+        slept: list = []
+
+        def slow(*a, **k):  # a replan that takes longer than its commitment: ready after the splice instant
+            res = orig(*a, **k)
+            if res.success and res.committed_s > 0:
+                slept.append(res.committed_s + 0.3)
+                time.sleep(res.committed_s + 0.3)
+            return res
+
+        loop.rp.replan = slow
+        t0 = time.perf_counter()
+        ok, message = loop.request("plan", 60.0)
+        loop.rp.replan = orig
+        assert slept, "precondition: the replan was spliced (the robot followed the trajectory)"
+        late = [out for _, kind, out in rec.since(t0, ("info",)) if out.get("failure") == "late_splice"]
+        assert not ok and late, f"no late splice: {message}"
+        assert not rec.since(t0, ("trajectory", "stop")), "a late splice reached the robot"
+
+        t1 = time.perf_counter()
+        tau_robot = [e[1] for e in sent if e[0] <= t1][-1]
+        ok, message = loop.request("plan", 60.0)
+        ev = rec.wait(t1, ("trajectory", "stop"), 5.0)
+        assert ok and ev is not None and ev[1] == "trajectory", message
+        s2 = ev[2]
+        d, tau = time_on(s1, s2.positions[0])
+        assert d < 1e-3, f"the replan starts {d:.4f} off the published trajectory"
+        assert abs(tau - tau_robot) < 0.5, f"it starts at {tau:.2f} s along it, the robot was at {tau_robot:.2f} s"
+        # and repeats it at least to the shortest commitment (commit_horizon_min_s) before it turns off
+        on = [time_on(s1, q) for q in s2.positions[s2.times <= 0.25]]
+        assert len(on) >= 2 and max(x[0] for x in on) < 1e-3, on
+        assert np.all(np.diff([x[1] for x in on]) >= 0), on
+    finally:
+        running.clear()
+        th.join(2.0)
+
+
+def test_the_stop_guard_stops_at_once_for_a_pose_inside_the_next_second(make_loop, world, world_models):
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    s = _first_trajectory(loop, rec, start, goals)
+    time.sleep(0.5)
+    body = world.sent.scene.obstacle("person_body")
+    # a pose off the path first: no stop (the guard stops only for what blocks the path)
+    assert not world.colliding(s.positions).any()
+    t_off = world.send(loop, "person_body", body.center, body.quat)
+    assert not rec.since(t_off, ("stop",))
+    # then onto the path within its next second (the robot stands at the start: the first second from time 0)
+    first = s.times <= 1.0
+    k = int(np.argmax(np.where(first, np.hypot(*(s.positions[:, :2] - start[:2]).T), -1.0)))
+    p = np.r_[s.positions[k, :2] + 0.25 * np.array([np.cos(s.positions[k, 2]), np.sin(s.positions[k, 2])]),
+              body.center[2]]
+    world.sent.sent("person_body", p, body.quat)
+    assert world.colliding(s.positions[first]).any(), "precondition: the pose blocks the next second of the path"
+    t0 = world.send(loop, "person_body", p, body.quat)
+    got = rec.since(t0)  # what the loop had output when obstacle_pose returned
+    assert got and got[0][1] == "stop", f"no stop at once: {got}"
+    assert same_config(got[0][2][0], start, 1e-9)  # held where the robot is
+    assert not [e for e in got if e[1] == "trajectory"]
