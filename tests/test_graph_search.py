@@ -102,15 +102,22 @@ weight_st = st.one_of(st.just(0.0), st.floats(0.0, 10.0, allow_nan=False), st.sa
 
 
 @st.composite
-def random_graphs(draw: Any) -> dict[str, Any]:
-    """Random roadmap: random size, possibly disconnected, zero weights, removed edges/nodes, multiple goals."""
+def random_graphs(draw: Any, positive: bool = False) -> dict[str, Any]:
+    """Random roadmap: random size, possibly disconnected, zero weights (unless ``positive``), removed edges/nodes,
+    multiple goals."""
     n = draw(st.integers(1, 28))
     max_e = n * (n - 1) // 2
     pairs = draw(
         st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=min(max_e * 2, 90))
     )
     pairs = [(a, b) for a, b in pairs if a != b]
-    weights = draw(st.lists(weight_st, min_size=len(pairs), max_size=len(pairs)))
+    if positive:  # strictly positive weights in [lo, lo * spread]: c_min > 0, so the hop heuristic (hops * c_min,
+        # Eq. 3) is not identically 0, and nearly uniform weights (small spread) make it tight
+        lo = draw(st.floats(0.25, 2.0))
+        spread = draw(st.sampled_from([1.0, 1.1, 1.5, 3.0, 10.0]))
+        weights = draw(st.lists(st.floats(lo, lo * spread), min_size=len(pairs), max_size=len(pairs)))
+    else:
+        weights = draw(st.lists(weight_st, min_size=len(pairs), max_size=len(pairs)))
     g = Roadmap.from_edges(n, np.asarray(pairs, dtype=np.int64).reshape(-1, 2), np.asarray(weights, dtype=float))
     if g.n_edges and draw(st.booleans()):
         g.remove_edges(draw(st.lists(st.integers(0, g.n_edges - 1), max_size=5)))
@@ -123,8 +130,9 @@ def random_graphs(draw: Any) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------------- property tests
 @SETTINGS
-@given(random_graphs())
+@given(random_graphs(positive=True))
 def test_astar_hop_matches_dijkstra(case: dict[str, Any]) -> None:
+    """Positive weights: the hop heuristic hops * c_min is nonzero away from the goals, so A* prunes."""
     g, start, goals = case["g"], case["start"], case["goals"]
     valid_goals = [q for q in goals if g.node_valid[q]]
     res = astar(g, start, goals, heuristic="hop")
@@ -132,6 +140,8 @@ def test_astar_hop_matches_dijkstra(case: dict[str, Any]) -> None:
         assert not res.success and res.reason
         return
     ref = reference_dijkstra(g.n_nodes, valid_edge_list(g), valid_goals)[start]
+    if math.isfinite(ref) and ref > 0:  # precondition: the heuristic is informative at the start
+        assert hop_heuristic(g, valid_goals)[start] > 0
     sp_dist, sp_parent = dijkstra(g, valid_goals)
     if math.isinf(ref):
         assert not res.success and "reachable" in res.reason and res.path == [] and math.isinf(res.cost)
@@ -657,3 +667,129 @@ def test_motion_heuristic_is_consistent_and_astar_optimal(case: dict[str, Any]) 
             lazy = lazy_astar(low, case["start"], case["goals"],
                               lambda ids, path: EdgeCheck(weights={int(i): true_w[int(i)] for i in ids}), heuristic=h)
             assert lazy.success and abs(lazy.cost - ref) <= 1e-9 * max(1.0, ref)
+
+
+@st.composite
+def euclidean_graphs(draw: Any) -> dict[str, Any]:
+    """Random points in the plane joined by edges weighing at least their length (a detour factor in [1, 3]), so the
+    Euclidean distance to the nearest goal is an admissible, consistent and nonzero heuristic; removed edges, a
+    start and a few goals."""
+    n = draw(st.integers(2, 30))
+    xy = np.asarray(draw(st.lists(st.tuples(st.floats(0, 10), st.floats(0, 10)), min_size=n, max_size=n)), float)
+    # each point joined to its k nearest (a roadmap's neighbourhood), plus random long edges
+    k = draw(st.integers(2, 5))
+    d = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    near = np.argsort(d, axis=1, kind="stable")[:, 1: k + 1]
+    pairs = [(i, int(j)) for i in range(n) for j in near[i]]
+    pairs += draw(st.lists(st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), max_size=10))
+    pairs = sorted({(min(a, b), max(a, b)) for a, b in pairs if a != b})
+    stretch = np.asarray(draw(st.lists(st.floats(1.0, 1.5), min_size=len(pairs), max_size=len(pairs))), float)
+    e = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    w = np.linalg.norm(xy[e[:, 0]] - xy[e[:, 1]], axis=1) * stretch + 1e-3  # >= the straight-line distance
+    g = Roadmap.from_edges(n, e, w)
+    if g.n_edges and draw(st.booleans()):
+        g.remove_edges(draw(st.lists(st.integers(0, g.n_edges - 1), max_size=4)))
+    start = draw(st.integers(0, n - 1))
+    goals = sorted(set(draw(st.lists(st.integers(0, n - 1), min_size=1, max_size=3))))
+    return {"g": g, "xy": xy, "start": start, "goals": goals}
+
+
+@SETTINGS
+@BACKENDS
+@given(euclidean_graphs())
+def test_astar_with_euclidean_heuristic_prunes_and_matches_dijkstra(compiled: bool, case: dict[str, Any]) -> None:
+    """A* with a nonzero admissible, consistent heuristic (Euclidean distance to the nearest goal, the test's own)
+    returns a valid path of the reference Dijkstra's cost, and expands only nodes with d(start, n) + h(n) <= C*
+    (a consistent heuristic's bound: a search that ignored the heuristic would expand every node with
+    d(start, n) <= C*)."""
+    g, xy, start, goals = case["g"], case["xy"], case["start"], case["goals"]
+    h = np.min(np.linalg.norm(xy[:, None] - xy[goals][None], axis=-1), axis=1)
+    edges = valid_edge_list(g)
+    for u, v, x in edges:  # consistency of the test's heuristic on every edge (a precondition)
+        assert h[u] <= x + h[v] + 1e-9 and h[v] <= x + h[u] + 1e-9
+    ref = reference_dijkstra(g.n_nodes, edges, goals)[start]
+    with backend(compiled):
+        res = astar(g, start, goals, heuristic=h)
+        plain = astar(g, start, goals, heuristic="zero")
+    if math.isinf(ref):
+        assert not res.success
+        return
+    assert_valid_path(g, res, start, set(goals))
+    assert abs(res.cost - ref) <= 1e-9 * max(1.0, ref)
+    if h[start] == 0:  # the start is a goal or lies on one
+        return
+    from_start = reference_dijkstra(g.n_nodes, edges, [start])
+    tol = 1e-9 * max(1.0, ref)
+    bound = sum(d + h[q] <= ref + tol for q, d in enumerate(from_start))
+    assert 1 <= res.expanded <= bound
+    assert res.expanded <= plain.expanded + 1
+
+
+@BACKENDS
+def test_astar_with_euclidean_heuristic_expands_fewer_nodes_than_dijkstra(compiled: bool) -> None:
+    """On a 21 x 21 grid (unit spacing, weights in [1, 1.2]) from its centre to a corner, the Euclidean heuristic
+    confines A* to the nodes with d(start, n) + h(n) <= C* (the test's reference), well under half of what
+    Dijkstra expands."""
+    m = 21
+    xy = np.asarray([(i, j) for i in range(m) for j in range(m)], float)
+    pairs = [(i * m + j, i * m + j + 1) for i in range(m) for j in range(m - 1)]
+    pairs += [(i * m + j, (i + 1) * m + j) for i in range(m - 1) for j in range(m)]
+    w = np.random.default_rng(0).uniform(1.0, 1.2, len(pairs))
+    g = Roadmap.from_edges(m * m, np.asarray(pairs, dtype=np.int64), w)
+    start, goal = (m // 2) * m + m // 2, m * m - 1
+    h = np.linalg.norm(xy - xy[goal], axis=1)
+    edges = valid_edge_list(g)
+    ref = reference_dijkstra(g.n_nodes, edges, [goal])[start]
+    from_start = reference_dijkstra(g.n_nodes, edges, [start])
+    bound = sum(d + h[q] <= ref + 1e-9 for q, d in enumerate(from_start))
+    ball = sum(d <= ref + 1e-9 for d in from_start)
+    assert bound < 0.5 * ball  # precondition: the heuristic can prune
+    with backend(compiled):
+        res = astar(g, start, [goal], heuristic=h)
+        plain = astar(g, start, [goal], heuristic="zero")
+    assert abs(res.cost - ref) <= 1e-9 * ref and abs(plain.cost - ref) <= 1e-9 * ref
+    assert res.expanded <= bound < 0.5 * plain.expanded
+
+
+# ---------------------------------------------------------------------------- the planner's search on a real roadmap
+@pytest.mark.parametrize("objective", ["motion", "eq2"])  # auto heuristic: distance (motion), hop + hop table (eq2)
+def test_planner_route_is_the_reference_shortest_path_on_a_real_roadmap(home_tv_planner, objective) -> None:
+    """PS-PRM's query (its own heuristic, lazy collision checks, the hop table) returns, between two roadmap nodes,
+    a route whose cost is the textbook Dijkstra optimum over the roadmap's own edge weights.
+
+    Start and goal are the configurations of two roadmap nodes far apart, with ``connect_k = 1``: each end connects
+    only to its own roadmap node (a zero-length motion), and no direct start-goal motion is tried, so the route's
+    interior is a roadmap path between those nodes; its cost, summed by the test from the edge list, must equal the
+    reference search over that edge list (read after the query: the lazy checks' verified weights and removed edges
+    included)."""
+    _, _, planner, _, _, _ = home_tv_planner(n_nodes=400, seed=3, objective=objective, connect_k=1, shortcut=False)
+    g = planner.graph
+    ids = np.asarray(planner.roadmap_node_ids())
+    rng = np.random.default_rng(0)
+    checked = 0
+    for _ in range(40):
+        a, b = (int(x) for x in rng.choice(ids, 2, replace=False))
+        if np.linalg.norm(g.configs[a, :2] - g.configs[b, :2]) < 4.5:  # more than 2 max_edge_length apart
+            continue
+        res = planner.plan(g.configs[a], g.configs[b][None], timing=False)
+        # the reference: every valid roadmap edge of finite weight, after the query
+        rm = set(ids.tolist())
+        w = np.asarray(g.weights)
+        edges = [(int(u), int(v), float(w[e])) for e, u, v in zip(range(g.n_edges), g.edge_u, g.edge_v)
+                 if g.edge_valid[e] and math.isfinite(w[e]) and int(u) in rm and int(v) in rm]
+        ref = reference_dijkstra(g.n_nodes, edges, [b])[a]
+        if not math.isfinite(ref):
+            assert not res.success
+            continue
+        assert res.success, res.reason
+        interior = [int(n) for n in res.path_nodes[1:-1]]
+        assert interior[0] == a and interior[-1] == b, res.path_nodes
+        lookup = {(min(u, v), max(u, v)): x for u, v, x in edges}
+        cost = sum(lookup[(min(u, v), max(u, v))] for u, v in zip(interior[:-1], interior[1:]))
+        assert abs(cost - ref) <= 1e-6 * max(1.0, ref), (a, b, cost, ref)
+        if objective == "motion":  # zero-length connections weigh 0: the reported cost is the route's
+            assert abs(res.cost - ref) <= 1e-6 * max(1.0, ref)
+        # the route is long enough for the heuristic to prune (more than one roadmap hop)
+        assert len(interior) >= 3
+        checked += 1
+    assert checked >= 8

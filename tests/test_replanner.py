@@ -25,6 +25,7 @@ from psprm_core.planning.replanner import Replanner, ReplanSettings
 from psprm_core.planning.results import Failure
 from psprm_core.scene import load_scene
 
+from psprm_core.evaluation.reference import PybulletWorld
 from judges import Judge, SentPoses, limit_ratios, same_config, wrap  # noqa: E402
 
 N_NODES = 500
@@ -172,10 +173,35 @@ def test_lazy_rescore_verifies_the_path_edges(replanner, world):
     g = p.graph
     path_edges = g.edge_ids_of_path(res.path_nodes)
     assert (g.edge_attribute("verified")[path_edges] == 1.0).all()
-    # the lazily verified c_p equals the Eq. 1 mean computed from scratch under the new target pose
-    knots, interior = p.edge_knots(p.ctx.t(g.configs[g.edge_u[path_edges]]), p.ctx.t(g.configs[g.edge_v[path_edges]]))
-    fresh = p.pipeline.scoring.knots_perception(knots, interior).double().numpy()
-    assert np.allclose(g.edge_attribute("c_p")[path_edges], fresh, atol=1e-4)
+    # the lazily verified c_p of every path edge equals Eq. 1 computed by the test: its knots' camera poses from
+    # pybullet's FK, scored by a scorer the test builds on the scene file with the target pose it sent, normalised
+    # by the 99th percentile of the roadmap nodes' scores under the file's own target pose (as built)
+    sent = SentPoses("dynamic_person")
+    world = PybulletWorld(robot, [])
+    try:
+        def test_scores(scene_, qs):
+            cams = torch.as_tensor(np.stack([world.camera_pose(q) for q in np.asarray(qs, float)]))
+            return GeometricScorer(scene_, "person_face", robot.config.intrinsics).score(cams).double().numpy()
+
+        nodes = p.roadmap_node_ids()
+        built = test_scores(sent.scene, g.configs[nodes])
+        scale = 1.0 / max(float(np.quantile(built, 0.99)), 1e-3)
+        moved = sent.scene.with_target_pose("person_face", *pp["target"])
+        knots, interior = p.pipeline.edges.stored_knots(path_edges)
+        knots, interior = knots.double().cpu().numpy(), interior.cpu().numpy()
+        expect, before = [], []
+        for e, kn, idx in zip(path_edges, knots, interior):  # both ends and the N interior samples (Eq. 1)
+            assert same_config(kn[0], g.configs[g.edge_u[e]]) and same_config(kn[-1], g.configs[g.edge_v[e]])
+            pts = np.vstack([kn[:1], kn[idx], kn[-1:]])
+            expect.append(np.clip(test_scores(moved, pts) * scale, 0.0, 1.0).mean())
+            before.append(np.clip(test_scores(sent.scene, pts) * scale, 0.0, 1.0).mean())
+    finally:
+        world.close()
+    expect, before = np.asarray(expect), np.asarray(before)
+    c_p = g.edge_attribute("c_p")[path_edges]
+    assert np.allclose(c_p, expect, atol=2e-3), np.abs(c_p - expect).max()
+    # precondition: the target's move changed the path's Eq. 1 scores (a c_p left stale would be caught)
+    assert np.abs(before - expect).max() > 0.05
     # most of the roadmap was NOT scored in full: the lazy update touched edges only with endpoint estimates
     assert (g.edge_attribute("verified")[p.roadmap_edge_ids()] == 0.0).mean() > 0.5
 
@@ -187,14 +213,27 @@ def test_obstacle_update_prunes_exactly_the_colliding_nodes(replanner, world):
     before = set(p.roadmap_node_ids().tolist())
     # drop the table in the middle of the roadmap's densest region
     xy = np.median(p.graph.configs[p.roadmap_node_ids(), :2], axis=0)
+    ids = np.asarray(sorted(before))
+    configs = p.graph.configs[ids].copy()  # the nodes' configurations, taken before the update
+    sent = SentPoses("dynamic_person")
     assert rp.update_obstacle("table", [xy[0], xy[1], 0.375])
+    sent.sent("table", [xy[0], xy[1], 0.375], sent.scene.obstacle("table").quat)  # update_obstacle keeps the yaw
     after = set(p.roadmap_node_ids().tolist())
     removed = before - after
     assert removed, "a table dropped among the nodes must remove some"
-    ids = np.asarray(sorted(before))
-    truth = CollisionChecker(robot, rp.scene.collision_boxes(), workspace=scene.workspace).check(
-        torch.as_tensor(p.graph.configs[ids], dtype=torch.float32)).numpy()
+    # judged from the test's own record of the poses it sent (the scene file with the table where the test put it):
+    # a box-model checker built afresh from it flags exactly the removed nodes, and pybullet finds no collision among
+    # the kept ones
+    truth = CollisionChecker(robot, sent.boxes(), workspace=sent.scene.workspace).check(
+        torch.as_tensor(configs, dtype=torch.float32)).numpy()
     assert set(ids[truth].tolist()) == removed
+    world = PybulletWorld(robot, sent.boxes())
+    try:
+        exact = world.in_collision(configs)
+    finally:
+        world.close()
+    assert exact.any()  # the table really hits some nodes (precondition)
+    assert not (exact & ~np.isin(ids, list(removed))).any(), "a node pybullet finds colliding was kept"
 
 
 def test_path_collision_trigger_and_replan_avoid_a_box_dropped_on_the_path(replanner, world):
