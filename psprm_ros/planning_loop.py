@@ -33,6 +33,8 @@ P = core.Param
 #: a spliced trajectory reaches the robot this long after the loop is done with it (publication, the adapter's
 #: checks) at most, on top of the age of the robot state the splice was measured from
 SPLICE_DELIVERY_S = 0.25
+# the robot states a braking base's speed is measured over (s)
+REST_VELOCITY_SPAN_S = 0.1
 #: the adapter starts a trajectory that does not continue the one under way this long after its publication (s)
 ADAPTER_LEAD_S = 0.15
 #: the parameters the loop reads (the roadmap server declares them; live ones are read at each use)
@@ -222,8 +224,8 @@ class PlanningLoop:
     # ------------------------------------------------------------------------------------------------ inputs
     @staticmethod
     def _empty_pending() -> dict:
-        return {"targets": {}, "obstacles": {}, "robot": None, "goals": None, "t_first": None, "stamp": None,
-                "guard": None, "target_stamps": {}}
+        return {"targets": {}, "obstacles": {}, "robot": None, "robot_t": None, "goals": None, "t_first": None,
+                "stamp": None, "guard": None, "target_stamps": {}}
 
     def target_pose(self, name: str, p: np.ndarray, q: np.ndarray, stamp: float,
                     received: Optional[float] = None) -> None:
@@ -257,7 +259,7 @@ class PlanningLoop:
         """The measured robot configuration (every planning joint, the base pose included)."""
         with self._lock:
             self._pending["robot"] = np.asarray(q, float)
-            self._robot_rx = time.monotonic()
+            self._robot_rx = self._pending["robot_t"] = time.monotonic()
         self._wake.set()
 
     def goals(self, G: np.ndarray) -> None:
@@ -532,7 +534,8 @@ class PlanningLoop:
         try:
             if pend["robot"] is not None:
                 now_q = time.monotonic()
-                self._q_hist.append((now_q, pend["robot"].copy()))
+                # at the state's receipt (the worker may take it a planning cycle later)
+                self._q_hist.append((pend["robot_t"] or now_q, pend["robot"].copy()))
                 while len(self._q_hist) > 2 and now_q - self._q_hist[1][0] >= 0.3:
                     self._q_hist.popleft()
                 q_now = pend["robot"]
@@ -621,8 +624,7 @@ class PlanningLoop:
         cur = self.current
         res = None if cur is None else cur.get("result")
         traj = None if res is None else res.trajectory
-        # the replanner's plan must be the trajectory under way; compared by trajectory: a withdrawn replan puts back
-        # a copy of the plan it replaced (the same trajectory object)
+        # the replanner's plan must be the trajectory under way (a replan not handed to the robot is withdrawn)
         held = None if self.rp is None or self.rp.result is None else self.rp.result.trajectory
         if traj is None or held is not traj:
             self._along = None
@@ -651,23 +653,32 @@ class PlanningLoop:
         return t
 
     def _rest_point(self, q: np.ndarray) -> np.ndarray:
-        """Where a mobile base moving at the velocity of its last robot states (at least 0.1 s apart) comes to rest
-        braking at the robot config's base accelerations (:func:`psprm_ros.adapters.braking_configurations`); ``q``
-        itself for a fixed base or a base at rest."""
+        """Where a mobile base moving at the velocity of its newest robot states (the newest and the newest one at
+        least ``REST_VELOCITY_SPAN_S`` older) comes to rest braking at the robot config's base accelerations
+        (:func:`psprm_ros.adapters.braking_configurations`); ``q`` itself for a fixed base or a base at rest. A base
+        braking from a stop slows all the while: the speed over the span is its speed at the span's middle, so it is
+        brought forward to the newest state at the braking deceleration (a longer average would overstate the speed
+        and put the rest point beyond where the base stops)."""
         from .adapters import braking_configurations
         from .base_follower import Limits
 
-        h = self._q_hist
-        if not self.robot.mobile or len(h) < 2 or h[-1][0] - h[0][0] < 0.1:
+        h = list(self._q_hist)
+        if not self.robot.mobile or len(h) < 2:
             return q
-        dt = h[-1][0] - h[0][0]
-        a, b = h[0][1], h[-1][1]
+        older = [e for e in h[:-1] if h[-1][0] - e[0] >= REST_VELOCITY_SPAN_S]
+        if not older:
+            return q
+        (ta, a), (tb, b) = older[-1], h[-1]
+        dt = tb - ta
         th = 0.5 * (a[2] + b[2])
         v = ((b[0] - a[0]) * np.cos(th) + (b[1] - a[1]) * np.sin(th)) / dt
         w = float((b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi) / dt
         if abs(v) < 0.02 and abs(w) < 0.05:
             return q
-        return braking_configurations(q, (v, w), Limits.for_robot(self.robot))[-1]
+        lim = Limits.for_robot(self.robot)
+        v = np.sign(v) * max(0.0, abs(v) - 0.5 * dt * lim.linear_acceleration)
+        w = np.sign(w) * max(0.0, abs(w) - 0.5 * dt * lim.angular_acceleration)
+        return braking_configurations(q, (v, w), lim)[-1]
 
     def _measured_speed(self) -> float:
         """How fast the robot moved over its last robot states (the largest joint speed over its velocity limit; a

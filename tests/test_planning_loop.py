@@ -301,3 +301,33 @@ def test_the_stop_guard_stops_at_once_for_a_pose_inside_the_next_second(make_loo
     assert got and got[0][1] == "stop", f"no stop at once: {got}"
     assert same_config(got[0][2][0], start, 1e-9)  # held where the robot is
     assert not [e for e in got if e[1] == "trajectory"]
+
+
+def test_a_plan_for_a_braking_base_starts_where_it_comes_to_rest(make_loop, world_models):
+    """Robot states of a base that drove straight at 0.3 m/s and brakes (no trajectory under way, as after a stop):
+    the plan starts where the test's own uniform-deceleration kinematics bring it to rest, within 1 cm."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    a = float(robot.config.base.linear_acceleration)
+    v0, t_brake, t_end, dt = 0.3, 0.2, 0.38, 0.02
+    heading = np.array([np.cos(start[2]), np.sin(start[2])])
+
+    def travelled(t: float) -> float:
+        if t <= t_brake:
+            return v0 * t
+        tb = min(t - t_brake, v0 / a)
+        return v0 * t_brake + v0 * tb - 0.5 * a * tb * tb
+
+    t_run = time.monotonic()
+    for k in range(int(round(t_end / dt)) + 1):  # the states at the times the test sends them
+        time.sleep(max(0.0, t_run + k * dt - time.monotonic()))
+        q = start.copy()
+        q[:2] += travelled(time.monotonic() - t_run) * heading
+        loop.robot_state(q)
+    t_last = time.monotonic() - t_run
+    v_last = v0 - a * (t_last - t_brake)
+    assert 0.1 < v_last < v0  # precondition: still braking at the last state
+    rest = start[:2] + (travelled(t_last) + v_last ** 2 / (2 * a)) * heading
+    s = _first_trajectory(loop, rec, q, goals)
+    err = float(np.hypot(*(s.positions[0, :2] - rest)))
+    assert err < 0.01, (s.positions[0, :2], rest, err)
