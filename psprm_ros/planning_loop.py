@@ -613,6 +613,13 @@ class PlanningLoop:
         return ""
 
     # ------------------------------------------------------------------------------------------------ the robot's motion
+    def _commits_to_the_end(self, res) -> bool:
+        """Whether the spliced ``res`` keeps the whole rest of the trajectory under way (its commitment ends where
+        that trajectory ends, at rest)."""
+        cur = self.current
+        old = None if cur is None or cur.get("result") is None else cur["result"].trajectory
+        return old is not None and res.start_offset_s + res.committed_s >= float(old.duration) - 1e-6
+
     def _time_along(self, q: np.ndarray) -> Optional[float]:
         """Where the robot is along the trajectory under way (s from its start; its configuration nearest the
         measured ``q``, searched forward from the last estimate), or None: no trajectory under way, it has ended, or
@@ -749,7 +756,10 @@ class PlanningLoop:
             self._take_fresh_obstacles()
             unsafe = self._unsafe(samples.positions)
             info.update(msg_ms=_f((t2 - t1) * 1e3), check_ms=_f((time.perf_counter() - t2) * 1e3))
-            late = info["spliced"] and time.perf_counter() - t0 + SPLICE_DELIVERY_S > res.committed_s
+            # a splice the robot may pass before it arrives; not one committed to the end of the trajectory under
+            # way: the robot rests there, and the plan starts from that rest whenever it arrives
+            late = (info["spliced"] and not self._commits_to_the_end(res)
+                    and time.perf_counter() - t0 + SPLICE_DELIVERY_S > res.committed_s)
             if unsafe or late:
                 # not handed to the robot: the replanner goes back to the trajectory the robot executes, so that the
                 # next replan commits along that one

@@ -331,3 +331,46 @@ def test_a_plan_for_a_braking_base_starts_where_it_comes_to_rest(make_loop, worl
     s = _first_trajectory(loop, rec, q, goals)
     err = float(np.hypot(*(s.positions[0, :2] - rest)))
     assert err < 0.01, (s.positions[0, :2], rest, err)
+
+
+def test_a_robot_resting_at_the_end_of_its_trajectory_takes_the_next_goal(make_loop, world, world_models):
+    """A robot that has driven its trajectory to the end and rests there: a new goal gives a trajectory from where it
+    rests (the commitment, at most the rest of the old trajectory, is never "too late" for a robot that waits at its
+    end), judged from the states the test sent and the samples it received."""
+    robot, start, goals = world_models
+    loop, rec = make_loop(robot_state_timeout_s=1.0)
+    near = start.copy()
+    near[:2] += 0.5 * np.array([np.cos(start[2]), np.sin(start[2])])
+    assert not world.colliding(np.stack([start, near])).any()  # precondition: a short free drive
+    s1 = _first_trajectory(loop, rec, start, near[None])
+    t_rx = rec.since(0.0, ("trajectory",))[0][0]
+    T = float(s1.times[-1])
+    assert T < 8.0, "precondition: a short trajectory"
+    running = threading.Event()
+    running.set()
+    sent: list = []
+
+    def follow():  # the robot drives the received samples and rests at their end, reporting at 20 Hz
+        while running.is_set():
+            tau = max(0.0, time.perf_counter() - t_rx - 0.15)
+            q = at_time(s1, tau)
+            sent.append((tau, q))
+            loop.robot_state(q)
+            time.sleep(0.05)
+
+    th = threading.Thread(target=follow, daemon=True)
+    th.start()
+    try:
+        while not sent or sent[-1][0] < T + 0.5:
+            time.sleep(0.05)
+        t0 = time.perf_counter()
+        loop.goals(goals)
+        ev = rec.wait(t0, ("trajectory", "stop"), 15.0)
+        late = [out for _, kind, out in rec.since(t0, ("info",)) if out.get("failure") == "late_splice"]
+        assert ev is not None and ev[1] == "trajectory", f"no trajectory for the next goal ({len(late)} late splices)"
+        s2 = ev[2]
+        assert same_config(s2.positions[0], s1.positions[-1], 1e-3), (s2.positions[0], s1.positions[-1])
+        assert min(np.hypot(*(s2.positions[-1, :2] - g[:2])) for g in goals) < 0.05
+    finally:
+        running.clear()
+        th.join(2.0)
