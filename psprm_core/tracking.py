@@ -99,6 +99,25 @@ class CheckedPath:
         return np.array([np.linalg.norm(self.corners(lo[i], hi[i]) - A[i][None], axis=2).max(axis=1).min()
                          for i in range(len(A))])
 
+    def path_distances(self, Q, taus, window_s: float = 2.0, refine: int = 16) -> np.ndarray:
+        """Distances (N,) of configurations ``Q`` (N, dof) from the path itself, linear between its sampled
+        configurations, within ``window_s`` of the times ``taus``: the nearest sample (as :meth:`deviations`), then
+        the two segments beside it, each sampled ``refine`` times. Not conservative, unlike :meth:`deviations`: for
+        recognising a trajectory that continues this one, where the sample spacing (a few cm at speed) would hide a
+        match."""
+        Q = np.asarray(Q, float).reshape(-1, self.robot.dof)
+        A = element_corners(self.robot, Q).astype(np.float32)
+        lo, hi = self._windows(taus, window_s)
+        f = np.linspace(0.0, 1.0, int(refine) + 1)[:, None]
+        out = np.empty(len(Q))
+        for i in range(len(Q)):
+            d = np.linalg.norm(self.corners(lo[i], hi[i]) - A[i][None], axis=2).max(axis=1)
+            k = lo[i] + int(np.argmin(d))
+            a, b = max(k - 1, 0), min(k + 1, len(self.ts) - 1)
+            seg = np.concatenate([self.Q[a] + f * (self.Q[k] - self.Q[a]), self.Q[k] + f * (self.Q[b] - self.Q[k])])
+            out[i] = min(float(d.min()), float(displacement(self.robot, Q[i], seg).min()))
+        return out
+
     def deviation(self, q, tau: float, window_s: float = 2.0) -> tuple:
         """(distance, time): the smallest displacement (:func:`displacement`) of the configuration ``q`` from the
         path's sampled configurations within ``window_s`` of time ``tau`` (clamped to the path), and the time of

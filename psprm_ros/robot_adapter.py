@@ -693,7 +693,7 @@ class RobotAdapter:
         w = self.p["path_window_s"]
         ts = np.linspace(0.0, min(SPLICE_CHECK_S, float(t[-1])), 6)
         X = np.stack([np.interp(ts, t, P[:, j]) for j in range(P.shape[1])], 1)
-        off = float(cur.deviations(X, tau + ts, w).max())
+        off = float(cur.path_distances(X, tau + ts, w).max())
         if off > SPLICE_TOL_M:
             return None, f"its first {ts[-1]:.1f} s lie {off:.3f} m from it (splice tolerance {SPLICE_TOL_M:g} m)"
         return cur.deviation(q, tau, w)[0], ""

@@ -103,3 +103,35 @@ def test_deviation_finds_the_path_within_its_window_and_measures_a_sideways_offs
     q[1] += 0.03
     d, _ = path.deviation(q, 4.0, window_s=1.0)
     assert abs(d - 0.03) < 1e-5
+
+
+def test_path_distances_measure_from_the_path_between_its_samples(load_robot):
+    """A base turning at 1 rad/s while it drives, sampled every 0.05 s: configurations the test puts between two
+    samples (its own linear interpolation of the path) are on the path (within what 16 steps per segment leave),
+    while their nearest sample is centimetres away; configurations 2 cm to the side are as far from the path as the
+    test's brute force over the path sampled every 0.5 ms says."""
+    robot = load_robot("stretch2")
+    q0 = robot.default_configuration()
+    q0[:3] = [2.0, 2.0, 0.0]
+    t = np.linspace(0.0, 4.0, 41)  # the trajectory's points, 0.1 s apart
+    P = np.repeat(q0[None], len(t), 0)
+    P[:, 0] += 0.3 * t
+    P[:, 2] += 1.0 * t
+    path = CheckedPath(robot, t, P, step_s=0.05)
+    taus = np.array([1.025, 2.025, 3.025])  # halfway between two samples
+    Q = np.stack([np.interp(taus, t, P[:, j]) for j in range(robot.dof)], 1)
+    nearest = path.deviations(Q, taus, window_s=0.5)
+    assert nearest.min() > 0.01, nearest  # precondition: the samples are centimetres apart at this speed
+    on = path.path_distances(Q, taus, window_s=0.5)
+    spacing = displacement(robot, P[10], P[11][None])[0] / 2  # the samples' spacing: two per 0.1 s
+    assert np.all(on <= spacing / 16 + 1e-6), (on, spacing)
+    side = Q.copy()
+    side[:, 0] -= 0.02 * np.sin(side[:, 2])
+    side[:, 1] += 0.02 * np.cos(side[:, 2])
+    got = path.path_distances(side, taus, window_s=0.5)
+    for i in range(len(taus)):
+        fine = np.arange(taus[i] - 0.5, taus[i] + 0.5, 5e-4)
+        dense = np.stack([np.interp(fine, t, P[:, j]) for j in range(robot.dof)], 1)
+        ref = displacement(robot, side[i], dense).min()
+        assert ref > 0.01  # precondition: off the path
+        assert abs(got[i] - ref) < spacing / 16 + 1e-4, (got[i], ref)
