@@ -203,6 +203,90 @@ def install_param_callback(node, spec: dict, values: dict, apply) -> None:
 
 
 # ---------------------------------------------------------------------------------------------------------- scene
+class _SpecWhileUnconfigured(dict):
+    """A node's parameter spec as :func:`install_param_callback` sees it: while the node is unconfigured every
+    parameter may be set (a configure reads them all), once configured only the ``live`` ones are applied and the
+    others are refused with their reason (read when the node is configured / needs a rebuild)."""
+
+    def __init__(self, spec: dict, node):
+        super().__init__(spec)
+        self._node = node
+
+    def get(self, name, default=None):
+        item = super().get(name, default)
+        if item is None or lifecycle_state(self._node) != "unconfigured":
+            return item
+        p = item if isinstance(item, Param) else Param(item)
+        return dataclasses.replace(p, live=True)
+
+
+def declare_reconfigurable_params(node, spec: dict, apply) -> dict:
+    """Declare ``spec`` on a lifecycle node that reads its parameters at configure and return their values (the
+    dict is kept up to date by the set-parameters callback, which hands accepted changes to ``apply(name, value)``).
+
+    Set while the node is unconfigured (before its first configure, or after a cleanup), any of them is taken and
+    used by the next configure; that is why the ``rebuild`` ones are not declared read-only here. While the node is
+    configured (inactive or active), live ones are applied and the others are refused with the reason."""
+    declared = {k: dataclasses.replace(v, rebuild=False) if isinstance(v, Param) else v for k, v in spec.items()}
+    values = declare_params(node, declared)
+    install_param_callback(node, _SpecWhileUnconfigured(spec, node), values, apply)
+    return values
+
+
+def load_configured_scene_and_robot(node, p: dict):
+    """The scene and robot model of a node's parameters ``p``, loaded at configure. A robot description the node
+    cannot use (robot_description ``topic``/``auto``) fails this configure with the reason; the next configure
+    checks the description again (the node does not refuse every later configure, as a node that loads its model
+    at construction does)."""
+    from psprm_core.errors import RobotModelError
+
+    scene, robot = load_scene_and_robot(p["scene"], p["robot"], node=node, params=p)
+    refusal = getattr(node, "configure_refusal", "")
+    if refusal:
+        node.configure_refusal = ""
+        raise RobotModelError(refusal)
+    return scene, robot
+
+
+class ConfigureScope:
+    """The subscriptions, publishers and timers a lifecycle node's configure makes, destroyed together by its cleanup
+    (so that a configure after it follows changed parameters)."""
+
+    def __init__(self, node):
+        self.node = node
+        self._subs: list = []
+        self._pubs: list = []
+        self._timers: list = []
+
+    def subscription(self, *args, **kwargs):
+        s = self.node.create_subscription(*args, **kwargs)
+        self._subs.append(s)
+        return s
+
+    def publisher(self, *args, **kwargs):
+        pub = self.node.create_publisher(*args, **kwargs)
+        self._pubs.append(pub)
+        return pub
+
+    def timer(self, *args, **kwargs):
+        t = self.node.create_timer(*args, **kwargs)
+        self._timers.append(t)
+        return t
+
+    def own(self, subscriptions) -> None:
+        """Subscriptions made elsewhere (e.g. :func:`psprm_ros.tf_tree.subscribe_tf`), released with the rest."""
+        self._subs.extend(subscriptions)
+
+    def release(self) -> None:
+        for t in self._timers:
+            self.node.destroy_timer(t)
+        for s in self._subs:
+            self.node.destroy_subscription(s)
+        for pub in self._pubs:
+            self.node.destroy_publisher(pub)
+        self._subs, self._pubs, self._timers = [], [], []
+
+
 def resolve_scene(scene_name: str):
     """A scene by path, by name among psprm_core's scenes, or by name among the scenes installed with the colcon
     package (``share/psprm_ros/scenes``)."""

@@ -18,7 +18,6 @@ import numpy as np
 
 from . import conversions as cv
 from . import core
-from .replan_monitor import declare_reconfigurable_params, load_configured_scene_and_robot
 
 P = core.Param
 SCORER_PARAMS = {
@@ -51,15 +50,13 @@ class PerceptionScorer:
         self.targets: list = []
         self.obstacles: list = []
         self.pub_scores = self.pub_path = self.pub_path_scores = None
-        self._subs: list = []
-        self._pubs: list = []
-        self._timers: list = []
+        self._made = core.ConfigureScope(node)  # what configure makes, released by cleanup
         self._scene_dirty = False
         self._roadmap: Optional[np.ndarray] = None
         self._path: Optional[np.ndarray] = None
         self._rm_dirty = self._path_dirty = False
         self._last_rm = 0.0
-        self.p = declare_reconfigurable_params(node, self.spec, lambda k, v: None)
+        self.p = core.declare_reconfigurable_params(node, self.spec, lambda k, v: None)
         self.pub_status = node.create_publisher(String, "~/status", 10)
 
     # ------------------------------------------------------------------------------------------------ lifecycle
@@ -85,7 +82,7 @@ class PerceptionScorer:
 
         node, p = self.node, dict(self.p)
         torch.set_num_threads(max(1, p["torch_threads"]))
-        scene, robot = load_configured_scene_and_robot(node, p)
+        scene, robot = core.load_configured_scene_and_robot(node, p)
         targets = core.scene_targets(scene, p["targets"])
         obstacles = list(p["dynamic_obstacles"])
         for o in obstacles:
@@ -98,43 +95,29 @@ class PerceptionScorer:
             self._roadmap = self._path = None
             self._rm_dirty = self._path_dirty = False
             self._last_rm = 0.0
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_scores = self._publisher(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, latched)
-        self.pub_path = self._publisher(Float32, core.PATH_SCORE_TOPIC, 10)
-        self.pub_path_scores = self._publisher(Float32MultiArray, "~/path_scores", 10)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_scores = self._made.publisher(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, latched)
+        self.pub_path = self._made.publisher(Float32, core.PATH_SCORE_TOPIC, 10)
+        self.pub_path_scores = self._made.publisher(Float32MultiArray, "~/path_scores", 10)
         cb = MutuallyExclusiveCallbackGroup()
+        sub = self._made.subscription
         for t in targets:
-            self._subscribe(PoseStamped, core.target_topic(t), self._pose_cb("target", t), qos_profile_sensor_data,
-                            callback_group=cb)
+            sub(PoseStamped, core.target_topic(t), self._pose_cb("target", t), qos_profile_sensor_data,
+                callback_group=cb)
         for o in obstacles:
-            self._subscribe(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
-                            qos_profile_sensor_data, callback_group=cb)
-        self._subscribe(PoseArray, core.ROADMAP_CAMERAS_TOPIC, self._cams_cb("roadmap"), latched, callback_group=cb)
-        self._subscribe(PoseArray, core.PATH_CAMERAS_TOPIC, self._cams_cb("path"), latched, callback_group=cb)
+            sub(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o), qos_profile_sensor_data,
+                callback_group=cb)
+        sub(PoseArray, core.ROADMAP_CAMERAS_TOPIC, self._cams_cb("roadmap"), latched, callback_group=cb)
+        sub(PoseArray, core.PATH_CAMERAS_TOPIC, self._cams_cb("path"), latched, callback_group=cb)
         period = 1.0 / max(0.1, p["rescore_rate_hz"])
-        self._timers.append(node.create_timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup()))
+        self._made.timer(period, self._tick, callback_group=MutuallyExclusiveCallbackGroup())
         self.status(f"configured: scene {scene.name}, robot {robot.name}, {p['scorer']} scorer of "
                     f"{', '.join(targets)}" + (f"; obstacles {', '.join(obstacles)}" if obstacles else ""))
 
-    def _subscribe(self, *args, **kwargs):
-        s = self.node.create_subscription(*args, **kwargs)
-        self._subs.append(s)
-        return s
-
-    def _publisher(self, *args, **kwargs):
-        pub = self.node.create_publisher(*args, **kwargs)
-        self._pubs.append(pub)
-        return pub
-
     def _release(self) -> None:
         """Destroy the subscriptions, publishers and timer configure made and drop the models."""
-        for t in self._timers:
-            self.node.destroy_timer(t)
-        for s in self._subs:
-            self.node.destroy_subscription(s)
-        for pub in self._pubs:
-            self.node.destroy_publisher(pub)
-        self._subs, self._pubs, self._timers = [], [], []
+        self._made.release()
         with self._lock:
             self.pub_scores = self.pub_path = self.pub_path_scores = None
             self.scene = self.robot = self.scorer = self.frame = None

@@ -16,7 +16,6 @@ It reports a JSON summary on ``~/status`` once per second (plans, stops, latenci
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import threading
 import time
@@ -75,51 +74,6 @@ MONITOR_PARAMS = {
 }
 
 
-class _SpecWhileUnconfigured(dict):
-    """A node's parameter spec as :func:`core.install_param_callback` sees it: while the node is unconfigured every
-    parameter may be set (a configure reads them all), once configured only the ``live`` ones are applied and the
-    others are refused with their reason (read when the node is configured / needs a rebuild)."""
-
-    def __init__(self, spec: dict, node):
-        super().__init__(spec)
-        self._node = node
-
-    def get(self, name, default=None):
-        item = super().get(name, default)
-        if item is None or core.lifecycle_state(self._node) != "unconfigured":
-            return item
-        p = item if isinstance(item, core.Param) else core.Param(item)
-        return dataclasses.replace(p, live=True)
-
-
-def declare_reconfigurable_params(node, spec: dict, apply) -> dict:
-    """Declare ``spec`` on a lifecycle node that reads its parameters at configure and return their values (the
-    dict is kept up to date by the set-parameters callback, which hands accepted changes to ``apply(name, value)``).
-
-    Set while the node is unconfigured (before its first configure, or after a cleanup), any of them is taken and
-    used by the next configure; that is why the ``rebuild`` ones are not declared read-only here. While the node is
-    configured (inactive or active), live ones are applied and the others are refused with the reason."""
-    declared = {k: dataclasses.replace(v, rebuild=False) if isinstance(v, core.Param) else v for k, v in spec.items()}
-    values = core.declare_params(node, declared)
-    core.install_param_callback(node, _SpecWhileUnconfigured(spec, node), values, apply)
-    return values
-
-
-def load_configured_scene_and_robot(node, p: dict):
-    """The scene and robot model of a node's parameters ``p``, loaded at configure. A robot description the node
-    cannot use (robot_description ``topic``/``auto``) fails this configure with the reason; the next configure
-    checks the description again (the node does not refuse every later configure, as a node that loads its model
-    at construction does)."""
-    from psprm_core.errors import RobotModelError
-
-    scene, robot = core.load_scene_and_robot(p["scene"], p["robot"], node=node, params=p)
-    refusal = getattr(node, "configure_refusal", "")
-    if refusal:
-        node.configure_refusal = ""
-        raise RobotModelError(refusal)
-    return scene, robot
-
-
 class ReplanMonitor:
     """The monitor as a lifecycle node. Construction declares the parameters and makes ``~/status``, the
     ``/diagnostics`` publisher, the plan/stop service clients and the 1 Hz summary; configure reads the parameters,
@@ -156,10 +110,8 @@ class ReplanMonitor:
         self.topics: dict = {}
         self.pub_goals = self.pub_robot = None
         self._grace: Optional[core.StallGrace] = None
-        self._subs: list = []
-        self._pubs: list = []
-        self._timers: list = []
-        self.p = declare_reconfigurable_params(node, self.spec, self._apply_param)
+        self._made = core.ConfigureScope(node)  # what configure makes, released by cleanup
+        self.p = core.declare_reconfigurable_params(node, self.spec, self._apply_param)
         try:
             declare_frame_params(node, "")  # the parameters only: the frame table is made at configure
         except Exception:  # a malformed transform: configure reports it
@@ -225,7 +177,7 @@ class ReplanMonitor:
         from .robot_state import RobotStateTracker, offset_from_params
 
         node, p = self.node, dict(self.p)
-        scene, robot = load_configured_scene_and_robot(node, p)
+        scene, robot = core.load_configured_scene_and_robot(node, p)
         frames = declare_frame_params(node, scene.frame)
         targets = core.scene_targets(scene, p["targets"])
         obstacles = list(p["dynamic_obstacles"])
@@ -260,56 +212,40 @@ class ReplanMonitor:
             self.last_plan_t = time.monotonic()
 
         sensor = qos_profile_sensor_data
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.pub_goals = self._publisher(JointTrajectory, core.GOALS_TOPIC, latched)
-        self.pub_robot = self._publisher(JointState, core.ROBOT_STATE_TOPIC, sensor)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.pub_goals = self._made.publisher(JointTrajectory, core.GOALS_TOPIC, latched)
+        self.pub_robot = self._made.publisher(JointState, core.ROBOT_STATE_TOPIC, sensor)
         cb = MutuallyExclusiveCallbackGroup()
         for kind, name, topic in pairs:
             out = core.target_topic(name) if kind == "target" else core.obstacle_topic(name)
-            self.relay[(kind, name)] = self._publisher(PoseStamped, out, sensor)
-            self._subscribe(PoseStamped, topic, self._pose_cb(kind, name), sensor, callback_group=cb)
+            self.relay[(kind, name)] = self._made.publisher(PoseStamped, out, sensor)
+            self._made.subscription(PoseStamped, topic, self._pose_cb(kind, name), sensor, callback_group=cb)
         self.topics = {f"{k}:{n}": t for k, n, t in pairs}
         if robot.mobile and src == "pose":
-            self._subscribe(PoseStamped, p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
+            self._made.subscription(PoseStamped, p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
         if robot.mobile and src == "odom":
-            self._subscribe(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
+            self._made.subscription(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
         if robot.mobile and src == "tf":
             from .tf_tree import subscribe_tf
 
-            self._subs.extend(subscribe_tf(node, self._tf_cb, cb))
-        self._subscribe(JointState, p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
-        self._subscribe(PoseStamped, p["goal_topic"], self._goal_cb, 10, callback_group=cb)
-        self._subscribe(String, p["goal_regions_topic"], self._regions_cb, 10, callback_group=cb)
-        self._subscribe(String, core.PLAN_INFO_TOPIC, self._info_cb, 10, callback_group=cb)
-        self._subscribe(Float32, core.PATH_SCORE_TOPIC, self._score_cb, 10, callback_group=cb)
-        self._subscribe(JointTrajectory, core.TRAJECTORY_TOPIC, self._traj_cb, latched, callback_group=cb)
+            self._made.own(subscribe_tf(node, self._tf_cb, cb))
+        self._made.subscription(JointState, p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
+        self._made.subscription(PoseStamped, p["goal_topic"], self._goal_cb, 10, callback_group=cb)
+        self._made.subscription(String, p["goal_regions_topic"], self._regions_cb, 10, callback_group=cb)
+        self._made.subscription(String, core.PLAN_INFO_TOPIC, self._info_cb, 10, callback_group=cb)
+        self._made.subscription(Float32, core.PATH_SCORE_TOPIC, self._score_cb, 10, callback_group=cb)
+        self._made.subscription(JointTrajectory, core.TRAJECTORY_TOPIC, self._traj_cb, latched, callback_group=cb)
         self._grace = core.StallGrace(1.0 / max(0.5, p["check_rate_hz"]))
-        self._timers.append(node.create_timer(1.0 / max(0.5, p["check_rate_hz"]), self._check,
-                                              callback_group=MutuallyExclusiveCallbackGroup()))
-        self._timers.append(node.create_timer(p["diagnostics_period_s"], self._diagnostics,
-                                              callback_group=MutuallyExclusiveCallbackGroup()))
+        self._made.timer(1.0 / max(0.5, p["check_rate_hz"]), self._check,
+                         callback_group=MutuallyExclusiveCallbackGroup())
+        self._made.timer(p["diagnostics_period_s"], self._diagnostics, callback_group=MutuallyExclusiveCallbackGroup())
         bodies = ", ".join(f"{k} {n} on {t}" for k, n, t in pairs) or "no bodies"
         self.status(f"configured: scene {scene.name}, robot {robot.name}; {bodies}; base pose from {src}")
 
-    def _subscribe(self, *args, **kwargs):
-        s = self.node.create_subscription(*args, **kwargs)
-        self._subs.append(s)
-        return s
-
-    def _publisher(self, *args, **kwargs):
-        pub = self.node.create_publisher(*args, **kwargs)
-        self._pubs.append(pub)
-        return pub
-
     def _release(self) -> None:
         """Destroy the subscriptions, publishers and timers configure made and drop the models."""
-        for t in self._timers:
-            self.node.destroy_timer(t)
-        for s in self._subs:
-            self.node.destroy_subscription(s)
-        for pub in self._pubs:
-            self.node.destroy_publisher(pub)
-        self._subs, self._pubs, self._timers = [], [], []
+        self._made.release()
         with self._lock:
             self.relay, self.topics = {}, {}
             self.pub_goals = self.pub_robot = None
