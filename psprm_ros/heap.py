@@ -4,7 +4,7 @@
 A node that plans for hours allocates and frees numpy and torch buffers of many sizes on several threads. glibc keeps
 what is freed inside its arenas for reuse; fragmented, that memory is never handed back, and the process's resident
 size climbs in steps although the live data do not grow. ``malloc_trim(0)`` returns every free page of every arena.
-Measured on the closed-loop soak (``python -m psprm_ros.soak``): the suite process held 1,138 MB after 40 minutes;
+Measured on the closed-loop soak (``python -m psprm_ros.harness.soak``): the suite process held 1,138 MB after 40 minutes;
 one trim brought it to 965 MB with nothing else changed.
 
 A node process holds several hundred thousand objects that live as long as it does (the modules of torch, numpy and

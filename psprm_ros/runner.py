@@ -29,7 +29,7 @@ def self_check() -> dict:
             "nav_msgs.msg", "trajectory_msgs.msg", "visualization_msgs.msg", "diagnostic_msgs.msg", "lifecycle_msgs.msg",
             "rosgraph_msgs.msg", "std_srvs.srv", "psprm_ros.roadmap_server", "psprm_ros.perception_scorer",
             "psprm_ros.replan_monitor", "psprm_ros.robot_adapter", "psprm_ros.sim_robot", "psprm_ros.all_in_one",
-            "psprm_ros.mocap_replay", "psprm_ros.soak"]
+            "psprm_ros.mocap_replay", "psprm_ros.harness.soak"]
     for m in mods:
         importlib.import_module(m)
     from .adapters import import_follow_joint_trajectory

@@ -11,5 +11,5 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 bash "$root/scripts/setup_env.sh"
 bash "$root/scripts/warm_up_ros.sh"
 cd "$root"
-exec "$root/.venv/bin/python" -m psprm_ros.demo --params config/ros/dynamic_person.yaml \
+exec "$root/.venv/bin/python" -m psprm_ros.harness.demo --params config/ros/dynamic_person.yaml \
   --recording config/recordings/person_turning.csv --out "${PSPRM_OUT:-out}" "$@"

@@ -4,7 +4,7 @@ Judged from independent records: the params file and the scene file read here wi
 section, the node sections, the scene's problems and goal regions), and the recording's CSV read here with ``csv``
 (speeds by finite differences of the recorded positions, boxes placed by the test's own quaternion maths, the robot
 at its start and goals checked by the tests' :class:`~judges.Judge`: pybullet and a box model built afresh from the
-poses the CSV holds). Nothing runs the closed loop (minutes); ``python -m psprm_ros.demo --params ...`` does.
+poses the CSV holds). Nothing runs the closed loop (minutes); ``python -m psprm_ros.harness.demo --params ...`` does.
 """
 
 from __future__ import annotations
@@ -28,8 +28,8 @@ if str(HERE) not in sys.path:
 
 from psprm_core.errors import InputError  # noqa: E402
 
-from psprm_ros.demo import adapter_stops, goal_switches, rest_arrival, strict_json  # noqa: E402
-from psprm_ros.demo_config import (POSE_GOAL_THETA_TOLERANCE_RAD, POSE_GOAL_XY_TOLERANCE_M,  # noqa: E402
+from psprm_ros.harness.demo import adapter_stops, goal_switches, rest_arrival, strict_json  # noqa: E402
+from psprm_ros.harness.demo_config import (POSE_GOAL_THETA_TOLERANCE_RAD, POSE_GOAL_XY_TOLERANCE_M,  # noqa: E402
                                    default_recording, demo_config)
 from psprm_ros.recordings import load_recording  # noqa: E402
 
@@ -360,7 +360,7 @@ def test_replayer_publishes_on_the_monitors_topics():
     import rclpy
 
     from psprm_ros.mocap_replay import Replayer
-    from psprm_ros.probe import claim_domain_id
+    from psprm_ros.harness.probe import claim_domain_id
 
     params = _params("fetchlike_nursing.yaml")
     monitor, shared = params["replan_monitor"], params["/**"]

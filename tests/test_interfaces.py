@@ -80,7 +80,7 @@ def ros():
     import rclpy
     from rclpy.executors import MultiThreadedExecutor
 
-    from psprm_ros.probe import claim_domain_id
+    from psprm_ros.harness.probe import claim_domain_id
 
     ctx = rclpy.Context()
     ctx.init(domain_id=claim_domain_id())

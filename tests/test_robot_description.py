@@ -272,7 +272,7 @@ def ros_context():
     pytest.importorskip("rclpy")
     import rclpy
 
-    from psprm_ros.probe import claim_domain_id
+    from psprm_ros.harness.probe import claim_domain_id
 
     ctx = rclpy.Context()
     domain = claim_domain_id()
@@ -380,7 +380,7 @@ def test_lifecycle_nodes_with_a_mismatching_description_stay_unconfigured(ros_co
     from lifecycle_msgs.msg import Transition
     from lifecycle_msgs.srv import ChangeState, GetState
 
-    from psprm_ros.probe import InProcessSuite
+    from psprm_ros.harness.probe import InProcessSuite
 
     text = load_robot("stretch2").urdf.path.read_text()
     bad = without(text, links=["camera_color_optical_frame"], joints=["camera_color_optical_frame_joint"])

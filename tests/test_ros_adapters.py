@@ -26,7 +26,7 @@ if str(ROOT) not in sys.path:
 
 pytest.importorskip("rclpy")
 
-from psprm_ros.probe import claim_domain_id  # noqa: E402
+from psprm_ros.harness.probe import claim_domain_id  # noqa: E402
 from stalls import freeze_this_process  # noqa: E402
 
 from psprm_core.planning.timing import time_parameterize  # noqa: E402
@@ -389,7 +389,7 @@ def _adapter_on_sim(name: str, robot, sim_params: Optional[dict] = None):
     process (as a robot is: its clock and integration do not wait for this one), with the test's recorder and a
     publisher of /psprm/trajectory. Yields (suite, adapter config, recorder, publisher, the robot's process id)."""
     from psprm_ros.heap import freeze_long_lived
-    from psprm_ros.probe import InProcessSuite
+    from psprm_ros.harness.probe import InProcessSuite
 
     cfg = ad.load_adapter(name, robot).with_interface("topic")
     params = {"scene": SCENES[name], "robot": name, "adapter": name, "interface": "topic",
@@ -786,7 +786,7 @@ def _stretch_on_driver(adapter: str):
     from std_msgs.msg import String
 
     from psprm_ros.heap import freeze_long_lived
-    from psprm_ros.probe import InProcessSuite
+    from psprm_ros.harness.probe import InProcessSuite
 
     params = {"scene": "dynamic_person", "robot": "stretch2", "adapter": adapter, "initial_base": [1.0, 1.0, 0.3],
               "input_frames": ["odom"]}

@@ -43,7 +43,7 @@ def test_perf_transfer_json_has_no_nan():
 
 
 @pytest.mark.parametrize("module", ["psprm_ros.all_in_one", "psprm_ros.robot_adapter", "psprm_ros.sim_robot",
-                                    "psprm_ros.latency_bench", "psprm_ros.mocap_replay"])
+                                    "psprm_ros.harness.latency_bench", "psprm_ros.mocap_replay"])
 def test_ros_executables_self_check_prints_json(module):
     d = strict(_run([sys.executable, "-m", module, "--self-check"], timeout=120))
     assert d["ok"]

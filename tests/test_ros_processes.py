@@ -22,7 +22,7 @@ if str(ROOT) not in sys.path:
 
 pytest.importorskip("rclpy")
 
-from psprm_ros.probe import Probe, claim_domain_id  # noqa: E402
+from psprm_ros.harness.probe import Probe, claim_domain_id  # noqa: E402
 
 PARAMS_FILE = ROOT / "config" / "ros" / "dynamic_person.yaml"
 N_NODES = 500  # same small roadmap as tests/test_ros_nodes.py (cached after the first build)
@@ -195,7 +195,7 @@ def test_package_declares_every_ros_package_its_nodes_import():
     deps = {e.text for e in ET.parse(ROOT / "ros2_ws" / "src" / "psprm_ros" / "package.xml").getroot()
             if e.tag == "exec_depend"}
     used = set()
-    for f in (ROOT / "psprm_ros").glob("*.py"):
+    for f in (ROOT / "psprm_ros").rglob("*.py"):
         text = f.read_text()
         used |= set(re.findall(r"^\s*from (\w+)\.(?:msg|srv|action) import", text, re.M))
         used |= {m for m in ("rclpy", "ament_index_python") if re.search(rf"^\s*(from|import) {m}\b", text, re.M)}
@@ -220,7 +220,7 @@ def _tail(proc) -> str:
 def test_soak_tells_who_closed_the_gap_at_a_collision():
     """The soak's closing speeds, from positions made here: a robot driving at 0.3 m/s into a standing person, and a
     person walking at 0.5 m/s into a standing robot."""
-    from psprm_ros.soak import _closing_speeds
+    from psprm_ros.harness.soak import _closing_speeds
 
     ts = np.arange(0.0, 1.0, 0.02)
     robot = [(t, np.array([0.3 * t, 0.0, 0.0])) for t in ts]  # drives +x
@@ -240,7 +240,7 @@ def test_soak_reports_how_far_off_its_trajectory_a_colliding_robot_was(load_robo
     from psprm_core.collision import CollisionChecker
     from psprm_core.scene import Box
     from psprm_ros import conversions as cv
-    from psprm_ros.soak import _followed
+    from psprm_ros.harness.soak import _followed
 
     robot = load_robot("stretch2")
     names = list(robot.joint_names)
@@ -286,7 +286,7 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
     from psprm_core.collision import CollisionChecker
     from psprm_core.scene import Box
     from psprm_ros import conversions as cv
-    from psprm_ros.soak import executed_trajectories, tracking_report
+    from psprm_ros.harness.soak import executed_trajectories, tracking_report
 
     robot = load_robot("stretch2")
     names = list(robot.joint_names)
@@ -345,7 +345,7 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
 def test_soak_walk_yields_to_the_robot_then_walks_on():
     """The soak's person walks at 0.5 m/s, never steps within 1 m of the robot's base (closer to it) for up to 20 s
     of waiting, then walks on; judged from the positions stepped here."""
-    from psprm_ros.soak import Stream
+    from psprm_ros.harness.soak import Stream
 
     st = Stream(None, None, None, np.random.default_rng(0), None, 40.0)
     st.home = np.array([0.0, 0.0])

@@ -16,7 +16,7 @@ if str(ROOT) not in sys.path:
 
 pytest.importorskip("rclpy")
 
-from psprm_ros.probe import claim_domain_id  # noqa: E402
+from psprm_ros.harness.probe import claim_domain_id  # noqa: E402
 
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.recordings import Recording, load_recording, save_csv, save_rosbag  # noqa: E402

@@ -22,7 +22,7 @@ pytest.importorskip("rclpy")
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
-from psprm_ros.probe import InProcessSuite, claim_domain_id  # noqa: E402
+from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 N_NODES = 500
 BASE = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,

@@ -269,7 +269,7 @@ def test_replan_monitor_forwards_the_base_pose_the_tf_topics_say(load_robot):
 
     from psprm_ros import core
     from psprm_ros import conversions as cv
-    from psprm_ros.probe import InProcessSuite, claim_domain_id
+    from psprm_ros.harness.probe import InProcessSuite, claim_domain_id
 
     robot = load_robot("stretch2")
 

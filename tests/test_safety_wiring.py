@@ -143,7 +143,7 @@ def _server_publishes_through_the_person(load_robot, check_enabled: bool) -> tup
     pytest.importorskip("rclpy")
     from test_ros_safety import PARAMS, Fault, Judge as RosJudge, densified
 
-    from psprm_ros.probe import InProcessSuite, claim_domain_id
+    from psprm_ros.harness.probe import InProcessSuite, claim_domain_id
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")

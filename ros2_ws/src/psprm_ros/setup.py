@@ -13,12 +13,13 @@ from setuptools import setup
 
 package_name = "psprm_ros"
 executables = ["roadmap_server", "perception_scorer", "replan_monitor", "robot_adapter", "sim_robot", "all_in_one",
-               "mocap_replay", "latency_bench", "soak", "demo"]
+               "mocap_replay"]
+harness = ["latency_bench", "soak", "demo"]  # clients that drive the suite (psprm_ros/harness/)
 
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=[package_name, package_name + ".harness"],
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -32,5 +33,6 @@ setup(
     maintainer_email="psprm@example.org",
     description="ROS 2 node suite around psprm_core (PS-PRM perception-aware motion planning)",
     license="BSD-3-Clause",
-    entry_points={"console_scripts": [f"{e} = {package_name}.{e}:main" for e in executables]},
+    entry_points={"console_scripts": [f"{e} = {package_name}.{e}:main" for e in executables]
+                                     + [f"{e} = {package_name}.harness.{e}:main" for e in harness]},
 )

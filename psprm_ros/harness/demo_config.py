@@ -1,4 +1,4 @@
-"""What the closed-loop demo (:mod:`psprm_ros.demo`) runs, derived from the params file the nodes are started with
+"""What the closed-loop demo (:mod:`psprm_ros.harness.demo`) runs, derived from the params file the nodes are started with
 and the recording it replays: scene, robot, adapter, targets, dynamic obstacles, the robot's start, the goals and
 how they are sent, the topic and frame of every recorded body.
 
@@ -134,7 +134,7 @@ def read_params(path) -> dict:
 def params_frames(shared: dict, scene_frame: str, where: str = "params file"):
     """The :class:`~psprm_ros.frames.FrameTable` of a node's parameters (``input_frames`` and their
     ``input_frame.<name>`` transforms, nested or dotted)."""
-    from .frames import FrameTable
+    from ..frames import FrameTable
 
     table = FrameTable(scene_frame)
     specs = shared.get("input_frame") or {}
@@ -196,8 +196,8 @@ def demo_config(params_file, recording=None) -> DemoConfig:
     an input frame of the params file. Raises :class:`~psprm_core.errors.InputError` naming the file and the field."""
     from psprm_core.robot import RobotModel
 
-    from . import core
-    from .adapters import load_adapter
+    from .. import core
+    from ..adapters import load_adapter
 
     where = str(params_file)
     params = read_params(params_file)
@@ -245,16 +245,16 @@ def demo_config(params_file, recording=None) -> DemoConfig:
 def _load_scene(name: str):
     from psprm_core.scene import load_scene
 
-    from .core import resolve_scene
+    from ..core import resolve_scene
 
     return load_scene(resolve_scene(name))
 
 
 def default_recording(params_file) -> Optional[str]:
     """The shipped recording replayed with a shipped params file (:data:`psprm_ros.recordings.SHIPPED`), or None."""
-    from .recordings import SHIPPED
+    from ..recordings import SHIPPED
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     try:
         want = Path(params_file).resolve()
     except OSError:

@@ -1,6 +1,6 @@
 """``soak``: the closed loop under a long, hostile input stream.
 
-    python -m psprm_ros.soak [--duration 600] [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--out out]
+    python -m psprm_ros.harness.soak [--duration 600] [--params config/ros/dynamic_person.yaml] [--nodes 3000] [--out out]
                              [--suite processes|one-process] [--seed 0] [--path-tolerance M] [--json]
 
 Starts the suite (server, scorer, monitor, robot adapter: ``run_nodes.sh``, a process per node, or
@@ -37,8 +37,8 @@ from typing import Optional
 
 import numpy as np
 
-from . import conversions as cv
-from .heap import freeze_long_lived
+from .. import conversions as cv
+from ..heap import freeze_long_lived
 from .probe import claim_domain_id
 from .demo import GOAL_REASONS, SUITE_SCRIPTS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal, rss_mb
 
@@ -208,7 +208,7 @@ def main(args=None) -> int:
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
-    from .recordings import load_recording
+    from ..recordings import load_recording
 
     rng = np.random.default_rng(a.seed)
     out = Path(a.out)
@@ -227,7 +227,7 @@ def main(args=None) -> int:
 
     from trajectory_msgs.msg import JointTrajectory
 
-    from .adapters import load_adapter
+    from ..adapters import load_adapter
 
     # what the adapter sent the controllers (t, points): which trajectories it executed, which it refused (a hold)
     commands, commands_lock = [], threading.Lock()

@@ -1,10 +1,10 @@
 """``demo``: the node suite in closed loop with a simulated robot, on a params file's scene and a mocap recording.
 
-    python -m psprm_ros.demo [--params config/ros/dynamic_person.yaml] [--recording config/recordings/person_turning.csv]
+    python -m psprm_ros.harness.demo [--params config/ros/dynamic_person.yaml] [--recording config/recordings/person_turning.csv]
                              [--out out] [--nodes 3000] [--timeout 120] [--suite processes|one-process]
                              [--in-process] [--no-oracle] [--fresh-roadmap]
 
-Everything comes from the params file (:mod:`psprm_ros.demo_config`): scene, robot, adapter, targets, dynamic
+Everything comes from the params file (:mod:`psprm_ros.harness.demo_config`): scene, robot, adapter, targets, dynamic
 obstacles, the robot's start, the goals (the server's goal regions, else its start problem's goal regions or goal
 pose) and the topic and input frame of every body; ``--recording`` defaults to the shipped recording of a shipped
 params file (:data:`psprm_ros.recordings.SHIPPED`).
@@ -46,10 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import conversions as cv
+from .. import conversions as cv
 from .probe import claim_domain_id
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 class Record:
@@ -60,9 +60,9 @@ class Record:
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import JointState
 
-        from . import core
-        from .adapters import load_adapter
-        from .robot_state import RobotStateTracker
+        from .. import core
+        from ..adapters import load_adapter
+        from ..robot_state import RobotStateTracker
 
         self.lock = threading.Lock()
         self.tracker = RobotStateTracker(robot, frames, "odom", load_adapter(adapter_name, robot).name_map(),
@@ -173,7 +173,7 @@ SUITE_SCRIPTS = {"one-process": "run_all_in_one.sh", "processes": "run_nodes.sh"
 
 class ClosedLoop:
     """The suite (``run_all_in_one.sh``, or ``run_nodes.sh`` with ``suite="processes"``) and ``sim_robot``
-    (``run_sim_robot.sh``) as their own processes, and a client node (:class:`~psprm_ros.probe.Probe`) spinning in this
+    (``run_sim_robot.sh``) as their own processes, and a client node (:class:`~psprm_ros.harness.probe.Probe`) spinning in this
     one; ``close()`` ends all of it."""
 
     def __init__(self, params_file: str, overrides: dict, out: Path, prefix: str, domain: int,
@@ -189,7 +189,7 @@ class ClosedLoop:
         import rclpy
 
         from .probe import Probe
-        from .spinning import NodeSpinner
+        from ..spinning import NodeSpinner
 
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
         suite = ["bash", str(ROOT / "scripts" / SUITE_SCRIPTS[self.suite]), self.params_file]
@@ -318,10 +318,10 @@ def main(args=None) -> int:
     from psprm_core.errors import PsprmError
 
     from .demo_config import default_recording, demo_config
-    from .heap import freeze_long_lived
-    from .mocap_replay import Replayer
+    from ..heap import freeze_long_lived
+    from ..mocap_replay import Replayer
     from .probe import InProcessSuite
-    from .recordings import load_recording
+    from ..recordings import load_recording
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,8 +10,8 @@ import time
 from typing import Callable, Optional
 
 
-from . import conversions as cv
-from . import core
+from .. import conversions as cv
+from .. import core
 
 
 _claimed: list = []  # open lock files: a claimed domain stays ours until this process ends
@@ -233,9 +233,9 @@ class InProcessSuite:
         import rclpy
         from rclpy.parameter import Parameter
 
-        from .perception_scorer import PerceptionScorer
-        from .replan_monitor import ReplanMonitor
-        from .roadmap_server import RoadmapServer
+        from ..perception_scorer import PerceptionScorer
+        from ..replan_monitor import ReplanMonitor
+        from ..roadmap_server import RoadmapServer
 
         self.context = rclpy.Context()
         args = ["--ros-args", "--params-file", self.params_file] if self.params_file else None
@@ -244,12 +244,12 @@ class InProcessSuite:
         kw = {"context": self.context, "parameter_overrides": overrides}
         if self.namespace:
             kw["namespace"] = self.namespace
-        from .spinning import NodeSpinner
+        from ..spinning import NodeSpinner
 
         self.executor = NodeSpinner(self.context)
         self.nodes = []
-        from .robot_adapter import RobotAdapter
-        from .sim_robot import SimRobotNode
+        from ..robot_adapter import RobotAdapter
+        from ..sim_robot import SimRobotNode
 
         make = {"server": RoadmapServer, "scorer": PerceptionScorer, "monitor": ReplanMonitor,
                 "adapter": RobotAdapter, "sim": SimRobotNode}
@@ -269,7 +269,7 @@ class InProcessSuite:
             raise
         self.executor.start()
         if self.autostart:
-            from .runner import start_lifecycles
+            from ..runner import start_lifecycles
 
             start_lifecycles(self.nodes)
         return self

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import conversions as cv
+from .. import conversions as cv
 from .probe import claim_domain_id
 
 HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]
@@ -60,7 +60,7 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
         off = float(np.linalg.norm((face.center - body.center)[:2]))
         s.probe.wait_subscribers("/mocap/person_face/pose")
         s.probe.wait_subscribers("psprm/goal_regions")
-        from .core import start_configuration
+        from ..core import start_configuration
 
         robot = s.server.robot  # a robot standing at the start: its /joint_states and /odom
         state = s.probe.hold_robot_state(start_configuration(robot, scene, s.server.p["start_problem"]),
@@ -195,7 +195,7 @@ def main(args=None) -> int:
     argv = list(sys.argv if args is None else args)
     from rclpy.utilities import remove_ros_args
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     ap = argparse.ArgumentParser(prog="latency_bench", description=__doc__.split("\n\n")[0])
     ap.add_argument("--params", default=str(root / "config" / "ros" / "dynamic_person.yaml"))
     ap.add_argument("--nodes", type=int, default=3000, help="roadmap nodes (default 3000)")
@@ -211,7 +211,7 @@ def main(args=None) -> int:
     ap.add_argument("--self-check", action="store_true")
     a = ap.parse_args(remove_ros_args(argv)[1:])
     if a.self_check:
-        from .runner import self_check
+        from ..runner import self_check
 
         print(json.dumps(self_check()))
         return 0
