@@ -45,6 +45,10 @@ REST_MPS, REST_RADPS = 0.01, 0.02  # a base slower than this on both axes ...
 REST_S = 0.1  # ... for this long is at rest
 REST_WAIT_S = 2.0  # a replan pending "at rest" is asked for this long after the stop at the latest
 SPLICE_TOL_M = 0.01  # a new trajectory this close to the one executing (whole robot) ...
+# how far back along the trajectory under way a splice may begin: a splice starts where the robot was when the
+# replan began, which it may have passed by seconds when a replan is slow (the server withdraws a splice it has
+# passed altogether, so this bounds the planning and delivery time a splice can take)
+SPLICE_LOOKBACK_S = 6.0
 SPLICE_CHECK_S = 0.3  # ... over its first this many seconds continues it: a splice
 ADAPTER_PARAMS = {
     "adapter": P("", "adapter config name (config/ros/adapters, or share/psprm_ros/config/adapters when installed) "
@@ -519,7 +523,8 @@ class RobotAdapter:
             # the robot drove on since the plan started from its state: splice at its progress, not back at the start
             with self._lock:
                 vel = self.tracker.base_velocity.copy()
-            tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity)
+            tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity,
+                                      horizon_s=SPLICE_LOOKBACK_S if splice_d is not None else 1.5)
             if tau0 > 0:
                 t, P, V = ad.trim_from(t - t[0], P, V, tau0)
                 if len(t) <= 1:
@@ -693,7 +698,10 @@ class RobotAdapter:
         w = self.p["path_window_s"]
         ts = np.linspace(0.0, min(SPLICE_CHECK_S, float(t[-1])), 6)
         X = np.stack([np.interp(ts, t, P[:, j]) for j in range(P.shape[1])], 1)
-        off = float(cur.path_distances(X, tau + ts, w).max())
+        # the splice's start lies behind the robot by the replan's planning and delivery time: look for it from
+        # SPLICE_LOOKBACK_S back to 1 s ahead (the server's estimate of the robot's progress may lead the adapter's)
+        half = 0.5 * (SPLICE_LOOKBACK_S + 1.0)
+        off = float(cur.path_distances(X, tau + ts + 1.0 - half, max(w, half)).max())
         if off > SPLICE_TOL_M:
             return None, f"its first {ts[-1]:.1f} s lie {off:.3f} m from it (splice tolerance {SPLICE_TOL_M:g} m)"
         return cur.deviation(q, tau, w)[0], ""

@@ -573,11 +573,13 @@ def test_a_push_off_the_path_stops_the_robot_within_the_path_tolerance(load_robo
         s.probe.statuses[-5:]
 
 
-def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(load_robot):
+@pytest.mark.parametrize("delay_s", [0.0, 2.6])
+def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(load_robot, delay_s):
     """While the base drives a long straight stretch, the test publishes what the roadmap server publishes for a
     replan of a robot in motion (:func:`psprm_core.planning.execution.splice`): the trajectory under way from where
     the robot is, up to the end of that stretch (a rest instant), then a new trajectory from there (a turn and a drive
-    to the left). Judged from the test's own record: no zero twist (a stop) between the splice's publication and the
+    to the left); ``delay_s`` after the robot was there (a slow replan: the robot is seconds along the splice when it
+    arrives). Judged from the test's own record: no zero twist (a stop) between the splice's publication and the
     end of the stretch, the base never slower there than half the planned speed of the old trajectory at the same
     place, and the base on the spliced trajectory's path within 0.1 m / 0.1 rad to its end."""
     from psprm_core.planning.execution import commit_time, splice
@@ -597,8 +599,8 @@ def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(
         start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
         time.sleep(max(0.0, start + 2.5 - now()))  # mid-stretch, at full speed
         t_from = now() - start
-        t_c = commit_time(tr, t_from, 0.5)
-        assert t_c - t_from > 1.5, "precondition: the stretch goes on for a while"
+        t_c = commit_time(tr, t_from, 0.5 + delay_s)
+        assert t_c - t_from > 1.5 + delay_s, "precondition: the stretch goes on for a while"
         q_c = tr.evaluate([t_c])[0][0]
         q1, q2 = q_c.copy(), q_c.copy()
         q1[2] += math.pi / 2
@@ -610,6 +612,7 @@ def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(
                                 base_indices=(0, 1, 2), base_linear_limits=(b.linear_velocity, b.linear_acceleration),
                                 method="analytic")
         sp = splice(tr, t_from, t_c, new, continuous=[2])
+        time.sleep(max(0.0, start + t_from + delay_s - now()))
         t_pub = now()
         pub.publish(cv.trajectory_to_msg(sp, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
         _wait(lambda: False, sp.duration + 1.5)
