@@ -16,12 +16,22 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass, field
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 import torch
 
 from .. import fastpath
+
+if TYPE_CHECKING:  # the types of the context's fields (the modules import this one)
+    from ..collision import CollisionChecker
+    from ..motion import DiffDriveMotion
+    from ..perception.scoring import Scorer
+    from ..robot import RobotModel
+    from ..scene import Scene
+    from .backend import TorchBackend
+    from .constraints import VisibilityConstraint
+    from .settings import PSPRMSettings
 
 NP_DTYPE = {torch.float32: np.float32, torch.float64: np.float64}  # the planner's dtype on the host
 
@@ -33,19 +43,20 @@ class PlannerContext:
     ``track_cols``: the non-base joints that re-aim the camera along an edge; ``lo``/``hi``: joint limits as tensors
     (the base's x, y within the scene's workspace); ``backend``: the :mod:`.backend` chosen for the device."""
 
-    robot: object
-    scene: object
-    scorer: object
-    settings: object
+    robot: RobotModel
+    scene: Scene
+    scorer: Scorer
+    settings: PSPRMSettings
     device: torch.device
     dtype: torch.dtype
-    motion: object
-    checker: object
-    constraint: object
+    motion: DiffDriveMotion
+    checker: CollisionChecker
+    constraint: VisibilityConstraint
     track_cols: np.ndarray
     lo: Optional[torch.Tensor] = None
     hi: Optional[torch.Tensor] = None
-    backend: object = None  # where the stages' batched operations run (:mod:`.backend`), set by the pipeline
+    backend: Optional[TorchBackend] = None  # where the stages' batched operations run (:mod:`.backend`), set by the
+    # pipeline
 
     def t(self, a) -> torch.Tensor:
         """``a`` as a tensor in the planner's dtype on its device."""
