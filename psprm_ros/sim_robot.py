@@ -11,7 +11,8 @@ per the adapter; zero after ``cmd_vel_timeout_s`` without a command). It integra
 limits (joint velocity and position limits; base linear/angular velocity and acceleration) and publishes
 ``/joint_states`` (the robot's own joint names, plus the URDF joints they drive), ``/odom`` (``nav_msgs/Odometry``,
 frame ``odom``) and, when ``mocap_topic`` is set, a motion-capture style ``geometry_msgs/PoseStamped`` of a body on
-its base (frame ``mocap_frame``). A ``geometry_msgs/Twist`` on ``~/disturbance`` (body frame, sideways too) is
+its base (frame ``mocap_frame``); its URDF on ``robot_description`` (std_msgs/String, transient local), as a
+robot's robot_state_publisher does, for nodes started with ``robot_description:=topic``. A ``geometry_msgs/Twist`` on ``~/disturbance`` (body frame, sideways too) is
 added to the base's motion for ``disturbance_timeout_s`` after each message: a push or wheel slip, which the
 robot's commands did not produce. It never reads psprm's own topics. Refused commands are counted and reported on
 ``~/status``.
@@ -60,6 +61,8 @@ SIM_PARAMS = {
     "path_tolerance": 0.2,  # action goals: a joint this far (rad or m) from its trajectory aborts the goal
     "goal_tolerance": 0.05,  # ... and this far from the last point when the trajectory ends
     "joint_disturbance_topic": "~/joint_disturbance",  # sensor_msgs/JointState: offsets added to joints (a push)
+    # the robot's URDF (its robot model's file), latched, as a robot's robot_state_publisher publishes it ("" = none)
+    "robot_description_topic": "robot_description",
 }
 
 
@@ -253,6 +256,12 @@ class SimRobotNode:
         self.pub_js = node.create_publisher(JointState, self.p["joint_states_topic"], 10)
         self.pub_odom = node.create_publisher(Odometry, self.p["odom_topic"], 10)
         self.pub_status = node.create_publisher(String, "~/status", 10)
+        self.pub_description = None
+        if self.p["robot_description_topic"]:
+            from .robot_description import description_qos
+
+            self.pub_description = node.create_publisher(String, self.p["robot_description_topic"], description_qos())
+            self.pub_description.publish(String(data=self.robot.urdf.path.read_text()))
         self.pub_mocap = None
         if self.p["mocap_topic"]:
             self.pub_mocap = node.create_publisher(PoseStamped, self.p["mocap_topic"], qos_profile_sensor_data)

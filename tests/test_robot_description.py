@@ -416,3 +416,35 @@ def test_lifecycle_nodes_with_a_mismatching_description_stay_unconfigured(ros_co
     finally:
         spinner.shutdown()
         pub.destroy_node()
+
+
+def test_sim_robot_publishes_its_urdf_as_the_robot_description(ros_context, load_robot):
+    """sim_robot publishes its robot's URDF on robot_description (transient local) as robot_state_publisher does:
+    a node started after it with ``robot_description: topic`` receives the packaged file's text (the test reads the
+    file itself) and builds its model from it."""
+    from rclpy.parameter import Parameter
+
+    from psprm_core.paths import resolve_named
+    from psprm_core.scene import load_scene
+    from psprm_ros.robot_description import robot_from_params, wait_for_robot_description
+    from psprm_ros.sim_robot import SimRobotNode
+    from psprm_ros.spinning import NodeSpinner
+
+    packaged = load_robot("stretch2").urdf.path
+    sim = SimRobotNode(context=ros_context, namespace="/unit9",
+                       parameter_overrides=[Parameter("scene", value="dynamic_person"),
+                                            Parameter("adapter", value="stretch2")])
+    spinner = NodeSpinner(ros_context)
+    spinner.add(sim.node)
+    spinner.start()
+    try:
+        node, p = _node(ros_context, "/unit9", robot_description="topic", robot_description_timeout_s=30.0)
+        try:
+            assert wait_for_robot_description(node, "robot_description", 30.0) == packaged.read_text()
+            robot = robot_from_params(node, p, load_scene(resolve_named("scene", "dynamic_person")))
+            assert robot.joint_names == load_robot("stretch2").joint_names
+        finally:
+            node.destroy_node()
+    finally:
+        spinner.shutdown()
+        sim.node.destroy_node()
