@@ -73,14 +73,17 @@ def _clean(frame_id: str) -> str:
 
 
 class FrameTable:
-    """The scene frame plus fixed transforms of other input frames into it.
+    """The scene frame plus fixed transforms of other input frames into it, and optionally the robot's tf tree.
 
-    ``to_scene(frame_id, p, q)`` returns the pose in the scene frame, or raises :class:`InputError` for a frame the
-    table does not know (the message names the frames it does know).
+    ``to_scene(frame_id, p, q)`` returns the pose in the scene frame: through the fixed transform when the table has
+    one for the frame, else through ``tf`` (a :class:`psprm_ros.tf_tree.TfTree`, when given) when tf links the frame
+    to the scene frame; otherwise it raises :class:`InputError` (the message names the frames it knows and, with tf,
+    the missing link).
     """
 
-    def __init__(self, scene_frame: str, transforms: Optional[Dict[str, tuple]] = None):
+    def __init__(self, scene_frame: str, transforms: Optional[Dict[str, tuple]] = None, tf=None):
         self.scene_frame = _clean(scene_frame)
+        self.tf = tf
         self.transforms: Dict[str, tuple] = {}
         for name, (xyz, quat) in (transforms or {}).items():
             self.add(name, xyz, quat)
@@ -104,16 +107,23 @@ class FrameTable:
 
     def knows(self, frame_id: str) -> bool:
         f = _clean(frame_id)
-        return f == self.scene_frame or f in self.transforms
+        return f == self.scene_frame or f in self.transforms or (
+            self.tf is not None and self.tf.find(self.scene_frame, f)[0] is not None)
 
     def to_scene(self, frame_id: str, p, q, what: str = "pose") -> tuple:
         f = _clean(frame_id)
         if f == self.scene_frame:
             return np.asarray(p, float), np.asarray(q, float)
-        if f not in self.transforms:
-            raise InputError(f"{what}: frame '{frame_id}' is neither the scene frame '{self.scene_frame}' nor an "
-                             f"input frame with a transform (known: {', '.join(self.known)})")
-        return compose_pose(self.transforms[f], (p, q))
+        if f in self.transforms:
+            return compose_pose(self.transforms[f], (p, q))
+        why = ""
+        if self.tf is not None and f:
+            found, why = self.tf.find(self.scene_frame, f)
+            if found is not None:
+                return compose_pose((found.xyz, found.quat), (p, q))
+            why = f"; tf: {why}"
+        raise InputError(f"{what}: frame '{frame_id}' is neither the scene frame '{self.scene_frame}' nor an "
+                         f"input frame with a transform (known: {', '.join(self.known)}){why}")
 
 
 #: parameter names (see the module docstring)

@@ -38,6 +38,8 @@ MONITOR_PARAMS = {
                                   "(base_x/base_y/base_theta in /joint_states) or tf (the pose of base_frame in the "
                                   "scene frame from the topics tf and tf_static)"),
     "base_frame": P("base_link", "the robot's base frame in tf (base_pose_source tf)"),
+    "input_frames_from_tf": P(False, "a pose in a frame input_frames has no transform for is mapped into the scene "
+                                     "frame through tf (topics tf and tf_static), when tf links the two"),
     "odom_topic": P("odom", "nav_msgs/Odometry of the base (base_pose_source odom)"),
     "robot_pose_topic": P("", "the robot's own rigid body (base_pose_source pose)"),
     "base_body_offset.xyz": P([0.0, 0.0, 0.0], "pose of base_link in the mocap body's frame: xyz"),
@@ -226,9 +228,11 @@ class ReplanMonitor:
             self._made.subscription(PoseStamped, p["robot_pose_topic"], self._base_cb, sensor, callback_group=cb)
         if robot.mobile and src == "odom":
             self._made.subscription(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
-        if robot.mobile and src == "tf":
-            from .tf_tree import subscribe_tf
+        if (robot.mobile and src == "tf") or p["input_frames_from_tf"]:
+            from .tf_tree import TfTree, subscribe_tf
 
+            # one tree: the tracker's when the base pose comes from tf
+            frames.tf = tracker.tf if tracker.tf is not None else TfTree()
             self._made.own(subscribe_tf(node, self._tf_cb, cb))
         self._made.subscription(JointState, p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
         self._made.subscription(PoseStamped, p["goal_topic"], self._goal_cb, 10, callback_group=cb)
@@ -402,7 +406,10 @@ class ReplanMonitor:
         if self.tracker is None:  # released by a cleanup while this message was on its way
             return
         with self._lock:
-            dropped = self.tracker.update_tf(msg, static, time.monotonic())
+            if self.tracker.tf is not None:
+                dropped = self.tracker.update_tf(msg, static, time.monotonic())
+            else:  # tf for the input frames only
+                dropped = [str(d) for d in self.frames.tf.update(msg, static, time.monotonic())]
         for text in dropped:
             self.warn_limited(f"tf {text}", f"ignored {text}")
 

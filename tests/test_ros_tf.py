@@ -20,6 +20,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from psprm_core.errors import InputError  # noqa: E402
 from psprm_ros.frames import FrameTable  # noqa: E402
 from psprm_ros.robot_state import RobotStateTracker  # noqa: E402
 from psprm_ros.tf_tree import TfLookupError, TfTree  # noqa: E402
@@ -164,6 +165,29 @@ def test_bad_transforms_are_discarded_with_a_reason_and_the_good_ones_kept():
     # a quaternion within the tolerance is taken, normalised
     assert tree.update(tfm(tr("odom", "base_link", [0, 0, 0], [0, 0, 0, 1.001])), False, 0.0) == []
     assert np.allclose(tree.lookup("odom", "base_link").quat, [0, 0, 0, 1], atol=1e-12)
+
+
+def test_input_frames_resolve_through_tf_where_the_fixed_table_has_none():
+    """A pose in ``vicon`` (tf: map -> world static, world -> vicon static) comes into the scene frame as the test's
+    own matrices compose it; ``odom`` keeps its fixed transform even when tf has another; a frame tf cannot link is
+    refused with the missing link named."""
+    rng = np.random.default_rng(3)
+    (pw, qw), (pv, qv), (po, qo), (pt, qt), (px, qx) = (random_pose(rng) for _ in range(5))
+    tree = TfTree()
+    tree.update(tfm(tr("map", "world", pw, qw), tr("world", "vicon", pv, qv), tr("map", "odom", pt, qt)), True, 0.0)
+    table = FrameTable("map", {"odom": (po, qo)}, tf=tree)
+    p, q = table.to_scene("vicon", px, qx)
+    ref = mat(pw, qw) @ mat(pv, qv) @ mat(px, qx)
+    assert np.abs(p - ref[:3, 3]).max() < 1e-9
+    assert np.abs(mat(p, q) - ref).max() < 1e-9
+    assert table.knows("vicon") and table.knows("/vicon") and not table.knows("elsewhere")
+    p, q = table.to_scene("odom", px, qx)  # the fixed table wins
+    ref = mat(po, qo) @ mat(px, qx)
+    assert np.abs(mat(p, q) - ref).max() < 1e-9
+    with pytest.raises(InputError, match="elsewhere.*tf: no transform from map to elsewhere"):
+        table.to_scene("elsewhere", px, qx)
+    with pytest.raises(InputError, match="neither the scene frame"):
+        FrameTable("map", {}).to_scene("vicon", px, qx)  # without tf, as before: the fixed table only
 
 
 def test_a_missing_tf2_msgs_is_named(monkeypatch):
@@ -338,6 +362,36 @@ def test_replan_monitor_forwards_the_base_pose_the_tf_topics_say(load_robot):
                 got_b = np.array([st["base_x"], st["base_y"], st["base_theta"]])
                 assert np.hypot(*(got_b[:2] - want[:2])) < 0.01 and abs(wrap(got_b[2] - want[2])) < 0.01, \
                     (got_b, want)
+            # a target's pose in a tf frame the input_frames table has no transform for (base_footprint): forwarded
+            # in the scene frame as the test's own matrices compose it
+            from geometry_msgs.msg import PoseStamped
+
+            seen = []
+            sub_t = node.create_subscription(PoseStamped, core.target_topic("person_face"), seen.append,
+                                             qos_profile_sensor_data)
+            pub_t = node.create_publisher(PoseStamped, "/mocap/person_face/pose", qos_profile_sensor_data)
+            T_fp_face = mat([0.9, -0.2, 1.5], [0.0, 0.0, 0.3826834, 0.9238795])
+            try:
+                for _ in range(200):
+                    m = PoseStamped()
+                    m.header.frame_id, m.header.stamp = "base_footprint", node.get_clock().now().to_msg()
+                    m.pose.position.x, m.pose.position.y, m.pose.position.z = map(float, T_fp_face[:3, 3])
+                    (m.pose.orientation.x, m.pose.orientation.y, m.pose.orientation.z,
+                     m.pose.orientation.w) = map(float, quat_of(T_fp_face))
+                    pub_t.publish(m)
+                    time.sleep(0.05)
+                    if seen:
+                        break
+                assert seen, s.probe.statuses[-5:]
+                with lock:
+                    want_T = state["T_map_odom"] @ state["T_odom_fp"] @ T_fp_face
+                f = seen[-1]
+                got_T = mat([f.pose.position.x, f.pose.position.y, f.pose.position.z],
+                            [f.pose.orientation.x, f.pose.orientation.y, f.pose.orientation.z, f.pose.orientation.w])
+                assert f.header.frame_id == "map" and np.abs(got_T - want_T).max() < 1e-6, (got_T, want_T)
+            finally:
+                node.destroy_subscription(sub_t)
+                node.destroy_publisher(pub_t)
             # relative names: the monitor's tf subscriptions are /tf and /tf_static; it publishes no transform
             mon = s.monitor.node
             subs = dict(mon.get_subscriber_names_and_types_by_node(mon.get_name(), mon.get_namespace()))
