@@ -144,6 +144,9 @@ class RobotAdapter:
         self.last_state_problem = ""
         self.max_tracking_error = np.zeros(2)  # (m, rad) over the current path
         self.checked: Optional[CheckedPath] = None  # the current trajectory's configurations, for path_tolerance_m
+        # the current trajectory as received (before its start was trimmed to the robot's progress) and the time on
+        # it at the follower's t0: a splice may begin before the point where this adapter joined the trajectory
+        self._splice_ref: Optional[tuple] = None
         self.path_deviation = 0.0  # m, last measured (psprm_core.tracking.CheckedPath.deviation)
         self.max_path_deviation = 0.0  # m, over the current trajectory
         self.pub_status = node.create_publisher(String, "~/status", 10)
@@ -519,6 +522,7 @@ class RobotAdapter:
         # and only the controllers' goals start a lead time ahead (controller_command trims them there)
         splice_d, not_splice = self._splice_deviation(t, P, q) if self.robot.mobile else (None, "")
         base_lead = 0.0 if splice_d is not None else lead
+        received, tau0 = (np.asarray(t, float) - t[0], P.copy()), 0.0
         if self.robot.mobile:
             # the robot drove on since the plan started from its state: splice at its progress, not back at the start
             with self._lock:
@@ -558,8 +562,13 @@ class RobotAdapter:
                                     f"of the motion under way: {not_splice})")
         now = self._now()
         start_at = now + base_lead
+        splice_ref = (CheckedPath(self.robot, *received), tau0) if self.robot.mobile else None
         if self.cfg.base.mode == "stretch_trajectory":
-            return self._execute_trajectory_mode(t, P, V, q, now)
+            ok = self._execute_trajectory_mode(t, P, V, q, now)
+            if ok:
+                with self._lock:
+                    self._splice_ref = splice_ref
+            return ok
         with self._lock:
             for c in self.cfg.controllers:
                 if self.cfg.driver.mode == "navigation":
@@ -576,6 +585,7 @@ class RobotAdapter:
                 self.follower.set_path(BaseReference(t, P[:, :3]), start_at)
                 self.max_tracking_error = np.zeros(2)
                 self.checked, self.max_path_deviation = checked, 0.0
+                self._splice_ref = splice_ref
                 self._zero_sent = 0
         self.counts["executed"] += 1
         self.last_refusal = ""
@@ -689,22 +699,24 @@ class RobotAdapter:
         motion are such splices (psprm_core.planning.execution): the trajectory under way up to a rest instant at
         least the planning and delivery time ahead, then the new plan."""
         with self._lock:
-            cur, t0, following = self.checked, self.follower.t0, not self.follower.done
-        if cur is None:
+            cur, ref, t0, following = self.checked, self._splice_ref, self.follower.t0, not self.follower.done
+        if ref is None:
             return None, "no trajectory under way"
         if not following:
             return None, "the trajectory under way has ended or was stopped"
+        ref_path, ref_offset = ref
         tau = self._now() - t0
         w = self.p["path_window_s"]
         ts = np.linspace(0.0, min(SPLICE_CHECK_S, float(t[-1])), 6)
         X = np.stack([np.interp(ts, t, P[:, j]) for j in range(P.shape[1])], 1)
-        # the splice's start lies behind the robot by the replan's planning and delivery time: look for it from
-        # SPLICE_LOOKBACK_S back to 1 s ahead (the server's estimate of the robot's progress may lead the adapter's)
+        # the splice's start lies behind the robot by the replan's planning and delivery time (possibly before the
+        # point where this adapter joined the trajectory under way): look for it on that trajectory as received,
+        # from SPLICE_LOOKBACK_S back to 1 s ahead (the server's estimate of the robot's progress may lead this one)
         half = 0.5 * (SPLICE_LOOKBACK_S + 1.0)
-        off = float(cur.path_distances(X, tau + ts + 1.0 - half, max(w, half)).max())
+        off = float(ref_path.path_distances(X, tau + ref_offset + ts + 1.0 - half, max(w, half)).max())
         if off > SPLICE_TOL_M:
             return None, f"its first {ts[-1]:.1f} s lie {off:.3f} m from it (splice tolerance {SPLICE_TOL_M:g} m)"
-        return cur.deviation(q, tau, w)[0], ""
+        return (cur.deviation(q, tau, w)[0] if cur is not None else ref_path.deviation(q, tau + ref_offset, w)[0]), ""
 
     def _send(self, c: ad.ControllerConfig, t, P, V, start_at: float, now: float) -> None:
         cmd = ad.controller_command(c, self.names, t, P, V, now=now, start_at=start_at)
@@ -800,7 +812,7 @@ class RobotAdapter:
         self._held = None
         with self._lock:
             self._pending.clear()
-            self.checked = None
+            self.checked = self._splice_ref = None
             if self.follower is not None:
                 self.follower.stop()
             self._publish_twist(0.0, 0.0)

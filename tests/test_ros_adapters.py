@@ -639,6 +639,63 @@ def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(
     assert np.hypot(*(X[-1, :2] - q2[:2])) < 0.1  # it drove the new plan to its end
 
 
+def test_a_splice_beginning_before_the_point_where_the_adapter_joined_the_trajectory_is_taken(load_robot):
+    """Two replans in a row, as goal spam makes them: the first splice reaches the adapter 0.4 s after the robot was
+    at its start, so the adapter joins it 0.4 s in; the second is spliced onto the first from 0.1 s along it (the
+    server's estimate of the robot's progress lags its robot states). It continues what the robot executes and is
+    taken without a stop, judged from the test's own /odom and cmd_vel record."""
+    from psprm_core.planning.execution import commit_time, splice
+
+    name = "stretch2"
+    robot = load_robot(name)
+    b = robot.config.base
+
+    def turn_and_drive(q_c, turn):
+        q1 = q_c.copy()
+        q1[2] += turn
+        q2 = q1.copy()
+        q2[0] += 0.6 * math.cos(q1[2])
+        q2[1] += 0.6 * math.sin(q1[2])
+        return time_parameterize(np.array([q_c, q1, q2]), robot.velocity, robot.acceleration, dt=0.05,
+                                 base_indices=(0, 1, 2), base_linear_limits=(b.linear_velocity, b.linear_acceleration),
+                                 method="analytic")
+
+    with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
+        time.sleep(0.3)
+        q0 = s.adapter.measured()[0]
+        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.4, joint_delta=0.0)
+        now = lambda: s.probe.node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
+        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        assert _wait(lambda: rec.traj[cfg.controllers[0].name], 10)
+        with rec.lock:
+            t_rx, m0 = rec.traj[cfg.controllers[0].name][0]
+        st = cv.stamp_to_sec(m0.header.stamp)
+        start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
+        time.sleep(max(0.0, start + 2.0 - now()))  # mid-stretch, at full speed
+        t_from = now() - start
+        t_c = commit_time(tr, t_from, 2.0)
+        assert t_c - t_from > 2.5, "precondition: the stretch goes on for a while"
+        sp1 = splice(tr, t_from, t_c, turn_and_drive(tr.evaluate([t_c])[0][0], math.pi / 2), continuous=[2])
+        time.sleep(max(0.0, start + t_from + 0.4 - now()))
+        pub.publish(cv.trajectory_to_msg(sp1, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        t_pub = now()
+        time.sleep(0.3)
+        sp2 = splice(sp1, 0.1, t_c - t_from, turn_and_drive(sp1.evaluate([t_c - t_from])[0][0], -math.pi / 2),
+                     continuous=[2])
+        pub.publish(cv.trajectory_to_msg(sp2, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+        _wait(lambda: False, sp2.duration)
+        with rec.lock:
+            odom = list(rec.odom)
+            twists = list(rec.twists)
+    t_end_stretch = start + t_c - 0.3
+    stops = [t for t, tw in twists if t_pub <= t <= t_end_stretch and tw.linear.x == 0.0 and tw.angular.z == 0.0]
+    assert not stops, f"the robot was stopped at {stops[:3]} (second splice published about {t_pub + 0.3:.2f})"
+    T = np.array([t for t, _ in odom])
+    X = np.array([x for _, x in odom])
+    q_end = sp2.evaluate([sp2.duration])[0][0]
+    assert np.hypot(*(X[-1, :2] - q_end[:2])) < 0.1  # it drove the second plan to its end
+
+
 def test_the_base_runs_at_the_speed_scaling_of_the_arms_controller(load_robot):
     """UR's scaled_joint_trajectory_controller at 50 % (sim_robot publishes the scaling on the driver's topic and
     runs the arm at it): the base follows its path at the same rate, so the whole robot stays on the published
