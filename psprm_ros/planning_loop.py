@@ -68,7 +68,15 @@ LOOP_PARAMS = {
                                      "than this from where the trajectory has it (m; below the adapter's path "
                                      "tolerance) and it moves when the trajectory does; otherwise a replan starts "
                                      "from where it is", live=True, lo=0.0),
+    "start_tolerance_m": P(0.035, "a plan that starts from the robot's state (not spliced) is not published when the "
+                                  "robot, braking from its newest state, has meanwhile come further than this from "
+                                  "the trajectory's configurations near its start (m; below the adapter's path "
+                                  "tolerance, which would refuse it and stop the robot): a replan from the newest "
+                                  "state follows at once while the robot keeps what it executes (0 = off)",
+                           live=True, lo=0.0),
 }
+#: plans withdrawn in a row for a stale start before one is handed to the robot anyway (the adapter decides)
+MAX_STALE_STARTS = 2
 #: the replanner's settings a running server changes live (their defaults come from the replan settings file)
 LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
                "target_turn_rad": "target rotation that counts as a move (rad)",
@@ -199,7 +207,7 @@ class PlanningLoop:
         self.current: Optional[dict] = None  # result, samples, t_pub, positions, t_zero of what the robot executes
         self._along: Optional[tuple] = None  # (trajectory, time along it, perf_counter) of the last estimate
         self._plan_s: deque = deque(maxlen=20)  # recent replans' time from their start to publication (s)
-        self._q_hist: deque = deque()  # (monotonic, q) of the robot states of about the last 0.3 s
+        self._q_hist: deque = deque()  # (monotonic receipt, q) of every robot state of about the last 0.3 s (lock)
         self.hold = False
         self._robot_check_t = 0.0
         self._waiting_t = 0.0  # last "waiting for base pose" report
@@ -211,7 +219,9 @@ class PlanningLoop:
         self.build_info: dict = {}
         self.last_latency_ms: Optional[float] = None
         self.counts = {"plans": 0, "kept": 0, "stops": 0, "failed": 0, "refused_unsafe": 0, "late_splices": 0,
-                       "guard_stops": 0, "spliced": 0}
+                       "stale_starts": 0, "guard_stops": 0, "spliced": 0}
+        self._stale_run = 0  # plans withdrawn in a row for a stale start
+        self._replan_stale = False  # the next cycle replans: a plan was withdrawn for a stale start
         self.heap_trims, self.heap_trim_ms = 0, None
 
         self._side = ThreadPoolExecutor(max_workers=1, thread_name_prefix="psprm-publish")
@@ -257,10 +267,22 @@ class PlanningLoop:
 
     def robot_state(self, q: np.ndarray) -> None:
         """The measured robot configuration (every planning joint, the base pose included)."""
+        q = np.array(q, float)
         with self._lock:
-            self._pending["robot"] = np.asarray(q, float)
-            self._robot_rx = self._pending["robot_t"] = time.monotonic()
+            self._pending["robot"] = q
+            now = self._robot_rx = self._pending["robot_t"] = time.monotonic()
+            # every state, at its receipt: a braking base's speed is measured over them (the worker takes only the
+            # newest state of each cycle, which may be seconds apart while it plans)
+            h = self._q_hist
+            h.append((now, q))
+            while len(h) > 2 and now - h[1][0] >= 0.3:
+                h.popleft()
         self._wake.set()
+
+    def _states(self) -> list:
+        """The robot states of about the last 0.3 s, (monotonic receipt time, q), oldest first."""
+        with self._lock:
+            return list(self._q_hist)
 
     def goals(self, G: np.ndarray) -> None:
         """Candidate goal configurations (G, dof), G >= 1; the best one wins."""
@@ -533,11 +555,6 @@ class PlanningLoop:
             self.safety.set_boxes(self.safety_scene.collision_boxes())
         try:
             if pend["robot"] is not None:
-                now_q = time.monotonic()
-                # at the state's receipt (the worker may take it a planning cycle later)
-                self._q_hist.append((pend["robot_t"] or now_q, pend["robot"].copy()))
-                while len(self._q_hist) > 2 and now_q - self._q_hist[1][0] >= 0.3:
-                    self._q_hist.popleft()
                 q_now = pend["robot"]
                 along = self._time_along(q_now)
                 # a base that moves with no trajectory under way brakes from a stop: plan from where it will rest
@@ -560,6 +577,9 @@ class PlanningLoop:
             reasons.append("plan requested")
         if pend["guard"]:
             reasons.append(f"stopped: {pend['guard']} in the path ahead")
+        if self._replan_stale:
+            self._replan_stale = False
+            reasons.append("start moved while planning")
         if self.goal_configs is None:
             if reasons:
                 self.outputs.status("no goal yet: publish one on the goal topic", "warning")
@@ -669,7 +689,7 @@ class PlanningLoop:
         from .adapters import braking_configurations
         from .base_follower import Limits
 
-        h = list(self._q_hist)
+        h = self._states()
         if not self.robot.mobile or len(h) < 2:
             return q
         older = [e for e in h[:-1] if h[-1][0] - e[0] >= REST_VELOCITY_SPAN_S]
@@ -690,7 +710,7 @@ class PlanningLoop:
     def _measured_speed(self) -> float:
         """How fast the robot moved over its last robot states (the largest joint speed over its velocity limit; a
         fraction of full speed), from the states the worker took (at least 0.1 s apart); 1 until known."""
-        h = self._q_hist
+        h = self._states()
         if len(h) < 2 or h[-1][0] - h[0][0] < 0.1:
             return 1.0
         d = np.abs(h[-1][1] - h[0][1])
@@ -698,6 +718,32 @@ class PlanningLoop:
             d[2] = abs((d[2] + np.pi) % (2 * np.pi) - np.pi)
             d[0] = d[1] = float(np.hypot(*(h[-1][1][:2] - h[0][1][:2])))
         return float((d / np.maximum(self.robot.velocity, 1e-6)).max()) / (h[-1][0] - h[0][0])
+
+    def _stale_start(self, samples: TrajectorySamples) -> str:
+        """Why a plan from the robot's state no longer starts where the robot is ("" = it does, or no newer state
+        came): the robot's newest state, and where it
+        comes to rest braking from it, against the published samples' configurations within the adapter's path
+        window of their start (:meth:`psprm_core.tracking.CheckedPath.deviation`, the measure the adapter refuses
+        by)."""
+        from psprm_core.tracking import CheckedPath
+
+        tol = self.p["start_tolerance_m"]
+        if tol <= 0:
+            return ""
+        with self._lock:
+            q = self._pending["robot"]
+        if q is None:
+            return ""
+        q = np.asarray(q, float)
+        probe = [q]
+        if self.robot.mobile:
+            probe.append(self._rest_point(q))
+        checked = CheckedPath(self.robot, samples.times, samples.positions)
+        d = max(checked.deviation(x, 0.0, 2.0)[0] for x in probe)
+        if d <= tol:
+            return ""
+        return (f"the robot moved while planning: braking from its newest state it comes {d:.3f} m from the "
+                f"trajectory's start (start tolerance {tol:g} m)")
 
     def _commit_horizon(self) -> float:
         """Planning and delivery time of a replan (s): 1.5x the 90th percentile of the recent replans' time from
@@ -728,6 +774,7 @@ class PlanningLoop:
         check or ready too late for its splice (withdrawn), published; on failure the last safe trajectory is kept,
         else a stop. Returns (ok, the info JSON)."""
         t0 = time.perf_counter()
+        stale_run, self._stale_run = self._stale_run, 0
         horizon = self._commit_horizon()
         res = self.rp.replan(triggers=reasons, horizon_s=horizon)
         t1 = time.perf_counter()
@@ -760,7 +807,9 @@ class PlanningLoop:
             # way: the robot rests there, and the plan starts from that rest whenever it arrives
             late = (info["spliced"] and not self._commits_to_the_end(res)
                     and time.perf_counter() - t0 + SPLICE_DELIVERY_S > res.committed_s)
-            if unsafe or late:
+            stale = ("" if unsafe or late or info["spliced"] or stale_run >= MAX_STALE_STARTS
+                     else self._stale_start(samples))
+            if unsafe or late or stale:
                 # not handed to the robot: the replanner goes back to the trajectory the robot executes, so that the
                 # next replan commits along that one
                 self.rp.withdraw(res)
@@ -774,6 +823,18 @@ class PlanningLoop:
                             reason=f"ready {time.perf_counter() - t0:.2f} s after the replan began, too late for its "
                                    f"splice {res.committed_s:.2f} s ahead: not published")
                 self.counts["late_splices"] += 1
+            elif stale:
+                # the robot moved on while this plan was made (a slow query, a stop in between): the adapter would
+                # refuse it and stop the robot; the robot keeps what it executes and the next cycle replans from
+                # its newest state
+                self._stale_run, self._replan_stale = stale_run + 1, True
+                self.counts["stale_starts"] += 1
+                info.update(success=False, failure="stale_start", reason=f"{stale}: not published")
+                self.outputs.info(info)
+                self.outputs.status(f"plan {info['seq']} ({', '.join(reasons)}): {stale}; replanning from the "
+                                    f"newest robot state", "warning")
+                self._wake.set()
+                return False, json.dumps(info)
             else:
                 with self._pub_lock:
                     self.outputs.trajectory(samples)

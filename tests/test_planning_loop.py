@@ -374,3 +374,45 @@ def test_a_robot_resting_at_the_end_of_its_trajectory_takes_the_next_goal(make_l
     finally:
         running.clear()
         th.join(2.0)
+
+
+def test_a_plan_from_a_state_the_robot_left_while_planning_is_replaced_by_one_from_its_newest_state(
+        make_loop, world, world_models):
+    """The robot is pushed 0.2 m along its heading while a plan from where it stood is being made (as a slow query
+    or a stop in between leave a plan's start behind the robot): the loop hands the robot no trajectory starting
+    where it stood (the adapter would refuse it and stop the robot), and no stop, but a trajectory from the state the
+    test sent last."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    moved = start.copy()
+    moved[:2] += 0.2 * np.array([np.cos(start[2]), np.sin(start[2])])
+    assert not world.colliding(np.stack([start, moved])).any()  # precondition: a free push
+    _first_trajectory(loop, rec, start, goals)
+    ok, _ = loop.request("stop", 30.0)  # stopped at the start: the next plan starts from its state, not spliced
+    assert ok
+    orig = loop.rp.replan
+    pushed: list = []
+
+    def pushed_while_planning(*a, **k):  # states at 50 Hz: pushed 0.2 m over 1 s, then at rest for 0.4 s
+        res = orig(*a, **k)
+        if not pushed:
+            pushed.append(time.perf_counter())
+            for i in range(71):
+                loop.robot_state(start + min(i / 50.0, 1.0) * (moved - start))
+                time.sleep(0.02)
+        return res
+
+    loop.rp.replan = pushed_while_planning
+    try:
+        t0 = time.perf_counter()
+        loop.robot_state(start)
+        loop.request("plan", 60.0)
+        ev = rec.wait(t0, ("trajectory", "stop"), 30.0)
+    finally:
+        loop.rp.replan = orig
+    assert pushed, "precondition: a replan ran"
+    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
+    s2 = ev[2]
+    d = float(np.hypot(*(s2.positions[0, :2] - moved[:2])))
+    assert d < 0.01, f"the trajectory handed to the robot starts {d:.3f} m from the robot's newest state"
+    assert not rec.since(t0, ("stop",)), "the robot was stopped"

@@ -609,6 +609,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         "stops": sum(1 for _, i in infos if i.get("stop")), "failed": sum(1 for _, i in infos if not i.get("success")),
         "refused_unsafe": sum(1 for _, i in infos if "refused" in str(i.get("reason"))),
         "late_splices": sum(1 for _, i in infos if i.get("failure") == "late_splice"),
+        "stale_starts": sum(1 for _, i in infos if i.get("failure") == "stale_start"),
         "goals_reached": len(reached), "executed_configurations": len(ex), "executed_collisions": int(collided),
         "executed_collisions_by": by, "collision_events": events, "tracking": tracking,
         "latency_ms_p50": pct(50), "latency_ms_p90": pct(90), "latency_ms_p95": pct(95), "latency_ms_p99": pct(99),
