@@ -185,7 +185,7 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     """
 
     from ..paths import config_dir, resolve_named
-    from ..planning.factory import make_scorer
+    from ..planning.factory import default_alpha, make_scorer
     from ..planning.psprm import PSPRM, PSPRMSettings
     from ..robot import RobotModel
     from ..scene import load_scene
@@ -200,7 +200,7 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     def build(kind: str, n: int) -> dict:
         # the same uniform roadmap for both scorers (perception-biased sampling would score thousands of extra
         # oracle views)
-        settings = base.changed(constraint="line", alpha=0.75 if kind == "oracle" else 0.8, lazy_edges=False,
+        settings = base.changed(constraint="line", alpha=default_alpha(base.scoring.objective, kind), lazy_edges=False,
                                 n_nodes=n, seed=seed, expand_rounds=0, biased_share=0.0)
         scorer = _TimedScorer(make_scorer(kind, scene, [target], robot.config.intrinsics))
         p = PSPRM(robot, scene, scorer, focus, settings)

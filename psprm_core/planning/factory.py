@@ -20,6 +20,11 @@ DEFAULT_ALPHA = {("eq2", "oracle"): 0.75, ("eq2", "neural"): 0.8, ("motion", "or
                  ("motion", "neural"): 0.95}
 
 
+def default_alpha(objective: str, kind: str) -> float:
+    """The Eq. 2 weight a planner uses unless told otherwise (:data:`DEFAULT_ALPHA`; 0.8 for a pair it lacks)."""
+    return DEFAULT_ALPHA.get((objective, kind), 0.8)
+
+
 def default_checkpoint() -> Path:
     """The shipped surrogate checkpoint (``psprm_core/data/surrogate.pt``)."""
     return project_root() / "psprm_core" / "data" / "surrogate.pt"
@@ -69,7 +74,7 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
     settings = settings.changed({k: v for k, v in overrides.items() if v is not None})
     settings = settings.changed(
         constraint=constraint,
-        alpha=DEFAULT_ALPHA.get((settings.scoring.objective, kind), 0.8) if alpha is None else alpha,
+        alpha=default_alpha(settings.scoring.objective, kind) if alpha is None else alpha,
         lazy_edges=settings.edges.lazy_edges or kind == "oracle",
         # biased sampling scores thousands of extra samples: only with a cheap scorer
         biased_share=settings.roadmap.biased_share if kind != "oracle" else 0.0)
