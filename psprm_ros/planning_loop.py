@@ -375,8 +375,8 @@ class PlanningLoop:
     # ------------------------------------------------------------------------------------------------ the stop guard
     def _guard(self, kind: str, name: str, p: np.ndarray, q: np.ndarray) -> None:
         """The stop guard, on the caller's thread as each body pose arrives: when the body (an obstacle, or a target
-        that is one) at its new pose collides with the next ``stop_horizon_s`` of the trajectory being executed, a
-        stop is published at once and a replan is asked for. The planner may be busy for a second with a replan;
+        that is one) at its new pose collides with the robot's newest measured configuration or the next
+        ``stop_horizon_s`` of the trajectory being executed, a stop is published at once and a replan is asked for. The planner may be busy for a second with a replan;
         without the guard the robot would drive on along the old trajectory meanwhile (MoveIt's plan execution
         likewise stops a trajectory whose remaining path the planning scene invalidates)."""
         cur, horizon, guard = self.current, self.p["stop_horizon_s"], self.guard
@@ -392,11 +392,13 @@ class PlanningLoop:
                 box = dataclasses.replace(t.as_box(), center=p, quat=q)
             else:
                 box = dataclasses.replace(self.safety_scene.obstacle(name), center=p, quat=q)
-            with self._lock:
-                q_now = self._pending["robot"]
-            ahead = self._remaining(cur["positions"], self.q if q_now is None else q_now)
+            states = self._states()
+            q_now = states[-1][1] if states else self.q
+            ahead = self._remaining(cur["positions"], q_now)
             ahead = ahead[: int(np.ceil(horizon / self.p["trajectory_dt"])) + 1]
-            D = cv.densify_linear(ahead, self.p["safety_step"])
+            # and where the robot is now: a robot that lags its trajectory or has left it (a turn on the spot behind
+            # a spliced start, a push) stands where no sample of it lies
+            D = np.vstack([np.asarray(q_now, float)[None], cv.densify_linear(ahead, self.p["safety_step"])])
             if not bool(guard.env_hits(torch.as_tensor(D, dtype=torch.float32), [box]).any()):
                 return
         except Exception as exc:  # never lose the caller's thread to the guard

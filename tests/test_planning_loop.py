@@ -416,3 +416,41 @@ def test_a_plan_from_a_state_the_robot_left_while_planning_is_replaced_by_one_fr
     d = float(np.hypot(*(s2.positions[0, :2] - moved[:2])))
     assert d < 0.01, f"the trajectory handed to the robot starts {d:.3f} m from the robot's newest state"
     assert not rec.since(t0, ("stop",)), "the robot was stopped"
+
+
+def test_the_stop_guard_stops_for_a_body_stepping_onto_a_robot_standing_off_its_trajectory(make_loop, world,
+                                                                                          world_models):
+    """The robot stands 0.3 m beside the start of its trajectory (pushed, or lagging a turn on the spot): a body
+    pose touching the robot where it stands, clear of the trajectory's next 1.5 s, stops it at once; the same body
+    0.6 m further out does not."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    s = _first_trajectory(loop, rec, start, goals)
+    side = np.array([-np.sin(start[2]), np.cos(start[2])])
+    body = world.sent.scene.obstacle("person_body")
+    first = s.positions[s.times <= 1.5]
+    for sign in (1.0, -1.0):  # the free side
+        off = start.copy()
+        off[:2] += sign * 0.3 * side
+        if not world.colliding(off[None]).any():
+            break
+    assert not world.colliding(off[None]).any(), "precondition: a free place beside the start"
+    loop.robot_state(off)
+    time.sleep(0.3)
+    touching = None
+    for d in np.arange(0.15, 0.6, 0.02):  # the nearest body position that touches the robot where it stands
+        p = np.r_[off[:2] + sign * d * side, body.center[2]]
+        world.sent.sent("person_body", p, body.quat)
+        if world.colliding(off[None]).any() and not world.colliding(first).any():
+            touching = p
+            break
+    assert touching is not None, "precondition: a body pose touching the standing robot, clear of the trajectory"
+    far = np.r_[touching[:2] + sign * 0.6 * side, body.center[2]]
+    world.sent.sent("person_body", far, body.quat)
+    assert not world.colliding(np.vstack([off[None], first])).any()  # precondition: clear of both
+    t_far = world.send(loop, "person_body", far, body.quat)
+    assert not rec.since(t_far, ("stop",)), "a stop for a body clear of the robot and its trajectory"
+    world.sent.sent("person_body", touching, body.quat)
+    t0 = world.send(loop, "person_body", touching, body.quat)
+    got = rec.since(t0, ("stop", "trajectory"))
+    assert got and got[0][1] == "stop", f"no stop at once: {got}"
