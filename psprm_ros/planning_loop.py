@@ -75,6 +75,9 @@ LOOP_PARAMS = {
                                   "state follows at once while the robot keeps what it executes (0 = off)",
                            live=True, lo=0.0),
 }
+#: how a heading or joint difference (per rad / m) counts against base distance (m) in finding where along a
+#: published trajectory the robot is
+TURN_M_PER_RAD = 0.3
 #: plans withdrawn in a row for a stale start before one is handed to the robot anyway (the adapter decides)
 MAX_STALE_STARTS = 2
 #: the replanner's settings a running server changes live (their defaults come from the replan settings file)
@@ -933,12 +936,19 @@ class PlanningLoop:
 
     def _remaining(self, positions: np.ndarray, q: Optional[np.ndarray] = None) -> np.ndarray:
         """The part of a published trajectory the robot has not traversed yet (from its sample nearest to the robot
-        state ``q``, default the one the planner last took)."""
+        state ``q``, default the one the planner last took). For a mobile base the nearness counts the heading and
+        the joints too (``TURN_M_PER_RAD``): a turn on the spot keeps the base where it is, and by position alone
+        its first sample would be the nearest however far the turn has gone."""
         Q = np.asarray(positions)
         q = self.q if q is None else q
         if len(Q) <= 1:
             return Q
-        d = np.linalg.norm(Q[:, :2] - q[:2], axis=1) if self.robot.mobile else np.linalg.norm(Q - q, axis=1)
+        if self.robot.mobile:
+            turn = np.abs((Q[:, 2] - q[2] + np.pi) % (2 * np.pi) - np.pi)
+            d = (np.linalg.norm(Q[:, :2] - q[:2], axis=1) + TURN_M_PER_RAD * turn
+                 + TURN_M_PER_RAD * np.abs(Q[:, 3:] - q[3:]).max(axis=1, initial=0.0))
+        else:
+            d = np.linalg.norm(Q - q, axis=1)
         return Q[int(np.argmin(d)):]
 
     # ------------------------------------------------------------------------------------------------ side jobs

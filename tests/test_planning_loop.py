@@ -454,3 +454,56 @@ def test_the_stop_guard_stops_for_a_body_stepping_onto_a_robot_standing_off_its_
     t0 = world.send(loop, "person_body", touching, body.quat)
     got = rec.since(t0, ("stop", "trajectory"))
     assert got and got[0][1] == "stop", f"no stop at once: {got}"
+
+
+def test_the_stop_guard_checks_what_lies_ahead_of_a_robot_turning_on_the_spot(make_loop, world, world_models):
+    """The robot is 40 % through a turn on the spot of its trajectory (its base where the turn began): a body pose
+    that collides with the trajectory 0.6-1.4 s ahead of the robot, and with nothing the robot has turned through
+    or turns through in the next 0.55 s, stops it at once."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    s = _first_trajectory(loop, rec, start, goals)
+    xy = s.positions[:, :2]
+    step = np.r_[0.0, np.hypot(*np.diff(xy, axis=0).T)]
+    dth = np.r_[0.0, np.abs(np.diff(s.positions[:, 2]))]
+    spot = (step < 1e-4) & (dth > 1e-3)  # samples turning on the spot
+    runs, k = [], 0
+    while k < len(spot):
+        if spot[k]:
+            j = k
+            while j + 1 < len(spot) and spot[j + 1]:
+                j += 1
+            runs.append((k, j))
+            k = j + 1
+        else:
+            k += 1
+    turns = [(a, b) for a, b in runs if s.times[b] - s.times[a] > 2.5 and s.times[a] > 1.0]
+    assert turns, "precondition: the trajectory turns on the spot for more than 2.5 s after its first second"
+    a, b = turns[0]
+    t_r = s.times[a] + 0.4 * (s.times[b] - s.times[a])
+    q_r = at_time(s, t_r)
+    ahead = s.positions[(s.times >= t_r + 0.6) & (s.times <= t_r + 1.4)]
+    # clear of what the robot turned through and of the next 0.55 s (a guard that looked from where the turn began
+    # would check only the first 1.5 s of the turn, which ends before t_r + 0.55)
+    behind = s.positions[(s.times >= s.times[a] - 1.0) & (s.times <= t_r + 0.55)]
+    assert s.times[a] + 1.5 < t_r + 0.55, "precondition: the turn's first 1.5 s end before the clear stretch does"
+    body = world.sent.scene.obstacle("person_body")
+    place = None
+    for r in np.arange(0.2, 1.0, 0.04):
+        for ang in np.linspace(-np.pi, np.pi, 48, endpoint=False):
+            p = np.r_[q_r[:2] + r * np.array([np.cos(ang), np.sin(ang)]), body.center[2]]
+            world.sent.sent("person_body", p, body.quat)
+            if world.colliding(ahead).any() and not world.colliding(np.vstack([q_r[None], behind])).any():
+                place = p
+                break
+        if place is not None:
+            break
+    assert place is not None, "precondition: a body pose touching only the turn still ahead"
+    # the robot's states at 50 Hz along its turn up to t_r
+    for tau in np.arange(max(0.0, t_r - 0.4), t_r + 1e-9, 0.02):
+        loop.robot_state(at_time(s, tau))
+        time.sleep(0.02)
+    world.sent.sent("person_body", place, body.quat)
+    t0 = world.send(loop, "person_body", place, body.quat)
+    got = rec.since(t0, ("stop", "trajectory"))
+    assert got and got[0][1] == "stop", f"no stop at once: {got}"
