@@ -258,6 +258,17 @@ class ConfigureScope:
         self._pubs: list = []
         self._timers: list = []
 
+    @staticmethod
+    def configure(make, release) -> bool:
+        """Run ``make`` (a node's set-up); when it raises, ``release`` what it made so far and raise on (the node
+        stays unconfigured with nothing made, and can be configured again)."""
+        try:
+            make()
+        except Exception:
+            release()
+            raise
+        return True
+
     def subscription(self, *args, **kwargs):
         s = self.node.create_subscription(*args, **kwargs)
         self._subs.append(s)

@@ -156,12 +156,7 @@ class ReplanMonitor:
         """Read the parameters, load the scene and robot model, make the subscriptions, publishers and timers. A
         bad parameter or a missing file raises: the configure fails with the reason on ``~/status``, the node stays
         unconfigured with nothing made, and can be configured again."""
-        try:
-            self._configure()
-        except Exception:
-            self._release()
-            raise
-        return True
+        return self._made.configure(self._configure, self._release)
 
     def _configure(self) -> None:
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup

@@ -573,6 +573,23 @@ def test_a_push_off_the_path_stops_the_robot_within_the_path_tolerance(load_robo
         s.probe.statuses[-5:]
 
 
+def _drive_a_straight_stretch(s, cfg, rec, pub, robot, after_s: float):
+    """Publish a 2.4 m straight drive from where the robot stands and return ``after_s`` seconds after the
+    controller's trajectory started: (the trajectory, its start on the node clock, a clock reader)."""
+    time.sleep(0.3)
+    q0 = s.adapter.measured()[0]
+    tr = planned_trajectory(robot, q0, turn=0.0, drive=2.4, joint_delta=0.0)
+    now = lambda: s.probe.node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
+    pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
+    assert _wait(lambda: rec.traj[cfg.controllers[0].name], 10)
+    with rec.lock:
+        t_rx, m0 = rec.traj[cfg.controllers[0].name][0]
+    st = cv.stamp_to_sec(m0.header.stamp)
+    start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
+    time.sleep(max(0.0, start + after_s - now()))
+    return tr, start, now
+
+
 @pytest.mark.parametrize("delay_s", [0.0, 2.6])
 def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(load_robot, delay_s):
     """While the base drives a long straight stretch, the test publishes what the roadmap server publishes for a
@@ -587,17 +604,7 @@ def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(
     name = "stretch2"
     robot = load_robot(name)
     with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
-        time.sleep(0.3)
-        q0 = s.adapter.measured()[0]
-        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.4, joint_delta=0.0)
-        now = lambda: s.probe.node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
-        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
-        assert _wait(lambda: rec.traj[cfg.controllers[0].name], 10)
-        with rec.lock:
-            t_rx, m0 = rec.traj[cfg.controllers[0].name][0]
-        st = cv.stamp_to_sec(m0.header.stamp)
-        start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
-        time.sleep(max(0.0, start + 2.5 - now()))  # mid-stretch, at full speed
+        tr, start, now = _drive_a_straight_stretch(s, cfg, rec, pub, robot, 2.5)  # mid-stretch, at full speed
         t_from = now() - start
         t_c = commit_time(tr, t_from, 0.5 + delay_s)
         assert t_c - t_from > 1.5 + delay_s, "precondition: the stretch goes on for a while"
@@ -661,17 +668,7 @@ def test_a_splice_beginning_before_the_point_where_the_adapter_joined_the_trajec
                                  method="analytic")
 
     with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
-        time.sleep(0.3)
-        q0 = s.adapter.measured()[0]
-        tr = planned_trajectory(robot, q0, turn=0.0, drive=2.4, joint_delta=0.0)
-        now = lambda: s.probe.node.get_clock().now().nanoseconds * 1e-9  # noqa: E731
-        pub.publish(cv.trajectory_to_msg(tr, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(), 0.1))
-        assert _wait(lambda: rec.traj[cfg.controllers[0].name], 10)
-        with rec.lock:
-            t_rx, m0 = rec.traj[cfg.controllers[0].name][0]
-        st = cv.stamp_to_sec(m0.header.stamp)
-        start = st if st > 0 else t_rx + cv.duration_to_sec(m0.points[0].time_from_start)
-        time.sleep(max(0.0, start + 2.0 - now()))  # mid-stretch, at full speed
+        tr, start, now = _drive_a_straight_stretch(s, cfg, rec, pub, robot, 2.0)  # mid-stretch, at full speed
         t_from = now() - start
         t_c = commit_time(tr, t_from, 2.0)
         assert t_c - t_from > 2.5, "precondition: the stretch goes on for a while"
