@@ -379,8 +379,9 @@ class PlanningLoop:
     def _guard(self, kind: str, name: str, p: np.ndarray, q: np.ndarray) -> None:
         """The stop guard, on the caller's thread as each body pose arrives: when the body (an obstacle, or a target
         that is one) at its new pose collides with the robot's newest measured configuration or the next
-        ``stop_horizon_s`` of the trajectory being executed, a stop is published at once and a replan is asked for. The planner may be busy for a second with a replan;
-        without the guard the robot would drive on along the old trajectory meanwhile (MoveIt's plan execution
+        ``stop_horizon_s`` of the trajectory being executed, a stop is published at once and a replan is asked for.
+        The planner may be busy for a second with a replan; without the guard the robot would drive on along the
+        old trajectory meanwhile (MoveIt's plan execution
         likewise stops a trajectory whose remaining path the planning scene invalidates)."""
         cur, horizon, guard = self.current, self.p["stop_horizon_s"], self.guard
         if horizon <= 0 or guard is None or cur is None or cur.get("samples") is None:
@@ -714,7 +715,7 @@ class PlanningLoop:
 
     def _measured_speed(self) -> float:
         """How fast the robot moved over its last robot states (the largest joint speed over its velocity limit; a
-        fraction of full speed), from the states the worker took (at least 0.1 s apart); 1 until known."""
+        fraction of full speed), from the robot states of the last 0.3 s (at least 0.1 s apart); 1 until known."""
         h = self._states()
         if len(h) < 2 or h[-1][0] - h[0][0] < 0.1:
             return 1.0
@@ -726,9 +727,9 @@ class PlanningLoop:
 
     def _stale_start(self, samples: TrajectorySamples) -> str:
         """Why a plan from the robot's state no longer starts where the robot is ("" = it does, or no newer state
-        came): the robot's newest state, and where it
-        comes to rest braking from it, against the published samples' configurations within the adapter's path
-        window of their start (:meth:`psprm_core.tracking.CheckedPath.deviation`, the measure the adapter refuses
+        came): the robot's newest state, and where it comes to rest braking from it, against the published samples'
+        configurations within the adapter's path window of their start
+        (:meth:`psprm_core.tracking.CheckedPath.deviation`, the measure the adapter refuses
         by)."""
         from psprm_core.tracking import CheckedPath
 
