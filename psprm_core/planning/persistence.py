@@ -11,7 +11,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from .graph import Roadmap
-from .settings import QUERY_SETTINGS
+from .settings import query_only_settings
 from .state import Stage
 
 
@@ -24,7 +24,8 @@ class Persistence(Stage):
         for b in self.ctx.scene.collision_boxes():
             h.update(np.concatenate([b.center, b.size, b.quat]).astype(np.float64).tobytes())
         h.update(self.ctx.constraint.target.numpy().tobytes())
-        build = {k: v for k, v in self.ctx.settings.flat().items() if k not in QUERY_SETTINGS}
+        query_only = set(query_only_settings())
+        build = {k: v for k, v in self.ctx.settings.flat().items() if k not in query_only}
         h.update(json.dumps(build, sort_keys=True, default=str).encode())
         return h.hexdigest()[:20]
 

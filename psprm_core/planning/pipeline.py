@@ -24,7 +24,7 @@ from .scoring import Scoring
 from .selection import RouteSelection
 from .shortcut import Shortcut
 from .results import Failure, PlanResult
-from .settings import QUERY_OPTIONS
+from .settings import query_options
 from .state import PlannerContext, QueryContext, one_thread
 from .trajectory import Trajectory
 from .verification import Verification
@@ -72,14 +72,15 @@ class Pipeline:
     @one_thread
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
              goal_costs: Optional[np.ndarray] = None, options: Optional[dict] = None) -> PlanResult:
-        """:meth:`plan_recovering` with the query's ``options``: settings of :data:`~.settings.QUERY_OPTIONS` that
+        """:meth:`plan_recovering` with the query's ``options``: settings of :func:`~.settings.query_options` that
         this query uses instead of the planner's (a replanner's heuristic, timing and shortcut choice); the planner's
         settings are not changed."""
         settings = None
         if options:
-            unknown = sorted(set(options) - set(QUERY_OPTIONS))
+            allowed = {n.rpartition(".")[2] for n in query_options()}
+            unknown = sorted(set(options) - allowed)
             if unknown:
-                raise InputError(f"unknown query options {unknown} (choose from {', '.join(QUERY_OPTIONS)})")
+                raise InputError(f"unknown query options {unknown} (choose from {', '.join(sorted(allowed))})")
             settings = self.ctx.settings.changed(options)
             settings.validate("query options")
         self.qc.settings = settings

@@ -36,10 +36,10 @@ from ..scene import Scene
 from .constraints import VisibilityConstraint, camera_joint_mask
 from .pipeline import Pipeline
 from .results import EscapeResult, PlanResult
-from .settings import QUERY_SETTINGS, VARIANTS, PSPRMSettings
+from .settings import VARIANTS, PSPRMSettings
 from .state import PlannerContext
 
-__all__ = ["PSPRM", "PSPRMSettings", "PlanResult", "EscapeResult", "QUERY_SETTINGS", "VARIANTS"]
+__all__ = ["PSPRM", "PSPRMSettings", "PlanResult", "EscapeResult", "VARIANTS"]
 
 
 class PSPRM:
@@ -155,7 +155,7 @@ class PSPRM:
              goal_costs: Optional[np.ndarray] = None, options: Optional[dict] = None) -> PlanResult:
         """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)), with the
         recovery stages when no goal is reachable (:meth:`.pipeline.Pipeline.plan`). ``goal_costs`` (G,): terminal costs
-        added per goal; ``options``: settings of :data:`~.settings.QUERY_OPTIONS` for this query only (e.g.
+        added per goal; ``options``: settings of :func:`~.settings.query_options` for this query only (e.g.
         ``{"heuristic": "exact", "shortcut": False}``). Never raises for a bad problem: the result's ``reason`` says
         what failed."""
         return self.pipeline.plan(start, goals, timing, goal_costs, options)

@@ -4,8 +4,10 @@
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -15,17 +17,6 @@ from .constraints import ProjectionSettings
 from .objectives import OBJECTIVES
 
 
-# settings one query may override (PSPRM.plan's ``options``)
-QUERY_OPTIONS = ("heuristic", "shortcut", "shortcut_rounds", "smooth_timing", "route_searches", "route_length_ratio")
-
-# settings that only affect queries (weights are recomputed from c_p and c_m on load): not part of the fingerprint
-QUERY_SETTINGS = ("alpha", "objective", "heuristic", "shortcut", "shortcut_rounds", "connect_k", "build_timeout_s",
-                  "query_repair_nodes", "query_repair_radius",
-                  "query_repair_budget", "query_repair_connect_k", "query_repair_rounds", "query_repair_failures",
-                  "query_wide_k", "query_untracked_fallback", "query_escape_s", "query_escape_nodes",
-                  "query_escape_radius", "query_escape_step", "query_escape_connect_k",
-                  "start_fix_radius", "start_fix_samples", "smooth_timing", "route_searches", "route_length_ratio")
-
 VARIANTS = {
     "psprm-line": ("line", "oracle"),
     "psprm-frustum": ("frustum", "oracle"),
@@ -34,104 +25,162 @@ VARIANTS = {
 }
 
 
+def setting(default, description: str, *, range: tuple | None = (0, None), choices: tuple | None = None,
+            query: bool = False, live: bool = False, build: bool = False):
+    """A settings field with its metadata (read by :func:`parameter_specs` and :meth:`PSPRMSettings.validate`).
+
+    ``description``: one line for users (parameter descriptions, ``--help``); ``range``: inclusive ``(lo, hi)``
+    bounds of a number, either None for no bound (default ``(0, None)``: non-negative); ``choices``: the values a
+    string may take; ``query``: one query may override it (``PSPRM.plan``'s ``options``); ``live``: a running
+    planner takes a change (``PSPRM.update_settings``) without being made again; ``build``: it shapes the built
+    roadmap (part of the roadmap's fingerprint)."""
+    numeric = isinstance(default, (int, float)) and not isinstance(default, bool)
+    meta = {"description": description, "range": tuple(range) if numeric and range is not None else None,
+            "choices": tuple(choices) if choices is not None else None, "query": query, "live": live,
+            "build": build}
+    if isinstance(default, float) and (range is None or range[0] is None or range[0] < 0):
+        meta["signed"] = True  # read by yamlio.dataclass_kwargs: negative values allowed in YAML
+    return field(default=default, metadata=meta)
+
+
 @dataclass(frozen=True)
 class RoadmapSettings:
-    """Alg. 1: the nodes on the visibility manifold and their neighbours (``sampling``, ``neighbours``, ``builder``)."""
+    """Alg. 1: the nodes on the visibility manifold and their neighbours (``sampling``, ``neighbours``, ``builder``).
+    Used when a roadmap is built."""
 
-    n_nodes: int = 3000
-    k_neighbors: int = 15
-    k_long: int = 10  # extra random neighbours within max_edge_length (long edges: fewer hops per path, Eq. 2)
-    max_edge_length: float = 2.0  # motion-cost units (m + weighted rad), the geodesic radius delta of Alg. 1
-    sample_joints: str = "camera"  # camera: sample only joints that move the camera (others at default) | all
-    sample_spread: float = field(default=-1.0, metadata={"signed": True})  # >= 0: non-base joints sampled within
-    # +-spread (rad/m) of the template, else uniform
-    biased_share: float = 0.0  # share of the nodes drawn where the scorer predicts good views (accepted with
-    # probability c_p, the normalised score); the others uniform on the manifold
-    biased_tries: float = 6.0  # at most this many manifold samples scored per biased node wanted
-    expand_rounds: int = 0  # > 0: after the build, rounds of sampling between the largest component and the others
-    expand_nodes: int = 30  # nodes sampled per disconnected component and round
-    expand_components: int = 12  # components (of >= 3 nodes, largest first) bridged per round
-    sample_batch: int = 2048
-    build_timeout_s: float = 120.0
+    n_nodes: int = setting(3000, "roadmap nodes sampled on the visibility manifold", range=(2, None), build=True)
+    k_neighbors: int = setting(15, "nearest neighbours each node tries to connect to", range=(1, None), build=True)
+    k_long: int = setting(10, "extra random neighbours within max_edge_length (long edges: fewer hops per path, "
+                              "Eq. 2)", build=True)
+    max_edge_length: float = setting(2.0, "longest edge (motion-cost units: m + weighted rad), the geodesic radius "
+                                          "delta of Alg. 1", build=True)
+    sample_joints: str = setting("camera", "joints sampled: camera (only joints that move the camera, the others at "
+                                           "their default) | all", choices=("camera", "all"), build=True)
+    sample_spread: float = setting(-1.0, ">= 0: non-base joints sampled within +-spread (rad/m) of the template; "
+                                         "< 0: uniform within their limits", range=None, build=True)
+    biased_share: float = setting(0.0, "share of the nodes drawn where the scorer predicts good views (accepted with "
+                                       "probability c_p, the normalised score); the others uniform on the manifold",
+                                  range=(0.0, 1.0), build=True)
+    biased_tries: float = setting(6.0, "at most this many manifold samples scored per biased node wanted", build=True)
+    expand_rounds: int = setting(0, "> 0: after the build, rounds of sampling between the largest component and "
+                                    "the others", build=True)
+    expand_nodes: int = setting(30, "nodes sampled per disconnected component and expansion round", build=True)
+    expand_components: int = setting(12, "components (of >= 3 nodes, largest first) bridged per expansion round",
+                                     build=True)
+    sample_batch: int = setting(2048, "manifold samples projected per batch", range=(1, None), build=True)
+    build_timeout_s: float = setting(120.0, "a build stops after this many seconds (s)")
 
 
 @dataclass(frozen=True)
 class VisibilitySettings:
     """The visibility manifold h_M (Sec. III-A, ``constraints``); fixed when a planner is made."""
 
-    constraint: str = "line"  # visibility model: line | frustum
-    min_view_distance: float = 0.5
-    frustum_margin: float = 0.05
-    kinematics: str = "native"  # camera FK + Jacobian of the Newton projection and the collision checker's body FK:
-    # native (the robot model; compiled kernels for small CPU batches) | pytorch_kinematics (psprm_core.kinematics_pk:
-    # the projection always on the torch path; the checker's torch path, its small CPU batches still compiled)
+    constraint: str = setting("line", "visibility model: line (the target on the optical axis) | frustum (the "
+                                      "target within the image)", choices=("line", "frustum"), build=True)
+    min_view_distance: float = setting(0.5, "the target at least this far in front of the camera (m)", build=True)
+    frustum_margin: float = setting(0.05, "frustum model: room kept around the target (m)", build=True)
+    kinematics: str = setting("native", "camera FK + Jacobian of the Newton projection and the collision checker's "
+                                        "body FK: native (the robot model; compiled kernels for small CPU batches) | "
+                                        "pytorch_kinematics (psprm_core.kinematics_pk)",
+                              choices=("native", "pytorch_kinematics"), build=True)
 
 
 @dataclass(frozen=True)
 class EdgeSettings:
     """Edges: Eq. 1's knots, their re-aiming and the dense collision checks (``edges``, ``knots``, ``verification``)."""
 
-    n_interp: int = 5  # N of Eq. 1
-    edge_resolution: float = 0.05  # collision-check spacing along edges (motion-cost units)
-    edge_view_slack: float = field(default=-1.0, metadata={"signed": True})  # >= 0: interior configurations must keep
-    # the target within the frustum (+slack m); < 0: no such filter (Eq. 1 already scores interiors that lose it)
-    track_iters: int = 6  # Newton steps that re-aim the non-base camera joints at the knots of an edge
-    lazy_collision: bool = True  # Lazy PRM: check an edge's dense interior when a search first uses it
-    lazy_edges: bool = False  # score edge interiors (Eq. 1) only for edges on candidate paths (slow scorers)
-    collision_padding: float = 0.0  # m kept from every obstacle box by nodes and edges (the boxes grown by this much,
-    # CollisionChecker.padding); a start inside that clearance, but clear of the boxes themselves, is first moved out
-    # of it (recovery.start_fix_*); 0: the planner may graze obstacles, and a robot off its path by 1 cm may hit one
+    n_interp: int = setting(5, "interior samples N of an edge's Eq. 1 score", build=True, live=True)
+    edge_resolution: float = setting(0.05, "collision-check spacing along edges (motion-cost units)", build=True,
+                                     live=True)
+    edge_view_slack: float = setting(-1.0, ">= 0: interior configurations must keep the target within the frustum "
+                                           "(+slack m); < 0: no such filter (Eq. 1 already scores interiors that "
+                                           "lose it)", range=None, build=True, live=True)
+    track_iters: int = setting(6, "Newton steps that re-aim the non-base camera joints at the knots of an edge",
+                               build=True, live=True)
+    lazy_collision: bool = setting(True, "Lazy PRM: an edge's dense interior is checked when a search first uses it",
+                                   build=True, live=True)
+    lazy_edges: bool = setting(False, "edge interiors scored (Eq. 1) only for edges on candidate paths (slow "
+                                      "scorers)", build=True, live=True)
+    collision_padding: float = setting(0.0, "m kept from every obstacle box by nodes and edges (the boxes grown by "
+                                            "this much); a start inside that clearance but clear of the boxes is "
+                                            "first moved out of it (recovery.start_fix_*); fixed when a planner is "
+                                            "made", range=(0.0, 0.5), build=True)
 
 
 @dataclass(frozen=True)
 class ScoringSettings:
     """Edge weights from Eq. 1's perception and the motion cost (Eq. 2 and the other forms, ``scoring``)."""
 
-    alpha: float = 0.8  # Eq. 2 (paper: 0.75 with the oracle, 0.8 with the surrogate)
-    objective: str = "eq2"  # edge weight: eq2 (the paper's 1 - alpha c_p + (1 - alpha) c_m) | motion (c_m times
-    # ((1 - alpha) + alpha (1 - c_p)): perception loss per unit of motion; objectives.motion_weighted)
-    normalize_scores: bool = True  # c_p = min(1, score / q99(node scores)): the paper's normalised score in [0, 1]
+    alpha: float = setting(0.8, "weight of perception against motion cost in the edge weight (Eq. 2)",
+                           range=(0.0, 1.0), live=True)
+    objective: str = setting("eq2", "edge weight: eq2 (1 - alpha c_p + (1 - alpha) c_m) | motion (c_m ((1 - alpha) "
+                                    "+ alpha (1 - c_p)): perception loss per unit of motion)", choices=OBJECTIVES,
+                             live=True)
+    normalize_scores: bool = setting(True, "c_p = min(1, score / q99(node scores)): the normalised score in [0, 1]",
+                                     build=True, live=True)
 
 
 @dataclass(frozen=True)
 class QuerySettings:
     """One query: connecting its ends, the A* search (Eqs. 3-6), shortcuts, route selection and timing."""
 
-    connect_k: int = 12  # neighbours tried when connecting a start or goal
-    heuristic: str = "auto"  # A* heuristic: hop (Eq. 3, the paper's) | distance (motion lower bound, for the motion
-    # objective) | exact (cost-to-go from a compiled Dijkstra) | auto (hop for eq2, distance for motion)
-    shortcut: bool = False  # shorten the found path where a direct motion is free, on the manifold and sees as well
-    shortcut_rounds: int = 2  # greedy shortcut passes over the path
-    route_searches: str = ""  # more searches of each query, "objective@alpha" or "alt" (another route) separated by
-    # commas (e.g. "eq2@0.8,alt"); the route that sees most (motion-weighted mean Eq. 1 along the path) is returned
-    # when it is at most route_length_ratio times as long as the planner's own (selection.RouteSelection); "" = one
-    route_length_ratio: float = 1.5  # longest alternative route taken, relative to the length of the planner's own
-    smooth_timing: bool = True  # trajectories pass the knots of a base phase without stopping (timing.smooth)
+    connect_k: int = setting(12, "neighbours tried when connecting a start or goal", range=(1, None), live=True)
+    heuristic: str = setting("auto", "A* heuristic: hop (Eq. 3) | distance (motion lower bound) | exact (cost-to-go "
+                                     "from a compiled Dijkstra) | auto (hop for eq2, distance for motion)",
+                             choices=("hop", "distance", "exact", "auto"), query=True, live=True)
+    shortcut: bool = setting(False, "shorten the found path where a direct motion is free, on the manifold and sees "
+                                    "as well", query=True, live=True)
+    shortcut_rounds: int = setting(2, "greedy shortcut passes over the path", query=True, live=True)
+    route_searches: str = setting("", "more searches of each query, objective@alpha or alt (another route), comma "
+                                      "separated; the route that sees most within route_length_ratio of the "
+                                      "planner's own length is returned", query=True, live=True)
+    route_length_ratio: float = setting(1.5, "longest alternative route taken, relative to the length of the "
+                                             "planner's own", range=(1.0, None), query=True, live=True)
+    smooth_timing: bool = setting(True, "trajectories pass the knots of a base phase without stopping", query=True,
+                                  live=True)
 
 
 @dataclass(frozen=True)
 class RecoverySettings:
     """A query that finds no path: the escape search, the local repair and the wide connection (``recovery``)."""
 
-    query_repair_nodes: int = 120  # a query that finds no path grows this many nodes around its start and goals
-    query_repair_radius: float = 0.8  # m around the start/goal base (half of them along its heading)
-    query_repair_budget: int = 1500  # at most this many nodes grown by query repairs per built/loaded roadmap
-    query_repair_connect_k: int = 48  # neighbours tried per start / goal in the repaired query (>= connect_k)
-    query_repair_rounds: int = 3  # repair rounds of a failing query (radius x 1.5 each round), within the budget
-    query_repair_failures: int = 25  # failed (rolled back) repairs per built/loaded roadmap; then no more repairs
-    query_wide_k: int = 0  # last resort (after the escape): each end tries its k nearest nodes, however far (0: off)
-    query_untracked_fallback: bool = True  # escape/wide queries keep a connection with untracked camera joints
-    # when its re-aimed version collides
-    query_escape_s: float = 0.0  # > 0: time (s) of the escape search of a failed query, before the repair (0: off)
-    query_escape_nodes: int = 1500  # at most this many configurations in an end's escape tree
-    query_escape_radius: float = 2.5  # m: half the escape samples put the base within this distance of the end,
-    # the others within twice that
-    query_escape_step: float = 0.4  # motion-cost units: the escape tree's short extensions (long ones: ESCAPE_LONG x)
-    query_escape_connect_k: int = 6  # nearest roadmap nodes each new escape configuration tries to connect to
-    start_fix_radius: float = 0.25  # a start within the collision padding (edges.collision_padding) is moved out of it
-    # to the nearest padded-free configuration found within this offset (m for the base and prismatic joints, rad
-    # for the revolute ones) by a motion free of the unpadded boxes; 0: such a start is refused
-    start_fix_samples: int = 64  # random offsets tried per ring (four rings, up to start_fix_radius)
+    query_repair_nodes: int = setting(120, "a query that finds no path grows this many nodes around its start and "
+                                           "goals", live=True)
+    query_repair_radius: float = setting(0.8, "m around the start/goal base where repair nodes grow (half of them "
+                                              "along its heading)", live=True)
+    query_repair_budget: int = setting(1500, "at most this many nodes grown by query repairs per built/loaded "
+                                             "roadmap", live=True)
+    query_repair_connect_k: int = setting(48, "neighbours tried per start / goal in a repaired query", live=True)
+    query_repair_rounds: int = setting(3, "repair rounds of a failing query (radius x 1.5 each round)", live=True)
+    query_repair_failures: int = setting(25, "failed (rolled back) repairs per built/loaded roadmap; then no more "
+                                             "repairs", live=True)
+    query_wide_k: int = setting(0, "last resort after the escape: each end tries its k nearest nodes, however far "
+                                   "(0: off)", live=True)
+    query_untracked_fallback: bool = setting(True, "escape/wide queries keep a connection with untracked camera "
+                                                   "joints when its re-aimed version collides", live=True)
+    query_escape_s: float = setting(0.0, "> 0: time (s) of the escape search of a failed query, before the repair "
+                                         "(0: off)", live=True)
+    query_escape_nodes: int = setting(1500, "at most this many configurations in an end's escape tree", live=True)
+    query_escape_radius: float = setting(2.5, "m: half the escape samples put the base within this distance of the "
+                                              "end, the others within twice that", live=True)
+    query_escape_step: float = setting(0.4, "motion-cost units: the escape tree's short extensions", live=True)
+    query_escape_connect_k: int = setting(6, "nearest roadmap nodes each new escape configuration tries to connect "
+                                             "to", live=True)
+    start_fix_radius: float = setting(0.25, "a start within the collision padding is moved out of it to the nearest "
+                                            "padded-free configuration within this offset (m / rad); 0: such a "
+                                            "start is refused", live=True)
+    start_fix_samples: int = setting(64, "random offsets tried per ring (four rings, up to start_fix_radius)",
+                                     range=(1, None), live=True)
+
+
+#: metadata (as :func:`setting` makes it) of the projection group, whose dataclass lives in ``constraints``
+PROJECTION_METADATA = {
+    "tolerance": dict(description="projection tolerance: line, m off the optical axis; frustum, m outside the "
+                                  "frustum", range=(None, None)),
+    "max_iters": dict(description="Newton iterations of one projection", range=(1, None)),
+    "damping": dict(description="Levenberg-Marquardt damping of the Newton step", range=(None, None)),
+    "max_step": dict(description="largest norm of one Newton step (configuration units)", range=(None, None)),
+}
 
 
 @dataclass(frozen=True)
@@ -152,7 +201,7 @@ class PSPRMSettings:
     scoring: ScoringSettings = field(default_factory=ScoringSettings)
     query: QuerySettings = field(default_factory=QuerySettings)
     recovery: RecoverySettings = field(default_factory=RecoverySettings)
-    seed: int = 0
+    seed: int = setting(0, "random seed of the roadmap's sampling", build=True)
 
     def changed(self, changes: dict | None = None, **more) -> "PSPRMSettings":
         """These settings with ``changes`` (names or dotted paths) applied; not validated
@@ -198,43 +247,13 @@ class PSPRMSettings:
         return s
 
     def validate(self, source: str = "settings") -> None:
-        """Check every group; a bad value is a :class:`~psprm_core.errors.ConfigError` naming ``source`` and the
-        setting's dotted path."""
-        v, r, sc, q, rc = self.visibility, self.roadmap, self.scoring, self.query, self.recovery
-        pad = self.edges.collision_padding
-        if not (np.isfinite(pad) and 0 <= pad <= 0.5):
-            raise ConfigError(source, "edges.collision_padding", f"must be a distance in [0, 0.5] m, got {pad}")
-        if v.constraint not in ("line", "frustum"):
-            raise ConfigError(source, "visibility.constraint",
-                              f"unknown visibility model '{v.constraint}' (line, frustum)")
-        if v.kinematics not in ("native", "pytorch_kinematics"):
-            raise ConfigError(source, "visibility.kinematics", f"unknown kinematics '{v.kinematics}' (native, "
-                                                               "pytorch_kinematics)")
-        if q.heuristic not in ("hop", "exact", "distance", "auto"):
-            raise ConfigError(source, "query.heuristic", f"unknown A* heuristic '{q.heuristic}' (hop, distance, "
-                                                         "exact, auto)")
-        if sc.objective not in OBJECTIVES:
-            raise ConfigError(source, "scoring.objective",
-                              f"unknown objective '{sc.objective}' ({', '.join(OBJECTIVES)})")
+        """Check every setting against its range or choices (:func:`parameter_specs`) and the settings that depend
+        on each other; a bad value is a :class:`~psprm_core.errors.ConfigError` naming ``source`` and the setting's
+        dotted path."""
+        for spec in parameter_specs():
+            spec.check(self.value(spec.name), source)
         self.route_search_list(source)
-        if not (q.route_length_ratio >= 1.0 and np.isfinite(q.route_length_ratio)):
-            raise ConfigError(source, "query.route_length_ratio",
-                              f"must be a finite ratio >= 1, got {q.route_length_ratio}")
-        if r.sample_joints not in ("camera", "all"):
-            raise ConfigError(source, "roadmap.sample_joints", "must be 'camera' or 'all'")
-        if not 0.0 <= sc.alpha <= 1.0:
-            raise ConfigError(source, "scoring.alpha", f"must lie in [0, 1], got {sc.alpha}")
-        if not 0.0 <= r.biased_share <= 1.0:
-            raise ConfigError(source, "roadmap.biased_share", f"must lie in [0, 1], got {r.biased_share}")
-        if r.n_nodes < 2 or r.k_neighbors < 1:
-            raise ConfigError(source, "roadmap.n_nodes", "need at least 2 nodes and 1 neighbour")
-        if not (rc.query_escape_s >= 0 and np.isfinite(rc.query_escape_s)):
-            raise ConfigError(source, "recovery.query_escape_s",
-                              f"must be a finite time >= 0, got {rc.query_escape_s}")
-        if not (np.isfinite(rc.start_fix_radius) and rc.start_fix_radius >= 0) or rc.start_fix_samples < 1:
-            raise ConfigError(source, "recovery.start_fix_radius",
-                              f"needs a finite radius >= 0 and start_fix_samples >= 1, got {rc.start_fix_radius} and "
-                              f"{rc.start_fix_samples}")
+        rc = self.recovery
         if rc.query_escape_s > 0:
             for name in ("query_escape_radius", "query_escape_step"):
                 x = getattr(rc, name)
@@ -271,3 +290,90 @@ class PSPRMSettings:
                                                             f"objective of {', '.join(OBJECTIVES)} and alpha in [0, 1]")
             out.append((objective, a))
         return tuple(out)
+
+
+@dataclass(frozen=True)
+class SettingSpec:
+    """One setting of :class:`PSPRMSettings` as a parameter: what a ROS node needs to declare it."""
+
+    name: str  #: dotted path (``"scoring.alpha"``)
+    type: type  #: bool, int, float or str
+    default: Any  #: the dataclass default
+    range: tuple | None  #: inclusive (lo, hi) of a number, either None for no bound; None for other types
+    choices: tuple | None  #: the values a string may take; None for any
+    description: str
+    live: bool  #: a running planner takes a change without being made again (``PSPRM.update_settings``)
+    query: bool  #: one query may override it (``PSPRM.plan``'s ``options``)
+    build: bool  #: it shapes the built roadmap (hashed into the roadmap's fingerprint)
+
+    def check(self, value: Any, source: str = "settings") -> None:
+        """A :class:`~psprm_core.errors.ConfigError` naming ``source`` and :attr:`name` when ``value`` has the
+        wrong type, lies outside :attr:`range` or is not one of :attr:`choices`."""
+        if self.type is bool:
+            ok = isinstance(value, (bool, np.bool_))
+        elif self.type is int:
+            ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+        elif self.type is float:
+            ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
+        else:
+            ok = isinstance(value, self.type)
+        if not ok:
+            raise ConfigError(source, self.name, f"expected {self.type.__name__}, got {value!r}")
+        if self.range is not None:
+            lo, hi = self.range
+            if not np.isfinite(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
+                raise ConfigError(source, self.name, f"must lie in [{'-inf' if lo is None else lo}, "
+                                                     f"{'inf' if hi is None else hi}], got {value}")
+        if self.choices is not None and value not in self.choices:
+            raise ConfigError(source, self.name, f"unknown value {value!r} (choices: "
+                                                 f"{', '.join(map(str, self.choices))})")
+
+
+def _group_fields(cls) -> list:
+    """``(field, metadata)`` of every field of settings group ``cls`` (the projection group's metadata from
+    :data:`PROJECTION_METADATA`)."""
+    out = []
+    for fl in dataclasses.fields(cls):
+        meta = dict(fl.metadata)
+        if cls is ProjectionSettings:
+            meta = {"choices": None, "query": False, "live": True, "build": True, **PROJECTION_METADATA[fl.name]}
+        out.append((fl, meta))
+    return out
+
+
+@functools.lru_cache(maxsize=None)
+def parameter_specs() -> tuple:
+    """Every setting of :class:`PSPRMSettings` as a :class:`SettingSpec`, in the order of the groups and their
+    fields: the source from which parameter declarations (a ROS node's, with their descriptions, ranges and
+    whether they are live) are made."""
+    out = []
+    for group in dataclasses.fields(PSPRMSettings):
+        cls = _nested(group)
+        members = [(group.name, fl, meta) for fl, meta in _group_fields(cls)] if cls is not None else \
+            [("", group, dict(group.metadata))]
+        for prefix, fl, meta in members:
+            default = fl.default
+            out.append(SettingSpec(name=f"{prefix}.{fl.name}" if prefix else fl.name, type=type(default),
+                                   default=default, range=meta["range"], choices=meta["choices"],
+                                   description=meta["description"], live=meta["live"], query=meta["query"],
+                                   build=meta["build"]))
+    return tuple(out)
+
+
+def _nested(fl) -> type | None:
+    """The settings group a field of :class:`PSPRMSettings` holds, else None."""
+    if fl.default_factory is dataclasses.MISSING:
+        return None
+    made = fl.default_factory()
+    return type(made) if dataclasses.is_dataclass(made) else None
+
+
+def query_options() -> tuple:
+    """Dotted names of the settings one query may override (``PSPRM.plan``'s ``options``)."""
+    return tuple(s.name for s in parameter_specs() if s.query)
+
+
+def query_only_settings() -> tuple:
+    """Own names (:meth:`PSPRMSettings.flat`'s keys) of the settings that do not shape the built roadmap: not part of
+    its fingerprint."""
+    return tuple(s.name.rpartition(".")[2] for s in parameter_specs() if not s.build)

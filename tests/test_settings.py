@@ -1,0 +1,135 @@
+"""PS-PRM settings in one place: every field's metadata (description, range or choices, per-query, live, build),
+the parameter specs made from it, and what the code derives from it (query options, the roadmap fingerprint)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import yaml
+
+from psprm_core.errors import ConfigError
+from psprm_core.planning.settings import PSPRMSettings, parameter_specs, query_only_settings
+
+
+def _other_value(spec):
+    """A valid value of ``spec`` other than its default (chosen from its type, range and choices)."""
+    if spec.choices is not None:
+        return next(c for c in spec.choices if c != spec.default)
+    if spec.type is bool:
+        return not spec.default
+    if spec.type is str:
+        return "alt"  # the one free-form string, query.route_searches: another route
+    lo, hi = spec.range if spec.range is not None else (None, None)
+    step = 1 if spec.type is int else 0.25
+    up = spec.default + step
+    value = up if hi is None or up <= hi else spec.default - step
+    assert (lo is None or value >= lo) and (hi is None or value <= hi), spec
+    return spec.type(value)
+
+
+def _nested(flat: dict) -> dict:
+    out: dict = {}
+    for name, value in flat.items():
+        *groups, leaf = name.split(".")
+        node = out
+        for g in groups:
+            node = node.setdefault(g, {})
+        node[leaf] = value
+    return out
+
+
+def test_every_setting_has_a_spec_with_a_description():
+    """The specs cover every field of every group (counted from the dataclasses here), each once, named by its
+    dotted path, with a description and the right Python type."""
+    s = PSPRMSettings()
+    names = []
+    for group in dataclasses.fields(s):
+        value = getattr(s, group.name)
+        if dataclasses.is_dataclass(value):
+            names += [f"{group.name}.{f.name}" for f in dataclasses.fields(value)]
+        else:
+            names.append(group.name)
+    specs = parameter_specs()
+    assert [sp.name for sp in specs] == names
+    for sp in specs:
+        assert sp.description.strip(), sp.name
+        assert sp.type in (bool, int, float, str), sp
+        assert isinstance(sp.default, sp.type), sp
+    by_name = {sp.name: sp for sp in specs}
+    # spot checks against the planner's documented behaviour
+    assert by_name["scoring.alpha"].range == (0.0, 1.0) and by_name["scoring.alpha"].live
+    assert by_name["visibility.constraint"].choices == ("line", "frustum") and not by_name["visibility.constraint"].live
+    assert not by_name["edges.collision_padding"].live  # PSPRM.update_settings refuses it
+    assert by_name["query.heuristic"].query and not by_name["query.connect_k"].query
+
+
+def test_specs_round_trip_through_settings_and_yaml(tmp_path):
+    """The specs' defaults, given as dotted changes or written as a nested YAML file, make the default settings,
+    which validate."""
+    specs = parameter_specs()
+    defaults = {sp.name: sp.default for sp in specs}
+    assert PSPRMSettings().changed(defaults) == PSPRMSettings()
+    path = tmp_path / "all.yaml"
+    path.write_text(yaml.safe_dump(_nested(defaults)))
+    loaded = PSPRMSettings.from_yaml(path)
+    assert loaded == PSPRMSettings()
+    loaded.validate()
+    # every spec's other value is accepted and lands in its own field only
+    for sp in specs:
+        s = PSPRMSettings().changed({sp.name: _other_value(sp)})
+        s.validate()
+        assert s.value(sp.name) == _other_value(sp) != sp.default
+
+
+def test_values_outside_a_range_or_choice_are_config_errors_naming_the_dotted_field():
+    """Below the lower bound, above the upper one, NaN, the wrong type, or a string not among the choices: each a
+    ConfigError whose field is the dotted name."""
+    checked = 0
+    for sp in parameter_specs():
+        bad = []
+        if sp.range is not None:
+            lo, hi = sp.range
+            if lo is not None:
+                bad.append(sp.type(lo - 1))
+            if hi is not None:
+                bad.append(sp.type(hi + 1))
+            if sp.type is float:
+                bad.append(float("nan"))
+            bad.append("many")
+        if sp.choices is not None:
+            bad.append("no_such_choice")
+        for value in bad:
+            with pytest.raises(ConfigError) as e:
+                PSPRMSettings().changed({sp.name: value}).validate("here")
+            assert e.value.field == sp.name and e.value.source == "here", (sp.name, value, e.value)
+            checked += 1
+    assert checked > 60
+
+
+def test_query_only_settings_leave_the_built_roadmap_as_it_is(home_tv_planner):
+    """Each setting that the roadmap's fingerprint leaves out, changed before the build, builds the same roadmap
+    (nodes, edges, their Eq. 1 perception and motion costs, the node scores) as the defaults; a changed seed, which
+    the fingerprint keeps, builds another one (the comparison can tell)."""
+    def roadmap(**settings):
+        _, _, p, *_ = home_tv_planner(**settings)
+        g = p.graph
+        e = g.valid_edge_ids()
+        return p.fingerprint(), (g.configs[p.roadmap_node_ids()], np.stack([g.edge_u[e], g.edge_v[e]]),
+                                 g.edge_attribute("c_p")[e], g.edge_attribute("c_m")[e], p.pipeline.rm.node_scores)
+
+    def same(a, b):
+        return all(x.shape == y.shape and np.array_equal(x, y) for x, y in zip(a, b))
+
+    base = {"roadmap.n_nodes": 60, "seed": 1}
+    fp0, ref = roadmap(**base)
+    query_only = set(query_only_settings())
+    specs = [sp for sp in parameter_specs() if sp.name.rpartition(".")[2] in query_only]
+    assert len(specs) == 25
+    for sp in specs:
+        fp, got = roadmap(**base, **{sp.name: _other_value(sp)})
+        assert same(got, ref), sp.name
+        assert fp == fp0, sp.name
+    fp, got = roadmap(**{**base, "seed": 2})
+    assert not same(got, ref) and fp != fp0
