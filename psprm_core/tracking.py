@@ -127,3 +127,33 @@ class CheckedPath:
         d = np.linalg.norm(self.corners(lo, hi) - a[None], axis=2).max(axis=1)
         k = int(np.argmin(d))
         return float(d[k]), float(self.ts[lo + k])
+
+    def latest_time_of(self, q, before: float, lookback_s: float, tol: float, refine: int = 8):
+        """The latest time, within ``lookback_s`` before ``before`` (clamped to the path), at which the path (linear
+        between its sampled configurations) passes within ``tol`` (:func:`displacement`) of configuration ``q``;
+        None when it does not. Of several passes (a turn that comes back on itself) the latest is taken: the one
+        the robot left most recently. Each sampled pass is refined to the nearest of ``refine`` points on the two
+        segments beside it."""
+        lo = int(np.searchsorted(self.ts, before - lookback_s, side="left"))
+        hi = int(np.searchsorted(self.ts, before, side="right"))
+        lo, hi = min(lo, len(self.ts) - 1), max(min(hi, len(self.ts)), min(lo, len(self.ts) - 1) + 1)
+        q = np.asarray(q, float)
+        a = element_corners(self.robot, q[None])[0].astype(np.float32)
+        d = np.linalg.norm(self.corners(lo, hi) - a[None], axis=2).max(axis=1)
+        near = np.nonzero(d <= 2.0 * tol)[0]
+        if len(near) == 0:
+            return None
+        # the last run of samples near q, and its best sample
+        runs = np.split(near, np.nonzero(np.diff(near) > 1)[0] + 1)
+        for run in reversed(runs):
+            k = lo + int(run[np.argmin(d[run])])
+            a_, b_ = max(k - 1, 0), min(k + 1, len(self.ts) - 1)
+            f = np.linspace(0.0, 1.0, int(refine) + 1)[:, None]
+            seg = np.concatenate([self.Q[a_] + f * (self.Q[k] - self.Q[a_]), self.Q[k] + f * (self.Q[b_] - self.Q[k])])
+            ts = np.concatenate([self.ts[a_] + f[:, 0] * (self.ts[k] - self.ts[a_]),
+                                 self.ts[k] + f[:, 0] * (self.ts[b_] - self.ts[k])])
+            dist = displacement(self.robot, q, seg)
+            j = int(np.argmin(dist))
+            if dist[j] <= tol:
+                return float(ts[j])
+        return None

@@ -413,6 +413,21 @@ def progress_offset(times, positions, measured: np.ndarray, velocity=(0.0, 0.0),
     return float(t[sel[int(np.argmin(cost))]] - t[0])
 
 
+def splice_progress(executing, tau: float, times, positions, lookback_s: float, tol: float) -> Optional[float]:
+    """The robot's time along a splice: a splice repeats the trajectory under way (``executing``, a
+    :class:`psprm_core.tracking.CheckedPath` of it as received, the robot ``tau`` seconds along it) from where the
+    replan began up to its commit instant, so the robot is as far along the splice as it is along ``executing``
+    beyond the splice's first configuration. That configuration is found on ``executing`` at its latest pass
+    within ``lookback_s`` before ``tau`` (up to 1 s after it: the server's estimate of the robot's progress may lead
+    this one), within ``tol`` (:meth:`~psprm_core.tracking.CheckedPath.latest_time_of`). None when it lies there
+    nowhere. A nearest-configuration search over the splice (:func:`progress_offset`) is ambiguous where the splice
+    comes back on itself (a turn on the spot reversed after the commit instant): it may place the robot beyond the
+    commit instant, on motion it has not made."""
+    t = np.asarray(times, float)
+    s0 = executing.latest_time_of(np.asarray(positions, float)[0], tau + 1.0, lookback_s + 1.0, tol)
+    return None if s0 is None else float(np.clip(tau - s0, 0.0, t[-1] - t[0]))
+
+
 def trim_from(t: np.ndarray, P: np.ndarray, V: Optional[np.ndarray], tau: float) -> tuple:
     """The trajectory from time ``tau`` on, re-based to start at 0 (its first point interpolated at ``tau``)."""
     if tau >= t[-1]:

@@ -520,15 +520,21 @@ class RobotAdapter:
             lead = 0.0  # a trajectory-mode goal starts when the driver receives it
         # a splice (the new trajectory continues the one the robot executes): the base goes on from where it is now,
         # and only the controllers' goals start a lead time ahead (controller_command trims them there)
-        splice_d, not_splice = self._splice_deviation(t, P, q) if self.robot.mobile else (None, "")
+        splice_d, not_splice, splice_tau = self._splice_deviation(t, P, q) if self.robot.mobile else (None, "", None)
         base_lead = 0.0 if splice_d is not None else lead
         received, tau0 = (np.asarray(t, float) - t[0], P.copy()), 0.0
         if self.robot.mobile:
-            # the robot drove on since the plan started from its state: splice at its progress, not back at the start
             with self._lock:
                 vel = self.tracker.base_velocity.copy()
-            tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity,
-                                      horizon_s=SPLICE_LOOKBACK_S if splice_d is not None else 1.5)
+            if splice_tau is not None:
+                # a splice repeats the trajectory under way up to its commit instant: the robot's time along it is
+                # its time along the trajectory under way, less where the splice began on it
+                tau0 = splice_tau
+            else:
+                # the robot drove on since the plan started from its state: start at its progress, not back at the
+                # start
+                tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity,
+                                          horizon_s=SPLICE_LOOKBACK_S if splice_d is not None else 1.5)
             if tau0 > 0:
                 t, P, V = ad.trim_from(t - t[0], P, V, tau0)
                 if len(t) <= 1:
@@ -692,18 +698,20 @@ class RobotAdapter:
             self.stop(f"cannot execute the trajectory: {exc}")
 
     def _splice_deviation(self, t: np.ndarray, P: np.ndarray, q: np.ndarray) -> tuple:
-        """(deviation, why not): when a new trajectory continues the one being executed (each of its
+        """(deviation, why not, time along it): when a new trajectory continues the one being executed (each of its
         configurations over its first ``SPLICE_CHECK_S`` within ``SPLICE_TOL_M``, whole robot, of the executing
         trajectory's configurations near the robot's time along it): the measured configuration's deviation from the
-        executing trajectory there and ""; else None and the reason. The roadmap server's replans of a robot in
+        executing trajectory there, "" and the robot's time along the new trajectory (its time along the executing
+        one less the latest time the new one's start lies on it; None if it lies on it nowhere); else None, the
+        reason and None. The roadmap server's replans of a robot in
         motion are such splices (psprm_core.planning.execution): the trajectory under way up to a rest instant at
         least the planning and delivery time ahead, then the new plan."""
         with self._lock:
             cur, ref, t0, following = self.checked, self._splice_ref, self.follower.t0, not self.follower.done
         if ref is None:
-            return None, "no trajectory under way"
+            return None, "no trajectory under way", None
         if not following:
-            return None, "the trajectory under way has ended or was stopped"
+            return None, "the trajectory under way has ended or was stopped", None
         ref_path, ref_offset = ref
         tau = self._now() - t0
         w = self.p["path_window_s"]
@@ -715,8 +723,10 @@ class RobotAdapter:
         half = 0.5 * (SPLICE_LOOKBACK_S + 1.0)
         off = float(ref_path.path_distances(X, tau + ref_offset + ts + 1.0 - half, max(w, half)).max())
         if off > SPLICE_TOL_M:
-            return None, f"its first {ts[-1]:.1f} s lie {off:.3f} m from it (splice tolerance {SPLICE_TOL_M:g} m)"
-        return (cur.deviation(q, tau, w)[0] if cur is not None else ref_path.deviation(q, tau + ref_offset, w)[0]), ""
+            return None, f"its first {ts[-1]:.1f} s lie {off:.3f} m from it (splice tolerance {SPLICE_TOL_M:g} m)", None
+        at = ad.splice_progress(ref_path, tau + ref_offset, t, P, SPLICE_LOOKBACK_S, SPLICE_TOL_M)
+        d = cur.deviation(q, tau, w)[0] if cur is not None else ref_path.deviation(q, tau + ref_offset, w)[0]
+        return d, "", at
 
     def _send(self, c: ad.ControllerConfig, t, P, V, start_at: float, now: float) -> None:
         cmd = ad.controller_command(c, self.names, t, P, V, now=now, start_at=start_at)

@@ -923,3 +923,52 @@ def test_the_cmd_vel_plus_action_config_is_refused_by_the_stretch_driver(load_ro
         _wait(lambda: False, 3.0)
         assert counts and counts[-1]["cmd_vel_dropped"] > 0, counts[-1:]
         assert np.hypot(*(s.adapter.measured()[0][:2] - q0[:2])) < 0.01
+
+
+def test_a_splice_that_turns_back_on_itself_starts_the_robot_where_it_is_along_the_turn(load_robot):
+    """A turn on the spot under way (with the head panning along), spliced 0.6 s in and reversed after its commit
+    instant: the reversal passes the robot's configuration again. The robot stands exactly where a sample of the
+    reversal lies (so the nearest sampled configuration of the whole splice is on the reversal). The adapter's time
+    along the splice is the robot's time along the turn less the 0.6 s where the test began the splice; the nearest
+    configuration search would place it seconds later, beyond the commit instant."""
+    from psprm_core.planning.execution import splice
+    from psprm_core.tracking import CheckedPath
+
+    robot = load_robot("stretch2")
+    b = robot.config.base
+    pan = robot.joint_names.index("joint_head_pan")
+
+    def turn(q_a, dtheta, dpan):
+        q_b = q_a.copy()
+        q_b[2] += dtheta
+        q_b[pan] += dpan
+        return time_parameterize(np.array([q_a, q_b]), robot.velocity, robot.acceleration, dt=0.05,
+                                 base_indices=(0, 1, 2), base_linear_limits=(b.linear_velocity, b.linear_acceleration),
+                                 method="analytic")
+
+    q0 = robot.default_configuration().copy()
+    q0[:3] = [2.0, 2.0, 0.0]
+    current = turn(q0, 1.2, 0.8)
+    t_from, t_commit = 0.6, float(current.duration)
+    sp = splice(current, t_from, t_commit, turn(current.evaluate([t_commit])[0][0], -1.2, -0.8), continuous=[2])
+    # the splice as a message carries it: samples every 0.1 s
+    t = np.arange(0.0, float(sp.duration), 0.1)
+    P = sp.evaluate(t)[0]
+    # the robot stands on a sample of the reversal, 0.3 s after the commit instant, at that heading on the turn
+    k_back = int(np.searchsorted(t, t_commit - t_from + 0.3 * float(current.duration)))
+    assert t[k_back] > t_commit - t_from, "precondition: the chosen sample lies on the reversal"
+    target = P[k_back, 2]
+    lo, hi = 0.0, t_commit
+    for _ in range(60):  # the time along the turn at that heading (the heading rises monotonically)
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if current.evaluate([mid])[0][0][2] < target else (lo, mid)
+    tau_robot = 0.5 * (lo + hi)
+    q = current.evaluate([tau_robot])[0][0]
+    assert tau_robot > t_from + 0.2, "precondition: the robot is past the splice's start"
+    assert np.abs(q - P[k_back]).max() < 1e-6, "precondition: the robot stands on a sample of the reversal"
+    # the ambiguity: the nearest sampled configuration of the whole splice lies on the reversal
+    assert ad.progress_offset(t, P, q, (0.0, 0.0), 0.0, 6.0, robot.velocity) > t_commit - t_from
+    executing = CheckedPath(robot, *(lambda tt: (tt, current.evaluate(tt)[0]))(np.arange(0.0, t_commit, 0.1)))
+    got = ad.splice_progress(executing, tau_robot, t, P, 6.0, 0.01)
+    assert got is not None
+    assert abs(got - (tau_robot - t_from)) < 0.02, (got, tau_robot - t_from)
