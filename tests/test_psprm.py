@@ -381,7 +381,7 @@ def test_settings_files_are_read_by_one_typed_reader(tmp_path):
     assert (s.projection.max_iters, s.projection.tolerance) == (7, 0.01)
     assert s.roadmap.k_long == PSPRMSettings().roadmap.k_long  # a group given in part keeps its other defaults
     t = s.changed({"scoring.alpha": 0.3}, max_iters=9)
-    assert (t.scoring.alpha, t.projection.max_iters, t.value("alpha"), s.scoring.alpha) == (0.3, 9, 0.3, 0.8)
+    assert (t.scoring.alpha, t.projection.max_iters, t.value("alpha"), s.scoring.alpha) == (0.3, 9, 0.3, None)
     with pytest.raises(ConfigError, match="no_such"):
         s.changed(no_such=1)
     for text, field in (("roadmap:\n  n_nodes: many\n", "roadmap.n_nodes"),

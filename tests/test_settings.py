@@ -22,6 +22,8 @@ def _other_value(spec):
     if spec.type is str:
         return "alt"  # the one free-form string, query.route_searches: another route
     lo, hi = spec.range if spec.range is not None else (None, None)
+    if spec.default is None:  # unset (scoring.alpha): a value inside the range
+        return spec.type(0.5 * (lo + hi))
     step = 1 if spec.type is int else 0.25
     up = spec.default + step
     value = up if hi is None or up <= hi else spec.default - step
@@ -56,7 +58,7 @@ def test_every_setting_has_a_spec_with_a_description():
     for sp in specs:
         assert sp.description.strip(), sp.name
         assert sp.type in (bool, int, float, str), sp
-        assert isinstance(sp.default, sp.type), sp
+        assert isinstance(sp.default, sp.type) or (sp.default is None and sp.name == "scoring.alpha"), sp
     by_name = {sp.name: sp for sp in specs}
     # spot checks against the planner's documented behaviour
     assert by_name["scoring.alpha"].range == (0.0, 1.0) and by_name["scoring.alpha"].live
@@ -133,3 +135,37 @@ def test_query_only_settings_leave_the_built_roadmap_as_it_is(home_tv_planner):
         assert fp == fp0, sp.name
     fp, got = roadmap(**{**base, "seed": 2})
     assert not same(got, ref) and fp != fp0
+
+
+def test_alpha_unset_is_the_variants_default_for_the_objective(load_robot, tmp_path):
+    """alpha left unset: Eq. 2 the paper's (0.75 with the oracle, 0.8 with the surrogate), the motion-weighted
+    objective 0.95 (docs/benchmarks.md, "Perception gain"), a planner made without a variant the surrogate's Eq. 2
+    value; alpha given (as an override, in a settings file) wins."""
+    from psprm_core.paths import resolve_named
+    from psprm_core.perception.scoring import GeometricScorer
+    from psprm_core.planning.factory import make_planner
+    from psprm_core.planning.psprm import PSPRM
+    from psprm_core.scene import load_scene
+
+    paper = {("eq2", "oracle"): 0.75, ("eq2", "neural"): 0.8, ("motion", "oracle"): 0.95, ("motion", "neural"): 0.95}
+    assert PSPRMSettings().scoring.alpha is None
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    for (objective, kind), alpha in paper.items():
+        variant = "neural-psprm-line" if kind == "neural" else "psprm-line"
+        p = make_planner(variant, scene, ["tv"], robot=robot, n_nodes=50, objective=objective)
+        assert p.settings.scoring.alpha == alpha, (objective, kind)
+    p = make_planner("psprm-line", scene, ["tv"], robot=robot, n_nodes=50, objective="eq2", alpha=0.4)
+    assert p.settings.scoring.alpha == 0.4
+    path = tmp_path / "p.yaml"
+    path.write_text("scoring:\n  objective: motion\n  alpha: 0.6\n")
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, settings=PSPRMSettings.from_yaml(path))
+    assert p.settings.scoring.alpha == 0.6
+    path.write_text("scoring:\n  alpha: null\n")
+    assert PSPRMSettings.from_yaml(path).scoring.alpha is None
+    for objective in ("eq2", "motion"):
+        p = PSPRM(robot, scene, GeometricScorer(scene, "tv", robot.config.intrinsics), scene.target("tv").center,
+                  PSPRMSettings().changed({"scoring.objective": objective}))
+        assert p.settings.scoring.alpha == 0.8
+        p.update_settings(p.settings.changed({"scoring.alpha": None, "query.shortcut": True}))
+        assert p.settings.scoring.alpha == 0.8 and p.settings.query.shortcut  # unset: the planner keeps its alpha

@@ -163,8 +163,14 @@ def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[
         key = canonical(key)
         default = setting_value(defaults, key)
         f = Fields({key: value}, f"{flag} {label}")
+        if hasattr(cls, "coerce"):  # the class types its settings itself (PSPRMSettings: its parameter specs)
+            try:
+                value = cls.coerce(".".join(paths[key]), value, f"{flag} {label}")
+            except ConfigError as exc:
+                raise PsprmError(f"{flag} '{said}': {label}.{key} {exc.message}") from None
         try:  # typed as the YAML settings files are (the field default's type)
-            value = typed_value(f, key, default, int_lo=None, float_lo=None)
+            if not hasattr(cls, "coerce"):
+                value = typed_value(f, key, default, int_lo=None, float_lo=None)
         except ConfigError:
             kind = {bool: "true or false", int: "an integer", float: "a number"}.get(type(default), "a string")
             raise PsprmError(f"{flag} '{said}': {label}.{key} takes {kind}, got {raw.strip()!r}") from None

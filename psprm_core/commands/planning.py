@@ -23,7 +23,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--planner", default="neural-psprm-line", choices=sorted(VARIANTS))
     p.add_argument("--nodes", type=int, default=None, help="roadmap size (default: config/planners/psprm.yaml)")
     p.add_argument("--alpha", type=float, default=None,
-                   help="Eq. 2 weight (default: the variant's for the settings' objective, factory.DEFAULT_ALPHA)")
+                   help="Eq. 2 weight (default: the variant's for the settings' objective, settings.default_alpha)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--checkpoint", default=None, help="surrogate checkpoint (default: the shipped one)")
     p.add_argument("--multi", default="mean", choices=["mean", "priority"], help="several targets: how to combine")

@@ -12,17 +12,10 @@ from ..paths import config_dir, project_root
 from ..robot import RobotModel
 from ..scene import Scene
 from .psprm import PSPRM, VARIANTS, PSPRMSettings
+from .settings import DEFAULT_ALPHA, default_alpha
 
-
-#: alpha per objective and scorer kind: Eq. 2 the paper's (0.75 with the oracle, 0.8 with the surrogate); the
-#: motion-weighted objective 0.95 (docs/benchmarks.md, "Perception gain": measured with the surrogate).
-DEFAULT_ALPHA = {("eq2", "oracle"): 0.75, ("eq2", "neural"): 0.8, ("motion", "oracle"): 0.95,
-                 ("motion", "neural"): 0.95}
-
-
-def default_alpha(objective: str, kind: str) -> float:
-    """The Eq. 2 weight a planner uses unless told otherwise (:data:`DEFAULT_ALPHA`; 0.8 for a pair it lacks)."""
-    return DEFAULT_ALPHA.get((objective, kind), 0.8)
+__all__ = ["DEFAULT_ALPHA", "default_alpha", "default_checkpoint", "make_scorer", "make_planner",
+           "problem_configurations"]
 
 
 def default_checkpoint() -> Path:
@@ -62,7 +55,9 @@ def make_scorer(kind: str, scene: Scene, targets: Sequence[str], intrinsics, che
 def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Optional[RobotModel] = None,
                  settings: Optional[PSPRMSettings] = None, checkpoint: Optional[Path] = None,
                  multi_mode: str = "mean", device: str = "cpu", **overrides) -> PSPRM:
-    """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint."""
+    """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint.
+    ``scoring.alpha`` left unset (by ``settings`` and ``overrides``) is the variant's :func:`default_alpha` for the
+    objective."""
     if variant not in VARIANTS:
         raise PsprmError(f"unknown planner '{variant}' (choose from {', '.join(sorted(VARIANTS))})")
     constraint, kind = VARIANTS[variant]
@@ -70,11 +65,9 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
     if settings is None:
         path = config_dir() / "planners" / "psprm.yaml"
         settings = PSPRMSettings.from_yaml(path, robot=robot.name) if path.is_file() else PSPRMSettings()
-    alpha = overrides.pop("alpha", None)
-    settings = settings.changed({k: v for k, v in overrides.items() if v is not None})
+    settings = settings.changed({k: v for k, v in overrides.items() if v is not None}).resolved(kind)
     settings = settings.changed(
         constraint=constraint,
-        alpha=default_alpha(settings.scoring.objective, kind) if alpha is None else alpha,
         lazy_edges=settings.edges.lazy_edges or kind == "oracle",
         # biased sampling scores thousands of extra samples: only with a cheap scorer
         biased_share=settings.roadmap.biased_share if kind != "oracle" else 0.0)

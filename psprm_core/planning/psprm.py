@@ -54,6 +54,7 @@ class PSPRM:
     focus : (3,) array
         Point the visibility constraint keeps in view (the target's centroid, or the midpoint of several targets).
     settings : PSPRMSettings
+        ``scoring.alpha`` left unset is :func:`~.settings.default_alpha` of the objective (no scorer kind).
     device, dtype : torch device and dtype of all batched work.
     checker : the collision checker to use (default: one for ``robot`` and the scene's boxes, whose torch path runs
         the body FK of :class:`~psprm_core.kinematics_pk.PKBodyKinematics` under ``kinematics: pytorch_kinematics``).
@@ -61,6 +62,7 @@ class PSPRM:
 
     def __init__(self, robot: RobotModel, scene: Scene, scorer, focus, settings: PSPRMSettings = PSPRMSettings(),
                  device="cpu", checker: Optional[CollisionChecker] = None, dtype: torch.dtype = torch.float32):
+        settings = settings.resolved()
         settings.validate()
         device = torch.device(device)
         kin = body_kin = None
@@ -175,6 +177,8 @@ class PSPRM:
         names or dotted paths (:meth:`~.settings.PSPRMSettings.changed`). Returns the settings now in use."""
         old = self.settings
         new = (settings or old).changed(changes)
+        if new.scoring.alpha is None:  # unset: the planner keeps its alpha
+            new = dataclasses.replace(new, scoring=dataclasses.replace(new.scoring, alpha=old.scoring.alpha))
         new.validate()
         if new.visibility != old.visibility:
             fixed = [f"visibility.{k}" for k, v in dataclasses.asdict(new.visibility).items()

@@ -3,18 +3,33 @@
 
 from __future__ import annotations
 
+import builtins
 import dataclasses
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 import numpy as np
 
 from ..errors import ConfigError
-from ..yamlio import Fields, dataclass_kwargs, load_yaml, replace_settings, setting_value
+from ..yamlio import Fields, load_yaml, replace_settings, setting_value
 from .constraints import ProjectionSettings
 from .objectives import OBJECTIVES
+
+
+#: alpha (Eq. 2's weight) of a planner whose settings leave it unset, per objective and scorer kind: Eq. 2 the
+#: paper's (with the oracle and with the surrogate); the motion-weighted objective's measured with the surrogate
+#: (docs/benchmarks.md, "Perception gain")
+DEFAULT_ALPHA = {("eq2", "oracle"): 0.75, ("eq2", "neural"): 0.8, ("motion", "oracle"): 0.95,
+                 ("motion", "neural"): 0.95}
+
+
+def default_alpha(objective: str, kind: Optional[str] = None) -> float:
+    """The alpha a planner with scorer ``kind`` (``oracle``, ``neural``; None for a planner made without a
+    variant) uses for ``objective`` when its settings leave ``scoring.alpha`` unset: :data:`DEFAULT_ALPHA`, and for a
+    pair the table lacks the surrogate's Eq. 2 weight."""
+    return DEFAULT_ALPHA.get((objective, kind), DEFAULT_ALPHA[("eq2", "neural")])
 
 
 VARIANTS = {
@@ -26,20 +41,20 @@ VARIANTS = {
 
 
 def setting(default, description: str, *, range: tuple | None = (0, None), choices: tuple | None = None,
-            query: bool = False, live: bool = False, build: bool = False):
+            query: bool = False, live: bool = False, build: bool = False, type: type | None = None):
     """A settings field with its metadata (read by :func:`parameter_specs` and :meth:`PSPRMSettings.validate`).
 
     ``description``: one line for users (parameter descriptions, ``--help``); ``range``: inclusive ``(lo, hi)``
     bounds of a number, either None for no bound (default ``(0, None)``: non-negative); ``choices``: the values a
     string may take; ``query``: one query may override it (``PSPRM.plan``'s ``options``); ``live``: a running
     planner takes a change (``PSPRM.update_settings``) without being made again; ``build``: it shapes the built
-    roadmap (part of the roadmap's fingerprint)."""
-    numeric = isinstance(default, (int, float)) and not isinstance(default, bool)
+    roadmap (part of the roadmap's fingerprint); ``type``: the value's type where the default is None (unset: the
+    planner chooses the value, e.g. :func:`default_alpha`), else the default's type."""
+    kind = builtins.type(default) if type is None else type
+    numeric = kind in (int, float)
     meta = {"description": description, "range": tuple(range) if numeric and range is not None else None,
             "choices": tuple(choices) if choices is not None else None, "query": query, "live": live,
-            "build": build}
-    if isinstance(default, float) and (range is None or range[0] is None or range[0] < 0):
-        meta["signed"] = True  # read by yamlio.dataclass_kwargs: negative values allowed in YAML
+            "build": build, "type": kind}
     return field(default=default, metadata=meta)
 
 
@@ -111,8 +126,9 @@ class EdgeSettings:
 class ScoringSettings:
     """Edge weights from Eq. 1's perception and the motion cost (Eq. 2 and the other forms, ``scoring``)."""
 
-    alpha: float = setting(0.8, "weight of perception against motion cost in the edge weight (Eq. 2)",
-                           range=(0.0, 1.0), live=True)
+    alpha: Optional[float] = setting(None, "weight of perception against motion cost in the edge weight (Eq. 2); "
+                                           "unset: the planner variant's default for the objective (default_alpha)",
+                                     range=(0.0, 1.0), live=True, type=float)
     objective: str = setting("eq2", "edge weight: eq2 (1 - alpha c_p + (1 - alpha) c_m) | motion (c_m ((1 - alpha) "
                                     "+ alpha (1 - c_p)): perception loss per unit of motion)", choices=OBJECTIVES,
                              live=True)
@@ -208,6 +224,27 @@ class PSPRMSettings:
         (:func:`~psprm_core.yamlio.replace_settings`)."""
         return replace_settings(self, changes, **more)
 
+    def resolved(self, kind: Optional[str] = None) -> "PSPRMSettings":
+        """These settings with ``scoring.alpha`` set: as given, else :func:`default_alpha` of the objective and the
+        scorer ``kind``."""
+        if self.scoring.alpha is not None:
+            return self
+        return dataclasses.replace(self, scoring=dataclasses.replace(
+            self.scoring, alpha=default_alpha(self.scoring.objective, kind)))
+
+    @staticmethod
+    def coerce(name: str, value: Any, source: str = "settings") -> Any:
+        """``value`` (as YAML reads it: an int is taken for a float setting) typed as setting ``name`` (a dotted
+        path); a :class:`~psprm_core.errors.ConfigError` naming ``source`` and the setting when it has another type
+        (ranges and choices are :meth:`validate`'s)."""
+        spec = {sp.name: sp for sp in parameter_specs()}.get(name)
+        if spec is None:
+            raise ConfigError(source, name, "unknown setting of PSPRMSettings")
+        if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        dataclasses.replace(spec, range=None, choices=None).check(value, source)
+        return value
+
     def value(self, name: str):
         """One setting by name or dotted path."""
         return setting_value(self, name)
@@ -234,14 +271,14 @@ class PSPRMSettings:
         if not isinstance(per_robot, dict):
             raise ConfigError(str(path), "robots", "expected a mapping robot name -> settings")
         for name, extra in per_robot.items():  # every robot's section is checked, not only the one in use
-            dataclass_kwargs(cls, Fields(extra, str(path), f"robots.{name}"))
+            _yaml_kwargs(Fields(extra, str(path), f"robots.{name}"))
         if robot is not None and robot in per_robot:
             extra = per_robot[robot]
             if not isinstance(extra, dict):
                 raise ConfigError(str(path), f"robots.{robot}", "expected a mapping of settings")
             data = {**data, **{k: ({**data[k], **v} if isinstance(v, dict) and isinstance(data.get(k), dict) else v)
                                for k, v in extra.items()}}
-        s = cls(**dataclass_kwargs(cls, Fields(data, str(path))))
+        s = cls(**_yaml_kwargs(Fields(data, str(path))))
         s = s.changed({k: v for k, v in overrides.items() if v is not None})
         s.validate(str(path))
         return s
@@ -298,7 +335,7 @@ class SettingSpec:
 
     name: str  #: dotted path (``"scoring.alpha"``)
     type: type  #: bool, int, float or str
-    default: Any  #: the dataclass default
+    default: Any  #: the dataclass default; None: unset, the planner chooses the value (scoring.alpha: default_alpha)
     range: tuple | None  #: inclusive (lo, hi) of a number, either None for no bound; None for other types
     choices: tuple | None  #: the values a string may take; None for any
     description: str
@@ -309,6 +346,8 @@ class SettingSpec:
     def check(self, value: Any, source: str = "settings") -> None:
         """A :class:`~psprm_core.errors.ConfigError` naming ``source`` and :attr:`name` when ``value`` has the
         wrong type, lies outside :attr:`range` or is not one of :attr:`choices`."""
+        if value is None and self.default is None:
+            return  # unset: the planner chooses (e.g. scoring.alpha, default_alpha)
         if self.type is bool:
             ok = isinstance(value, (bool, np.bool_))
         elif self.type is int:
@@ -318,12 +357,13 @@ class SettingSpec:
         else:
             ok = isinstance(value, self.type)
         if not ok:
-            raise ConfigError(source, self.name, f"expected {self.type.__name__}, got {value!r}")
+            kind = {bool: "true or false", int: "an integer", float: "a number"}.get(self.type, "a string")
+            raise ConfigError(source, self.name, f"takes {kind}, got {value!r}")
         if self.range is not None:
             lo, hi = self.range
             if not np.isfinite(value) or (lo is not None and value < lo) or (hi is not None and value > hi):
-                raise ConfigError(source, self.name, f"must lie in [{'-inf' if lo is None else lo}, "
-                                                     f"{'inf' if hi is None else hi}], got {value}")
+                raise ConfigError(source, self.name, f"must lie in [{'-inf' if lo is None else f'{lo:g}'}, "
+                                                     f"{'inf' if hi is None else f'{hi:g}'}], got {value}")
         if self.choices is not None and value not in self.choices:
             raise ConfigError(source, self.name, f"unknown value {value!r} (choices: "
                                                  f"{', '.join(map(str, self.choices))})")
@@ -336,7 +376,8 @@ def _group_fields(cls) -> list:
     for fl in dataclasses.fields(cls):
         meta = dict(fl.metadata)
         if cls is ProjectionSettings:
-            meta = {"choices": None, "query": False, "live": True, "build": True, **PROJECTION_METADATA[fl.name]}
+            meta = {"choices": None, "query": False, "live": True, "build": True, "type": type(fl.default),
+                    **PROJECTION_METADATA[fl.name]}
         out.append((fl, meta))
     return out
 
@@ -353,7 +394,7 @@ def parameter_specs() -> tuple:
             [("", group, dict(group.metadata))]
         for prefix, fl, meta in members:
             default = fl.default
-            out.append(SettingSpec(name=f"{prefix}.{fl.name}" if prefix else fl.name, type=type(default),
+            out.append(SettingSpec(name=f"{prefix}.{fl.name}" if prefix else fl.name, type=meta["type"],
                                    default=default, range=meta["range"], choices=meta["choices"],
                                    description=meta["description"], live=meta["live"], query=meta["query"],
                                    build=meta["build"]))
@@ -377,3 +418,41 @@ def query_only_settings() -> tuple:
     """Own names (:meth:`PSPRMSettings.flat`'s keys) of the settings that do not shape the built roadmap: not part of
     its fingerprint."""
     return tuple(s.name.rpartition(".")[2] for s in parameter_specs() if not s.build)
+
+
+def _yaml_value(f: Fields, key: str, spec: SettingSpec) -> Any:
+    """``f[key]`` read as the setting ``spec`` (its type; numbers within its range's lower bound, the rest checked by
+    :meth:`PSPRMSettings.validate`); null for a setting that may be unset."""
+    if f.data.get(key) is None and spec.default is None:
+        return None
+    lo = spec.range[0] if spec.range is not None else None
+    if spec.type is bool:
+        return f.bool(key)
+    if spec.type is int:
+        return f.int(key, lo=lo)
+    if spec.type is float:
+        return f.float(key, lo=lo)
+    return f.str(key)
+
+
+def _yaml_kwargs(f: Fields) -> dict:
+    """Keyword arguments of :class:`PSPRMSettings` from a YAML mapping of groups (``{group: {field: value}}``,
+    ``seed``); every key checked, a field given outside its group named with the group it belongs to."""
+    specs = {sp.name: sp for sp in parameter_specs()}
+    groups = {fl.name: _nested(fl) for fl in dataclasses.fields(PSPRMSettings)}
+    home = {name.rpartition(".")[2]: name.rpartition(".")[0] for name in specs if "." in name}
+    out = {}
+    for key in f.data:
+        if key not in groups:
+            if key in home:
+                raise f.error(str(key), f"belongs to the '{home[key]}' group ({home[key]}: {{{key}: ...}})")
+            raise f.error(str(key), f"unknown field (allowed: {', '.join(groups)})")
+        cls = groups[key]
+        if cls is None:
+            out[key] = _yaml_value(f, key, specs[key])
+            continue
+        sub = f.sub(key)
+        names = [fl.name for fl in dataclasses.fields(cls)]
+        sub.check_keys(names)
+        out[key] = cls(**{k: _yaml_value(sub, k, specs[f"{key}.{k}"]) for k in sub.data})
+    return out
