@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from psprm_core.errors import ConfigError
-from psprm_core.planning.settings import PSPRMSettings, parameter_specs, query_only_settings
+from psprm_core.planning.settings import PSPRMSettings, RouteSearch, parameter_specs, query_only_settings
 
 
 def _other_value(spec):
@@ -19,8 +19,8 @@ def _other_value(spec):
         return next(c for c in spec.choices if c != spec.default)
     if spec.type is bool:
         return not spec.default
-    if spec.type is str:
-        return "alt"  # the one free-form string, query.route_searches: another route
+    if spec.type is tuple:  # query.route_searches
+        return (RouteSearch("alt"),)
     lo, hi = spec.range if spec.range is not None else (None, None)
     if spec.default is None:  # unset (scoring.alpha): a value inside the range
         return spec.type(0.5 * (lo + hi))
@@ -57,7 +57,7 @@ def test_every_setting_has_a_spec_with_a_description():
     assert [sp.name for sp in specs] == names
     for sp in specs:
         assert sp.description.strip(), sp.name
-        assert sp.type in (bool, int, float, str), sp
+        assert sp.type in (bool, int, float, str, tuple), sp
         assert isinstance(sp.default, sp.type) or (sp.default is None and sp.name == "scoring.alpha"), sp
     by_name = {sp.name: sp for sp in specs}
     # spot checks against the planner's documented behaviour
@@ -74,7 +74,7 @@ def test_specs_round_trip_through_settings_and_yaml(tmp_path):
     defaults = {sp.name: sp.default for sp in specs}
     assert PSPRMSettings().changed(defaults) == PSPRMSettings()
     path = tmp_path / "all.yaml"
-    path.write_text(yaml.safe_dump(_nested(defaults)))
+    path.write_text(yaml.safe_dump(_nested({k: list(v) if isinstance(v, tuple) else v for k, v in defaults.items()})))
     loaded = PSPRMSettings.from_yaml(path)
     assert loaded == PSPRMSettings()
     loaded.validate()
@@ -169,3 +169,31 @@ def test_alpha_unset_is_the_variants_default_for_the_objective(load_robot, tmp_p
         assert p.settings.scoring.alpha == 0.8
         p.update_settings(p.settings.changed({"scoring.alpha": None, "query.shortcut": True}))
         assert p.settings.scoring.alpha == 0.8 and p.settings.query.shortcut  # unset: the planner keeps its alpha
+
+
+def test_route_searches_are_typed_and_read_from_their_text_forms(tmp_path):
+    """query.route_searches holds RouteSearch entries; a comma separated string or a list of entries (settings
+    changes, YAML, --set) becomes the same tuple; a bad entry is a ConfigError naming the field and the entry."""
+    from psprm_core.baselines import parse_settings
+
+    want = (RouteSearch("eq2", 0.8), RouteSearch("alt", 1.0), RouteSearch("motion", 1.0))
+    s = PSPRMSettings().changed({"query.route_searches": " eq2@0.8, alt ,motion@1"})
+    assert s.query.route_searches == want and s.route_search_list() == want
+    assert [str(r) for r in want] == ["eq2@0.8", "alt", "motion@1"]
+    assert PSPRMSettings().changed({"query.route_searches": ["eq2@0.8", "alt", RouteSearch("motion", 1.0)]}) == s
+    assert PSPRMSettings().changed({"query.route_searches": ""}).query.route_searches == ()
+    for text in ("query:\n  route_searches: eq2@0.8,alt,motion@1\n",
+                 "query:\n  route_searches: [eq2@0.8, alt, motion@1.0]\n"):
+        path = tmp_path / "p.yaml"
+        path.write_text(text)
+        assert PSPRMSettings.from_yaml(path).query.route_searches == want
+    got = parse_settings(["query.route_searches=eq2@0.8,alt,motion@1"], PSPRMSettings, "psprm")
+    assert list(got.values()) == [want]
+    for bad in ("eq2", "hops@0.5", "eq2@1.5", "eq2@x", "alt@0.3", "motion@nan"):
+        with pytest.raises(ConfigError, match=rf"query\.route_searches.*'{bad}'"):
+            PSPRMSettings().changed({"query.route_searches": f"alt,{bad}"})
+    with pytest.raises(ConfigError, match="query.route_searches"):
+        PSPRMSettings().changed({"query.route_searches": (RouteSearch("eq2", 2.0),)}).validate()
+    path.write_text("query:\n  route_searches: [eq2@0.8, 3]\n")
+    with pytest.raises(ConfigError, match="p.yaml.*query.route_searches"):
+        PSPRMSettings.from_yaml(path)

@@ -151,7 +151,7 @@ def planner_benchmark(scene_name: str, planner: str = "neural-psprm-line", nodes
         "queries": len(probs), "success_rate": ok / len(probs),
         "query_ms": float(np.median(times)), "query_p95_ms": float(np.percentile(times, 95)),
         "mean_perception_score": float(np.mean(scores)) if scores else float("nan"),
-        "route_searches": p.settings.query.route_searches, "other_route_rate": other / max(ok, 1),
+        "route_searches": ",".join(map(str, p.settings.query.route_searches)), "other_route_rate": other / max(ok, 1),
     }
 
 

@@ -8,7 +8,7 @@ import dataclasses
 import functools
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, NamedTuple, Optional
 
 import numpy as np
 
@@ -30,6 +30,58 @@ def default_alpha(objective: str, kind: Optional[str] = None) -> float:
     variant) uses for ``objective`` when its settings leave ``scoring.alpha`` unset: :data:`DEFAULT_ALPHA`, and for a
     pair the table lacks the surrogate's Eq. 2 weight."""
     return DEFAULT_ALPHA.get((objective, kind), DEFAULT_ALPHA[("eq2", "neural")])
+
+
+class RouteSearch(NamedTuple):
+    """One extra search of a query (``query.route_searches``): the edge weight ``objective`` at ``alpha``, or
+    ``alt`` (another route: the motion-weighted form at alpha = 1 with the edges of the routes found before weighted
+    more, :data:`~.selection.ALT_PENALTY`). Written ``objective@alpha`` or ``alt``."""
+
+    objective: str
+    alpha: float = 1.0
+
+    def __str__(self) -> str:
+        return "alt" if self.objective == "alt" else f"{self.objective}@{self.alpha:g}"
+
+
+def parse_route_searches(value: Any, source: str = "settings") -> tuple:
+    """``query.route_searches`` as a tuple of :class:`RouteSearch` from its typed form or its text forms: a comma
+    separated string (``"eq2@0.8,alt"``, ``""`` for none) or a list of entries (strings or RouteSearch).
+
+    Raises
+    ------
+    ConfigError
+        An entry that is neither ``alt`` nor ``objective@alpha`` with an objective of :data:`OBJECTIVES` and alpha
+        in [0, 1], naming ``source`` and ``query.route_searches``."""
+    if isinstance(value, str):
+        value = [x for x in (x.strip() for x in value.split(",")) if x]
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(source, "query.route_searches", f"expected a list of objective@alpha or alt, got {value!r}")
+    out = []
+    for item in value:
+        shown = item
+        if isinstance(item, str):
+            text = shown = item.strip()
+            objective, _, alpha = text.partition("@")
+            if objective == "alt" and not alpha:
+                item = RouteSearch("alt")
+            else:
+                try:
+                    item = RouteSearch(objective, float(alpha))
+                except ValueError:
+                    item = RouteSearch(objective, float("nan"))
+        elif not isinstance(item, RouteSearch):
+            item = RouteSearch(str(item), float("nan"))
+        if item.objective == "alt":
+            ok = item.alpha == 1.0
+        else:
+            ok = item.objective in OBJECTIVES and isinstance(item.alpha, (int, float)) and 0.0 <= item.alpha <= 1.0
+        if not ok:
+            raise ConfigError(source, "query.route_searches", f"'{shown}' is neither 'alt' nor objective@alpha with "
+                                                              f"an objective of {', '.join(OBJECTIVES)} and alpha in "
+                                                              "[0, 1]")
+        out.append(item)
+    return tuple(out)
 
 
 VARIANTS = {
@@ -147,9 +199,10 @@ class QuerySettings:
     shortcut: bool = setting(False, "shorten the found path where a direct motion is free, on the manifold and sees "
                                     "as well", query=True, live=True)
     shortcut_rounds: int = setting(2, "greedy shortcut passes over the path", query=True, live=True)
-    route_searches: str = setting("", "more searches of each query, objective@alpha or alt (another route), comma "
-                                      "separated; the route that sees most within route_length_ratio of the "
-                                      "planner's own length is returned", query=True, live=True)
+    route_searches: tuple = setting((), "more searches of each query (RouteSearch: objective@alpha, or alt: another "
+                                        "route; as text comma separated, e.g. eq2@0.8,alt); the route that sees most "
+                                        "within route_length_ratio of the planner's own length is returned",
+                                    query=True, live=True, type=tuple)
     route_length_ratio: float = setting(1.5, "longest alternative route taken, relative to the length of the "
                                              "planner's own", range=(1.0, None), query=True, live=True)
     smooth_timing: bool = setting(True, "trajectories pass the knots of a base phase without stopping", query=True,
@@ -222,7 +275,11 @@ class PSPRMSettings:
     def changed(self, changes: dict | None = None, **more) -> "PSPRMSettings":
         """These settings with ``changes`` (names or dotted paths) applied; not validated
         (:func:`~psprm_core.yamlio.replace_settings`)."""
-        return replace_settings(self, changes, **more)
+        changes = {**(changes or {}), **more}
+        for name in ("query.route_searches", "route_searches"):
+            if name in changes:
+                changes[name] = parse_route_searches(changes[name])
+        return replace_settings(self, changes)
 
     def resolved(self, kind: Optional[str] = None) -> "PSPRMSettings":
         """These settings with ``scoring.alpha`` set: as given, else :func:`default_alpha` of the objective and the
@@ -242,6 +299,8 @@ class PSPRMSettings:
             raise ConfigError(source, name, "unknown setting of PSPRMSettings")
         if spec.type is float and isinstance(value, int) and not isinstance(value, bool):
             value = float(value)
+        if name == "query.route_searches":
+            value = parse_route_searches(value, source)
         dataclasses.replace(spec, range=None, choices=None).check(value, source)
         return value
 
@@ -302,31 +361,13 @@ class PSPRMSettings:
                                       f"must be >= 1 when query_escape_s > 0, got {getattr(rc, name)}")
 
     def route_search_list(self, source: str = "settings") -> tuple:
-        """The extra searches of ``route_searches`` as ``((objective, alpha), ...)`` (empty when unset); ``alt``
-        (another route: the motion-weighted form at alpha = 1 with the edges of the routes found before weighted
-        more, :data:`~.selection.ALT_PENALTY`) is ``("alt", 1.0)``.
+        """The extra searches of ``query.route_searches`` (:class:`RouteSearch` each; empty when unset), checked.
 
         Raises
         ------
         ConfigError
-            An entry that is not ``alt`` or ``objective@alpha`` with a known objective and alpha in [0, 1]."""
-        out = []
-        for item in (x.strip() for x in self.query.route_searches.split(",")):
-            if not item:
-                continue
-            if item == "alt":
-                out.append(("alt", 1.0))
-                continue
-            objective, _, alpha = item.partition("@")
-            try:
-                a = float(alpha)
-            except ValueError:
-                a = float("nan")
-            if objective not in OBJECTIVES or not 0.0 <= a <= 1.0:
-                raise ConfigError(source, "query.route_searches", f"'{item}' is neither 'alt' nor objective@alpha with an "
-                                                            f"objective of {', '.join(OBJECTIVES)} and alpha in [0, 1]")
-            out.append((objective, a))
-        return tuple(out)
+            An entry that is not a :class:`RouteSearch` with a known objective (or ``alt``) and alpha in [0, 1]."""
+        return parse_route_searches(self.query.route_searches, source)
 
 
 @dataclass(frozen=True)
@@ -357,7 +398,8 @@ class SettingSpec:
         else:
             ok = isinstance(value, self.type)
         if not ok:
-            kind = {bool: "true or false", int: "an integer", float: "a number"}.get(self.type, "a string")
+            kind = {bool: "true or false", int: "an integer", float: "a number",
+                    tuple: "a list"}.get(self.type, "a string")
             raise ConfigError(source, self.name, f"takes {kind}, got {value!r}")
         if self.range is not None:
             lo, hi = self.range
@@ -432,6 +474,8 @@ def _yaml_value(f: Fields, key: str, spec: SettingSpec) -> Any:
         return f.int(key, lo=lo)
     if spec.type is float:
         return f.float(key, lo=lo)
+    if spec.name == "query.route_searches":  # a list of entries or one comma separated string
+        return parse_route_searches(f.raw(key), f.source)
     return f.str(key)
 
 
