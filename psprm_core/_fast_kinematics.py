@@ -9,17 +9,26 @@ import math
 import numpy as np
 from numba import njit
 
-jit = njit(cache=True, nogil=True)
+from ._fast_packs import PRISMATIC, REVOLUTE, ROOT  # noqa: F401 - the joint type codes, re-exported
 
-ROOT, REVOLUTE, PRISMATIC = 0, 1, 2
+#: SHA-256 of the kernel modules this one imports from, directly or through them (their sources with this line
+#: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
+#: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
+#: too, or the cached kernels here would keep the old code.
+CALLEES_SHA256 = "288a9a60c30886ab4bc61c3d914bb263414d0973e0be49b938ac9951435541bc"
+
+jit = njit(cache=True, nogil=True)
 
 
 # ---------------------------------------------------------------------------------------------- kinematics
 @jit
-def _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t):  # pragma: no cover - compiled
+def _fk(q, order, robot, R, t):  # pragma: no cover - compiled
     """World rotations R (NB, 3, 3) and translations t (NB, 3) of the bodies in ``order`` (root-first, root
-    excluded) for one configuration: T_child = T_parent T_origin Motion(axis, q D + off) (RobotModel._poses).
-    R[NB] and R[NB + 1] are scratch (the callers allocate NB + 2 rotations)."""
+    excluded) for one configuration of the body tree ``robot`` (a RobotPack): T_child = T_parent T_origin
+    Motion(axis, q D + off) (RobotModel._poses). R[NB] and R[NB + 1] are scratch (the callers allocate NB + 2
+    rotations)."""
+    parent, jtype, R_off, t_off, axis = robot.parent, robot.jtype, robot.R_off, robot.t_off, robot.axis
+    D, off, mobile = robot.D, robot.off, robot.mobile
     for i in range(3):
         for j in range(3):
             R[0, i, j] = 0.0
@@ -61,8 +70,10 @@ def _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t):  # p
 
 
 @jit
-def _camera(R, t, cam_body, cam_R, cam_t, Rc, tc):  # pragma: no cover - compiled
-    """Optical-frame pose (Rc, tc) from the camera body's world pose (RobotModel._camera_from_body)."""
+def _camera(R, t, robot, Rc, tc):  # pragma: no cover - compiled
+    """Optical-frame pose (Rc, tc) from the camera body's world pose (RobotModel._camera_from_body) of the RobotPack
+    ``robot``."""
+    cam_body, cam_R, cam_t = robot.cam_body, robot.cam_R, robot.cam_t
     for i in range(3):
         for j in range(3):
             Rc[i, j] = R[cam_body, i, 0] * cam_R[0, j] + R[cam_body, i, 1] * cam_R[1, j] + \
@@ -72,16 +83,17 @@ def _camera(R, t, cam_body, cam_R, cam_t, Rc, tc):  # pragma: no cover - compile
 
 
 @jit
-def camera_poses(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R,
-                 cam_t):  # pragma: no cover - compiled
-    """Camera optical-frame poses (B, 4, 4) of configurations q (B, dof) (RobotModel.camera_poses)."""
-    B, NB = q.shape[0], parent.shape[0]
+def camera_poses(q, robot):  # pragma: no cover - compiled
+    """Camera optical-frame poses (B, 4, 4) of configurations q (B, dof) (RobotModel.camera_poses) of the RobotPack
+    ``robot`` (FK along its camera chain)."""
+    order = robot.chain
+    B, NB = q.shape[0], robot.parent.shape[0]
     out = np.zeros((B, 4, 4))
     R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
     Rc, tc = np.empty((3, 3)), np.empty(3)
     for r in range(B):
-        _fk(q[r], order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
-        _camera(R, t, cam_body, cam_R, cam_t, Rc, tc)
+        _fk(q[r], order, robot, R, t)
+        _camera(R, t, robot, Rc, tc)
         for i in range(3):
             for j in range(3):
                 out[r, i, j] = Rc[i, j]
@@ -148,10 +160,14 @@ def _centre(R, t, b, c_local, c):  # pragma: no cover - compiled
 
 
 @jit
-def _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_c, el_R, el_h,
-             el_r, box_c, box_R, box_h, box_aabb, eps, bc, c, Rw, eye, W):  # pragma: no cover - compiled
-    """Robot (body poses R, t) against the obstacle boxes (CollisionChecker._env): robot bounds vs box bounds, body
-    spheres, body boxes, element spheres, then the exact element-box overlap. bc, c, Rw, eye, W: scratch."""
+def _env_hit(R, t, col, bc, c, Rw, eye, W):  # pragma: no cover - compiled
+    """Robot (body poses R, t) against the obstacle boxes of the CollisionPack ``col`` (CollisionChecker._env): robot
+    bounds vs box bounds, body spheres, body boxes, element spheres, then the exact element-box overlap. bc, c, Rw,
+    eye, W: scratch."""
+    bodies, body_c, body_r, body_box_c, body_box_h = col.bodies, col.body_c, col.body_r, col.body_box_c, col.body_box_h
+    el_start, el_count, el_order, el_c, el_R = col.el_start, col.el_count, col.el_order, col.el_c, col.el_R
+    el_h, el_r, eps = col.el_h, col.el_r, col.eps
+    box_c, box_R, box_h, box_aabb = col.boxes.c, col.boxes.R, col.boxes.h, col.boxes.aabb
     K, nb = box_c.shape[0], bodies.shape[0]
     if K == 0:
         return False
@@ -186,10 +202,12 @@ def _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_
 
 
 @jit
-def _self_hit(R, t, pairs, pair_els, el_body, el_c, el_R, el_h, el_r, eps, ec, ca, cb, Ra, Rb,
-              W):  # pragma: no cover - compiled
-    """Self-collision of the element pairs (CollisionChecker._pairs_hits): bounding spheres of the element centres
-    (computed once, for the elements in ``pair_els``), then the exact overlap. ec, ca, cb, Ra, Rb, W: scratch."""
+def _self_hit(R, t, col, ec, ca, cb, Ra, Rb, W):  # pragma: no cover - compiled
+    """Self-collision of the element pairs of the CollisionPack ``col`` (CollisionChecker._pairs_hits): bounding
+    spheres of the element centres (computed once, for the elements in ``pair_els``), then the exact overlap. ec, ca,
+    cb, Ra, Rb, W: scratch."""
+    pairs, pair_els, el_body, el_c, el_R = col.pairs, col.pair_els, col.el_body, col.el_c, col.el_R
+    el_h, el_r, eps = col.el_h, col.el_r, col.eps
     for n in range(pair_els.shape[0]):
         e = pair_els[n]
         _centre(R, t, el_body[e], el_c[e], ec[e])
@@ -206,12 +224,12 @@ def _self_hit(R, t, pairs, pair_els, el_body, el_c, el_R, el_h, el_r, eps, ec, c
 
 
 @jit
-def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile, lower, upper, bodies, body_c,
-          body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs,
-          pair_els, box_c, box_R, box_h, box_aabb, eps):  # pragma: no cover - compiled
-    """Collision flags (B, 3): joint limits, environment, self (CollisionChecker.check_detailed). Without
-    ``detailed`` a row stops at its first violation (only the OR of the three is meaningful then)."""
-    B, dof, NB, E = q.shape[0], q.shape[1], parent.shape[0], el_c.shape[0]
+def check(q, detailed, robot, col):  # pragma: no cover - compiled
+    """Collision flags (B, 3): joint limits, environment, self (CollisionChecker.check_detailed) of the RobotPack
+    ``robot`` and the CollisionPack ``col``. Without ``detailed`` a row stops at its first violation (only the OR of
+    the three is meaningful then)."""
+    order, lower, upper, bodies = robot.bodies, col.lower, col.upper, col.bodies
+    B, dof, NB, E = q.shape[0], q.shape[1], robot.parent.shape[0], col.el_c.shape[0]
     out = np.zeros((B, 3), np.bool_)
     R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
     bc, ec = np.empty((bodies.shape[0], 3)), np.empty((E, 3))
@@ -227,23 +245,21 @@ def check(q, detailed, order, parent, jtype, R_off, t_off, axis, D, off, mobile,
         out[r, 0] = lim
         if lim and not detailed:
             continue
-        _fk(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
-        out[r, 1] = _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order,
-                             el_c, el_R, el_h, el_r, box_c, box_R, box_h, box_aabb, eps, bc, c, Rw, eye, W)
+        _fk(qr, order, robot, R, t)
+        out[r, 1] = _env_hit(R, t, col, bc, c, Rw, eye, W)
         if out[r, 1] and not detailed:
             continue
-        out[r, 2] = _self_hit(R, t, pairs, pair_els, el_body, el_c, el_R, el_h, el_r, eps, ec, c, c2, Rw, Rw2, W)
+        out[r, 2] = _self_hit(R, t, col, ec, c, c2, Rw, Rw2, W)
     return out
 
 
 @jit
-def env_hits(q, want_aabb, order, parent, jtype, R_off, t_off, axis, D, off, mobile, bodies, body_c, body_r,
-             body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, box_c, box_R, box_h,
-             box_aabb, eps):  # pragma: no cover - compiled
-    """Environment flags (B,) against the given boxes only (no limits, no self-collision:
+def env_hits(q, want_aabb, robot, col):  # pragma: no cover - compiled
+    """Environment flags (B,) against the boxes of the CollisionPack ``col`` only (no limits, no self-collision:
     CollisionChecker.env_hits) and, with ``want_aabb``, the robot's world bounds (B, 6) = [min xyz, max xyz] of
     every element box (CollisionChecker._aabb: half extents sum_j |(R_b R_e)_ij| h_j), from the same FK."""
-    B, NB, E = q.shape[0], parent.shape[0], el_c.shape[0]
+    order, bodies, el_body, el_c, el_R, el_h = robot.bodies, col.bodies, col.el_body, col.el_c, col.el_R, col.el_h
+    B, NB, E = q.shape[0], robot.parent.shape[0], el_c.shape[0]
     hit = np.zeros(B, np.bool_)
     aabb = np.zeros((B if want_aabb else 0, 6))
     R, t = np.zeros((NB + 2, 3, 3)), np.zeros((NB, 3))
@@ -252,9 +268,8 @@ def env_hits(q, want_aabb, order, parent, jtype, R_off, t_off, axis, D, off, mob
     Rw, eye = np.empty((3, 3)), np.eye(3)
     W = np.empty((3, 3, 3))
     for r in range(B):
-        _fk(q[r], order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
-        hit[r] = _env_hit(R, t, bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_c,
-                          el_R, el_h, el_r, box_c, box_R, box_h, box_aabb, eps, bc, c, Rw, eye, W)
+        _fk(q[r], order, robot, R, t)
+        hit[r] = _env_hit(R, t, col, bc, c, Rw, eye, W)
         if want_aabb:
             for i in range(3):
                 aabb[r, i] = np.inf

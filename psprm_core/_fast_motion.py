@@ -13,7 +13,7 @@ from ._fast_kinematics import jit
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "b0845fb35d1b2e4104b94682d4dfc5050db4edb2354cb6d0000200e98eb55592"
+CALLEES_SHA256 = "9f39f36e46692d4b52edecb44283b90e453af7063466488b7faf85bbafe8d551"
 
 
 # ---------------------------------------------------------------------------------------------- motion

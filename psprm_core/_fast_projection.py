@@ -13,18 +13,20 @@ from ._fast_kinematics import PRISMATIC, ROOT, _camera, _fk, jit
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "b0845fb35d1b2e4104b94682d4dfc5050db4edb2354cb6d0000200e98eb55592"
+CALLEES_SHA256 = "9f39f36e46692d4b52edecb44283b90e453af7063466488b7faf85bbafe8d551"
 
 
 # ---------------------------------------------------------------------------------------------- projection
 @jit
-def _residual(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t, target, cols,
-              line, min_distance, far, th, tv, margin, R, t, Rc, tc, h, J):  # pragma: no cover - compiled
-    """h_M(q) (m,) and its Jacobian J (m, k) over the planning joints ``cols`` for one configuration
-    (VisibilityConstraint.residual_jacobian with RobotModel.camera_jacobian): d p_c / d q_i = -R_c^T (omega_i x p
-    + v0_i). Returns m (3 for the line model, 1 for the frustum model)."""
-    _fk(q, order, parent, jtype, R_off, t_off, axis, D, off, mobile, R, t)
-    _camera(R, t, cam_body, cam_R, cam_t, Rc, tc)
+def _residual(q, robot, view, cols, R, t, Rc, tc, h, J):  # pragma: no cover - compiled
+    """h_M(q) (m,) and its Jacobian J (m, k) over the planning joints ``cols`` for one configuration of the RobotPack
+    ``robot`` and the ViewPack ``view`` (VisibilityConstraint.residual_jacobian with RobotModel.camera_jacobian):
+    d p_c / d q_i = -R_c^T (omega_i x p + v0_i). Returns m (3 for the line model, 1 for the frustum model)."""
+    order, jtype, axis, D, mobile = robot.chain, robot.jtype, robot.axis, robot.D, robot.mobile
+    target, line, min_distance, far = view.target, view.line, view.min_distance, view.far
+    th, tv, margin = view.th, view.tv, view.margin
+    _fk(q, order, robot, R, t)
+    _camera(R, t, robot, Rc, tc)
     pc = np.empty(3)
     for i in range(3):
         pc[i] = Rc[0, i] * (target[0] - tc[0]) + Rc[1, i] * (target[1] - tc[1]) + Rc[2, i] * (target[2] - tc[2])
@@ -136,13 +138,14 @@ def _solve(A, b, m):  # pragma: no cover - compiled
 
 
 @jit
-def project(q0, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t, target, cols,
-            line, min_distance, far, th, tv, margin, lo, hi, tol, max_iters, damping,
-            max_step):  # pragma: no cover - compiled
-    """Damped Gauss-Newton projection onto h_M = 0 (Alg. 1, line 7; VisibilityConstraint.project): per row,
-    q[cols] <- q[cols] - J^T (J J^T + damping I)^-1 h with the step norm capped at ``max_step``, clamped to [lo, hi]
-    (base theta wrapped), until |h| < tol or ``max_iters`` steps. Returns (q (B, dof), |h| at the result (B,))."""
-    B, dof, NB = q0.shape[0], q0.shape[1], parent.shape[0]
+def project(q0, robot, view, solver):  # pragma: no cover - compiled
+    """Damped Gauss-Newton projection onto h_M = 0 (Alg. 1, line 7; VisibilityConstraint.project) of the RobotPack
+    ``robot`` and the ViewPack ``view``, with the SolverPack ``solver``: per row, q[cols] <- q[cols] - J^T (J J^T +
+    damping I)^-1 h with the step norm capped at ``max_step``, clamped to [lo, hi] (base theta wrapped), until
+    |h| < tol or ``max_iters`` steps. Returns (q (B, dof), |h| at the result (B,))."""
+    cols, lo, hi, tol, max_iters = solver.cols, solver.lo, solver.hi, solver.tol, solver.max_iters
+    damping, max_step, mobile = solver.damping, solver.max_step, robot.mobile
+    B, dof, NB = q0.shape[0], q0.shape[1], robot.parent.shape[0]
     k = cols.shape[0]
     q = q0.copy()
     err_out = np.empty(B)
@@ -153,8 +156,7 @@ def project(q0, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_bo
     for r in range(B):
         qr = q[r]
         for it in range(max_iters):
-            m = _residual(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t,
-                          target, cols, line, min_distance, far, th, tv, margin, R, t, Rc, tc, h, J)
+            m = _residual(qr, robot, view, cols, R, t, Rc, tc, h, J)
             e = 0.0
             for i in range(m):
                 e += h[i] * h[i]
@@ -186,8 +188,7 @@ def project(q0, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_bo
                 qr[2] = ((qr[2] + math.pi) % (2.0 * math.pi)) - math.pi
             if done:
                 break
-        m = _residual(qr, order, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t,
-                      target, cols, line, min_distance, far, th, tv, margin, R, t, Rc, tc, h, J)
+        m = _residual(qr, robot, view, cols, R, t, Rc, tc, h, J)
         e = 0.0
         for i in range(m):
             e += h[i] * h[i]

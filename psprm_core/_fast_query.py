@@ -15,7 +15,7 @@ from ._fast_scoring import mlp, occlusion, pose_features
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "aa398e422903717899b10b9fe3c538705df903b06b6ee64f4a1bf29d6b72b32f"
+CALLEES_SHA256 = "7ce1cde2d65ab48e674279d5c7de8779d2003b2a5a0225050821d463ca50cade"
 
 
 # ---------------------------------------------------------------------------------------------- a query's edges
@@ -29,13 +29,13 @@ def _round32(a):  # pragma: no cover - compiled
 
 
 @jit
-def query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtype, R_off, t_off, axis, D, off,
-                rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance, far, th, tv, margin, lo, hi, tol,
-                max_iters, damping, max_step):  # pragma: no cover - compiled
-    """PSPRM.edge_knots of a few edges in one call: :func:`edge_knot_seeds`, then (``track``) the interior knots'
-    non-base camera joints re-aimed by :func:`project` (``max_iters`` = track_iters); with ``r32`` rounded to float32
-    after each stage, as the float32 torch path is. Returns (knots (E, M, dof), interior (E, N))."""
-    knots, interior = edge_knot_seeds(qa, qb, n_interp, w_rot, mobile)
+def query_knots(qa, qb, opts, robot, view, solver):  # pragma: no cover - compiled
+    """PSPRM.edge_knots of a few edges in one call (EdgeOpts ``opts``): :func:`edge_knot_seeds`, then (``track``)
+    the interior knots' non-base camera joints re-aimed by :func:`project` of the RobotPack ``robot``, the ViewPack
+    ``view`` and the SolverPack ``solver`` (``max_iters`` = track_iters); with ``r32`` rounded to float32 after each
+    stage, as the float32 torch path is. Returns (knots (E, M, dof), interior (E, N))."""
+    track, r32, cols = opts.track, opts.r32, solver.cols
+    knots, interior = edge_knot_seeds(qa, qb, opts.n_interp, opts.motion.w_rot, opts.motion.mobile)
     if r32:
         _round32(knots)
     E, M, dof = knots.shape
@@ -44,9 +44,7 @@ def query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtyp
         for e in range(E):
             for m in range(M - 2):
                 inner[e * (M - 2) + m] = knots[e, m + 1]
-        qn, _ = project(inner, order, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t,
-                        target, cols, line, min_distance, far, th, tv, margin, lo, hi, tol, max_iters, damping,
-                        max_step)
+        qn, _ = project(inner, robot, view, solver)
         if r32:
             _round32(qn)
         for e in range(E):
@@ -56,13 +54,13 @@ def query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtyp
 
 
 @jit
-def neural_scores(q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t, tgt,
-                  derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside,
-                  eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
-    """Camera poses (B, 4, 4) of configurations q (B, dof) and their raw neural scores (B,) float32 (NeuralScorer.score
-    of RobotModel.camera_poses: pose features, :func:`mlp` on chunks of ``mlp_rows`` views, zero where the ray-cast
-    occlusion score exceeds ``tau``; Alg. 2, lines 4-7), rounded to float32 after the poses with ``r32``."""
-    cp = camera_poses(q, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t)
+def neural_scores(q, r32, mlp_rows, robot, scorer):  # pragma: no cover - compiled
+    """Camera poses (B, 4, 4) of configurations q (B, dof) of the RobotPack ``robot`` and their raw neural scores (B,)
+    float32 of the ScorerPack ``scorer`` (NeuralScorer.score of RobotModel.camera_poses: pose features, :func:`mlp`
+    on chunks of ``mlp_rows`` views, zero where the ray-cast occlusion score exceeds ``tau``; Alg. 2, lines 4-7),
+    rounded to float32 after the poses with ``r32``."""
+    tgt, derived, net, has_occ, tau = scorer.tgt, scorer.derived, scorer.mlp, scorer.has_occ, scorer.tau
+    cp = camera_poses(q, robot)
     if r32:
         _round32(cp)
     feats = pose_features(cp, tgt, derived)
@@ -70,13 +68,13 @@ def neural_scores(q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmob
     sc = np.empty(f32.shape[0], np.float32)
     for c0 in range(0, f32.shape[0], mlp_rows):  # the scorer's calls: one per batch of at most mlp_rows views
         c1 = min(c0 + mlp_rows, f32.shape[0])
-        sc[c0:c1] = mlp(f32[c0:c1], w1, b1, ws, bs, wo, bo)
+        sc[c0:c1] = mlp(f32[c0:c1], net)
     if has_occ:
         pos = np.empty((cp.shape[0], 3))
         for r in range(cp.shape[0]):
             for i in range(3):
                 pos[r, i] = cp[r, i, 3]
-        occ = occlusion(pos, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir)
+        occ = occlusion(pos, scorer.occ)
         for r in range(cp.shape[0]):
             if (np.float32(occ[r]) > np.float32(tau)) if r32 else (occ[r] > tau):
                 sc[r] = np.float32(0.0)
@@ -84,14 +82,10 @@ def neural_scores(q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmob
 
 
 @jit
-def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
-                      all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies, body_c,
-                      body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
-                      pairs, pair_els, box_c, box_R, box_h, box_aabb, eps,
-                      chain, cam_body, cam_R, cam_t, tgt, derived, w1, b1, ws, bs, wo, bo,
-                      has_occ, pts_local, centre_local, fat_half, oc, oR, oh, count_inside, eps_dir,
-                      tau, mlp_rows):  # pragma: no cover - compiled
-    """The lazy verification of a few edges from their knots (E, M, dof), in one call (Verification.verify_edges):
+def check_score_knots(knots, interior, flags, opts, robot, col, scorer):  # pragma: no cover - compiled
+    """The lazy verification of a few edges from their knots (E, M, dof), in one call (Verification.verify_edges),
+    with the EdgeOpts ``opts``, the RobotPack ``robot``, the CollisionPack ``col`` and the ScorerPack ``scorer``;
+    ``flags`` = (do_check, do_score):
 
     - ``do_check`` (E,): collision flags of the interior knots and of the points every ``resolution`` on the
       pieces between consecutive knots (Edges.knots_valid, dense);
@@ -102,6 +96,9 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
 
     With ``r32``, rounded to float32 where the float32 torch path casts. Returns (free (E,), cameras
     (E, N + 2, 4, 4), raw scores (E, N + 2) float32; rows not scored are zero)."""
+    do_check, do_score = flags
+    r32, resolution, max_steps, mlp_rows = opts.r32, opts.resolution, opts.max_steps, opts.mlp_rows
+    w_rot, mobile = opts.motion.w_rot, opts.motion.mobile
     E, M, dof = knots.shape
     N = interior.shape[1]
     free = np.ones(E, np.bool_)
@@ -123,11 +120,9 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
         for j in range(nck):
             for m in range(M - 2):
                 q[j * (M - 2) + m] = knots[edge_of[j], m + 1]
-        flags = check(q, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
-                      body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R, el_h,
-                      el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
+        hits = check(q, False, robot, col)
         for r in range(q.shape[0]):
-            if flags[r, 0] or flags[r, 1] or flags[r, 2]:
+            if hits[r, 0] or hits[r, 1] or hits[r, 2]:
                 free[edge_of[r // (M - 2)]] = False
         nd = 0
         for j in range(nck):
@@ -149,11 +144,9 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
             seg, pts = pieces(a, b, resolution, max_steps, False, w_rot, mobile)
             if r32:
                 _round32(pts)
-            flags = check(pts, False, all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper,
-                          bodies, body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c,
-                          el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps)
+            hits = check(pts, False, robot, col)
             for r in range(pts.shape[0]):
-                if flags[r, 0] or flags[r, 1] or flags[r, 2]:
+                if hits[r, 0] or hits[r, 1] or hits[r, 2]:
                     free[dense_of[seg[r] // (M - 1)]] = False
     cams = np.zeros((E, N + 2, 4, 4))
     raw = np.zeros((E, N + 2), np.float32)
@@ -175,9 +168,7 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
                 pts_q[base + 1 + i] = knots[e, interior[e, i]]
             pts_q[base + N + 1] = knots[e, M - 1]
             j += 1
-    cp, sc = neural_scores(pts_q, r32, chain, parent, jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R,
-                           cam_t, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc,
-                           oR, oh, count_inside, eps_dir, tau, mlp_rows)
+    cp, sc = neural_scores(pts_q, r32, mlp_rows, robot, scorer)
     for j in range(ns):
         e = edge_s[j]
         for p in range(N + 2):
@@ -187,25 +178,19 @@ def check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_
 
 
 @jit
-def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, n_interp, w_rot, mobile, track, r32, order, parent,
-                 jtype, R_off, t_off, axis, D, off, rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance,
-                 far, th, tv, margin, lo, hi, tol, max_iters, damping, max_step, do_check, do_score, resolution,
-                 max_steps, all_bodies, lower, upper, bodies, body_c, body_r, body_box_c, body_box_h, el_start,
-                 el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb,
-                 eps, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half, oc, oR, oh,
-                 count_inside, eps_dir, tau, mlp_rows):  # pragma: no cover - compiled
+def verify_edges(store, ids, new, flags, opts, robot, col, view, solver, scorer):  # pragma: no cover - compiled
     """A lazy search's verification of edges ``ids`` (E,) in one call (Verification.verify_edges): first the knots of the
-    ``compute`` ones (the query's connection edges, from their ends qa -> qb (C, dof), :func:`query_knots`) are
-    written into the knot store (``store_k`` (cap, M, dof), ``store_i`` (cap, N): the planner's tensors), reversed
-    where ``flip`` (C,) (the store keeps an edge's knots in its u -> v direction), then every edge is checked and
-    scored from the store by :func:`check_score_knots` (the camera chain is ``order``; ``all_bodies`` the collision
-    bodies' FK order). Returns (free (E,), cameras (E, N + 2, 4, 4), raw scores (E, N + 2))."""
+    ``compute`` ones (``new`` = (compute (E,), qa, qb, flip): the query's connection edges, from their ends qa -> qb
+    (C, dof), :func:`query_knots`) are written into the knot store (``store`` = (store_k (cap, M, dof), store_i
+    (cap, N)): the planner's tensors), reversed where ``flip`` (C,) (the store keeps an edge's knots in its u -> v
+    direction), then every edge is checked and scored from the store by :func:`check_score_knots` (``flags`` =
+    (do_check, do_score)). Returns (free (E,), cameras (E, N + 2, 4, 4), raw scores (E, N + 2))."""
+    store_k, store_i = store
+    compute, qa, qb, flip = new
     E = ids.shape[0]
     M, dof, N = store_k.shape[1], store_k.shape[2], store_i.shape[1]
     if qa.shape[0] > 0:
-        kn, ki = query_knots(qa, qb, n_interp, w_rot, mobile, track, r32, order, parent, jtype, R_off, t_off, axis,
-                             D, off, rmobile, cam_body, cam_R, cam_t, target, cols, line, min_distance, far, th, tv,
-                             margin, lo, hi, tol, max_iters, damping, max_step)
+        kn, ki = query_knots(qa, qb, opts, robot, view, solver)
         j = 0
         for e in range(E):
             if compute[e]:
@@ -225,10 +210,5 @@ def verify_edges(store_k, store_i, ids, compute, qa, qb, flip, n_interp, w_rot, 
                 knots[e, m, d] = store_k[ids[e], m, d]
         for i in range(N):
             interior[e, i] = store_i[ids[e], i]
-    return check_score_knots(knots, interior, do_check, do_score, r32, resolution, max_steps, w_rot, mobile,
-                             all_bodies, parent, jtype, R_off, t_off, axis, D, off, rmobile, lower, upper, bodies,
-                             body_c, body_r, body_box_c, body_box_h, el_start, el_count, el_order, el_body, el_c, el_R,
-                             el_h, el_r, pairs, pair_els, box_c, box_R, box_h, box_aabb, eps, order, cam_body, cam_R,
-                             cam_t, tgt, derived, w1, b1, ws, bs, wo, bo, has_occ, pts_local, centre_local, fat_half,
-                             oc, oR, oh, count_inside, eps_dir, tau, mlp_rows)
+    return check_score_knots(knots, interior, flags, opts, robot, col, scorer)
 

@@ -12,7 +12,7 @@ from ._fast_kinematics import jit
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "b0845fb35d1b2e4104b94682d4dfc5050db4edb2354cb6d0000200e98eb55592"
+CALLEES_SHA256 = "9f39f36e46692d4b52edecb44283b90e453af7063466488b7faf85bbafe8d551"
 
 
 # ---------------------------------------------------------------------------------------------- occlusion
@@ -35,12 +35,13 @@ def _slab(o, d, half, count_inside, eps):  # pragma: no cover - compiled
 
 
 @jit
-def occlusion(pos, pts_local, centre_local, fat_half, box_c, box_R, box_h, count_inside,
-              eps):  # pragma: no cover - compiled
+def occlusion(pos, occ):  # pragma: no cover - compiled
     """Occlusion scores of Alg. 2 (B,): the fraction of the rays from each camera position (B, 3) to the target's M
-    sample points (given in every box frame, (M, K, 3)) that a box blocks (perception.occlusion.occlusion_scores:
-    the camera -> centre segment against the boxes inflated by the points' radius first, then the M rays against
-    the candidate boxes)."""
+    sample points (given in every box frame, (M, K, 3)) that a box blocks, of the OcclusionPack ``occ``
+    (perception.occlusion.occlusion_scores: the camera -> centre segment against the boxes inflated by the points'
+    radius first, then the M rays against the candidate boxes)."""
+    pts_local, centre_local, fat_half, box_c, box_R = occ.pts_local, occ.centre_local, occ.fat_half, occ.c, occ.R
+    box_h, count_inside, eps = occ.h, occ.count_inside, occ.eps
     B, M, K = pos.shape[0], pts_local.shape[0], box_c.shape[0]
     out = np.zeros(B)
     o, d = np.empty(3), np.empty(3)
@@ -105,10 +106,11 @@ def pose_features(cam, tgt, derived):  # pragma: no cover - compiled
 
 # ---------------------------------------------------------------------------------------------- surrogate MLP
 @jit
-def mlp(x, w1, b1, ws, bs, wo, bo):  # pragma: no cover - compiled
-    """Surrogate MLP (Alg. 2, line 4) on a few rows, float32: h = relu(x W1 + b1), then relu(h W_l + b_l) per hidden
-    layer, score = sigmoid(h w_o + b_o). Rows are processed together so each weight row is read once per layer;
-    inputs a ReLU zeroed are skipped."""
+def mlp(x, net):  # pragma: no cover - compiled
+    """Surrogate MLP (Alg. 2, line 4) of the MlpPack ``net`` on a few rows, float32: h = relu(x W1 + b1), then
+    relu(h W_l + b_l) per hidden layer, score = sigmoid(h w_o + b_o). Rows are processed together so each weight row
+    is read once per layer; inputs a ReLU zeroed are skipped."""
+    w1, b1, ws, bs, wo, bo = net.w1, net.b1, net.ws, net.bs, net.wo, net.bo
     B, F = x.shape
     H = b1.shape[0]
     h = np.empty((B, H), np.float32)

@@ -67,6 +67,15 @@ class BoxTensors:
         ext = (self.rotation.abs() * self.half.unsqueeze(-2)).sum(-1)
         return torch.cat([self.center - ext, self.center + ext], -1)
 
+    def kernel_pack(self):
+        """The boxes as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
+        :class:`~psprm_core._fast_packs.BoxPack` of centres, rotations, half extents and :meth:`aabb`, float64."""
+        from ._fast_packs import BoxPack
+
+        f64 = fastpath.as_f64
+        return BoxPack(f64(self.center).reshape(-1, 3), f64(self.rotation).reshape(-1, 3, 3),
+                       f64(self.half).reshape(-1, 3), f64(self.aabb()).reshape(-1, 6))
+
     def padded(self, padding: float) -> "BoxTensors":
         """The boxes grown by ``padding`` (m) on every face. A grown box contains every point within ``padding`` of
         the box, so a robot that misses the grown boxes keeps at least that clearance from the real ones."""
@@ -189,6 +198,32 @@ class CollisionChecker:
         padding), :attr:`true_boxes` the ones given."""
         self.true_boxes = BoxTensors.from_boxes(boxes, self.device, self.dtype)
         self.boxes = self.true_boxes.padded(self.padding)
+
+    def kernel_pack(self):
+        """The checker as the compiled kernels take it (:mod:`psprm_core.fastpath`): a
+        :class:`~psprm_core._fast_packs.CollisionPack` of the joint limits, the collision model (bodies with
+        elements, body spheres and boxes, element boxes, self-collision pairs; float64, int64), the separating-axis
+        eps of :func:`obb_overlap` and the obstacle boxes :attr:`boxes` (:meth:`BoxTensors.kernel_pack`). Kept on
+        the checker; the limits are read again when they change (in place, or by new storage), the boxes when
+        :meth:`set_boxes` replaces them."""
+        from ._fast_packs import CollisionPack
+
+        f64, i64 = fastpath.as_f64, fastpath.as_i64
+        cache = self.__dict__.get("_kernel_pack")
+        if cache is None:
+            model = (i64(self.bodies_with_elements), f64(self.body_c), f64(self.body_r), f64(self.body_box_c),
+                     f64(self.body_box_h), i64(self.body_el_start), i64(self.body_el_count), i64(self.body_el_order),
+                     i64(self.el_body), f64(self.el_c), f64(self.el_R), f64(self.el_h), f64(self.el_r),
+                     i64(self.self_pairs).reshape(-1, 2), np.unique(i64(self.self_pairs)), 1e-6)
+            cache = self._kernel_pack = {"model": model, "boxes_of": None, "pack": None}
+        lower, upper = fastpath.const_f64(self.lower), fastpath.const_f64(self.upper)
+        bx = self.boxes
+        pack = cache["pack"]
+        if cache["boxes_of"] is not bx or pack.lower is not lower or pack.upper is not upper:
+            pack = cache["pack"] = CollisionPack(lower, upper, *cache["model"],
+                                                 bx.kernel_pack() if cache["boxes_of"] is not bx else pack.boxes)
+            cache["boxes_of"] = bx
+        return pack
 
     def box_tensors(self, boxes: Iterable) -> "BoxTensors":
         """``boxes`` as this checker tests them (tensors on its device, grown by its padding)."""

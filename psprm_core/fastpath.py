@@ -183,13 +183,14 @@ def _rows(kernel, n_row_args: int, *args):
     return np.concatenate(parts)
 
 
-def _f64(x) -> np.ndarray:
+def as_f64(x) -> np.ndarray:
+    """A C-contiguous float64 array of ``x`` (a tensor, detached and on the CPU, or array-like): a kernel input."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().double().numpy()
     return np.ascontiguousarray(np.asarray(x, dtype=np.float64))
 
 
-def _const64(t: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
+def const_f64(t: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
     """float64 copy of a constant tensor (limits, target point), first rounded to ``dtype`` if given (as the torch
     path casts it); kept on the tensor until it changes in place."""
     cache = getattr(t, "_fast_f64", None)
@@ -198,45 +199,18 @@ def _const64(t: torch.Tensor, dtype: torch.dtype | None = None) -> np.ndarray:
     got = cache.get(dtype)
     key = (t._version, t.data_ptr())  # in-place changes; a copied tensor (and its copied attributes) has new storage
     if got is None or got[0] != key:
-        got = cache[dtype] = (key, _f64(t if dtype is None else t.to(dtype)))
+        got = cache[dtype] = (key, as_f64(t if dtype is None else t.to(dtype)))
     return got[1]
 
 
-def _i64(x) -> np.ndarray:
+def as_i64(x) -> np.ndarray:
+    """A C-contiguous int64 array of ``x`` (a tensor, detached and on the CPU, or array-like): a kernel input."""
     if isinstance(x, torch.Tensor):
         x = x.detach().cpu().numpy()
     return np.ascontiguousarray(np.asarray(x, dtype=np.int64))
 
 
 # ---------------------------------------------------------------------------------------------- robot
-def robot_arrays(robot) -> tuple:
-    """The body tree of a :class:`~psprm_core.robot.RobotModel` as arrays (cached on the model): (all bodies in FK
-    order, camera chain order, parent, joint type, R_off, t_off, axis, D, offset, mobile)."""
-    arr = getattr(robot, "_fast_arrays", None)
-    if arr is None:
-        K = kernels()
-        NB = len(robot.bodies)
-        jtype = np.array([K.ROOT if j is None else (K.PRISMATIC if j.type == "prismatic" else K.REVOLUTE)
-                          for j in robot.body_joint], dtype=np.int64)
-        offs = np.stack(robot.body_joint_offset)
-        axes = np.stack([j.axis if j is not None else np.zeros(3) for j in robot.body_joint])
-        arr = (np.arange(1, NB, dtype=np.int64), _i64(robot.camera_chain[1:]), _i64(robot.parent_body), jtype,
-               _f64(offs[:, :3, :3]), _f64(offs[:, :3, 3]), _f64(axes), _f64(robot.drive_matrix),
-               _f64(robot.drive_offset), bool(robot.mobile))
-        robot._fast_arrays = arr
-    return arr
-
-
-def _camera_args(robot) -> tuple:
-    args = getattr(robot, "_fast_camera_args", None)
-    if args is None:
-        _, chain, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
-        args = robot._fast_camera_args = (chain, parent, jtype, R_off, t_off, axis, D, off, mobile,
-                                          int(robot.camera_body), _f64(robot.camera_offset[:3, :3]),
-                                          _f64(robot.camera_offset[:3, 3]))
-    return args
-
-
 def camera_applies(robot, q: torch.Tensor, body_poses=None) -> bool:
     """When :meth:`RobotModel.camera_poses` runs compiled: configurations (B, dof) given (no body poses), a batch
     :func:`applies` to."""
@@ -245,7 +219,7 @@ def camera_applies(robot, q: torch.Tensor, body_poses=None) -> bool:
 
 def camera_poses(robot, q: torch.Tensor, body_poses=None) -> torch.Tensor:
     """Camera optical-frame poses (B, 4, 4) of ``q`` (B, dof), as :meth:`RobotModel.camera_poses`."""
-    out = _rows(kernels().camera_poses, 1, _f64(q), *_camera_args(robot))
+    out = _rows(kernels().camera_poses, 1, as_f64(q), robot.kernel_pack)
     return torch.from_numpy(out).to(q.dtype)
 
 
@@ -260,46 +234,21 @@ def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.T
             cols: torch.Tensor | np.ndarray) -> tuple:
     """:meth:`VisibilityConstraint.project` of ``q`` (B, dof) over the joints ``cols``: (projected q, converged)."""
     cols = cols.cpu().numpy() if isinstance(cols, torch.Tensor) else np.asarray(cols)
-    intr = constraint.intr
-    target = _const64(constraint.target, q.dtype)
-    qn, err = _rows(
-        kernels().project, 1, _f64(q), *_camera_args(constraint.robot), target, _i64(cols), constraint.kind == "line",
-        float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
-        float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(settings.max_iters),
-        float(settings.damping), float(settings.max_step))
+    qn, err = _rows(kernels().project, 1, as_f64(q), constraint.robot.kernel_pack, constraint.kernel_pack(q.dtype),
+                    solver_pack(settings, lo, hi, cols, settings.max_iters))
     return torch.from_numpy(qn).to(q.dtype), torch.from_numpy(err < settings.tolerance)
 
 
+def solver_pack(settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray, max_iters: int) -> tuple:
+    """The Gauss-Newton iteration's inputs (:class:`~psprm_core._fast_packs.SolverPack`): the joints ``cols``, the
+    bounds, the tolerance, damping and step cap of ``settings`` (:class:`ProjectionSettings`) and ``max_iters``."""
+    from ._fast_packs import SolverPack
+
+    return SolverPack(as_i64(cols), const_f64(lo), const_f64(hi), float(settings.tolerance), int(max_iters),
+                      float(settings.damping), float(settings.max_step))
+
+
 # ---------------------------------------------------------------------------------------------- collision
-def _checker_arrays(checker) -> tuple:
-    """Collision model and obstacle arrays of a :class:`~psprm_core.collision.CollisionChecker` (cached on it; the
-    obstacle part is rebuilt when its box set is replaced)."""
-    cache = getattr(checker, "_fast_arrays", None)
-    if cache is None:
-        cache = checker._fast_arrays = {
-            "model": (_i64(checker.bodies_with_elements), _f64(checker.body_c), _f64(checker.body_r),
-                      _f64(checker.body_box_c), _f64(checker.body_box_h), _i64(checker.body_el_start),
-                      _i64(checker.body_el_count), _i64(checker.body_el_order), _i64(checker.el_body),
-                      _f64(checker.el_c), _f64(checker.el_R), _f64(checker.el_h), _f64(checker.el_r),
-                      _i64(checker.self_pairs).reshape(-1, 2), np.unique(_i64(checker.self_pairs))),
-            "boxes": None, "boxes_of": None}
-    bx = checker.boxes
-    if cache["boxes_of"] is not bx:
-        cache["boxes"] = (_f64(bx.center).reshape(-1, 3), _f64(bx.rotation).reshape(-1, 3, 3),
-                          _f64(bx.half).reshape(-1, 3), _f64(bx.aabb()).reshape(-1, 6))
-        cache["boxes_of"] = bx
-    return cache["model"], cache["boxes"]
-
-
-def _check_args(checker) -> tuple:
-    """The arguments of the ``check`` kernel after ``q`` and ``detailed``: the robot's body tree, the joint limits,
-    the collision model and the obstacle boxes of a :class:`~psprm_core.collision.CollisionChecker`, and eps."""
-    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
-    model, boxes = _checker_arrays(checker)
-    return (all_bodies, parent, jtype, R_off, t_off, axis, D, off, mobile, _const64(checker.lower),
-            _const64(checker.upper), *model, *boxes, 1e-6)
-
-
 def check_flags(checker, q: torch.Tensor) -> torch.Tensor:
     """:meth:`CollisionChecker.check`: in-collision flags (B,)."""
     return torch.from_numpy(check(checker, q).any(-1))
@@ -329,87 +278,34 @@ def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.n
     (:meth:`CollisionChecker.check_detailed`). Without ``detailed`` a row stops at its first violation: only the OR
     over a row is meaningful."""
     if isinstance(q, np.ndarray):
-        q64 = _f64(q.astype(np.float32) if checker.dtype == torch.float32 else q)  # rounded as the checker's dtype
+        q64 = as_f64(q.astype(np.float32) if checker.dtype == torch.float32 else q)  # rounded as the checker's dtype
     else:
-        q64 = _f64(q.to(checker.dtype))
-    return _rows(kernels().check, 1, q64, bool(detailed), *_check_args(checker))
+        q64 = as_f64(q.to(checker.dtype))
+    return _rows(kernels().check, 1, q64, bool(detailed), checker.robot.kernel_pack, checker.kernel_pack())
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
     """:meth:`CollisionChecker.env_hits` of ``q`` (B, dof) against ``boxes`` (:class:`BoxTensors`, or None: no box)
     only: flags (B,)
     and, with ``want_aabb``, the robot's world bounds (B, 6) (else an empty array)."""
-    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(checker.robot)
-    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
-     _, _), _ = _checker_arrays(checker)
+    from ._fast_packs import BoxPack
+
     if boxes is None:  # no boxes: the bounds only
-        box = (np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6)))
+        box = BoxPack(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6)))
     else:
-        box = (_f64(boxes.center).reshape(-1, 3), _f64(boxes.rotation).reshape(-1, 3, 3),
-               _f64(boxes.half).reshape(-1, 3), _f64(boxes.aabb()).reshape(-1, 6))
-    return _rows(kernels().env_hits, 1, _f64(q.to(checker.dtype)), bool(want_aabb), all_bodies, parent, jtype, R_off,
-                 t_off, axis, D, off, mobile, bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order,
-                 el_body, el_c, el_R, el_h, el_r, *box, 1e-6)
+        box = boxes.kernel_pack()
+    return _rows(kernels().env_hits, 1, as_f64(q.to(checker.dtype)), bool(want_aabb), checker.robot.kernel_pack,
+                 checker.kernel_pack()._replace(boxes=box))
 
 
 # ---------------------------------------------------------------------------------------------- perception
 def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
     """Occlusion scores (B,) of camera positions (B, 3), as :meth:`OcclusionChecker.score` (Alg. 2, line 5)."""
-    from .geometry import EPS_DIR as _EPS_DIR
-
-    _, pts_local, centre_local, fat_half, c, R, h = _occlusion_arrays(occ)
-    if len(c) == 0 or pts_local.shape[0] == 0:
+    pack = occ.kernel_pack()
+    if len(pack.c) == 0 or pack.pts_local.shape[0] == 0:
         return torch.zeros(pos.shape[0], dtype=pos.dtype)
-    out = _rows(kernels().occlusion, 1, _f64(pos), pts_local, centre_local, fat_half, c, R, h, bool(occ.count_inside),
-                              float(_EPS_DIR))
+    out = _rows(kernels().occlusion, 1, as_f64(pos), pack)
     return torch.from_numpy(out).to(pos.dtype)
-
-
-def _occlusion_arrays(occ) -> tuple:
-    """(key, target points and centre in every box frame, boxes inflated by the points' radius, box centres,
-    rotations, half extents) of an :class:`~psprm_core.perception.occlusion.OcclusionChecker` (cached on it until its
-    boxes or points are replaced)."""
-    key = (id(occ.boxes), id(occ.target_points))
-    arr = getattr(occ, "_fast_arrays", None)
-    if arr is None or arr[0] != key:
-        bx, pts = occ.boxes, _f64(occ.target_points).reshape(-1, 3)
-        c, R, h = _f64(bx.centers).reshape(-1, 3), _f64(bx.rotations).reshape(-1, 3, 3), _f64(bx.half_extents)
-        h = h.reshape(-1, 3)
-        centre = pts.mean(0)
-        r = np.linalg.norm(pts - centre, axis=1).max() if len(pts) else 0.0
-        local = lambda p: np.einsum("...kj,kji->...ki", p[..., None, :] - c, R)  # noqa: E731 - R_k^T (p - c_k)
-        arr = (key, np.ascontiguousarray(local(pts)), np.ascontiguousarray(local(centre)), h + r, c, R, h)
-        occ._fast_arrays = arr
-    return arr
-
-
-def _mlp(model, cls: int) -> list:
-    """The surrogate's layers as (W^T (in, out), b) pairs for one class, with the feature normalisation and the
-    class's one-hot column folded into the first layer (as :meth:`PerceptionSurrogate._folded_first_layer`); cached
-    on the model until a parameter or buffer changes: in place (the tensors' versions) or by new storage
-    (``.to()``, ``load_state_dict``)."""
-    cache = getattr(model, "_fast_mlp", None)
-    tensors = cache[1] if cache is not None else list(model.parameters()) + list(model.buffers())
-    key = (cls,) + tuple((t._version, t.data_ptr()) for t in tensors)
-    if cache is None or cache[0] != key:
-        with torch.no_grad():
-            w1, b1, _ = model._folded_first_layer(cls)
-            layers = [(w1, b1)]
-            for mod in model.net[2:]:
-                if isinstance(mod, torch.nn.Linear):
-                    layers.append((mod.weight.t().contiguous(), mod.bias.detach().clone()))
-            compiled = None
-            if all(w.dtype == torch.float32 for w, _ in layers) and len(layers) >= 2 and layers[-1][0].shape[1] == 1:
-                hid = layers[1:-1]
-                H = w1.shape[1]
-                compiled = (w1.numpy(), b1.numpy(),
-                            np.ascontiguousarray(np.stack([w.numpy() for w, _ in hid]) if hid else
-                                                 np.zeros((0, H, H), np.float32)),
-                            np.ascontiguousarray(np.stack([b.numpy() for _, b in hid]) if hid else
-                                                 np.zeros((0, H), np.float32)),
-                            np.ascontiguousarray(layers[-1][0].numpy()[:, 0]), np.float32(layers[-1][1].item()))
-        cache = model._fast_mlp = (key, tensors, layers, compiled)
-    return cache[2], cache[3]
 
 
 def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
@@ -418,9 +314,9 @@ def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
     output, with the folded layers kept between calls. Up to :data:`MLP_MAX_ROWS` rows a compiled float32 kernel
     (a query scores 2-14 views per call: 35-550 us, and no thread-pool hand-off that stalls on a busy machine),
     above that torch's GEMM (numpy's is 5x slower at this shape)."""
-    layers, compiled = _mlp(model, cls)
+    layers, compiled = model.kernel_layers(cls)
     if compiled is not None and feats.shape[0] <= MLP_MAX_ROWS:  # single-threaded, no per-layer dispatch
-        return torch.from_numpy(kernels().mlp(feats.numpy().astype(np.float32), *compiled))
+        return torch.from_numpy(kernels().mlp(feats.numpy().astype(np.float32), compiled))
     h = feats.to(layers[0][0].dtype)
     with torch.no_grad():
         for i, (w, b) in enumerate(layers):
@@ -436,21 +332,29 @@ def surrogate_applies(model, cam: torch.Tensor, target_pose, class_name, chunk_s
     if not (cam.shape[-2:] == (4, 4) and model.device.type == "cpu" and applies(cam, bulk=False)
             and isinstance(target_pose, (torch.Tensor, np.ndarray)) and tuple(target_pose.shape) == (4, 4)):
         return False
-    cls = model._class_arg(class_name, cam.shape[0])
-    return not (isinstance(cls, torch.Tensor) and cls.dim() > 0)
+    return _one_class(model, class_name) is not None
 
 
 def surrogate_pose_scores(model, cam: torch.Tensor, target_pose, class_name, chunk_size=None) -> torch.Tensor:
     """:meth:`PerceptionSurrogate.predict` of camera poses (B, 4, 4), one target pose and one class: numpy features
     and the compiled MLP."""
-    return surrogate_scores(model, pose_features(cam, target_pose, model.derived),
-                            int(model._class_arg(class_name, cam.shape[0])))
+    return surrogate_scores(model, pose_features(cam, target_pose, model.derived), _one_class(model, class_name))
+
+
+def _one_class(model, class_name) -> int | None:
+    """The class index of a single class (a name, an index or a 0-d index tensor; :meth:`PerceptionSurrogate.class_index`
+    checks names and indices), None for per-row classes."""
+    if isinstance(class_name, torch.Tensor):
+        return int(class_name) if class_name.dim() == 0 else None
+    if isinstance(class_name, (str, int, np.integer)):
+        return int(model.class_index(class_name))
+    return None
 
 
 def pose_features(cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
     """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4)
     (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``), compiled."""
-    return torch.from_numpy(_rows(kernels().pose_features, 1, _f64(cam), _f64(target_pose), bool(derived)))
+    return torch.from_numpy(_rows(kernels().pose_features, 1, as_f64(cam), as_f64(target_pose), bool(derived)))
 
 
 # ---------------------------------------------------------------------------------------------- motion
@@ -470,13 +374,13 @@ def interpolate_applies(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Ten
 
 def motion_distance(motion, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
     """:meth:`DiffDriveMotion.distance` of same-shape CPU batches."""
-    out = _rows(kernels().distance, 2, _f64(qa), _f64(qb), float(motion.w_rot), bool(motion.mobile))
+    out = _rows(kernels().distance, 2, as_f64(qa), as_f64(qb), float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(out).to(qa.dtype)
 
 
 def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """:meth:`DiffDriveMotion.interpolate` of same-shape CPU batches."""
-    out = _rows(kernels().interpolate, 3, _f64(qa), _f64(qb), _f64(s).reshape(-1), float(motion.w_rot),
+    out = _rows(kernels().interpolate, 3, as_f64(qa), as_f64(qb), as_f64(s).reshape(-1), float(motion.w_rot),
                 bool(motion.mobile))
     return torch.from_numpy(out).to(qa.dtype)
 
@@ -484,7 +388,7 @@ def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tens
 def pieces(motion, a: torch.Tensor, b: torch.Tensor, resolution: float, max_steps: int,
            include_start: bool) -> tuple:
     """``Edges.pieces``: (piece index, points every ``resolution`` on the pieces a[i] -> b[i])."""
-    seg, pts = kernels().pieces(_f64(a), _f64(b), float(resolution), int(max_steps), bool(include_start),
+    seg, pts = kernels().pieces(as_f64(a), as_f64(b), float(resolution), int(max_steps), bool(include_start),
                                 float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(seg), torch.from_numpy(pts).to(a.dtype)
 
@@ -493,27 +397,27 @@ def nearest(motion, qq: torch.Tensor, rm: torch.Tensor | np.ndarray, k: int) -> 
     """Indices (Q, k) of the k configurations of ``rm`` (N, dof) nearest to each of ``qq`` (Q, dof) under the
     motion metric, sorted by distance (``motion.distance`` of every pair, then ``topk``). ``rm`` may be a
     contiguous float64 array (no conversion per call)."""
-    out = kernels().nearest(_f64(qq), _f64(rm), int(k), float(motion.w_rot), bool(motion.mobile))
+    out = kernels().nearest(as_f64(qq), as_f64(rm), int(k), float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(out)
 
 
 def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -> tuple:
     """Knots (E, M, dof) of the local motions qa -> qb before the camera joints re-aim, and the positions (E, N) of
     the Eq. 1 samples among them (the first half of ``PSPRM.edge_knots``)."""
-    kn, ki = _rows(kernels().edge_knot_seeds, 2, _f64(qa), _f64(qb), int(n_interp), float(motion.w_rot),
+    kn, ki = _rows(kernels().edge_knot_seeds, 2, as_f64(qa), as_f64(qb), int(n_interp), float(motion.w_rot),
                    bool(motion.mobile))
     return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)
 
 
 # ---------------------------------------------------------------------------------------------- a query's edges
-def _project_args(constraint, dtype: torch.dtype, settings, lo: torch.Tensor, hi: torch.Tensor, cols: np.ndarray,
-                  max_iters: int) -> tuple:
-    """The arguments of :func:`project` after ``q``, for ``max_iters`` steps."""
-    intr = constraint.intr
-    return (*_camera_args(constraint.robot), _const64(constraint.target, dtype), _i64(cols), constraint.kind == "line",
-            float(constraint.min_distance), float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v),
-            float(constraint.margin), _const64(lo), _const64(hi), float(settings.tolerance), int(max_iters),
-            float(settings.damping), float(settings.max_step))
+def _edge_opts(motion, n_interp: int, track: bool, r32: bool, resolution: float = 0.0, max_steps: int = 0,
+               mlp_rows: int = 1) -> tuple:
+    """The options of the fused edge kernels (:class:`~psprm_core._fast_packs.EdgeOpts`), typed as the kernels were
+    compiled for (the motion's :meth:`DiffDriveMotion.kernel_pack`, int, bool, bool, float, int, int)."""
+    from ._fast_packs import EdgeOpts
+
+    return EdgeOpts(motion.kernel_pack(), int(n_interp), bool(track), bool(r32), float(resolution), int(max_steps),
+                    int(mlp_rows))
 
 
 def query_knots(motion, constraint, qa: torch.Tensor, qb: torch.Tensor, n_interp: int, track: bool, settings,
@@ -521,39 +425,36 @@ def query_knots(motion, constraint, qa: torch.Tensor, qb: torch.Tensor, n_interp
     """``PSPRM.edge_knots`` of a few edges (E, dof) in one compiled call: knots (E, M, dof) in the dtype of ``qa``
     and the Eq. 1 sample positions (E, N) (same values as :func:`edge_knot_seeds` followed by :func:`project` of
     the interior knots over ``cols``)."""
-    kn, ki = kernels().query_knots(_f64(qa), _f64(qb), int(n_interp), float(motion.w_rot), bool(motion.mobile),
-                                   bool(track and len(cols)), qa.dtype == torch.float32,
-                                   *_project_args(constraint, qa.dtype, settings, lo, hi, cols, max_iters))
+    kn, ki = kernels().query_knots(as_f64(qa), as_f64(qb),
+                                   _edge_opts(motion, n_interp, track and len(cols), qa.dtype == torch.float32),
+                                   constraint.robot.kernel_pack, constraint.kernel_pack(qa.dtype),
+                                   solver_pack(settings, lo, hi, cols, max_iters))
     return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)
 
 
 def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
-    """The surrogate and occlusion arrays of a single-target neural scorer (``NeuralScorer``: ``model``,
-    ``target_pose``, ``class_name``, ``occ``, ``tau``) for :func:`check_score_knots` of cameras in ``dtype``, or None
-    when the compiled scoring does not apply (another scorer, a model off the CPU or not float32)."""
+    """The inputs of the compiled neural scoring (:class:`~psprm_core._fast_packs.ScorerPack`) of a single-target
+    neural scorer (``NeuralScorer``: ``model``, ``target_pose``, ``class_name``, ``occ``, ``tau``) for
+    :func:`check_score_knots` of cameras in ``dtype``, or None when the compiled scoring does not apply (another
+    scorer, a model off the CPU or not float32)."""
+    from ._fast_packs import OcclusionPack, ScorerPack
     from .geometry import EPS_DIR as _EPS_DIR
 
     model = getattr(scorer, "model", None)
     if getattr(scorer, "name", None) != "neural" or model is None or getattr(model, "device", None) is None or \
             model.device.type != "cpu" or not isinstance(getattr(scorer, "class_name", None), str):
         return None
-    _, compiled = _mlp(model, int(model.class_index(scorer.class_name)))
-    if compiled is None:
+    _, net = model.kernel_layers(int(model.class_index(scorer.class_name)))
+    if net is None:
         return None
-    tgt = _const64(scorer.target_pose, dtype)  # the scorer casts the target pose to the cameras' dtype
-    occ = scorer.occ
-    if occ is not None:
-        _, pts_local, centre_local, fat_half, c, R, h = _occlusion_arrays(occ)
-        has_occ = len(c) > 0 and pts_local.shape[0] > 0
-        count_inside = bool(occ.count_inside)
-    else:
-        has_occ, count_inside = False, False
-    if not has_occ:  # typed placeholders: the kernel skips the rays
-        pts_local, centre_local = np.zeros((1, 0, 3)), np.zeros((0, 3))
-        fat_half = c = h = np.zeros((0, 3))
-        R = np.zeros((0, 3, 3))
-    return (tgt, bool(model.derived), *compiled, bool(has_occ), pts_local, centre_local, fat_half, c, R, h,
-            count_inside, float(_EPS_DIR), float(getattr(scorer, "tau", 0.5)))
+    tgt = const_f64(scorer.target_pose, dtype)  # the scorer casts the target pose to the cameras' dtype
+    occ = scorer.occ.kernel_pack() if scorer.occ is not None else None
+    has_occ = occ is not None and len(occ.c) > 0 and occ.pts_local.shape[0] > 0
+    if not has_occ:  # a typed placeholder: the kernel skips the rays
+        z3 = np.zeros((0, 3))
+        occ = OcclusionPack(np.zeros((1, 0, 3)), z3, z3, z3, np.zeros((0, 3, 3)), z3,
+                            bool(occ.count_inside) if occ is not None else False, float(_EPS_DIR))
+    return ScorerPack(tgt, bool(model.derived), net, bool(has_occ), occ, float(getattr(scorer, "tau", 0.5)))
 
 
 def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.Tensor, interior: torch.Tensor,
@@ -563,12 +464,12 @@ def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.T
     ``do_score``) the camera poses (E, N + 2, 4, 4) of their Eq. 1 points and the raw scores (E, N + 2) of the
     neural scorer (``scorer_args`` from :func:`neural_args`; the MLP in chunks of whole edges within
     :data:`MLP_MAX_ROWS` views). Free flags are True for rows not checked."""
-    chain, _, _, _, _, _, _, _, _, cam_body, cam_R, cam_t = _camera_args(robot)
+    n = interior.shape[1]
     free, cams, raw = kernels().check_score_knots(
-        _f64(knots), _i64(interior), np.ascontiguousarray(do_check, dtype=np.bool_),
-        np.ascontiguousarray(do_score, dtype=np.bool_), knots.dtype == torch.float32, float(resolution), int(max_steps),
-        float(motion.w_rot), bool(motion.mobile), *_check_args(checker), chain, cam_body, cam_R, cam_t, *scorer_args,
-        _mlp_rows(interior.shape[1] + 2))
+        as_f64(knots), as_i64(interior),
+        (np.ascontiguousarray(do_check, dtype=np.bool_), np.ascontiguousarray(do_score, dtype=np.bool_)),
+        _edge_opts(motion, n, False, knots.dtype == torch.float32, resolution, max_steps, _mlp_rows(n + 2)),
+        robot.kernel_pack, checker.kernel_pack(), scorer_args)
     return free, torch.from_numpy(cams).to(knots.dtype), torch.from_numpy(raw)
 
 
@@ -583,11 +484,9 @@ def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor | np.ndarray
     of a single-target neural scorer, ``scorer_args`` from :func:`neural_args`), in the dtype of ``q`` (a tensor, or
     a numpy array for numpy input); at most :data:`MLP_MAX_ROWS` rows (the compiled MLP's, as the step-by-step
     path)."""
-    chain, parent, jtype, R_off, t_off, axis, D, off, mobile, cam_body, cam_R, cam_t = _camera_args(robot)
     is_np = isinstance(q, np.ndarray)
     f32 = q.dtype == np.float32 if is_np else q.dtype == torch.float32
-    _, sc = kernels().neural_scores(_f64(q), f32, chain, parent, jtype, R_off, t_off, axis, D, off,
-                                    mobile, cam_body, cam_R, cam_t, *scorer_args, MLP_MAX_ROWS)
+    _, sc = kernels().neural_scores(as_f64(q), bool(f32), MLP_MAX_ROWS, robot.kernel_pack, scorer_args)
     return sc.astype(q.dtype, copy=False) if is_np else torch.from_numpy(sc).to(q.dtype)
 
 
@@ -601,16 +500,11 @@ def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.nd
     knot store's arrays ``store_k`` (cap, M, dof) / ``store_i`` (cap, N) (numpy views of its tensors; reversed where
     ``flip``), then :func:`check_score_knots` of all of them from the store. Returns numpy arrays (free (E,),
     cameras (E, N + 2, 4, 4) in the store's dtype, raw scores (E, N + 2) float32)."""
-    robot = checker.robot
-    all_bodies, _, parent, jtype, R_off, t_off, axis, D, off, mobile = robot_arrays(robot)
-    (bodies, body_c, body_r, box_c_b, box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r,
-     pairs, pair_els), (box_c, box_R, box_h, box_aabb) = _checker_arrays(checker)
     dtype = torch.float32 if store_k.dtype == np.float32 else torch.float64
     free, cams, raw = kernels().verify_edges(
-        store_k, store_i, ids, compute, qa, qb, flip, int(n_interp), float(motion.w_rot), bool(motion.mobile),
-        bool(track and len(cols)), dtype == torch.float32,
-        *_project_args(constraint, dtype, settings, lo, hi, cols, max_iters), do_check, do_score, float(resolution),
-        int(max_steps), all_bodies, _const64(checker.lower), _const64(checker.upper), bodies, body_c, body_r, box_c_b,
-        box_h_b, el_start, el_count, el_order, el_body, el_c, el_R, el_h, el_r, pairs, pair_els, box_c, box_R, box_h,
-        box_aabb, 1e-6, *scorer_args, _mlp_rows(n_interp + 2))
+        (store_k, store_i), ids, (compute, qa, qb, flip), (do_check, do_score),
+        _edge_opts(motion, n_interp, track and len(cols), dtype == torch.float32, resolution, max_steps,
+                   _mlp_rows(n_interp + 2)),
+        checker.robot.kernel_pack, checker.kernel_pack(), constraint.kernel_pack(dtype),
+        solver_pack(settings, lo, hi, cols, max_iters), scorer_args)
     return free, cams.astype(store_k.dtype, copy=False), raw

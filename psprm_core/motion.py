@@ -30,6 +30,13 @@ class DiffDriveMotion:
         self.w_rot = robot.config.base.rotation_weight
         self.continuous = torch.as_tensor(robot.continuous)
 
+    def kernel_pack(self):
+        """The metric's parameters as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
+        :class:`~psprm_core._fast_packs.MotionPack` (w_rot, mobile) of :meth:`distance`."""
+        from ._fast_packs import MotionPack
+
+        return MotionPack(float(self.w_rot), bool(self.mobile))
+
     # ---- base decomposition ----------------------------------------------------------------------------------------
     def _base_plan(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """Heading φ of the straight part and the three phase lengths (rot1, trans, rot2), each (E,)."""

@@ -350,6 +350,25 @@ class RobotModel:
         return self._tensor_cache[key]
 
     @cached_property
+    def kernel_pack(self):
+        """The body tree and camera as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
+        :class:`~psprm_core._fast_packs.RobotPack` of the bodies in FK order (root excluded), the camera chain (root
+        excluded), parent bodies, joint types, joint origins, axes, drive matrix and offset (float64, int64; the
+        quantities of :meth:`tensors` and :meth:`_poses`), the mobile-base flag and the camera body with its offset
+        (:meth:`_camera_from_body`). Built on first use and kept: the body tree does not change."""
+        from ._fast_packs import PRISMATIC, REVOLUTE, ROOT, RobotPack
+
+        jtype = np.array([ROOT if j is None else (PRISMATIC if j.type == "prismatic" else REVOLUTE)
+                          for j in self.body_joint], dtype=np.int64)
+        offs = np.stack(self.body_joint_offset)
+        axes = np.stack([j.axis if j is not None else np.zeros(3) for j in self.body_joint])
+        f64, i64 = fastpath.as_f64, fastpath.as_i64
+        return RobotPack(np.arange(1, len(self.bodies), dtype=np.int64), i64(self.camera_chain[1:]),
+                         i64(self.parent_body), jtype, f64(offs[:, :3, :3]), f64(offs[:, :3, 3]), f64(axes),
+                         f64(self.drive_matrix), f64(self.drive_offset), bool(self.mobile), int(self.camera_body),
+                         f64(self.camera_offset[:3, :3]), f64(self.camera_offset[:3, 3]))
+
+    @cached_property
     def camera_chain(self) -> list:
         """Bodies from the root to the camera's body (the only ones camera-only FK needs)."""
         chain, b = [], self.camera_body

@@ -417,6 +417,29 @@ class OcclusionChecker:
             self._cache[key] = (self.boxes.to(device, dtype), self.target_points.to(device=device, dtype=dtype))
         return self._cache[key]
 
+    def kernel_pack(self):
+        """The occluders and target points as the compiled kernels take them (:mod:`psprm_core.fastpath`): an
+        :class:`~psprm_core._fast_packs.OcclusionPack` of the target points and their centre in every box frame, the
+        boxes grown by the points' radius (the first test of :func:`occlusion_scores`), the box centres, rotations
+        and half extents (float64), ``count_inside`` and the direction eps. Kept until the boxes, the points or
+        ``count_inside`` are replaced."""
+        from .._fast_packs import OcclusionPack
+
+        key = (self.boxes, self.target_points, bool(self.count_inside))
+        got = self.__dict__.get("_kernel_pack")
+        if got is None or any(a is not b for a, b in zip(got[0][:2], key[:2])) or got[0][2] != key[2]:
+            f64 = fastpath.as_f64
+            bx, pts = self.boxes, f64(self.target_points).reshape(-1, 3)
+            c, R = f64(bx.centers).reshape(-1, 3), f64(bx.rotations).reshape(-1, 3, 3)
+            h = f64(bx.half_extents).reshape(-1, 3)
+            centre = pts.mean(0)
+            r = np.linalg.norm(pts - centre, axis=1).max() if len(pts) else 0.0
+            local = lambda p: np.einsum("...kj,kji->...ki", p[..., None, :] - c, R)  # noqa: E731 - R_k^T (p - c_k)
+            got = self._kernel_pack = (key, OcclusionPack(np.ascontiguousarray(local(pts)),
+                                                          np.ascontiguousarray(local(centre)), h + r, c, R, h,
+                                                          key[2], float(_EPS_DIR)))
+        return got[1]
+
     def score(self, cameras: torch.Tensor) -> torch.Tensor:
         """Occlusion scores (B,) for camera positions (B, 3) or poses (B, 4, 4), on their device."""
         pos = camera_positions(torch.as_tensor(cameras))

@@ -344,6 +344,39 @@ class PerceptionSurrogate(nn.Module):
             return w_feat.t().contiguous(), b, w_cls.t().contiguous()
         return w_feat.t().contiguous(), b + w_cls[:, int(cls)], None
 
+    def kernel_layers(self, cls: int) -> tuple:
+        """The inference layers of one class index: ``(layers, pack)`` with ``layers`` the (W^T (in, out), b) pairs
+        with the feature normalisation and the class's one-hot column folded into the first one
+        (:meth:`_folded_first_layer`), and ``pack`` the float32 :class:`~psprm_core._fast_packs.MlpPack` of the
+        compiled MLP (:mod:`psprm_core.fastpath`), None when the layers are not float32 or the net does not end in a
+        single output. Kept on the model until a parameter or buffer changes: in place (the tensors' versions) or by
+        new storage (``.to()``, ``load_state_dict``)."""
+        from .._fast_packs import MlpPack
+
+        cache = self.__dict__.get("_kernel_layers")
+        tensors = cache[1] if cache is not None else list(self.parameters()) + list(self.buffers())
+        key = (cls,) + tuple((t._version, t.data_ptr()) for t in tensors)
+        if cache is None or cache[0] != key:
+            with torch.no_grad():
+                w1, b1, _ = self._folded_first_layer(cls)
+                layers = [(w1, b1)]
+                for mod in self.net[2:]:
+                    if isinstance(mod, nn.Linear):
+                        layers.append((mod.weight.t().contiguous(), mod.bias.detach().clone()))
+                pack = None
+                if all(w.dtype == torch.float32 for w, _ in layers) and len(layers) >= 2 and \
+                        layers[-1][0].shape[1] == 1:
+                    hid = layers[1:-1]
+                    H = w1.shape[1]
+                    pack = MlpPack(w1.numpy(), b1.numpy(),
+                                   np.ascontiguousarray(np.stack([w.numpy() for w, _ in hid]) if hid else
+                                                        np.zeros((0, H, H), np.float32)),
+                                   np.ascontiguousarray(np.stack([b.numpy() for _, b in hid]) if hid else
+                                                        np.zeros((0, H), np.float32)),
+                                   np.ascontiguousarray(layers[-1][0].numpy()[:, 0]), np.float32(layers[-1][1].item()))
+            cache = self.__dict__["_kernel_layers"] = (key, tensors, layers, pack)
+        return cache[2], cache[3]
+
     # ---- checkpoints ---------------------------------------------------------------------------------------------
     def config(self) -> dict:
         return {"classes": list(self.classes), "derived": self.derived, "hidden": self.hidden, "layers": self.layers,

@@ -162,6 +162,17 @@ class VisibilityConstraint:
         """Target centroid inside the frustum, up to ``slack`` metres (B,) bool (keeps edges near the manifold)."""
         return self.frustum_distance(self.target_in_camera(q)) - self.margin <= slack
 
+    def kernel_pack(self, dtype: torch.dtype):
+        """h_M's parameters as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
+        :class:`~psprm_core._fast_packs.ViewPack` of the target (rounded to ``dtype``, as the torch path casts it;
+        kept until the target changes), the model, the minimum distance, the far plane, the half-view tangents and
+        the margin (:meth:`residual_jacobian`)."""
+        from .._fast_packs import ViewPack
+
+        intr = self.intr
+        return ViewPack(fastpath.const_f64(self.target, dtype), self.kind == "line", float(self.min_distance),
+                        float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v), float(self.margin))
+
     def _camera_joints(self) -> np.ndarray:
         """Planning joints that move the camera (the only ones the constraint depends on)."""
 
