@@ -25,9 +25,10 @@ def load_robot():
 
 @pytest.fixture(scope="session")
 def home_tv_planner(load_robot):
-    """Factory fixture: ``home_tv_planner(n_nodes=700, seed=1, ...)`` builds a PS-PRM of Stretch in the home scene
+    """Factory fixture: ``home_tv_planner(**{"roadmap.n_nodes": 700, "seed": 1})`` builds a PS-PRM of Stretch in the home scene
     with a geometric scorer of the tv, templated on the start of ``tv_west_to_southeast``; returns (scene, robot,
-    planner, start, goals, build stats) of that problem. Settings by name (``PSPRMSettings.changed``)."""
+    planner, start, goals, build stats) of that problem. Settings by dotted path (``PSPRMSettings.changed``), given
+    as ``**{"roadmap.n_nodes": 700}``."""
     from psprm_core.paths import resolve_named
     from psprm_core.perception.scoring import GeometricScorer
     from psprm_core.planning.factory import problem_configurations
@@ -39,7 +40,7 @@ def home_tv_planner(load_robot):
         robot = load_robot("stretch2")
         prob = scene.problem("tv_west_to_southeast")
         planner = PSPRM(robot, scene, GeometricScorer(scene, prob.target, robot.config.intrinsics),
-                        scene.target(prob.target).center, PSPRMSettings().changed(**settings))
+                        scene.target(prob.target).center, PSPRMSettings().changed(settings))
         start, goals = problem_configurations(robot, scene, prob)
         stats = planner.build(template=start)
         assert stats["success"], stats

@@ -342,20 +342,23 @@ class KwargsRecordingPlanner(SeedRecordingPlanner):
 def test_planner_settings_are_typed_and_checked():
     from psprm_core.baselines import parse_planner_settings
 
-    got = parse_planner_settings(["neural-psprm-line.alpha=0.95", "neural-psprm-line.k_long=4", "post.range=1",
-                                  "post.simplify=false"], ["post", "neural-psprm-line"])
-    assert got == {"neural-psprm-line": {"alpha": 0.95, "k_long": 4}, "post": {"range": 1.0, "simplify": False}}
+    got = parse_planner_settings(["neural-psprm-line.scoring.alpha=0.95", "neural-psprm-line.roadmap.k_long=4",
+                                  "post.range=1", "post.simplify=false"], ["post", "neural-psprm-line"])
+    assert got == {"neural-psprm-line": {"scoring.alpha": 0.95, "roadmap.k_long": 4},
+                   "post": {"range": 1.0, "simplify": False}}
     assert isinstance(got["post"]["range"], float)
     bad = {"alpha=0.9": "PLANNER.KEY=VALUE", "neural-psprm-line.alpha": "PLANNER.KEY=VALUE",
            "rejection.range=1": "not among the planners run",
-           "neural-psprm-line.nope=1": "'nope' is not a setting.*settable: alpha",
+           "neural-psprm-line.nope=1": "'nope' is not a setting.*settable: .*scoring.alpha",
+           "neural-psprm-line.alpha=0.9": "dotted path: 'scoring.alpha'",
            "neural-psprm-line.seed=3": "'seed' is not a setting",  # the bench seeds every run itself
-           "neural-psprm-line.constraint=frustum": "'constraint' is not a setting",  # the variant's name decides
+           # the variant's name decides
+           "neural-psprm-line.visibility.constraint=frustum": "'visibility.constraint' is not a setting",
            "neural-psprm-line.projection=1": "'projection' is not a setting",
-           "neural-psprm-line.alpha=high": "takes a number",
-           "neural-psprm-line.n_nodes=2.5": "takes an integer",
-           "neural-psprm-line.lazy_edges=1": "takes true or false",
-           "neural-psprm-line.alpha=1.5": "must lie in \\[0, 1\\]"}
+           "neural-psprm-line.scoring.alpha=high": "takes a number",
+           "neural-psprm-line.roadmap.n_nodes=2.5": "takes an integer",
+           "neural-psprm-line.edges.lazy_edges=1": "takes true or false",
+           "neural-psprm-line.scoring.alpha=1.5": "must lie in \\[0, 1\\]"}
     for item, msg in bad.items():
         with pytest.raises(PsprmError, match=msg):
             parse_planner_settings([item], ["post", "neural-psprm-line"])

@@ -44,7 +44,8 @@ def test_padded_checker_keeps_the_clearance_judged_by_pybullet(robot_name, load_
 
 
 def test_a_start_inside_the_padding_is_moved_out_and_the_motion_never_touches_an_obstacle(home_tv_planner):
-    scene, robot, planner, start, goals, _ = home_tv_planner(n_nodes=700, seed=1, collision_padding=PAD)
+    scene, robot, planner, start, goals, _ = home_tv_planner(**{"roadmap.n_nodes": 700, "seed": 1,
+                                                                "edges.collision_padding": PAD})
     ck = planner.ctx.checker
     world = PybulletWorld(robot, scene.collision_boxes())
     rng = np.random.default_rng(2)
@@ -95,9 +96,10 @@ def test_the_padding_is_validated_and_fixed_when_the_planner_is_made(home_tv_pla
     from psprm_core.planning.psprm import PSPRMSettings
 
     with pytest.raises(ConfigError, match="collision_padding"):
-        PSPRMSettings().changed(collision_padding=-0.01).validate()
-    _, _, planner, _, _, _ = home_tv_planner(n_nodes=700, seed=1, collision_padding=PAD)
+        PSPRMSettings().changed({"edges.collision_padding": -0.01}).validate()
+    _, _, planner, _, _, _ = home_tv_planner(**{"roadmap.n_nodes": 700, "seed": 1,
+                                                "edges.collision_padding": PAD})
     with pytest.raises(ConfigError, match="collision_padding"):
-        planner.update_settings(collision_padding=0.0)
+        planner.update_settings(**{"edges.collision_padding": 0.0})
     with pytest.raises(ValueError, match="padding"):
         CollisionChecker(planner.ctx.robot, padding=float("nan"))

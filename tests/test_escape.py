@@ -25,8 +25,8 @@ from psprm_core.scene import Box, Scene, Target
 N_NODES = 400
 POCKET_END = 3.0  # the dead end spans x in [0, 3] around y = 2 (inner width 0.6 m)
 # the shipped repair and wide settings of the mobile UR5 (config/planners/psprm.yaml), with the escape on
-SETTINGS = dict(n_nodes=N_NODES, seed=1, sample_spread=0.8, query_repair_nodes=60, query_repair_rounds=3,
-                query_wide_k=200, query_escape_s=2.0)
+SETTINGS = {"roadmap.n_nodes": N_NODES, "seed": 1, "roadmap.sample_spread": 0.8, "recovery.query_repair_nodes": 60,
+            "recovery.query_repair_rounds": 3, "recovery.query_wide_k": 200, "recovery.query_escape_s": 2.0}
 
 
 def _pocket_scene(closed: bool = False) -> Scene:
@@ -42,9 +42,9 @@ def _pocket_scene(closed: bool = False) -> Scene:
                  obstacles=tuple(walls), targets=(monitor,))
 
 
-def _planner(robot, scene: Scene, **overrides) -> PSPRM:
+def _planner(robot, scene: Scene, overrides: dict | None = None) -> PSPRM:
     scorer = GeometricScorer(scene, "monitor", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("monitor").center, PSPRMSettings().changed(**{**SETTINGS, **overrides}))
+    p = PSPRM(robot, scene, scorer, scene.target("monitor").center, PSPRMSettings().changed({**SETTINGS, **(overrides or {})}))
     assert p.build()["success"]
     return p
 
@@ -118,8 +118,8 @@ def test_escape_is_off_and_never_runs_for_queries_that_succeed(pocket, monkeypat
     monkeypatch.setattr(p.pipeline.recovery, "escape", lambda *a, **k: calls.append(1) or real(*a, **k))
     s0 = p.settings
     try:
-        p.update_settings(s0.changed(query_escape_s=0.0, query_untracked_fallback=False,
-                                              query_repair_failures=10**6))
+        p.update_settings(s0.changed({"recovery.query_escape_s": 0.0, "recovery.query_untracked_fallback": False,
+                                      "recovery.query_repair_failures": 10**6}))
         res = p.plan(start, goal, timing=False)
         assert not res.success and "reachable" in res.reason and not calls
     finally:
@@ -148,7 +148,7 @@ def test_trapped_start_fails_with_a_clear_reason(load_robot):
     assert not esc.success and esc.explored == 1 and esc.tried > 0 and time.perf_counter() - t0 < 1.0
     assert esc.base_reach == 0.0
     # the open dead end's start is not boxed in: its escape search reaches out of it
-    open_p = _planner(robot, _pocket_scene(), query_escape_s=0.3)
+    open_p = _planner(robot, _pocket_scene(), {"recovery.query_escape_s": 0.3})
     ids, lab = open_p.components()
     esc = open_p.pipeline.recovery.escape(ends[0], ids[lab == np.argmax(np.bincount(lab))], np.random.default_rng(0),
                          time.perf_counter() + 5.0)
@@ -188,16 +188,17 @@ def test_escape_settings_are_query_settings_and_validated(pocket, tmp_path):
     fp = p.fingerprint()
     s0 = p.settings
     try:
-        p.update_settings(s0.changed(query_escape_s=0.5, query_escape_nodes=10, query_escape_radius=1.0,
-                                              query_escape_step=0.2, query_escape_connect_k=2,
-                                              query_untracked_fallback=False))
+        p.update_settings(s0.changed({"recovery.query_escape_s": 0.5, "recovery.query_escape_nodes": 10,
+                                      "recovery.query_escape_radius": 1.0, "recovery.query_escape_step": 0.2,
+                                      "recovery.query_escape_connect_k": 2,
+                                      "recovery.query_untracked_fallback": False}))
         assert p.fingerprint() == fp  # a saved roadmap stays valid
     finally:
         p.update_settings(s0)
-    for bad in (dict(query_escape_s=-1.0), dict(query_escape_s=float("nan")), dict(query_escape_step=0.0),
-                dict(query_escape_radius=-1.0), dict(query_escape_nodes=0), dict(query_escape_connect_k=0)):
+    for name, value in (("query_escape_s", -1.0), ("query_escape_s", float("nan")), ("query_escape_step", 0.0),
+                        ("query_escape_radius", -1.0), ("query_escape_nodes", 0), ("query_escape_connect_k", 0)):
         with pytest.raises(ConfigError):
-            PSPRMSettings().changed(**{"query_escape_s": 1.0, **bad}).validate()
+            PSPRMSettings().changed({"recovery.query_escape_s": 1.0, f"recovery.{name}": value}).validate()
     shipped = PSPRMSettings.from_yaml(config_dir() / "planners" / "psprm.yaml", robot="ur5_mobile")
     assert shipped.recovery.query_escape_s > 0 and shipped.recovery.query_untracked_fallback
     y = tmp_path / "p.yaml"

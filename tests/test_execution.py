@@ -36,7 +36,7 @@ def saved_roadmap(world, tmp_path_factory):
     scene, robot = world
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
     p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
-              PSPRMSettings().changed(n_nodes=N_NODES, seed=5))
+              PSPRMSettings().changed({"roadmap.n_nodes": N_NODES, "seed": 5}))
     assert p.build()["success"]
     return p.save(tmp_path_factory.mktemp("roadmap") / "dp.npz")
 
@@ -45,7 +45,7 @@ def _replanner(world, saved_roadmap, **settings):
     scene, robot = world
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
     p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
-              PSPRMSettings().changed(n_nodes=N_NODES, seed=5))
+              PSPRMSettings().changed({"roadmap.n_nodes": N_NODES, "seed": 5}))
     p.load(saved_roadmap)
     rp = Replanner(p, ReplanSettings(**settings), targets=["person_face"])
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))

@@ -26,7 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def home(home_tv_planner):
-    scene, robot, planner, _, _, stats = home_tv_planner(n_nodes=700, seed=1)
+    scene, robot, planner, _, _, stats = home_tv_planner(**{"roadmap.n_nodes": 700, "seed": 1})
     assert stats["success"]
     return scene, robot, planner
 
@@ -80,8 +80,9 @@ def test_recovery_follows_the_kind_not_the_text(home, monkeypatch):
 
     monkeypatch.setattr(planner.pipeline.builder, "grow", counting_grow)
     settings = planner.settings
-    planner.update_settings(settings.changed(query_escape_s=0.0, query_wide_k=0,
-                                             query_repair_failures=planner.pipeline.rm.repair_failed + 10))
+    planner.update_settings(settings.changed({
+        "recovery.query_escape_s": 0.0, "recovery.query_wide_k": 0,
+        "recovery.query_repair_failures": planner.pipeline.rm.repair_failed + 10}))
     try:
         monkeypatch.setattr(planner.pipeline.query, "plan_once",
                             lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap", Failure.SEARCH_LIMIT))

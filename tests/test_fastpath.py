@@ -255,7 +255,8 @@ def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
     robot, scene = _robot_scene("stretch2", load_robot)
     target = scene.problems[0].target
     scorer = GeometricScorer(scene, target, robot.config.intrinsics)
-    settings = PSPRMSettings().changed(n_nodes=400, seed=3, query_repair_nodes=0)  # repairs grow nodes: not compared
+    # repairs grow nodes: not compared
+    settings = PSPRMSettings().changed({"roadmap.n_nodes": 400, "seed": 3, "recovery.query_repair_nodes": 0})
     focus = scene.target(target).center
     a = PSPRM(robot, scene, scorer, focus, settings)
     assert a.build()["success"]
@@ -447,7 +448,7 @@ def test_queries_run_with_one_intra_op_thread(load_robot):
             return super().score(cameras)
 
     p = PSPRM(robot, scene, Recording(scene, target, robot.config.intrinsics), focus,
-              PSPRMSettings().changed(n_nodes=200, seed=1, query_repair_nodes=0))
+              PSPRMSettings().changed({"roadmap.n_nodes": 200, "seed": 1, "recovery.query_repair_nodes": 0}))
     old = torch.get_num_threads()
     torch.set_num_threads(2)
     try:
@@ -529,7 +530,7 @@ def test_planner_same_paths_with_the_fused_verification_on_and_off(load_robot, t
     robot, scene = _robot_scene("stretch2", load_robot)
     target = scene.problems[0].target
     focus = scene.target(target).center
-    settings = PSPRMSettings().changed(n_nodes=400, seed=5, query_repair_nodes=0)
+    settings = PSPRMSettings().changed({"roadmap.n_nodes": 400, "seed": 5, "recovery.query_repair_nodes": 0})
     a = PSPRM(robot, scene, _neural_scorer(scene, target), focus, settings)
     assert a.build()["success"]
     b = PSPRM(robot, scene, _neural_scorer(scene, target), focus, settings)

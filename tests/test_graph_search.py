@@ -762,7 +762,8 @@ def test_planner_route_is_the_reference_shortest_path_on_a_real_roadmap(home_tv_
     interior is a roadmap path between those nodes; its cost, summed by the test from the edge list, must equal the
     reference search over that edge list (read after the query: the lazy checks' verified weights and removed edges
     included)."""
-    _, _, planner, _, _, _ = home_tv_planner(n_nodes=400, seed=3, objective=objective, connect_k=1, shortcut=False)
+    _, _, planner, _, _, _ = home_tv_planner(**{"roadmap.n_nodes": 400, "seed": 3, "scoring.objective": objective,
+                                                "query.connect_k": 1, "query.shortcut": False})
     g = planner.graph
     ids = np.asarray(planner.roadmap_node_ids())
     rng = np.random.default_rng(0)

@@ -60,7 +60,7 @@ def test_query_hop_counts_are_the_hop_distances_and_keep_the_paths(load_robot):
     robot = load_robot(scene.robot)
     target = scene.problems[0].target
     focus = scene.target(target).center
-    settings = PSPRMSettings().changed(n_nodes=500, seed=2, query_repair_nodes=0)
+    settings = PSPRMSettings().changed({"roadmap.n_nodes": 500, "seed": 2, "recovery.query_repair_nodes": 0})
     a = PSPRM(robot, scene, GeometricScorer(scene, target, robot.config.intrinsics), focus, settings)
     stats = a.build()
     assert stats["success"] and a.pipeline.rm.hop_table is not None and stats["hop_table_s"] < stats["build_s"]

@@ -25,7 +25,8 @@ def planner_and_problems(load_robot):
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
     planner = PSPRM(robot, scene, GeometricScorer(scene, "tv", robot.config.intrinsics), scene.target("tv").center,
-                    PSPRMSettings().changed(n_nodes=600, seed=3, objective="motion", alpha=0.9, shortcut=True))
+                    PSPRMSettings().changed({"roadmap.n_nodes": 600, "seed": 3, "scoring.objective": "motion",
+                                             "scoring.alpha": 0.9, "query.shortcut": True}))
     assert planner.build()["success"]
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     pairs = random_problems(robot, scene, checker, 20, np.random.default_rng(9), robot.default_configuration(),

@@ -147,7 +147,7 @@ def test_the_replanners_path_score_uses_the_predicted_poses(load_robot):
     robot = load_robot("stretch2")
     face = scene.target("person_face")
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, face.center, PSPRMSettings().changed(n_nodes=500, seed=2))
+    p = PSPRM(robot, scene, scorer, face.center, PSPRMSettings().changed({"roadmap.n_nodes": 500, "seed": 2}))
     assert p.build()["success"]
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     south = -math.pi / 2

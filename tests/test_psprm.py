@@ -27,7 +27,7 @@ N_NODES = 700
 
 @pytest.fixture(scope="module")
 def home(home_tv_planner):
-    scene, robot, planner, _, _, stats = home_tv_planner(n_nodes=N_NODES, seed=1)
+    scene, robot, planner, _, _, stats = home_tv_planner(**{"roadmap.n_nodes": N_NODES, "seed": 1})
     assert stats["success"] and stats["n_nodes"] == N_NODES
     return scene, robot, planner
 
@@ -208,7 +208,7 @@ def test_eager_collision_checking_plans_free_paths(load_robot):
     prob = scene.problem("tv_west_to_southeast")
     scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
     planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center,
-                    PSPRMSettings().changed(n_nodes=300, seed=2, lazy_collision=False))
+                    PSPRMSettings().changed({"roadmap.n_nodes": 300, "seed": 2, "edges.lazy_collision": False}))
     planner.build(template=problem_configurations(robot, scene, prob)[0])
     assert (planner.graph.edge_attribute("checked")[planner.graph.valid_edge_ids()] == 1.0).all()
     solved = 0
@@ -234,7 +234,8 @@ def test_rebuilt_roadmap_connects_queries_to_its_own_nodes(load_robot):
     prob = scene.problem("tv_west_to_southeast")
     scorer = GeometricScorer(scene, prob.target, robot.config.intrinsics)
     start, goals = problem_configurations(robot, scene, prob)
-    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center, PSPRMSettings().changed(n_nodes=300, seed=3))
+    planner = PSPRM(robot, scene, scorer, scene.target(prob.target).center,
+                    PSPRMSettings().changed({"roadmap.n_nodes": 300, "seed": 3}))
     planner.build(template=start)
     assert planner.plan(start, goals, timing=False).success
     planner.update_settings(planner.settings.__class__(**{**planner.settings.__dict__, "seed": 4}))
@@ -264,7 +265,7 @@ def test_perception_preserving_shortcuts(home):
             start, goals = problem_configurations(robot, scene, p)
             out = {}
             for sc in (False, True):
-                planner.update_settings(saved.changed(objective="motion", shortcut=sc))
+                planner.update_settings(saved.changed({"scoring.objective": "motion", "query.shortcut": sc}))
                 planner.reweight(alpha=0.8, objective="motion")
                 out[sc] = planner.plan(start, goals, timing=True)
                 assert out[sc].success, out[sc].reason
@@ -318,7 +319,7 @@ def test_perception_biased_sampling(load_robot):
     for share in (0.0, 0.5):
         scorer = GeometricScorer(scene, "tv", robot.config.intrinsics)
         p = PSPRM(robot, scene, scorer, scene.target("tv").center,
-                  PSPRMSettings().changed(n_nodes=400, seed=2, biased_share=share))
+                  PSPRMSettings().changed({"roadmap.n_nodes": 400, "seed": 2, "roadmap.biased_share": share}))
         stats = p.build()
         assert stats["success"] and stats["n_nodes"] == 400
         assert stats.get("biased_nodes", 0) == int(round(400 * share))
@@ -332,7 +333,7 @@ def test_perception_biased_sampling(load_robot):
             world.close()
     assert means[0.5] > means[0.0] + 0.03, means
     with pytest.raises(ConfigError, match="biased_share"):
-        PSPRMSettings().changed(biased_share=1.5).validate()
+        PSPRMSettings().changed({"roadmap.biased_share": 1.5}).validate()
 
 
 def test_make_planner_applies_overrides_and_the_shipped_settings(load_robot):
@@ -380,10 +381,10 @@ def test_settings_files_are_read_by_one_typed_reader(tmp_path):
     assert (s.roadmap.n_nodes, s.edges.edge_view_slack, s.query.shortcut) == (120, -1.0, True)
     assert (s.projection.max_iters, s.projection.tolerance) == (7, 0.01)
     assert s.roadmap.k_long == PSPRMSettings().roadmap.k_long  # a group given in part keeps its other defaults
-    t = s.changed({"scoring.alpha": 0.3}, max_iters=9)
-    assert (t.scoring.alpha, t.projection.max_iters, t.value("alpha"), s.scoring.alpha) == (0.3, 9, 0.3, None)
+    t = s.changed({"scoring.alpha": 0.3, "projection.max_iters": 9})
+    assert (t.scoring.alpha, t.projection.max_iters, t.value("scoring.alpha"), s.scoring.alpha) == (0.3, 9, 0.3, None)
     with pytest.raises(ConfigError, match="no_such"):
-        s.changed(no_such=1)
+        s.changed({"no_such": 1})
     for text, field in (("roadmap:\n  n_nodes: many\n", "roadmap.n_nodes"),
                         ("roadmap:\n  max_edge_length: -2.0\n", "roadmap.max_edge_length"),
                         ("no_such_setting: 1\n", "no_such_setting"), ("projection:\n  max_iters: 0\n", "max_iters"),
@@ -409,11 +410,12 @@ def test_update_settings_refuses_the_visibility_model_and_remakes_changed_knots(
     scene, robot, planner = home
     saved = planner.settings
     with pytest.raises(ConfigError, match="constraint"):
-        planner.update_settings(constraint="frustum" if saved.visibility.constraint == "line" else "line")
+        planner.update_settings(**{"visibility.constraint": "frustum" if saved.visibility.constraint == "line"
+                                   else "line"})
     assert planner.settings == saved
     world = PybulletWorld(robot, scene.collision_boxes())
     try:
-        planner.update_settings(n_interp=saved.edges.n_interp + 2)
+        planner.update_settings(**{"edges.n_interp": saved.edges.n_interp + 2})
         start, goals = problem_configurations(robot, scene, scene.problem("tv_west_to_southeast"))
         res = planner.plan(start, goals, timing=False)
         assert res.success, res.reason

@@ -33,7 +33,8 @@ N_NODES = 500
 
 def _planner(robot, scene, seed=3, n=N_NODES):
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings().changed(n_nodes=n, seed=seed))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
+              PSPRMSettings().changed({"roadmap.n_nodes": n, "seed": seed}))
     assert p.build()["success"]
     return p
 
@@ -56,7 +57,8 @@ def replanner(world, saved_roadmap):
     """A fresh replanner per test on a copy of one built roadmap (tests change the roadmap)."""
     scene, robot = world
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings().changed(n_nodes=N_NODES, seed=3))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
+              PSPRMSettings().changed({"roadmap.n_nodes": N_NODES, "seed": 3}))
     p.load(saved_roadmap)
     rp = Replanner(p, targets=["person_face"])
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
@@ -395,7 +397,7 @@ def test_knot_bounds_cache_gives_the_same_hits_as_full_kinematics(replanner):
 
 
 def test_replan_heuristic_setting(replanner, tmp_path: Path):
-    assert replanner.plan_options["heuristic"] == "exact"  # the replanner's default, for its queries only
+    assert replanner.plan_options["query.heuristic"] == "exact"  # the replanner's default, for its queries only
     assert replanner.planner.settings.query.heuristic != "exact"  # the planner's own settings are left as they are
     with pytest.raises(PsprmError, match="heuristic"):
         ReplanSettings(heuristic="fast")
@@ -507,7 +509,7 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     unreachable = lambda *a, **k: PlanResult(False, "goal not reachable on the roadmap", Failure.UNREACHABLE)  # noqa: E731
     monkeypatch.setattr(p.pipeline.query, "plan_once", unreachable)
     kept, valid0 = p.pipeline.rm.repair_added, p.roadmap_node_ids()
-    p.update_settings(p.settings.changed(query_repair_failures=p.pipeline.rm.repair_failed + 2))
+    p.update_settings(p.settings.changed({"recovery.query_repair_failures": p.pipeline.rm.repair_failed + 2}))
     slots = p.n_roadmap_nodes
     assert not p.plan(q, goals).success
     assert p.n_roadmap_nodes > slots and np.array_equal(p.roadmap_node_ids(), valid0) and p.pipeline.rm.repair_added == kept
@@ -520,7 +522,8 @@ def test_failed_query_repairs_the_roadmap_locally_once(replanner, monkeypatch):
     # the budget bounds what successful repairs keep
     monkeypatch.setattr(p.pipeline.query, "plan_once", first_fails)
     calls.clear()
-    p.update_settings(p.settings.changed(query_repair_failures=10**6, query_repair_budget=p.pipeline.rm.repair_added + 10))
+    p.update_settings(p.settings.changed({"recovery.query_repair_failures": 10**6,
+                                          "recovery.query_repair_budget": p.pipeline.rm.repair_added + 10}))
     assert p.plan(q, goals, timing=False).success
     assert len(p.roadmap_node_ids()) <= len(valid0) + 10 and p.pipeline.rm.repair_added <= p.settings.recovery.query_repair_budget
 
@@ -543,18 +546,19 @@ def test_wide_connection_is_the_last_resort_of_a_failing_query(replanner, monkey
     monkeypatch.setattr(p.pipeline.query, "plan_once", only_wide_succeeds)
     s0 = p.settings
     try:
-        p.update_settings(s0.changed(query_wide_k=150, query_repair_failures=10**6))
+        p.update_settings(s0.changed({"recovery.query_wide_k": 150, "recovery.query_repair_failures": 10**6}))
         res = p.plan(q, goals, timing=False)
         assert res.success and "150 nearest" in res.reason and calls[-1] == ({}, 150)
         assert len(calls) >= 3  # the plain query and at least one repair came first
         assert res.query_ms >= 1.0 and np.isfinite(res.cost)
         calls.clear()
-        p.update_settings(s0.changed(query_wide_k=0, query_repair_failures=10**6))
+        p.update_settings(s0.changed({"recovery.query_wide_k": 0, "recovery.query_repair_failures": 10**6}))
         assert not p.plan(q, goals, timing=False).success
         assert all(c != ({}, 150) for c in calls)
         # once the failed-repair cap is reached, a failing query is given up without repair or wide attempt
         calls.clear()
-        p.update_settings(s0.changed(query_wide_k=150, query_repair_failures=p.pipeline.rm.repair_failed))
+        p.update_settings(s0.changed({"recovery.query_wide_k": 150,
+                                      "recovery.query_repair_failures": p.pipeline.rm.repair_failed}))
         assert not p.plan(q, goals, timing=False).success and len(calls) == 1
     finally:
         p.update_settings(s0)
@@ -599,7 +603,7 @@ def test_repaired_query_tries_the_grown_nodes_and_more_neighbours(replanner, mon
     # QUERY_FALLBACK_K nearest nodes, the repaired one all its query_repair_connect_k nearest, however long
     s0 = p.settings
     calls.clear()
-    p.update_settings(s0.changed(max_edge_length=1e-4))
+    p.update_settings(s0.changed({"roadmap.max_edge_length": 1e-4}))
     try:
         p.plan(q, goals, timing=False)
     finally:
@@ -636,7 +640,8 @@ def test_query_repair_rounds_widen_the_radius(replanner, monkeypatch):
     monkeypatch.setattr(p.pipeline.builder, "grow", grow)
     monkeypatch.setattr(p.pipeline.query, "plan_once", fails_twice)
     s0 = p.settings
-    p.update_settings(s0.changed(query_repair_rounds=3, query_repair_budget=p.pipeline.rm.repair_added + 10_000))
+    p.update_settings(s0.changed({"recovery.query_repair_rounds": 3,
+                                  "recovery.query_repair_budget": p.pipeline.rm.repair_added + 10_000}))
     try:
         res = p.plan(q, goals, timing=False)
     finally:
@@ -842,7 +847,7 @@ def test_the_replan_history_is_bounded(world, saved_roadmap, monkeypatch):
     monkeypatch.setattr(replanner_module, "HISTORY", 3)
     scene, robot = world
     p = PSPRM(robot, scene, GeometricScorer(scene, "person_face", robot.config.intrinsics),
-              scene.target("person_face").center, PSPRMSettings().changed(n_nodes=N_NODES, seed=3))
+              scene.target("person_face").center, PSPRMSettings().changed({"roadmap.n_nodes": N_NODES, "seed": 3}))
     p.load(saved_roadmap)
     rp = Replanner(p, targets=["person_face"])
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))

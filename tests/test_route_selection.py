@@ -27,7 +27,8 @@ RATIO = 1.5
 
 @pytest.fixture(scope="module")
 def setup(home_tv_planner):
-    scene, robot, planner, start, goals, _ = home_tv_planner(n_nodes=N_NODES, seed=2, objective="motion", alpha=ALPHA)
+    scene, robot, planner, start, goals, _ = home_tv_planner(**{"roadmap.n_nodes": N_NODES, "seed": 2,
+                                                                "scoring.objective": "motion", "scoring.alpha": ALPHA})
     from psprm_core.collision import CollisionChecker
 
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
@@ -76,7 +77,7 @@ def test_selected_route_sees_most_within_the_length_bound(setup):
     scene, robot, planner, problems = setup
     judge = RouteJudge(scene, robot, planner.graph.configs[planner.roadmap_node_ids()])
     world = PybulletWorld(robot, scene.collision_boxes())
-    options = {"route_searches": ",".join(f"{o}@{a}" for o, a in SEARCHES), "route_length_ratio": RATIO}
+    options = {"query.route_searches": ",".join(f"{o}@{a}" for o, a in SEARCHES), "query.route_length_ratio": RATIO}
     changed = 0
     try:
         for start, goals in problems:
@@ -109,7 +110,7 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
     scene, robot, planner, problems = setup
     before = planner.settings
     for start, goals in problems[:3]:
-        res = planner.plan(start, goals, timing=False, options={"route_searches": "motion@1.0,eq2@0.7,alt"})
+        res = planner.plan(start, goals, timing=False, options={"query.route_searches": "motion@1.0,eq2@0.7,alt"})
         assert "alt" in res.route_candidates
     g = planner.graph
     ids = g.valid_edge_ids()
@@ -123,8 +124,8 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
 def test_bad_route_searches_are_config_errors():
     for bad in ("motion", "motion@1.5", "hops@0.5", "motion@x", "alt@2"):
         with pytest.raises(ConfigError, match="route_searches"):
-            PSPRMSettings().changed(route_searches=bad).validate()
+            PSPRMSettings().changed({"query.route_searches": bad}).validate()
     with pytest.raises(ConfigError, match="route_length_ratio"):
-        PSPRMSettings().changed(route_length_ratio=0.5).validate()
-    assert PSPRMSettings().changed(route_searches=" motion@1, eq2@0.8 ,alt").route_search_list() == (
+        PSPRMSettings().changed({"query.route_length_ratio": 0.5}).validate()
+    assert PSPRMSettings().changed({"query.route_searches": " motion@1, eq2@0.8 ,alt"}).route_search_list() == (
         ("motion", 1.0), ("eq2", 0.8), ("alt", 1.0))

@@ -69,7 +69,8 @@ def dynamic_world(load_robot):
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings().changed(n_nodes=300, seed=3))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
+              PSPRMSettings().changed({"roadmap.n_nodes": 300, "seed": 3}))
     assert p.build()["success"]
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     return scene, robot, p, start, goals

@@ -197,3 +197,28 @@ def test_route_searches_are_typed_and_read_from_their_text_forms(tmp_path):
     path.write_text("query:\n  route_searches: [eq2@0.8, 3]\n")
     with pytest.raises(ConfigError, match="p.yaml.*query.route_searches"):
         PSPRMSettings.from_yaml(path)
+
+
+def test_settings_are_named_by_dotted_paths_only(home_tv_planner):
+    """changed, value, a query's options and --set take dotted paths; a field's own name is a ConfigError (an
+    InputError for query options) that tells its dotted path, so a bare name is never taken for another field."""
+    from psprm_core.baselines import parse_settings
+    from psprm_core.errors import InputError, PsprmError
+
+    s = PSPRMSettings()
+    assert s.changed({"roadmap.n_nodes": 40, "seed": 4}).value("roadmap.n_nodes") == 40
+    for call in (lambda: s.changed({"n_nodes": 40}), lambda: s.changed(n_nodes=40), lambda: s.value("n_nodes")):
+        with pytest.raises(ConfigError, match="dotted path: 'roadmap.n_nodes'") as e:
+            call()
+        assert e.value.field == "n_nodes"
+    with pytest.raises(ConfigError, match="unknown setting"):
+        s.changed({"roadmap.no_such": 1})
+    with pytest.raises(PsprmError, match="dotted path: 'query.shortcut'"):
+        parse_settings(["shortcut=true"], PSPRMSettings, "psprm")
+    assert parse_settings(["query.shortcut=true"], PSPRMSettings, "psprm") == {"query.shortcut": True}
+    _, _, p, start, goals, _ = home_tv_planner(**{"roadmap.n_nodes": 300, "seed": 1})
+    with pytest.raises(InputError, match="query.shortcut"):
+        p.plan(start, goals, timing=False, options={"shortcut": True})
+    with pytest.raises(InputError, match="query.heuristic"):  # not a per-query setting
+        p.plan(start, goals, timing=False, options={"query.connect_k": 3})
+    assert p.plan(start, goals, timing=False, options={"query.heuristic": "exact", "query.shortcut": True}).success

@@ -40,7 +40,8 @@ def planned(robot):
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, scene.target("person_face").center, PSPRMSettings().changed(n_nodes=600, seed=5))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
+              PSPRMSettings().changed({"roadmap.n_nodes": 600, "seed": 5}))
     assert p.build()["success"]
     rp = Replanner(p, ReplanSettings(), targets=["person_face"])
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))

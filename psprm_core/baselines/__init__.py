@@ -101,7 +101,7 @@ def parse_planner_settings(items: Sequence[str], planners: Sequence[str]) -> dic
         name = max((p for p in planners if head.startswith(p + ".")), key=len, default=head.partition(".")[0])
         key = head[len(name) + 1:] if head.startswith(name + ".") else ""
         if not eq or not name or not key or not raw.strip():
-            raise PsprmError(f"--set '{item}': expected PLANNER.KEY=VALUE (e.g. neural-psprm-line.alpha=0.95)")
+            raise PsprmError(f"--set '{item}': expected PLANNER.KEY=VALUE (e.g. neural-psprm-line.scoring.alpha=0.95)")
         if name not in planners:
             raise PsprmError(f"--set '{item}': planner '{name}' is not among the planners run "
                              f"({', '.join(planners)})")
@@ -131,13 +131,16 @@ def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[
 
     paths = leaf_paths(cls)
     defaults = cls()
+    dotted_only = hasattr(cls, "coerce")  # PSPRMSettings: settings named by their dotted paths only
 
     def canonical(name: str) -> str:  # a setting's own name where it is unique, else its dotted path
         path = paths[name]
+        if dotted_only:
+            return ".".join(path)
         return path[-1] if paths.get(path[-1]) == path else ".".join(path)
 
     def settable(name: str) -> bool:  # a field with a plain default (not a group, not a factory), not fixed
-        if name not in paths or canonical(name) in fixed:
+        if name not in paths or canonical(name) in fixed or paths[name][-1] in fixed:
             return False
         *group, leaf = paths[name]
         owner = defaults
@@ -152,6 +155,9 @@ def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[
         key, said = key.strip(), shown or item
         if not eq or not key or not raw.strip():
             raise PsprmError(f"{flag} '{said}': expected KEY=VALUE")
+        if dotted_only and key in paths and key != canonical(key) and settable(key):
+            raise PsprmError(f"{flag} '{said}': settings of {label} are named by their dotted path: "
+                             f"'{canonical(key)}'")
         if not settable(key):
             names = sorted({canonical(k) for k in paths if settable(k)})
             raise PsprmError(f"{flag} '{said}': '{key}' is not a setting of {label} that {flag} can change "

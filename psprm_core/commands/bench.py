@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-frames", type=int, default=20, help="judged frames per path at most")
     p.add_argument("--set", action="append", default=[], metavar="PLANNER.KEY=VALUE", dest="settings",
                    help="change one setting of one planner for this run (repeatable), e.g. "
-                        "neural-psprm-line.alpha=0.95; checked against the planner's settings class")
+                        "neural-psprm-line.scoring.alpha=0.95 (PS-PRM settings by dotted path); checked against the "
+                        "planner's settings class")
     p.add_argument("--no-reference", action="store_true",
                    help="do not judge the reference routes (the best-perceived routes of the PS-PRM roadmap) that "
                         "headroom_captured and unseeable_frame_rate are measured against")

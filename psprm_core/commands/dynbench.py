@@ -45,7 +45,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_backend_arguments(p, "a task is one episode of one scenario in every mode; each worker builds a scenario's "
                              "roadmap once and loads a copy of it for every mode")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
-                   help="change one setting of the scenarios' planner (repeatable), e.g. --set alpha=1.0")
+                   help="change one setting of the scenarios' planner (repeatable), e.g. "
+                        "--set scoring.alpha=1.0 (PS-PRM settings by dotted path)")
     p.add_argument("--replan", action="append", default=[], metavar="KEY=VALUE",
                    help="change one replanning setting (ReplanSettings; repeatable)")
     p.add_argument("--out", default="out/dynbench.json", help="where the whole result goes (strict JSON)")

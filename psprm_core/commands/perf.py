@@ -83,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     pl.add_argument("--threads", type=int, default=2)
     pl.add_argument("--unaimed", action="store_true", help="ends not required to face the target (see benchmarks)")
     pl.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
-                    help="change one planner setting (repeatable), e.g. --set route_searches=eq2@0.8,motion@1.0")
+                    help="change one planner setting (repeatable), e.g. "
+                         "--set query.route_searches=eq2@0.8,motion@1.0 (by dotted path)")
     pl.add_argument("--json", action="store_true")
     pl.set_defaults(func=_json_only(_planner))
     cp = ps.add_parser("compare", help="success over random problems and oracle-judged perception: PS-PRM vs the "

@@ -24,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", default=None, help="figure path (default out/simulate_<scenario>.png)")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", dest="settings",
-                   help="change one setting of the scenario's planner (repeatable), e.g. --set alpha=1.0")
+                   help="change one setting of the scenario's planner (repeatable), e.g. "
+                        "--set scoring.alpha=1.0 (PS-PRM settings by dotted path)")
     p.add_argument("--replan", action="append", default=[], metavar="KEY=VALUE",
                    help="change one replanning setting (ReplanSettings; repeatable), e.g. --replan route_selection=true")
     p.add_argument("--json", action="store_true", help="print one JSON object (strict: null, never NaN)")

@@ -200,8 +200,10 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     def build(kind: str, n: int) -> dict:
         # the same uniform roadmap for both scorers (perception-biased sampling would score thousands of extra
         # oracle views)
-        settings = base.changed(constraint="line", alpha=default_alpha(base.scoring.objective, kind), lazy_edges=False,
-                                n_nodes=n, seed=seed, expand_rounds=0, biased_share=0.0)
+        settings = base.changed({"visibility.constraint": "line",
+                                 "scoring.alpha": default_alpha(base.scoring.objective, kind),
+                                 "edges.lazy_edges": False, "roadmap.n_nodes": n, "seed": seed,
+                                 "roadmap.expand_rounds": 0, "roadmap.biased_share": 0.0})
         scorer = _TimedScorer(make_scorer(kind, scene, [target], robot.config.intrinsics))
         p = PSPRM(robot, scene, scorer, focus, settings)
         st = p.build()
@@ -416,7 +418,7 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
         for i, (a, b) in enumerate(probs):
             for key, al in (("psprm", alpha), ("shortest", 0.0)):
                 p.set_alpha(al)
-                res = p.plan(a, b, timing=False, options={"shortcut": False})  # this comparison is of the searches
+                res = p.plan(a, b, timing=False, options={"query.shortcut": False})  # this comparison is of the searches
                 row = {"success": res.success, "length": res.path_length, "predicted": res.mean_score,
                        "start": np.asarray(a, float).tolist(), "goal": np.asarray(b, float).tolist()}
                 if res.success and i < n_oracle:
@@ -493,7 +495,7 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     yaw0 = float(np.arctan2(tgt.rotation[1, 0], tgt.rotation[0, 0]))
     movable = [b.name for b in scene.obstacles if not b.name.startswith("wall") and b.name != body]
     out = {"scene": scene.name, "planner": planner, "target": target, "threads": threads,
-           "heuristic": rp.plan_options.get("heuristic", p.settings.query.heuristic), "n_nodes": stats.get("n_nodes"),
+           "heuristic": rp.plan_options.get("query.heuristic", p.settings.query.heuristic), "n_nodes": stats.get("n_nodes"),
            "n_edges": stats.get("n_edges"), "build_s": stats.get("build_s"), "first_plan_ms": first.query_ms, "updates": updates}
 
     def timed(kind: str, update) -> None:

@@ -86,7 +86,8 @@ class ReferenceRoutes:
                 for shortcut in (False, True):
                     p.reweight(alpha=alpha, objective=objective)
                     add(f"{objective}@{alpha:g}" + ("+shortcut" if shortcut else ""),
-                        p.plan(start, goal, timing=False, options={"shortcut": shortcut, "route_searches": ""}))
+                        p.plan(start, goal, timing=False,
+                               options={"query.shortcut": shortcut, "query.route_searches": ()}))
             for k in range(self.alternatives):
                 p.reweight(alpha=1.0, objective="motion")
                 g = p.graph
@@ -94,7 +95,7 @@ class ReferenceRoutes:
                 if len(e):
                     g.set_weights(e, g.weights[e] * self.penalty)
                 add(f"alt{k + 1}", p.plan(start, goal, timing=False,
-                                          options={"shortcut": False, "route_searches": ""}))
+                                          options={"query.shortcut": False, "query.route_searches": ()}))
         finally:
             p.reweight(alpha=saved.scoring.alpha, objective=saved.scoring.objective)
         return out

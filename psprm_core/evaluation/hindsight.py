@@ -78,7 +78,7 @@ def candidate_routes(planner, start: np.ndarray, goals: np.ndarray, searches: Se
     roadmap as it is scored now (:data:`SEARCHES`). The planner's objective, alpha and weights are restored
     afterwards (as :meth:`~psprm_core.evaluation.headroom.ReferenceRoutes.routes` does)."""
     saved = planner.settings.scoring
-    opts = dict(options or {}, shortcut=False, route_searches="")
+    opts = {**(options or {}), "query.shortcut": False, "query.route_searches": ()}
     out, used = [], []
     try:
         for gi, goal in enumerate(np.atleast_2d(goals)):

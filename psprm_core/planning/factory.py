@@ -12,7 +12,7 @@ from ..paths import config_dir, project_root
 from ..robot import RobotModel
 from ..scene import Scene
 from .psprm import PSPRM, VARIANTS, PSPRMSettings
-from .settings import DEFAULT_ALPHA, default_alpha
+from .settings import DEFAULT_ALPHA, default_alpha, deprecated_field_names
 
 __all__ = ["DEFAULT_ALPHA", "default_alpha", "default_checkpoint", "make_scorer", "make_planner",
            "problem_configurations"]
@@ -56,8 +56,9 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
                  settings: Optional[PSPRMSettings] = None, checkpoint: Optional[Path] = None,
                  multi_mode: str = "mean", device: str = "cpu", **overrides) -> PSPRM:
     """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint.
-    ``scoring.alpha`` left unset (by ``settings`` and ``overrides``) is the variant's :func:`default_alpha` for the
-    objective."""
+    ``overrides``: settings by dotted path (``**{"scoring.alpha": 0.5}``), or, deprecated, by a field's own name
+    (``n_nodes=300``: :func:`~.settings.deprecated_field_names`). ``scoring.alpha`` left unset (by ``settings`` and
+    ``overrides``) is the variant's :func:`default_alpha` for the objective."""
     if variant not in VARIANTS:
         raise PsprmError(f"unknown planner '{variant}' (choose from {', '.join(sorted(VARIANTS))})")
     constraint, kind = VARIANTS[variant]
@@ -65,12 +66,13 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
     if settings is None:
         path = config_dir() / "planners" / "psprm.yaml"
         settings = PSPRMSettings.from_yaml(path, robot=robot.name) if path.is_file() else PSPRMSettings()
-    settings = settings.changed({k: v for k, v in overrides.items() if v is not None}).resolved(kind)
-    settings = settings.changed(
-        constraint=constraint,
-        lazy_edges=settings.edges.lazy_edges or kind == "oracle",
+    overrides = deprecated_field_names({k: v for k, v in overrides.items() if v is not None})
+    settings = settings.changed(overrides).resolved(kind)
+    settings = settings.changed({
+        "visibility.constraint": constraint,
+        "edges.lazy_edges": settings.edges.lazy_edges or kind == "oracle",
         # biased sampling scores thousands of extra samples: only with a cheap scorer
-        biased_share=settings.roadmap.biased_share if kind != "oracle" else 0.0)
+        "roadmap.biased_share": settings.roadmap.biased_share if kind != "oracle" else 0.0})
     scorer = make_scorer(kind, scene, targets, robot.config.intrinsics, checkpoint, multi_mode)
     focus = np.mean([scene.target(t).center for t in targets], axis=0)
     planner = PSPRM(robot, scene, scorer, focus, settings, device=device)

@@ -77,10 +77,10 @@ class Pipeline:
         settings are not changed."""
         settings = None
         if options:
-            allowed = {n.rpartition(".")[2] for n in query_options()}
-            unknown = sorted(set(options) - allowed)
+            allowed = query_options()
+            unknown = sorted(set(options) - set(allowed))
             if unknown:
-                raise InputError(f"unknown query options {unknown} (choose from {', '.join(sorted(allowed))})")
+                raise InputError(f"unknown query options {unknown} (dotted paths: {', '.join(allowed)})")
             settings = self.ctx.settings.changed(options)
             settings.validate("query options")
         self.qc.settings = settings

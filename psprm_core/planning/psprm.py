@@ -158,7 +158,7 @@ class PSPRM:
         """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)), with the
         recovery stages when no goal is reachable (:meth:`.pipeline.Pipeline.plan`). ``goal_costs`` (G,): terminal costs
         added per goal; ``options``: settings of :func:`~.settings.query_options` for this query only (e.g.
-        ``{"heuristic": "exact", "shortcut": False}``). Never raises for a bad problem: the result's ``reason`` says
+        ``{"query.heuristic": "exact", "query.shortcut": False}``). Never raises for a bad problem: the result's ``reason`` says
         what failed."""
         return self.pipeline.plan(start, goals, timing, goal_costs, options)
 
@@ -174,7 +174,8 @@ class PSPRM:
         re-checked and re-scored when a search next uses it (as after :meth:`set_focus`). The ``roadmap`` group and
         the seed take effect at the next :meth:`build` and change :meth:`fingerprint`. The ``visibility`` group is
         fixed when the planner is made: changing it raises :class:`~psprm_core.errors.ConfigError`. ``changes``:
-        names or dotted paths (:meth:`~.settings.PSPRMSettings.changed`). Returns the settings now in use."""
+        dotted paths (:meth:`~.settings.PSPRMSettings.changed`), given as ``**{"query.shortcut": True}``. Returns
+        the settings now in use."""
         old = self.settings
         new = (settings or old).changed(changes)
         if new.scoring.alpha is None:  # unset: the planner keeps its alpha

@@ -221,11 +221,11 @@ class Replanner:
         shortcuts, route selection; the planner's own settings are left as they are). Returns the settings now in
         use."""
         new = dataclasses.replace(settings or self.settings, **changes)
-        options = {"smooth_timing": new.smooth_timing, "shortcut": new.shortcut}
+        options = {"query.smooth_timing": new.smooth_timing, "query.shortcut": new.shortcut}
         if not new.route_selection:
-            options["route_searches"] = ""
+            options["query.route_searches"] = ()
         if new.heuristic != "planner":
-            options["heuristic"] = new.heuristic
+            options["query.heuristic"] = new.heuristic
         self.settings, self.plan_options = new, options
         for pr in getattr(self, "predictors", {}).values():
             pr.settings = new.prediction

@@ -149,8 +149,8 @@ class Scoring(Stage):
         """Re-weight every edge from its stored Eq. 1 perception and motion cost with a new ``alpha`` and/or objective
         form (:data:`~.objectives.OBJECTIVES`), or a whole new ``scoring`` group, without rebuilding; ``None`` keeps
         the current one."""
-        changes = {k: v for k, v in (("alpha", alpha), ("objective", objective), ("scoring", scoring))
-                   if v is not None}
+        changes = {k: v for k, v in (("scoring.alpha", alpha), ("scoring.objective", objective),
+                                     ("scoring", scoring)) if v is not None}
         new = self.ctx.settings.changed(changes)
         new.validate()
         self.rm.compact()

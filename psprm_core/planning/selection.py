@@ -54,7 +54,8 @@ class RouteSelection(Stage):
             label = "alt" if other else f"{objective}@{alpha:g}"
             if label in cands:
                 continue
-            alt = base.changed(objective="motion" if other else objective, alpha=alpha, route_searches="")
+            alt = base.changed({"scoring.objective": "motion" if other else objective, "scoring.alpha": alpha,
+                                "query.route_searches": ()})
             with self.pl.scoring.weighted_for(alt, penalize=(used, ALT_PENALTY) if other else None):
                 self.qc.settings = alt
                 try:

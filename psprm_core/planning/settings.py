@@ -259,9 +259,10 @@ class PSPRMSettings:
     everything built on it (CLI, bench, ROS nodes) load, ships the configuration that saw most in the benchmarks
     (motion objective, biased nodes, shortcuts).
 
-    A setting is named by its dotted path (``scoring.alpha``) or, since no two groups share a field name, by its
-    own name (``alpha``): :meth:`changed`, :meth:`value`, a query's ``options``, ``--set`` and
-    ``PSPRM.update_settings`` take either. YAML files nest the groups."""
+    A setting is named by its dotted path (``scoring.alpha``; the seed by ``seed``): :meth:`changed`,
+    :meth:`value`, a query's ``options``, ``--set`` and ``PSPRM.update_settings`` take those names only, and tell
+    the dotted path of a field's own name given instead. YAML files nest the groups. Each field's metadata
+    (description, range or choices, per-query, live, build) is listed by :func:`parameter_specs`."""
 
     roadmap: RoadmapSettings = field(default_factory=RoadmapSettings)
     visibility: VisibilitySettings = field(default_factory=VisibilitySettings)
@@ -272,14 +273,22 @@ class PSPRMSettings:
     recovery: RecoverySettings = field(default_factory=RecoverySettings)
     seed: int = setting(0, "random seed of the roadmap's sampling", build=True)
 
-    def changed(self, changes: dict | None = None, **more) -> "PSPRMSettings":
-        """These settings with ``changes`` (names or dotted paths) applied; not validated
-        (:func:`~psprm_core.yamlio.replace_settings`)."""
-        changes = {**(changes or {}), **more}
-        for name in ("query.route_searches", "route_searches"):
-            if name in changes:
-                changes[name] = parse_route_searches(changes[name])
-        return replace_settings(self, changes)
+    def changed(self, changes: dict | None = None, **groups) -> "PSPRMSettings":
+        """These settings with ``changes`` applied, each named by its dotted path (``{"scoring.alpha": 0.5}``; the
+        seed by ``seed``); ``groups``: whole groups by name (``scoring=ScoringSettings(...)``), also allowed as keys
+        of ``changes``. ``query.route_searches`` may be given in a text form (:func:`parse_route_searches`). Not
+        validated; ``self`` is left as it is.
+
+        Raises
+        ------
+        ConfigError
+            A name that is not a dotted path of a setting (a field's own name is told its dotted path)."""
+        changes = {**(changes or {}), **groups}
+        for name in changes:
+            _check_name(name, groups_too=True)
+        if "query.route_searches" in changes:
+            changes["query.route_searches"] = parse_route_searches(changes["query.route_searches"])
+        return replace_settings(self, changes) if changes else self
 
     def resolved(self, kind: Optional[str] = None) -> "PSPRMSettings":
         """These settings with ``scoring.alpha`` set: as given, else :func:`default_alpha` of the objective and the
@@ -305,7 +314,9 @@ class PSPRMSettings:
         return value
 
     def value(self, name: str):
-        """One setting by name or dotted path."""
+        """One setting by its dotted path (``"scoring.alpha"``); a :class:`~psprm_core.errors.ConfigError` for any
+        other name (:meth:`changed`)."""
+        _check_name(name)
         return setting_value(self, name)
 
     def flat(self) -> dict:
@@ -321,10 +332,9 @@ class PSPRMSettings:
         return out
 
     @classmethod
-    def from_yaml(cls, path: str | Path, robot: str | None = None, **overrides) -> "PSPRMSettings":
+    def from_yaml(cls, path: str | Path, robot: str | None = None, overrides: dict | None = None) -> "PSPRMSettings":
         """Settings from YAML (one mapping per group); a ``robots: {name: {group: {field: value}}}`` section
-        overrides fields for one robot; ``overrides`` (names or dotted paths, :meth:`changed`) that are not None
-        win."""
+        overrides fields for one robot; ``overrides`` (dotted paths, :meth:`changed`) that are not None win."""
         data = load_yaml(path)
         per_robot = data.pop("robots", None) or {}
         if not isinstance(per_robot, dict):
@@ -338,7 +348,7 @@ class PSPRMSettings:
             data = {**data, **{k: ({**data[k], **v} if isinstance(v, dict) and isinstance(data.get(k), dict) else v)
                                for k, v in extra.items()}}
         s = cls(**_yaml_kwargs(Fields(data, str(path))))
-        s = s.changed({k: v for k, v in overrides.items() if v is not None})
+        s = s.changed({k: v for k, v in (overrides or {}).items() if v is not None})
         s.validate(str(path))
         return s
 
@@ -500,3 +510,25 @@ def _yaml_kwargs(f: Fields) -> dict:
         sub.check_keys(names)
         out[key] = cls(**{k: _yaml_value(sub, k, specs[f"{key}.{k}"]) for k in sub.data})
     return out
+
+
+def _check_name(name: str, groups_too: bool = False) -> None:
+    """A :class:`~psprm_core.errors.ConfigError` unless ``name`` is a setting's dotted path (or, with
+    ``groups_too``, a group's name); a field's own name is told its dotted path."""
+    names = {sp.name for sp in parameter_specs()}
+    if name in names or (groups_too and name in {fl.name for fl in dataclasses.fields(PSPRMSettings)}):
+        return
+    dotted = [n for n in names if n.rpartition(".")[2] == name]
+    if dotted:
+        raise ConfigError("settings", name, f"settings are named by their dotted path: '{dotted[0]}'")
+    raise ConfigError("settings", name, "unknown setting of PSPRMSettings (a dotted path such as 'scoring.alpha')")
+
+
+def deprecated_field_names(changes: dict) -> dict:
+    """Deprecated: ``changes`` with each field's own name (``n_nodes``) replaced by its dotted path
+    (``roadmap.n_nodes``); dotted paths are kept. Only for callers whose settings arrive as Python keywords:
+    :func:`~.factory.make_planner`'s ``**overrides`` (``psprm_ros.core.make_planner_for`` passes ``n_nodes``,
+    ``seed``, ``collision_padding`` so). A name that is neither is left for :meth:`PSPRMSettings.changed` to
+    refuse."""
+    by_leaf = {sp.name.rpartition(".")[2]: sp.name for sp in parameter_specs()}
+    return {by_leaf.get(k, k) if "." not in k else k: v for k, v in changes.items()}
