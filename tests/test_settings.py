@@ -222,3 +222,37 @@ def test_settings_are_named_by_dotted_paths_only(home_tv_planner):
     with pytest.raises(InputError, match="query.heuristic"):  # not a per-query setting
         p.plan(start, goals, timing=False, options={"query.connect_k": 3})
     assert p.plan(start, goals, timing=False, options={"query.heuristic": "exact", "query.shortcut": True}).success
+
+
+def test_presets_load_validate_and_hold_their_configurations(load_robot):
+    """Both presets load for every shipped robot and validate; the paper preset holds the paper's configuration
+    (Eq. 2, 3000 uniform nodes with 15 neighbours, N = 5, the hop heuristic, no shortcuts, no route selection, no
+    escape or wide connection) and the shipped one the motion objective with shortcuts; a planner made from the
+    paper preset takes the paper's alpha (0.8 with the surrogate, 0.75 with the oracle). An unknown preset is a
+    ConfigError."""
+    from psprm_core.paths import config_dir, resolve_named
+    from psprm_core.planning.factory import PRESETS, load_preset, make_planner
+    from psprm_core.scene import load_scene
+
+    assert set(PRESETS) == {"psprm", "psprm_paper"}
+    robots = sorted(p.stem for p in (config_dir() / "robots").glob("*.yaml") if "." not in p.stem)
+    assert robots
+    for name in PRESETS:
+        assert (config_dir() / "planners" / PRESETS[name]).is_file()
+        for robot in [None, *robots]:
+            load_preset(name, robot).validate()
+    paper = load_preset("psprm_paper")
+    assert (paper.scoring.objective, paper.scoring.alpha, paper.roadmap.n_nodes, paper.roadmap.k_neighbors,
+            paper.roadmap.biased_share, paper.edges.n_interp, paper.query.heuristic, paper.query.shortcut,
+            paper.query.route_searches, paper.recovery.query_escape_s, paper.recovery.query_wide_k) == (
+        "eq2", None, 3000, 15, 0.0, 5, "hop", False, (), 0.0, 0)
+    shipped = load_preset("psprm")
+    assert (shipped.scoring.objective, shipped.query.shortcut) == ("motion", True)
+    scene = load_scene(resolve_named("scene", "home"))
+    robot = load_robot("stretch2")
+    for variant, alpha in (("neural-psprm-line", 0.8), ("psprm-line", 0.75)):
+        p = make_planner(variant, scene, ["tv"], robot=robot, preset="psprm_paper", n_nodes=50)
+        assert (p.settings.scoring.alpha, p.settings.scoring.objective, p.settings.roadmap.n_nodes) == (
+            alpha, "eq2", 50)
+    with pytest.raises(ConfigError, match="unknown preset 'nope'"):
+        load_preset("nope")

@@ -21,7 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--problem", default=None, help="named problem of the scene (default: the first one with "
                                                    "the target)")
     p.add_argument("--planner", default="neural-psprm-line", choices=sorted(VARIANTS))
-    p.add_argument("--nodes", type=int, default=None, help="roadmap size (default: config/planners/psprm.yaml)")
+    p.add_argument("--preset", default="psprm", choices=["psprm", "psprm_paper"],
+                   help="settings preset in config/planners/: the shipped configuration or the paper's")
+    p.add_argument("--nodes", type=int, default=None, help="roadmap size (default: the preset's)")
     p.add_argument("--alpha", type=float, default=None,
                    help="Eq. 2 weight (default: the variant's for the settings' objective, settings.default_alpha)")
     p.add_argument("--seed", type=int, default=0)
@@ -52,7 +54,8 @@ def run(args) -> int:
     prob = problems[0]
     targets = targets or prob.all_targets
     planner = make_planner(args.planner, scene, targets, robot=robot, checkpoint=args.checkpoint,
-                           multi_mode=args.multi, n_nodes=args.nodes, seed=args.seed, alpha=args.alpha)
+                           multi_mode=args.multi, preset=args.preset, n_nodes=args.nodes, seed=args.seed,
+                           alpha=args.alpha)
     start, goals = problem_configurations(robot, scene, prob)
     loaded = False
     if args.roadmap and Path(args.roadmap).is_file():

@@ -14,8 +14,24 @@ from ..scene import Scene
 from .psprm import PSPRM, VARIANTS, PSPRMSettings
 from .settings import DEFAULT_ALPHA, default_alpha, deprecated_field_names
 
-__all__ = ["DEFAULT_ALPHA", "default_alpha", "default_checkpoint", "make_scorer", "make_planner",
-           "problem_configurations"]
+__all__ = ["DEFAULT_ALPHA", "PRESETS", "default_alpha", "default_checkpoint", "load_preset", "make_scorer",
+           "make_planner", "problem_configurations"]
+
+#: the settings presets in ``config/planners/`` by name: the shipped configuration (what saw most in the
+#: benchmarks) and the paper's
+PRESETS = {"psprm": "psprm.yaml", "psprm_paper": "psprm_paper.yaml"}
+
+
+def load_preset(name: str = "psprm", robot: Optional[str] = None) -> PSPRMSettings:
+    """The settings preset ``name`` (:data:`PRESETS`) for ``robot`` (its ``robots`` section applied), validated.
+
+    Raises
+    ------
+    ConfigError
+        An unknown preset, a missing or malformed file."""
+    if name not in PRESETS:
+        raise ConfigError("settings", "preset", f"unknown preset '{name}' ({', '.join(PRESETS)})")
+    return PSPRMSettings.from_yaml(config_dir() / "planners" / PRESETS[name], robot=robot)
 
 
 def default_checkpoint() -> Path:
@@ -54,18 +70,18 @@ def make_scorer(kind: str, scene: Scene, targets: Sequence[str], intrinsics, che
 
 def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Optional[RobotModel] = None,
                  settings: Optional[PSPRMSettings] = None, checkpoint: Optional[Path] = None,
-                 multi_mode: str = "mean", device: str = "cpu", **overrides) -> PSPRM:
+                 multi_mode: str = "mean", device: str = "cpu", preset: str = "psprm", **overrides) -> PSPRM:
     """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint.
-    ``overrides``: settings by dotted path (``**{"scoring.alpha": 0.5}``), or, deprecated, by a field's own name
-    (``n_nodes=300``: :func:`~.settings.deprecated_field_names`). ``scoring.alpha`` left unset (by ``settings`` and
-    ``overrides``) is the variant's :func:`default_alpha` for the objective."""
+    ``settings`` None: the preset ``preset`` (:func:`load_preset`) for the robot. ``overrides``: settings by dotted
+    path (``**{"scoring.alpha": 0.5}``), or, deprecated, by a field's own name (``n_nodes=300``:
+    :func:`~.settings.deprecated_field_names`). ``scoring.alpha`` left unset (by ``settings`` and ``overrides``) is
+    the variant's :func:`default_alpha` for the objective."""
     if variant not in VARIANTS:
         raise PsprmError(f"unknown planner '{variant}' (choose from {', '.join(sorted(VARIANTS))})")
     constraint, kind = VARIANTS[variant]
     robot = robot or RobotModel.load(scene.robot)
     if settings is None:
-        path = config_dir() / "planners" / "psprm.yaml"
-        settings = PSPRMSettings.from_yaml(path, robot=robot.name) if path.is_file() else PSPRMSettings()
+        settings = load_preset(preset, robot.name)
     overrides = deprecated_field_names({k: v for k, v in overrides.items() if v is not None})
     settings = settings.changed(overrides).resolved(kind)
     settings = settings.changed({

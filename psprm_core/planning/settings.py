@@ -254,10 +254,11 @@ PROJECTION_METADATA = {
 
 @dataclass(frozen=True)
 class PSPRMSettings:
-    """Settings of PS-PRM, one group per stage of the pipeline. The field defaults are the paper's configuration
-    (Eq. 2, uniform nodes, no shortcuts); ``config/planners/psprm.yaml``, which :func:`~.factory.make_planner` and
-    everything built on it (CLI, bench, ROS nodes) load, ships the configuration that saw most in the benchmarks
-    (motion objective, biased nodes, shortcuts).
+    """Settings of PS-PRM, one group per stage of the pipeline. Two presets (:func:`~.factory.load_preset`):
+    ``config/planners/psprm.yaml``, which :func:`~.factory.make_planner` and everything built on it (CLI, bench, ROS
+    nodes) load, ships the configuration that saw most in the benchmarks (motion objective, biased nodes,
+    shortcuts, escape search); ``config/planners/psprm_paper.yaml`` is the paper's (Eq. 2, uniform nodes, the hop
+    heuristic, no shortcuts).
 
     A setting is named by its dotted path (``scoring.alpha``; the seed by ``seed``): :meth:`changed`,
     :meth:`value`, a query's ``options``, ``--set`` and ``PSPRM.update_settings`` take those names only, and tell
