@@ -1,5 +1,6 @@
 """Settings of PS-PRM: one frozen dataclass per stage of the pipeline, grouped in :class:`PSPRMSettings` (read from
-``config/planners/psprm.yaml``)."""
+the presets in ``config/planners/``, :func:`~.factory.load_preset`). Each field carries its metadata (description,
+range or choices, per-query, live, build); :func:`parameter_specs` lists them for parameter declarations."""
 
 from __future__ import annotations
 
@@ -321,8 +322,8 @@ class PSPRMSettings:
         return setting_value(self, name)
 
     def flat(self) -> dict:
-        """Every setting by its own name, the projection settings as one mapping (what a roadmap's fingerprint
-        hashes)."""
+        """Every setting by its own name, the projection settings as one mapping: the form a roadmap's fingerprint
+        hashes (kept so that roadmaps cached under it still load), not a way to name settings."""
         out = {}
         for group in dataclasses.fields(self):
             v = getattr(self, group.name)
