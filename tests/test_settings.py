@@ -256,3 +256,42 @@ def test_presets_load_validate_and_hold_their_configurations(load_robot):
             alpha, "eq2", 50)
     with pytest.raises(ConfigError, match="unknown preset 'nope'"):
         load_preset("nope")
+
+
+def test_query_options_plan_as_the_planners_own_settings_and_fixed_settings_are_refused(home_tv_planner):
+    """Each per-query setting given as a query's option plans the same route as the planner with that setting
+    changed (and leaves the planner's settings as they were); the settings that are not live and that a made planner
+    holds fixed (the visibility model, the collision padding) are refused by update_settings, the live ones taken."""
+    from psprm_core.planning.settings import query_options
+
+    # every edge checked at the build: a query leaves the roadmap as it is (lazy checks would change it between plans)
+    _, _, p, start, goals, _ = home_tv_planner(**{"roadmap.n_nodes": 300, "seed": 1, "edges.lazy_collision": False})
+    s0 = p.settings
+    specs = {sp.name: sp for sp in parameter_specs()}
+    assert set(query_options()) == {sp.name for sp in specs.values() if sp.query}
+    values = {"query.heuristic": "exact", "query.route_searches": "eq2@0.5,alt"}
+    for name in query_options():
+        value = values.get(name, _other_value(specs[name]))
+        # the first shortcut query of a planner returns another route than the identical queries after it: one
+        # query first, so that both compared queries follow one
+        p.plan(start, goals, timing=False, options={name: value})
+        a = p.plan(start, goals, timing=False, options={name: value})
+        assert p.settings == s0, name
+        try:
+            p.update_settings(s0.changed({name: value}))
+            b = p.plan(start, goals, timing=False)
+        finally:
+            p.update_settings(s0)
+        assert a.success and b.success, name
+        # the query's own start and goal nodes get new ids per query: compare the route itself
+        assert np.allclose(np.asarray(a.waypoints), np.asarray(b.waypoints)), name
+        assert a.cost == pytest.approx(b.cost), name
+    for sp in specs.values():
+        if sp.name.startswith(("visibility.", "edges.collision_padding")):
+            assert not sp.live
+            with pytest.raises(ConfigError, match=sp.name):
+                p.update_settings(s0.changed({sp.name: _other_value(sp)}))
+            assert p.settings == s0
+        elif sp.live and sp.name.startswith(("edges.", "scoring.", "query.", "recovery.")):
+            p.update_settings(s0.changed({sp.name: _other_value(sp)}))
+            p.update_settings(s0)
