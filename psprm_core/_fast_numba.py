@@ -10,7 +10,9 @@ The kernels live in modules by domain and are re-exported here: :mod:`~psprm_cor
 poses, collision checks; the ``jit`` decorator and the joint type codes), :mod:`~psprm_core._fast_projection`
 (projection onto the visibility manifold), :mod:`~psprm_core._fast_motion` (the motion metric, local motions, pieces,
 nearest nodes, edge knots), :mod:`~psprm_core._fast_scoring` (occlusion, pose features, the surrogate MLP) and
-:mod:`~psprm_core._fast_query` (the fused kernels of a query's edges). numba's disk cache checks only the source
+:mod:`~psprm_core._fast_query` (the fused kernels of a query's edges). The kernels take their inputs grouped in the
+named tuples of :mod:`~psprm_core._fast_packs` (one per object: robot, collision checker, visibility constraint,
+surrogate, occlusion checker, motion), each built by the object's class. numba's disk cache checks only the source
 file of the kernel it loads, so a module that imports from the others records their SHA-256 (``CALLEES_SHA256``,
 checked by ``tests/test_fastpath.py``): a change to a called kernel changes the caller's file too.
 """

@@ -14,6 +14,11 @@ such call costs 1-10 ms of per-operator overhead, far more than its arithmetic. 
   diff-drive metric and local motions (:class:`DiffDriveMotion`, ``Edges.pieces``, the query's nearest roadmap
   nodes, the knots of Eq. 1 edges).
 
+The kernels take their inputs grouped in the named tuples of :mod:`psprm_core._fast_packs`, one per object, each
+built (and kept) by that object's class: ``RobotModel.kernel_pack``, ``CollisionChecker.kernel_pack``,
+``VisibilityConstraint.kernel_pack``, ``PerceptionSurrogate.kernel_layers``, ``OcclusionChecker.kernel_pack``,
+``DiffDriveMotion.kernel_pack``; the functions here add the per-call ones (:func:`solver_pack`, the edge options).
+
 The domain methods name their twin with the :func:`twin` decorator, the one place a call is routed; the methods
 themselves hold only the torch code. The twins serve CPU tensors outside autograd (:func:`applies`): batches of at most :data:`MAX_BATCH` rows
 (the metric up to :data:`MOTION_MAX_BATCH`) everywhere, and batches of any size inside :func:`bulk`, which the
