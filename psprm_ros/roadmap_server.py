@@ -14,7 +14,7 @@ Outputs:
 Services (std_srvs/Trigger): ``~/plan`` (plan now), ``~/rebuild`` (rebuild the roadmap around the current scene),
 ``~/stop`` (publish a stop trajectory and hold until the next goal or plan request).
 
-All planning runs on the :class:`~psprm_ros.planning_loop.PlanningLoop`'s worker thread: callbacks convert and
+All planning runs on the :class:`~psprm_ros.server.PlanningLoop`'s worker thread: callbacks convert and
 validate each message once and hand the values to the loop (which keeps only the latest, so a 120 Hz stream never
 queues); the loop applies the newest state to the core :class:`Replanner`, asks it whether to replan and decides
 what to publish. Every trajectory is re-checked with a :class:`CollisionChecker` holding the latest obstacle poses
@@ -32,7 +32,7 @@ import numpy as np
 
 from . import conversions as cv
 from . import core
-from .planning_loop import LIVE_REPLAN, LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples
+from .server import LIVE_REPLAN, LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples
 
 __all__ = ["RoadmapServer", "SERVER_PARAMS", "LIVE_REPLAN", "main"]
 

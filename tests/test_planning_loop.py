@@ -31,7 +31,7 @@ from psprm_core.planning.factory import problem_configurations  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros import core  # noqa: E402
-from psprm_ros.planning_loop import Outputs, PlanningLoop, TrajectorySamples  # noqa: E402
+from psprm_ros.server import Outputs, PlanningLoop, TrajectorySamples  # noqa: E402
 
 SCENE = "dynamic_person"
 STEP = 0.05  # spacing (m / rad) of the configurations the test checks along a trajectory's polyline

@@ -162,7 +162,7 @@ def _server_publishes_through_the_person(load_robot, check_enabled: bool) -> tup
             s.probe.publish_regions(["at_shelf", "at_cabinet"])
             assert s.probe.wait_trajectory(n0, 30) is not None  # a first, unfaulted plan went out
             fault = Fault(s.server, scene)
-            holder = getattr(s.server, "loop", s.server)  # the object whose plan step calls _unsafe
+            holder = s.server.loop.worker  # the object whose plan step calls _unsafe
             real_unsafe = holder._unsafe
             calls = []
 

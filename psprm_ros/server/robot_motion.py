@@ -1,0 +1,144 @@
+"""The robot's measured motion as the planning loop sees it: every robot state at its receipt, how fast the robot
+moves, where a braking base comes to rest, where along the trajectory under way the robot is, and whether a plan
+from an older state still starts where the robot is."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+from typing import Optional
+
+import numpy as np
+
+from psprm_core.planning.execution import progress_time
+from psprm_core.tracking import CheckedPath, displacement
+
+from ..adapters import braking_configurations
+from ..base_follower import Limits
+
+#: the robot states a braking base's speed is measured over (s)
+REST_VELOCITY_SPAN_S = 0.1
+#: the robot states kept (s)
+KEEP_S = 0.3
+
+
+class RobotMotion:
+    """The robot states of about the last :data:`KEEP_S` (thread-safe: states arrive on the callers' threads, the
+    worker and the stop guard read them), and the estimate of the robot's progress along the trajectory under way
+    (worker only)."""
+
+    def __init__(self, robot):
+        self.robot = robot
+        self._lock = threading.Lock()
+        self._hist: deque = deque()  # (monotonic receipt, q)
+        self._along: Optional[tuple] = None  # (trajectory, time along it, perf_counter) of the last estimate
+
+    def add(self, q: np.ndarray, now: float) -> None:
+        """A robot state received at ``now`` (monotonic s)."""
+        with self._lock:
+            h = self._hist
+            h.append((now, q))
+            while len(h) > 2 and now - h[1][0] >= KEEP_S:
+                h.popleft()
+
+    def states(self) -> list:
+        """The robot states of about the last :data:`KEEP_S`, (monotonic receipt time, q), oldest first."""
+        with self._lock:
+            return list(self._hist)
+
+    def newest(self) -> Optional[np.ndarray]:
+        """The newest robot state (None before the first)."""
+        with self._lock:
+            return self._hist[-1][1] if self._hist else None
+
+    def speed(self) -> float:
+        """How fast the robot moved over its last robot states (the largest joint speed over its velocity limit; a
+        fraction of full speed), from the robot states of the last :data:`KEEP_S` (at least 0.1 s apart); 1 until
+        known."""
+        h = self.states()
+        if len(h) < 2 or h[-1][0] - h[0][0] < 0.1:
+            return 1.0
+        d = np.abs(h[-1][1] - h[0][1])
+        if self.robot.mobile:
+            d[2] = abs((d[2] + np.pi) % (2 * np.pi) - np.pi)
+            d[0] = d[1] = float(np.hypot(*(h[-1][1][:2] - h[0][1][:2])))
+        return float((d / np.maximum(self.robot.velocity, 1e-6)).max()) / (h[-1][0] - h[0][0])
+
+    def rest_point(self, q: np.ndarray) -> np.ndarray:
+        """Where a mobile base moving at the velocity of its newest robot states (the newest and the newest one at
+        least :data:`REST_VELOCITY_SPAN_S` older) comes to rest braking at the robot config's base accelerations
+        (:func:`psprm_ros.adapters.braking_configurations`); ``q`` itself for a fixed base or a base at rest. A base
+        braking from a stop slows all the while: the speed over the span is its speed at the span's middle, so it is
+        brought forward to the newest state at the braking deceleration (a longer average would overstate the speed
+        and put the rest point beyond where the base stops)."""
+        h = self.states()
+        if not self.robot.mobile or len(h) < 2:
+            return q
+        older = [e for e in h[:-1] if h[-1][0] - e[0] >= REST_VELOCITY_SPAN_S]
+        if not older:
+            return q
+        (ta, a), (tb, b) = older[-1], h[-1]
+        dt = tb - ta
+        th = 0.5 * (a[2] + b[2])
+        v = ((b[0] - a[0]) * np.cos(th) + (b[1] - a[1]) * np.sin(th)) / dt
+        w = float((b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi) / dt
+        if abs(v) < 0.02 and abs(w) < 0.05:
+            return q
+        lim = Limits.for_robot(self.robot)
+        v = np.sign(v) * max(0.0, abs(v) - 0.5 * dt * lim.linear_acceleration)
+        w = np.sign(w) * max(0.0, abs(w) - 0.5 * dt * lim.angular_acceleration)
+        return braking_configurations(q, (v, w), lim)[-1]
+
+    def stale_start(self, times: np.ndarray, positions: np.ndarray, tol: float, window_s: float = 2.0) -> str:
+        """Why a plan from the robot's state no longer starts where the robot is ("" = it does, or no state came):
+        the robot's newest state, and where it comes to rest braking from it, against the published samples'
+        configurations (``times``, ``positions``) within ``window_s`` of their start
+        (:meth:`psprm_core.tracking.CheckedPath.deviation`, the measure the adapter refuses by); ``tol`` <= 0: off."""
+        q = self.newest()
+        if tol <= 0 or q is None:
+            return ""
+        q = np.asarray(q, float)
+        probe = [q] + ([self.rest_point(q)] if self.robot.mobile else [])
+        checked = CheckedPath(self.robot, times, positions)
+        d = max(checked.deviation(x, 0.0, window_s)[0] for x in probe)
+        if d <= tol:
+            return ""
+        return (f"the robot moved while planning: braking from its newest state it comes {d:.3f} m from the "
+                f"trajectory's start (start tolerance {tol:g} m)")
+
+    def forget_progress(self) -> None:
+        """A new trajectory went out: the next progress estimate starts afresh."""
+        self._along = None
+
+    def time_along(self, traj, t_zero: float, q: np.ndarray, tolerance_m: float) -> Optional[float]:
+        """Where the robot is along the trajectory under way ``traj`` (s from its start; its configuration nearest
+        the measured ``q``, searched forward from the last estimate, the first one from ``t_zero``, the perf_counter
+        time the robot was at its start), or None: no trajectory, it has ended, or the robot is further than
+        ``tolerance_m`` from it (stopped, refused, pushed off) or stands while it moves: a replan then starts where
+        the robot is."""
+        if traj is None:
+            self._along = None
+            return None
+        now = time.perf_counter()
+        prev = self._along
+        if prev is None or prev[0] is not traj:
+            guess = max(0.0, now - t_zero)
+        else:
+            guess = prev[1] + (now - prev[2])
+        t = progress_time(traj, q, guess, window_s=1.5, scale=self.robot.velocity,
+                          angle_cols=[2] if self.robot.mobile else [])
+        if prev is not None and prev[0] is traj:
+            t = max(t, prev[1])  # the robot does not go back along its trajectory
+        Pt, Vt, _ = (a[0] for a in traj.evaluate([t]))
+        off = float(displacement(self.robot, q, Pt[None])[0])
+        # a robot that stands while its trajectory moves (stopped by the adapter, held) does not follow it: a plan
+        # spliced on there would start it at speed
+        vmax = np.maximum(self.robot.velocity, 1e-6)
+        moving = float((np.abs(Vt) / vmax).max()) > 0.2
+        standing = self.speed() < 0.02
+        if off > tolerance_m or (moving and standing) or t >= float(traj.duration) - 1e-6:
+            self._along = None
+            return None
+        self._along = (traj, t, now)
+        return t
