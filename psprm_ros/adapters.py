@@ -428,6 +428,14 @@ def splice_progress(executing, tau: float, times, positions, lookback_s: float, 
     return None if s0 is None else float(np.clip(tau - s0, 0.0, t[-1] - t[0]))
 
 
+def sample_at(times, positions, taus) -> np.ndarray:
+    """Configurations (len(taus), dof) of a trajectory, linear between its points, at times ``taus`` from its start."""
+    t = np.asarray(times, float)
+    t = t - t[0]
+    P = np.asarray(positions, float)
+    return np.stack([np.interp(taus, t, P[:, j]) for j in range(P.shape[1])], axis=1)
+
+
 def trim_from(t: np.ndarray, P: np.ndarray, V: Optional[np.ndarray], tau: float) -> tuple:
     """The trajectory from time ``tau`` on, re-based to start at 0 (its first point interpolated at ``tau``)."""
     if tau >= t[-1]:

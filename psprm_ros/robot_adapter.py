@@ -33,7 +33,7 @@ from typing import Optional
 import numpy as np
 
 from psprm_core.errors import InputError
-from psprm_core.tracking import CheckedPath
+from psprm_core.tracking import CheckedPath, displacement
 
 from . import adapters as ad
 from . import conversions as cv
@@ -526,15 +526,16 @@ class RobotAdapter:
         if self.robot.mobile:
             with self._lock:
                 vel = self.tracker.base_velocity.copy()
+            # the robot drove on since the plan started from its state: start at its progress, not back at the start
+            tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity,
+                                      horizon_s=SPLICE_LOOKBACK_S if splice_d is not None else 1.5)
             if splice_tau is not None:
                 # a splice repeats the trajectory under way up to its commit instant: the robot's time along it is
-                # its time along the trajectory under way, less where the splice began on it
-                tau0 = splice_tau
-            else:
-                # the robot drove on since the plan started from its state: start at its progress, not back at the
-                # start
-                tau0 = ad.progress_offset(t, P, q, vel, base_lead, velocity_limits=self.robot.velocity,
-                                          horizon_s=SPLICE_LOOKBACK_S if splice_d is not None else 1.5)
+                # its time along the trajectory under way, less where the splice began on it; taken unless the
+                # nearest configuration lies more than the splice tolerance nearer the robot
+                d_s, d_n = displacement(self.robot, q, ad.sample_at(t, P, [splice_tau, tau0]))
+                if d_s <= d_n + SPLICE_TOL_M:
+                    tau0 = splice_tau
             if tau0 > 0:
                 t, P, V = ad.trim_from(t - t[0], P, V, tau0)
                 if len(t) <= 1:

@@ -972,3 +972,7 @@ def test_a_splice_that_turns_back_on_itself_starts_the_robot_where_it_is_along_t
     got = ad.splice_progress(executing, tau_robot, t, P, 6.0, 0.01)
     assert got is not None
     assert abs(got - (tau_robot - t_from)) < 0.02, (got, tau_robot - t_from)
+    # the configuration there is the robot's, as near as the reversal's (the adapter takes the splice's time then)
+    from psprm_core.tracking import displacement
+    d_s, d_n = displacement(robot, q, ad.sample_at(t, P, [got, t[k_back]]))
+    assert d_s < 0.01 and d_s <= d_n + 0.01, (d_s, d_n)
