@@ -4,19 +4,44 @@ store, so that what is checked and scored is what runs."""
 
 from __future__ import annotations
 
-from typing import Optional
+from typing import TYPE_CHECKING, Optional, Protocol
 
 import numpy as np
 import torch
 
-from .state import Stage
+from .state import PlannerContext, QueryContext
+
+if TYPE_CHECKING:
+    from .knots import KnotStore
+    from .roadmap_state import RoadmapState
 
 
 SMALL_BATCH = 64  # edges checked in one collision call (knots + dense pieces together) when verifying few edges
 
 
-class Edges(Stage):
+class KnotScorer(Protocol):
+    """What :class:`Edges` uses of :class:`~.scoring.Scoring`: Eq. 1 of knots (:meth:`Edges.edges_valid` scores the
+    edges it checks unless they are scored lazily). A protocol, not the class: ``scoring`` imports this module."""
+
+    def knots_perception(self, knots: torch.Tensor, interior: torch.Tensor, cams: Optional[torch.Tensor] = None,
+                         ends: Optional[tuple] = None) -> torch.Tensor: ...
+
+
+class Edges:
     """Computes, checks and stores the knots of local motions."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, qc: QueryContext):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.qc = qc
+        self.scoring: KnotScorer  # bound by bind_scoring: the scoring stage is made from this one
+
+    def bind_scoring(self, scoring: KnotScorer) -> None:
+        """The scoring stage (:class:`~.scoring.Scoring`), made from this one: edges and scoring use each other
+        (scoring reads stored knots and motion distances, :meth:`edges_valid` scores the edges it checks).
+        :class:`~.pipeline.Pipeline` binds it right after making both."""
+        self.scoring = scoring
 
     def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor, track: bool = True) -> tuple:
         """Knots of the local motions qa -> qb (E, dof): (knots (E, M, dof), interior index (E, N)).
@@ -146,7 +171,7 @@ class Edges(Stage):
             if not self.ctx.settings.edges.lazy_edges and v.any():
                 ends = None if end_scores is None else \
                     tuple(e[s0:s0 + chunk][v].to(self.ctx.device, self.ctx.dtype) for e in end_scores)
-                p[s0:s0 + chunk][v] = self.pl.scoring.knots_perception(knots[v], interior[v], ends=ends)
+                p[s0:s0 + chunk][v] = self.scoring.knots_perception(knots[v], interior[v], ends=ends)
         dof = self.ctx.robot.dof
         if not kept:
             return ok, p, (torch.zeros(0, 2, dof, dtype=self.ctx.dtype, device=self.ctx.device),

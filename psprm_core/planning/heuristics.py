@@ -3,7 +3,7 @@ the motion lower bound of the motion-weighted objective."""
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 import torch
@@ -11,7 +11,10 @@ import torch
 from .. import fastpath
 from . import search_kernels
 from .graph_search import motion_heuristic
-from .state import Stage
+from .state import PlannerContext, QueryContext, ReadsQuerySettings
+
+if TYPE_CHECKING:
+    from .roadmap_state import RoadmapState
 
 
 HOP_TABLE_MAX_NODES = 5000  # roadmaps up to this many nodes keep all their hop distances (uint8, 25 MB at most)
@@ -25,8 +28,13 @@ def resolve(settings) -> str:
     return settings.query.heuristic
 
 
-class Heuristics(Stage):
+class Heuristics(ReadsQuerySettings):
     """Heuristics of the roadmap search (Eqs. 3-6) and the hop table."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, qc: QueryContext):
+        self.ctx = ctx
+        self.rm = rm
+        self.qc = qc
 
     def build_hop_table(self) -> None:
         """Hop distances between all roadmap nodes (uint8, :data:`HOP_TABLE_MAX_NODES` nodes at most), one BFS per

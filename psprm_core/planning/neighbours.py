@@ -8,11 +8,14 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .state import Stage
+from .state import PlannerContext
 
 
-class Neighbours(Stage):
+class Neighbours:
     """Finds candidate edges: k nearest neighbours plus random long edges within delta."""
+
+    def __init__(self, ctx: PlannerContext):
+        self.ctx = ctx
 
     def embed(self, q: torch.Tensor) -> torch.Tensor:
         """Euclidean embedding (x, y, w cos theta, w sin theta, joints) whose distances rank neighbour candidates

@@ -5,18 +5,26 @@ from __future__ import annotations
 
 import logging
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from .constraints import camera_joint_mask
-from .state import Stage
+from .state import PlannerContext
+
+if TYPE_CHECKING:
+    from .scoring import Scoring
 
 log = logging.getLogger(__name__)
 
 
-class Sampling(Stage):
+class Sampling:
     """Draws roadmap nodes: uniform on the manifold, or perception-biased."""
+
+    def __init__(self, ctx: PlannerContext, scoring: Scoring):
+        self.ctx = ctx
+        self.scoring = scoring
 
     def sample(self, n: int, rng: np.random.Generator, template: np.ndarray) -> torch.Tensor:
         """``n`` uniform configurations (not yet projected): the base over the scene's workspace and any heading, the
@@ -65,7 +73,7 @@ class Sampling(Stage):
             if not len(q):
                 tried += s.roadmap.sample_batch
                 continue
-            sc = self.pl.scoring.score_configs(q)
+            sc = self.scoring.score_configs(q)
             tried += len(q)
             accept = torch.as_tensor(rng.random(len(q)), dtype=sc.dtype, device=sc.device) < (sc / ref).clamp(0, 1)
             q, sc = q[accept][: n - got], sc[accept][: n - got]

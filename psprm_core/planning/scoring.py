@@ -5,7 +5,7 @@ the motion-weighted form)."""
 from __future__ import annotations
 
 import contextlib
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 import torch
@@ -13,11 +13,23 @@ import torch
 from .. import fastpath
 from .graph_search import edge_perception, edge_weight
 from .settings import ScoringSettings
-from .state import Stage
+from .state import PlannerContext, QueryContext, ReadsQuerySettings
+
+if TYPE_CHECKING:
+    from .edges import Edges
+    from .knots import KnotStore
+    from .roadmap_state import RoadmapState
 
 
-class Scoring(Stage):
+class Scoring(ReadsQuerySettings):
     """Scores configurations and edges (Eq. 1) and weights edges (Eq. 2 / motion-weighted)."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, qc: QueryContext, edges: Edges):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.qc = qc
+        self.edges = edges
 
     def neural_args(self, dtype: torch.dtype) -> Optional[tuple]:
         """:func:`fastpath.neural_args` of the scorer, kept for the rest of a query (:meth:`~.query.Query.plan_once`
@@ -100,7 +112,7 @@ class Scoring(Stage):
         c = np.clip(np.asarray(scores, float) * self.rm.score_scale, 0.0, 1.0)
         if len(c) < 2:
             return float(c.mean()) if len(c) else float("nan")
-        d = self.pl.edges.motion_distance(np.asarray(dense[:-1]), np.asarray(dense[1:])).astype(np.float64)
+        d = self.edges.motion_distance(np.asarray(dense[:-1]), np.asarray(dense[1:])).astype(np.float64)
         if d.sum() <= 0:
             return float(c.mean())
         return float(((c[:-1] + c[1:]) * 0.5 * d).sum() / d.sum())
@@ -135,7 +147,7 @@ class Scoring(Stage):
 
     def stored_perception(self, edge_ids: np.ndarray) -> torch.Tensor:
         """Eq. 1 of graph edges from their stored knots; camera poses are computed once and kept."""
-        knots, interior = self.pl.edges.stored_knots(edge_ids)
+        knots, interior = self.edges.stored_knots(edge_ids)
         have = self.knots.known_cams(edge_ids)
         if not have.all():
             miss = np.unique(np.asarray(edge_ids)[~have])

@@ -88,6 +88,19 @@ class QueryContext:
         self.scorer_args, self.untracked = None, False
 
 
+class ReadsQuerySettings:
+    """For a stage that holds ``ctx`` (:class:`PlannerContext`) and ``qc`` (:class:`QueryContext`): :attr:`qs`, the
+    settings the running query plans with."""
+
+    ctx: PlannerContext
+    qc: QueryContext
+
+    @property
+    def qs(self) -> PSPRMSettings:
+        """The settings of the running query (the planner's, with the query's options), else the planner's."""
+        return self.qc.settings if self.qc.settings is not None else self.ctx.settings
+
+
 class Stage:
     """A stage of the planner's pipeline: reads the shared state objects and calls its sibling stages through
     :attr:`pl`."""

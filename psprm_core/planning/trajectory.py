@@ -4,22 +4,35 @@ every ``edge_resolution`` and the time-parameterised trajectory within the joint
 from __future__ import annotations
 
 import logging
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from .results import PlanResult
-from .state import NP_DTYPE, Stage
+from .state import NP_DTYPE, PlannerContext, QueryContext, ReadsQuerySettings
 from .timing import ProfileCache, time_parameterize
+
+if TYPE_CHECKING:
+    from .edges import Edges
+    from .knots import KnotStore
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
 
 log = logging.getLogger(__name__)
 
 
-class Trajectory(Stage):
+class Trajectory(ReadsQuerySettings):
     """Turns node paths into checked waypoints and timed trajectories."""
 
-    def __init__(self, pl):
-        super().__init__(pl)
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, qc: QueryContext, edges: Edges,
+                 scoring: Scoring):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.qc = qc
+        self.edges = edges
+        self.scoring = scoring
         self.profiles = ProfileCache()  # smooth phases timed before (a replanner's plans share most of them)
 
     def finish(self, path: list, cost: float, timing: bool) -> PlanResult:
@@ -31,7 +44,7 @@ class Trajectory(Stage):
         if len(Q) > 1:  # the knots the edges were checked and scored with, in traversal direction
             eids = g.edge_ids_of_path(path)
             if not self.knots.known(eids).all():
-                self.pl.edges.stored_knots(eids)
+                self.edges.stored_knots(eids)
             knots = self.knots.data[torch.as_tensor(eids, device=self.knots.data.device)].cpu().numpy()
             flip = g.edge_u[eids] != np.asarray(path[:-1])
             knots[flip] = knots[flip, ::-1]
@@ -44,7 +57,7 @@ class Trajectory(Stage):
         dense, length = self.ctx.backend.dense_path(W)
         traj = self.timed(W) if timing and len(W) > 1 else None
         return PlanResult(True, "ok", path_nodes=list(path), waypoints=W, dense=dense, trajectory=traj,
-                          cost=float(cost), path_length=length, score_fn=self.pl.scoring.score_numpy)
+                          cost=float(cost), path_length=length, score_fn=self.scoring.score_numpy)
 
     def timed(self, W: np.ndarray):
         """Time-parameterised trajectory through the knots ``W`` (K, dof) within the joint limits

@@ -3,7 +3,7 @@ scores when first used; colliding ones leave the roadmap."""
 
 from __future__ import annotations
 
-from typing import Callable, Optional
+from typing import TYPE_CHECKING, Callable, Optional
 
 import numpy as np
 import torch
@@ -11,11 +11,26 @@ import torch
 from .. import fastpath
 from .graph_search import EdgeCheck, edge_perception
 from .edges import SMALL_BATCH
-from .state import NP_DTYPE, Stage
+from .state import NP_DTYPE, PlannerContext, QueryContext
+
+if TYPE_CHECKING:
+    from .edges import Edges
+    from .knots import KnotStore
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
 
 
-class Verification(Stage):
+class Verification:
     """Verifies the edges a lazy search wants to use."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, qc: QueryContext, edges: Edges,
+                 scoring: Scoring):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.qc = qc
+        self.edges = edges
+        self.scoring = scoring
 
     def verify_edges(self, edge_ids: np.ndarray, path) -> "EdgeCheck":
         """Lazy evaluation of the edges a search wants to use: dense collision check (Lazy PRM) and the Eq. 1
@@ -28,15 +43,15 @@ class Verification(Stage):
         fused = self.verify_compiled(todo)
         if fused is not None:
             return fused
-        knots, interior = self.pl.edges.stored_knots(todo)
+        knots, interior = self.edges.stored_knots(todo)
         ok = torch.ones(len(todo), dtype=torch.bool, device=self.ctx.device)
         need = torch.as_tensor(chk[todo] < 0.5, device=self.ctx.device)
         if need.any():  # interior knots and the dense pieces between them (obstacles may have moved since build)
-            ok[need] = self.pl.edges.knots_valid(knots[need], dense=True)
+            ok[need] = self.edges.knots_valid(knots[need], dense=True)
         if self.qc.untracked and not bool(ok.all()):
             ok |= self.untracked_query_edges(todo, ok)
         return self.record(todo, ok.cpu().numpy(),
-                           lambda m: self.pl.scoring.stored_perception(todo[m]).double().cpu().numpy())
+                           lambda m: self.scoring.stored_perception(todo[m]).double().cpu().numpy())
 
     def record(self, todo: np.ndarray, ok: np.ndarray, perception: Callable) -> EdgeCheck:
         """Write a verification of edges ``todo`` into the roadmap: all are checked now, the colliding ones (``ok``
@@ -57,7 +72,7 @@ class Verification(Stage):
             p = perception(score)
             g.edge_attribute("c_p")[sel] = p
             ver[sel] = 1.0
-            w = self.pl.scoring.weight(p, g.edge_attribute("c_m")[sel])
+            w = self.scoring.weight(p, g.edge_attribute("c_m")[sel])
             weights = {int(e): float(x) for e, x in zip(sel, w)}
         return EdgeCheck(invalid=[int(e) for e in invalid], weights=weights)
 
@@ -71,7 +86,7 @@ class Verification(Stage):
         if (self.qc.untracked or len(todo) > SMALL_BATCH or not self.ctx.backend.fused or store.data is None
                 or store.data.shape[1] <= 2 or not fastpath.applies(store.data[:1])):
             return None
-        args = self.pl.scoring.neural_args(self.ctx.dtype)
+        args = self.scoring.neural_args(self.ctx.dtype)
         if args is None:
             return None
         ver, chk = g.edge_attribute("verified"), g.edge_attribute("checked")
@@ -81,7 +96,7 @@ class Verification(Stage):
             pend = self.qc.pending_rows
             rows = np.asarray([pend.get(int(e), -1) for e in todo[compute]], dtype=np.int64)
             if (rows < 0).any():  # not a connection edge of this query: computed the step-by-step way first
-                self.pl.edges.stored_knots(todo[compute][rows < 0])
+                self.edges.stored_knots(todo[compute][rows < 0])
                 compute = ~store.known(todo)
                 rows = np.asarray([pend[int(e)] for e in todo[compute]], dtype=np.int64)
             hit = self.cached_query_knots(todo[compute], rows)
@@ -123,7 +138,7 @@ class Verification(Stage):
             _, ua, _, _ = self.qc.pending_np
             kn = torch.stack([cache[k][0] for k, h in zip(keys, hit) if h])
             ki = torch.stack([cache[k][1] for k, h in zip(keys, hit) if h])
-            self.pl.edges.put_knots(eids[hit], ua[rows[hit]], kn, ki)
+            self.edges.put_knots(eids[hit], ua[rows[hit]], kn, ki)
         return hit
 
     def cache_query_knots(self, eids: np.ndarray, rows: np.ndarray, flip: np.ndarray) -> None:
@@ -160,8 +175,8 @@ class Verification(Stage):
             return out
         e = ids[cand]
         qa, qb = self.ctx.t(g.configs[g.edge_u[e]]), self.ctx.t(g.configs[g.edge_v[e]])
-        knots, interior = self.pl.edges.edge_knots(qa, qb, track=False)
-        free = self.pl.edges.knots_valid(knots, dense=True)
+        knots, interior = self.edges.edge_knots(qa, qb, track=False)
+        free = self.edges.knots_valid(knots, dense=True)
         if free.any():
             fi = free.cpu().numpy()
             self.knots.put(e[fi], knots[free], interior[free])  # stored u -> v direction; camera poses reset
