@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Optional
+from typing import TYPE_CHECKING, Optional
 
 import numpy as np
 import torch
@@ -13,13 +13,35 @@ import torch
 from .. import fastpath
 from .graph import Roadmap
 from .graph_search import edge_perception
-from .state import Stage, large_batches
+from .state import PlannerContext, large_batches
+
+if TYPE_CHECKING:
+    from .edges import Edges
+    from .heuristics import Heuristics
+    from .knots import KnotStore
+    from .neighbours import Neighbours
+    from .roadmap_state import RoadmapState
+    from .sampling import Sampling
+    from .scoring import Scoring
+    from .trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 
 
-class Builder(Stage):
+class Builder:
     """Builds and grows the roadmap."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, sampling: Sampling,
+                 neighbours: Neighbours, edges: Edges, scoring: Scoring, heuristics: Heuristics, trajectory: Trajectory):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.sampling = sampling
+        self.neighbours = neighbours
+        self.edges = edges
+        self.scoring = scoring
+        self.heuristics = heuristics
+        self.trajectory = trajectory
 
     def build(self, template: Optional[np.ndarray] = None) -> dict:
         """Sample, project, connect and score the roadmap; returns build statistics.
@@ -55,7 +77,7 @@ class Builder(Stage):
             if time.perf_counter() - t0 > s.roadmap.build_timeout_s:
                 log.warning("node sampling timed out with %d/%d nodes", have, s.roadmap.n_nodes)
                 break
-            q = self.pl.sampling.manifold_samples(rng, template)
+            q = self.sampling.manifold_samples(rng, template)
             tried += s.roadmap.sample_batch
             nodes.append(q)
             have += len(q)
@@ -65,22 +87,22 @@ class Builder(Stage):
             return self.rm.stats
         Q = torch.cat(nodes)[: n_uniform]
         t2 = time.perf_counter()
-        node_scores = self.pl.scoring.score_configs(Q)
+        node_scores = self.scoring.score_configs(Q)
         biased = {}
         if n_biased:
             t5 = time.perf_counter()
-            Q, node_scores, biased = self.pl.sampling.biased_nodes(Q, node_scores, n_biased, rng, template, t0)
+            Q, node_scores, biased = self.sampling.biased_nodes(Q, node_scores, n_biased, rng, template, t0)
             t_sample += time.perf_counter() - t5
         self.rm.score_scale = 1.0
         if s.scoring.normalize_scores:  # the normalised score of Eq. 1 (c_p in [0, 1]) is relative to this roadmap
             self.rm.score_scale = 1.0 / max(float(torch.quantile(node_scores.double(), 0.99)), 1e-3)
         t_score = time.perf_counter() - t2
         t1 = time.perf_counter()
-        eu, ev, dist = self.pl.neighbours.neighbours(Q, Q, s.roadmap.k_neighbors, exclude_self=True, k_long=s.roadmap.k_long, rng=rng)
-        valid, p_edge, knots = self.pl.edges.edges_valid(Q[eu], Q[ev], end_scores=(node_scores[eu], node_scores[ev]))
+        eu, ev, dist = self.neighbours.neighbours(Q, Q, s.roadmap.k_neighbors, exclude_self=True, k_long=s.roadmap.k_long, rng=rng)
+        valid, p_edge, knots = self.edges.edges_valid(Q[eu], Q[ev], end_scores=(node_scores[eu], node_scores[ev]))
         eu, ev, dist, p_edge = eu[valid], ev[valid], dist[valid], p_edge[valid]
         if s.edges.lazy_edges:  # endpoints only for now; interiors are scored when a search first uses the edge
-            norm = self.pl.scoring.normalized
+            norm = self.scoring.normalized
             p_edge = edge_perception(norm(node_scores[eu]), norm(node_scores[ev]))
         t_edges = time.perf_counter() - t1
         self.rm.max_motion = float(dist.max()) if len(dist) else 1.0
@@ -89,17 +111,17 @@ class Builder(Stage):
         g.add_nodes(Q.double().cpu().numpy())
         self.knots.clear()
         edge_ids = g.add_edges(eu.cpu().numpy(), ev.cpu().numpy(),
-                               self.pl.scoring.weight(p_edge, c_m).double().cpu().numpy(),
+                               self.scoring.weight(p_edge, c_m).double().cpu().numpy(),
                                c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
                                verified=np.full(len(eu), 0.0 if s.edges.lazy_edges else 1.0),
                                checked=np.full(len(eu), 0.0 if s.edges.lazy_collision else 1.0))
         self.rm.adopt(g, node_scores.double().cpu().numpy(), max_motion=self.rm.max_motion,
                       score_scale=self.rm.score_scale)
-        self.pl.edges.put_knots(edge_ids, eu.cpu().numpy(), *knots)
+        self.edges.put_knots(edge_ids, eu.cpu().numpy(), *knots)
         t3 = time.perf_counter()
         expand = self.expand(rng) if s.roadmap.expand_rounds > 0 else {}
         t4 = time.perf_counter()
-        self.pl.heuristics.build_hop_table()
+        self.heuristics.build_hop_table()
         if self.knots.data is not None:  # room for the queries' edges now: the first query does not copy the store
             self.knots.reserve(self.rm.graph.n_edges + 1)
         build_s = time.perf_counter() - t0
@@ -130,7 +152,7 @@ class Builder(Stage):
         else:
             W[1:, -1] += (0.05, 0.1)
         try:
-            self.pl.trajectory.timed(W)
+            self.trajectory.timed(W)
         except Exception as exc:  # the warm-up must never stop a build; the first plan then loads TOPP-RA itself
             log.debug("trajectory timing warm-up failed: %s", exc)
         warm_up_search()
@@ -144,10 +166,10 @@ class Builder(Stage):
         c.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
         args = fastpath.neural_args(c.scorer, c.dtype)
         if score or args is not None:  # a neural scorer is the surrogate (one compiled call), not a rendered view
-            self.pl.scoring.score_configs(q)
-        kn, ki = self.pl.edges.edge_knots(q, qb)  # a query's connection edges (one compiled call)
+            self.scoring.score_configs(q)
+        kn, ki = self.edges.edge_knots(q, qb)  # a query's connection edges (one compiled call)
         seeds = fastpath.edge_knot_seeds(c.motion, q, qb, c.settings.edges.n_interp)[0]
-        self.pl.edges.track_knots(seeds)  # step by step
+        self.edges.track_knots(seeds)  # step by step
         if args is not None:  # the lazy verification's compiled calls
             fastpath.check_score_knots(c.motion, c.checker, c.robot, args, kn, ki, np.ones(2, bool),
                                        np.ones(2, bool), c.settings.edges.edge_resolution, 200)
@@ -159,7 +181,7 @@ class Builder(Stage):
                                   c.settings.projection, c.lo, c.hi, c.track_cols,
                                   c.settings.edges.track_iters, np.ones(2, bool), np.ones(2, bool),
                                   c.settings.edges.edge_resolution, 200)
-        self.pl.edges.pieces(q, qb, max_steps=200, include_start=False)
+        self.edges.pieces(q, qb, max_steps=200, include_start=False)
         c.motion.distance(q, qb)
         fastpath.nearest(c.motion, q, qb, 1)
         return time.perf_counter() - t0
@@ -208,7 +230,7 @@ class Builder(Stage):
         got = []
         have = 0
         while have < n and time.perf_counter() - t0 < timeout_s:
-            q = self.pl.sampling.sample(max(4 * n, 256), rng, self.rm.template)
+            q = self.sampling.sample(max(4 * n, 256), rng, self.rm.template)
             if center is not None and self.ctx.robot.mobile:
                 ang = rng.uniform(-np.pi, np.pi, len(q))
                 rr = radius * np.sqrt(rng.random(len(q)))
@@ -242,10 +264,10 @@ class Builder(Stage):
         mask[new_ids] = True
         self.rm.is_roadmap = mask
         scores = self.rm.node_score_slots()
-        scores[new_ids] = self.pl.scoring.score_configs(Qn).double().cpu().numpy()
+        scores[new_ids] = self.scoring.score_configs(Qn).double().cpu().numpy()
         all_ids = np.concatenate([old_ids, new_ids])
         Qall = self.ctx.t(g.configs[all_ids])
-        eu, ev, dist = self.pl.neighbours.neighbours(Qn, Qall, s.roadmap.k_neighbors, k_long=s.roadmap.k_long, rng=rng)
+        eu, ev, dist = self.neighbours.neighbours(Qn, Qall, s.roadmap.k_neighbors, k_long=s.roadmap.k_long, rng=rng)
         u_ids, v_ids = new_ids[eu.cpu().numpy()], all_ids[ev.cpu().numpy()]
         keep = u_ids != v_ids
         eu, ev, dist, u_ids, v_ids = eu[keep], ev[keep], dist[keep], u_ids[keep], v_ids[keep]
@@ -260,21 +282,21 @@ class Builder(Stage):
         added = 0
         if len(sel):
             qa, qb = Qn[eu[sel]], Qall[ev[sel]]
-            valid, p_edge, knots = self.pl.edges.edges_valid(qa, qb)  # old nodes' scores may predate a scene change
+            valid, p_edge, knots = self.edges.edges_valid(qa, qb)  # old nodes' scores may predate a scene change
             if s.edges.lazy_edges:
                 sc = self.ctx.t(scores)
-                norm = self.pl.scoring.normalized
+                norm = self.scoring.normalized
                 p_edge = edge_perception(norm(sc[u_ids[sel]]), norm(sc[v_ids[sel]]))
             v = valid.cpu().numpy()
             c_m = dist[sel] / self.rm.max_motion
             c_m = (c_m.clamp(0, 1) if s.scoring.objective == "eq2" else c_m)[valid]
             p_edge = p_edge[valid]
             eids = g.add_edges(u_ids[sel][v], v_ids[sel][v],
-                               self.pl.scoring.weight(p_edge, c_m).double().cpu().numpy(),
+                               self.scoring.weight(p_edge, c_m).double().cpu().numpy(),
                                c_m=c_m.double().cpu().numpy(), c_p=p_edge.double().cpu().numpy(),
                                verified=np.full(int(v.sum()), 0.0 if s.edges.lazy_edges else 1.0),
                                checked=np.full(int(v.sum()), 0.0 if s.edges.lazy_collision else 1.0))
-            self.pl.edges.put_knots(eids, u_ids[sel][v], *knots)
+            self.edges.put_knots(eids, u_ids[sel][v], *knots)
             added = int(v.sum())
         self.rm.index = None
         return {"added_nodes": int(len(new_ids)), "added_edges": added, "grow_ms": (time.perf_counter() - t0) * 1e3,

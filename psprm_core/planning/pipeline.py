@@ -63,11 +63,15 @@ class Pipeline:
         self.heuristics = Heuristics(ctx, rm, qc)
         self.verify = Verification(ctx, rm, knots, qc, edges=self.edges, scoring=self.scoring)
         self.trajectory = Trajectory(ctx, rm, knots, qc, edges=self.edges, scoring=self.scoring)
-        self.builder = Builder(self)
-        self.query = Query(self)
-        self.shortcut = Shortcut(self)
-        self.selection = RouteSelection(self)
-        self.recovery = Recovery(self)
+        self.builder = Builder(ctx, rm, knots, sampling=self.sampling, neighbours=self.neighbours, edges=self.edges,
+                               scoring=self.scoring, heuristics=self.heuristics, trajectory=self.trajectory)
+        self.shortcut = Shortcut(ctx, rm, qc, edges=self.edges, scoring=self.scoring)
+        self.query = Query(ctx, rm, qc, edges=self.edges, scoring=self.scoring, heuristics=self.heuristics,
+                           verify=self.verify, shortcut=self.shortcut, trajectory=self.trajectory)
+        self.shortcut.bind_query(self.query)  # upward: a shortcut taken joins the query's edges
+        self.selection = RouteSelection(ctx, rm, qc, query=self.query, scoring=self.scoring)
+        self.recovery = Recovery(ctx, rm, builder=self.builder, edges=self.edges, query=self.query)
+        self.query.bind_recovery(self.recovery)  # upward: the query's start fix is a recovery strategy
         self.dynamics = Dynamics(self)
         self.persistence = Persistence(self)
 

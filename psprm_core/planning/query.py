@@ -4,7 +4,7 @@ scored like roadmap edges), search (A* or lazy A*), then the recovery stages whe
 from __future__ import annotations
 
 import time
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Protocol, Sequence
 
 import numpy as np
 import torch
@@ -12,16 +12,50 @@ import torch
 from ..errors import InputError
 from .graph_search import astar, edge_perception, lazy_astar, min_edge_cost
 from .results import Failure, PlanResult
-from .state import NP_DTYPE, Stage
+from .state import NP_DTYPE, PlannerContext, QueryContext, ReadsQuerySettings
+
+if TYPE_CHECKING:
+    from .edges import Edges
+    from .heuristics import Heuristics
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
+    from .shortcut import Shortcut
+    from .trajectory import Trajectory
+    from .verification import Verification
 
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)
 QUERY_FALLBACK_K = 3  # nearest roadmap nodes a start/goal with none within 2 max_edge_length is still tried with
 
 
-class Query(Stage):
+class StartFix(Protocol):
+    """What :class:`Query` uses of :class:`~.recovery.Recovery`: the start fix (:meth:`~.recovery.Recovery.move_out`)
+    of a start inside the collision padding. A protocol, not the class: ``recovery`` imports this module."""
+
+    def move_out(self, start: np.ndarray) -> Optional[tuple]: ...
+
+
+class Query(ReadsQuerySettings):
     """Connects a query to the roadmap and searches it."""
 
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, qc: QueryContext, edges: Edges, scoring: Scoring,
+                 heuristics: Heuristics, verify: Verification, shortcut: Shortcut, trajectory: Trajectory):
+        self.ctx = ctx
+        self.rm = rm
+        self.qc = qc
+        self.edges = edges
+        self.scoring = scoring
+        self.heuristics = heuristics
+        self.verify = verify
+        self.shortcut = shortcut
+        self.trajectory = trajectory
+        self.recovery: StartFix  # bound by bind_recovery: the recovery stage is made from this one
+
+    def bind_recovery(self, recovery: StartFix) -> None:
+        """The recovery stage (:class:`~.recovery.Recovery`), made from this one: its strategies search again
+        through :meth:`plan_once`, and :meth:`plan_once` moves a start inside the collision padding out of it with
+        the start fix. :class:`~.pipeline.Pipeline` binds it right after making both."""
+        self.recovery = recovery
 
     def nearest_ids(self, qq: torch.Tensor, pool: torch.Tensor, k: int) -> torch.Tensor:
         """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` (motion metric)."""
@@ -74,7 +108,7 @@ class Query(Stage):
             if why != "environment" or pad == 0 or bool(self.ctx.checker.check_unpadded(self.ctx.t(Q[:1]))[0]):
                 return PlanResult(False, f"start configuration invalid ({why})", Failure.START_BLOCKED)
             # inside the clearance kept from the obstacles, not touching them: the start fix moves it out first
-            fix = self.pl.recovery.move_out(Q[0])
+            fix = self.recovery.move_out(Q[0])
             if fix is None:
                 return PlanResult(False, f"start configuration within the collision padding ({pad:g} m) of an "
                                          f"obstacle, and no motion out of it was found within "
@@ -109,7 +143,7 @@ class Query(Stage):
             qb = np.concatenate([rm_np[dst], g.configs[goal_ids].astype(Q.dtype).reshape(-1, Q.shape[1])])
             u_ids = np.concatenate([qend[src], np.full(len(goal_ids), s_id, dtype=np.int64)])
             v_ids = np.concatenate([rm_ids[dst], np.asarray(goal_ids, dtype=np.int64)])
-            dist = self.pl.edges.motion_distance(qa, qb)
+            dist = self.edges.motion_distance(qa, qb)
             within = dist <= 2 * self.ctx.settings.roadmap.max_edge_length
             # a start or goal far from the manifold (e.g. the arm folded away) has no roadmap node within 2 delta:
             # it still gets its QUERY_FALLBACK_K nearest candidates (longer edges, checked like any other)
@@ -144,12 +178,12 @@ class Query(Stage):
                 # Lazy PRM for the query edges too: endpoint estimate of Eq. 1 now, the dense collision check and the
                 # interior scores only for the edges the search wants to use (usually one at each end)
                 scores = self.rm.node_score_slots()
-                scores[ids] = self.pl.scoring.query_scores(Q)
+                scores[ids] = self.scoring.query_scores(Q)
                 ua, vb = u_ids[near], v_ids[near]
                 scale = self.rm.score_scale
                 pe = edge_perception(np.clip(scores[ua] * scale, 0, 1), np.clip(scores[vb] * scale, 0, 1))
                 eids = self.add_query_edges(ua, vb, pe.astype(Q.dtype), verified=False,
-                                            dist=dist[near] if len(dist) == len(qa) else self.pl.edges.motion_distance(
+                                            dist=dist[near] if len(dist) == len(qa) else self.edges.motion_distance(
                                                  qa[near], qb[near]))  # extras: unknown
                 added_edges.extend(eids)
                 # the knots (re-aimed interior knots) of a candidate edge are computed when the search first
@@ -165,8 +199,8 @@ class Query(Stage):
                     keep = near[okn]
                     ua = u_ids[keep]
                     eids = self.add_query_edges(ua, v_ids[keep], pe[ok].cpu().numpy(),
-                                                dist=self.pl.edges.motion_distance(qa[keep], qb[keep]))
-                    self.pl.edges.put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
+                                                dist=self.edges.motion_distance(qa[keep], qb[keep]))
+                    self.edges.put_knots(np.asarray(eids), ua, kn[ok], ki[ok])
                     added_edges.extend(eids)
             search_start = s_id
             if fix is not None:  # the measured start, and its checked motion out of the padding to Q[0]
@@ -191,14 +225,14 @@ class Query(Stage):
             if not goal_ids:
                 res = None
             else:
-                heur = self.pl.heuristics.name
+                heur = self.heuristics.name
                 if heur == "distance":
-                    heur = self.pl.heuristics.distance(goal_ids, search_goals[0] if sink_w is not None else None)
+                    heur = self.heuristics.distance(goal_ids, search_goals[0] if sink_w is not None else None)
                 if self.ctx.settings.edges.lazy_edges or self.ctx.settings.edges.lazy_collision or self.rm.unverified:
                     hops = None
                     if isinstance(heur, str) and heur == "hop":
-                        hops = self.pl.heuristics.query_hops(search_goals, added_edges)
-                    res = lazy_astar(g, search_start, search_goals, self.pl.verify.verify_edges, heuristic=heur,
+                        hops = self.heuristics.query_hops(search_goals, added_edges)
+                    res = lazy_astar(g, search_start, search_goals, self.verify.verify_edges, heuristic=heur,
                                      apply_to_graph=True,
                                      hops=hops)
                 else:
@@ -212,8 +246,8 @@ class Query(Stage):
                 path, goal = path[:-1], path[-2]
                 cost -= sink_w[goal]
             if self.qs.query.shortcut and len(path) > 2:
-                path, cost = self.pl.shortcut.shortcut_path(path, cost, added_edges)
-            result = self.pl.trajectory.finish(path, cost, timing)
+                path, cost = self.shortcut.shortcut_path(path, cost, added_edges)
+            result = self.trajectory.finish(path, cost, timing)
             result.goal_index = int(np.nonzero(np.asarray(ids[1:]) == goal)[0][0])
             if fix is not None:
                 result.reason = f"{result.reason} (after moving the start out of the collision padding)"
@@ -239,7 +273,7 @@ class Query(Stage):
         c_m = dist / np.asarray(self.rm.max_motion, dist.dtype)
         if self.qs.scoring.objective == "eq2":  # Eq. 2 keeps c_m in [0, 1]; the motion form's heuristic needs all
             c_m = np.clip(c_m, 0, 1)
-        w = self.pl.scoring.weight(p, c_m)
+        w = self.scoring.weight(p, c_m)
         return list(self.rm.graph.add_edges(np.asarray(ua), np.asarray(vb), w.astype(np.float64),
                                             c_m=c_m.astype(np.float64), c_p=p.astype(np.float64),
                                             verified=float(verified), checked=float(verified)))
@@ -247,19 +281,19 @@ class Query(Stage):
     def query_edges(self, qa: torch.Tensor, qb: torch.Tensor, untracked: bool = False) -> tuple:
         """Validity and Eq. 1 perception of query edges (always scored in full, never lazily); with ``untracked``,
         edges whose re-aimed knots collide are tried with their untracked knots."""
-        knots, interior = self.pl.edges.query_knots(qa, qb)
-        ok = self.pl.edges.knots_valid(knots)
+        knots, interior = self.edges.query_knots(qa, qb)
+        ok = self.edges.knots_valid(knots)
         if untracked and not bool(ok.all()):
             bad = torch.nonzero(~ok, as_tuple=True)[0]
-            kp, ip = self.pl.edges.edge_knots(qa[bad], qb[bad], track=False)
-            free = self.pl.edges.knots_valid(kp)
+            kp, ip = self.edges.edge_knots(qa[bad], qb[bad], track=False)
+            free = self.edges.knots_valid(kp)
             if free.any():
                 knots, interior = knots.clone(), interior.clone()
                 knots[bad[free]], interior[bad[free]] = kp[free], ip[free]
                 ok[bad[free]] = True
         p = torch.zeros(qa.shape[0], dtype=self.ctx.dtype, device=self.ctx.device)
         if ok.any():
-            p[ok] = self.pl.scoring.knots_perception(knots[ok], interior[ok])
+            p[ok] = self.scoring.knots_perception(knots[ok], interior[ok])
         return ok, p, knots, interior
 
     def add_start_fix(self, origin: np.ndarray, fixed_node: int, fix: tuple, added_nodes: list,
@@ -270,17 +304,17 @@ class Query(Stage):
         g = self.rm.graph
         o = int(g.add_nodes(origin[None].astype(np.float64))[0])
         added_nodes.append(o)
-        self.rm.node_score_slots()[o] = float(self.pl.scoring.score_configs(self.ctx.t(origin[None]))[0])
+        self.rm.node_score_slots()[o] = float(self.scoring.score_configs(self.ctx.t(origin[None]))[0])
         added_edges.extend(self.add_checked_edges(np.array([o]), np.array([fixed_node]), fix[1], fix[2]))
         return o
 
     def add_checked_edges(self, ua: np.ndarray, vb: np.ndarray, knots: torch.Tensor, interior: torch.Tensor) -> list:
         """Add query edges ``ua`` -> ``vb`` whose ``knots`` (E, M, dof) were checked by the caller: scored with Eq. 1
         on those knots, their motion cost from the knots' ends, verified, and the knots stored (what runs)."""
-        p = self.pl.scoring.knots_perception(knots, interior).cpu().numpy()
-        d = self.pl.edges.motion_distance(knots[:, 0].cpu().numpy(), knots[:, -1].cpu().numpy())
+        p = self.scoring.knots_perception(knots, interior).cpu().numpy()
+        d = self.edges.motion_distance(knots[:, 0].cpu().numpy(), knots[:, -1].cpu().numpy())
         new = self.add_query_edges(ua, vb, p, d, verified=True)
-        self.pl.edges.put_knots(np.asarray(new), ua, knots, interior)
+        self.edges.put_knots(np.asarray(new), ua, knots, interior)
         return new
 
     def add_escapes(self, escapes: dict, end_node: dict, added_nodes: list) -> list:
@@ -296,7 +330,7 @@ class Query(Stage):
                 nid = np.asarray(g.add_nodes(esc.configs.double().cpu().numpy()), dtype=np.int64)
                 added_nodes.extend(int(n) for n in nid)
                 scores = self.rm.node_score_slots()
-                scores[nid] = self.pl.scoring.score_configs(esc.configs).double().cpu().numpy()
+                scores[nid] = self.scoring.score_configs(esc.configs).double().cpu().numpy()
 
             def node(i):
                 return end_node[k] if i < 0 else int(nid[i])

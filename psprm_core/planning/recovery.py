@@ -5,14 +5,20 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 import torch
 
 from .knots import no_knots
 from .results import EscapeResult, Failure, PlanResult
-from .state import NP_DTYPE, Stage, large_batches
+from .state import NP_DTYPE, PlannerContext, large_batches
+
+if TYPE_CHECKING:
+    from .builder import Builder
+    from .edges import Edges
+    from .query import Query
+    from .roadmap_state import RoadmapState
 
 log = logging.getLogger(__name__)
 
@@ -33,8 +39,15 @@ START_FIX_RINGS = (0.125, 0.25, 0.5, 1.0)  # rings of the start fix, as fraction
 START_FIX_TRY = 8  # nearest padded-free offsets of a ring whose motion from the start is checked
 
 
-class Recovery(Stage):
+class Recovery:
     """Escape search and local roadmap repair for unreachable query ends, and the start fix."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, builder: Builder, edges: Edges, query: Query):
+        self.ctx = ctx
+        self.rm = rm
+        self.builder = builder
+        self.edges = edges
+        self.query = query
 
     def move_out(self, start: np.ndarray) -> Optional[tuple]:
         """The start fix: a configuration near ``start`` that keeps the planner's collision padding, and the motion
@@ -67,12 +80,12 @@ class Recovery(Stage):
             if not free.any():
                 continue
             cand = cand[free].astype(npd)
-            dist = self.pl.edges.motion_distance(np.repeat(q0[None].astype(npd), len(cand), 0), cand)
+            dist = self.edges.motion_distance(np.repeat(q0[None].astype(npd), len(cand), 0), cand)
             pick = cand[np.argsort(dist, kind="stable")[:START_FIX_TRY]]
             b = self.ctx.t(pick)
-            knots, interior = self.pl.edges.edge_knots(a.expand(len(b), -1), b, track=False)
+            knots, interior = self.edges.edge_knots(a.expand(len(b), -1), b, track=False)
             # the ends are free of the real boxes (the start touches none, the picks keep the padding): the rest
-            ok = self.pl.edges.knots_valid(knots, check=ck.check_unpadded)
+            ok = self.edges.knots_valid(knots, check=ck.check_unpadded)
             if ok.any():
                 i = int(torch.nonzero(ok, as_tuple=True)[0][0])
                 return pick[i], knots[i:i + 1], interior[i:i + 1]
@@ -113,8 +126,8 @@ class Recovery(Stage):
                     where = f", bases within {esc.base_reach:.2f} m of it" if self.ctx.robot.mobile else ""
                     why.append(f"{name}: the escape search found no way to the roadmap's largest component "
                                f"({esc.explored} configurations reached in {esc.seconds:.1f} s{where})")
-        res = self.pl.query.plan_once(start, goals, timing, goal_costs, untracked=s.recovery.query_untracked_fallback,
-                                      escapes={k: e for k, e in escapes.items() if e.success})
+        res = self.query.plan_once(start, goals, timing, goal_costs, untracked=s.recovery.query_untracked_fallback,
+                                   escapes={k: e for k, e in escapes.items() if e.success})
         if res.success:
             n = sum(len(e.configs) for e in escapes.values())
             res.reason = f"ok after an escape search ({n} intermediate configurations)"
@@ -173,7 +186,7 @@ class Recovery(Stage):
                                      as_tuple=True)[0]
                 if len(pool) == 0:
                     return []
-            cand = pool[self.pl.query.nearest_ids(qn, rm_q[pool], s.recovery.query_escape_connect_k).to(self.ctx.device)]
+            cand = pool[self.query.nearest_ids(qn, rm_q[pool], s.recovery.query_escape_connect_k).to(self.ctx.device)]
             kk = cand.shape[1]
             src = torch.arange(len(qn), device=self.ctx.device).repeat_interleave(kk)
             dst = cand.reshape(-1)
@@ -184,8 +197,8 @@ class Recovery(Stage):
                 return []
             if len(near) > ESCAPE_CONNECT:  # the shortest candidates of the round (the likeliest to be free)
                 near = near[d[near].topk(ESCAPE_CONNECT, largest=False).indices]
-            kn, ki = self.pl.edges.edge_knots(qa[near], qb[near], track=False)
-            ok = self.pl.edges.knots_free(kn)
+            kn, ki = self.edges.edge_knots(qa[near], qb[near], track=False)
+            ok = self.edges.knots_free(kn)
             out = []
             for j in torch.nonzero(ok, as_tuple=True)[0].tolist():
                 i = int(near[j])
@@ -215,7 +228,7 @@ class Recovery(Stage):
                 q[:, 2] = rng.uniform(-np.pi, np.pi, B)
             goal_bias = u < 0.15
             q[goal_bias] = self.rm.graph.configs[targets[like[goal_bias]]]
-            nn = self.pl.query.nearest_ids(self.ctx.t(np.clip(q, lo, hi)), T, 1)[:, 0].cpu().numpy()
+            nn = self.query.nearest_ids(self.ctx.t(np.clip(q, lo, hi)), T, 1)[:, 0].cpu().numpy()
             if r.mobile:  # manoeuvres from random tree nodes: drive / back up along the heading, or turn in place,
                 # the other joints kept or moving towards the template (a tucked, camera-ready pose)
                 m = ESCAPE_MANOEUVRES
@@ -245,8 +258,8 @@ class Recovery(Stage):
             if not ok.any():
                 continue
             sel = torch.nonzero(ok, as_tuple=True)[0]
-            kn, ki = self.pl.edges.edge_knots(q_from[sel], q_new[sel], track=False)
-            free = self.pl.edges.knots_free(kn)
+            kn, ki = self.edges.edge_knots(q_from[sel], q_new[sel], track=False)
+            free = self.edges.knots_free(kn)
             okf = torch.zeros(2 * B, dtype=torch.bool, device=self.ctx.device)
             okf[sel[free]] = True
             use_long = okf[B:] & (frac[B:] > frac[:B])
@@ -306,8 +319,8 @@ class Recovery(Stage):
             if later:
                 qa = T[chain[i]][None].expand(len(later), -1)
                 qb = T[torch.as_tensor([chain[x] for x in later], device=self.ctx.device)]
-                kn, ki = self.pl.edges.edge_knots(qa, qb, track=False)
-                ok = torch.nonzero(self.pl.edges.knots_free(kn), as_tuple=True)[0]
+                kn, ki = self.edges.edge_knots(qa, qb, track=False)
+                ok = torch.nonzero(self.edges.knots_free(kn), as_tuple=True)[0]
                 if len(ok):
                     m = int(ok.max())
                     j = later[m]
@@ -337,16 +350,16 @@ class Recovery(Stage):
                 n = min(s.recovery.query_repair_nodes, s.recovery.query_repair_budget - self.rm.repair_added)
                 if n <= 0:
                     break
-                out = self.pl.builder.grow(n, center=q[:2] if mobile else None, radius=s.recovery.query_repair_radius * 1.5 ** r,
-                                           rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)
+                out = self.builder.grow(n, center=q[:2] if mobile else None, radius=s.recovery.query_repair_radius * 1.5 ** r,
+                                        rng=rng, timeout_s=1.0, heading=float(q[2]) if mobile else None)
                 added += out["added_nodes"]
                 self.rm.repair_added += out["added_nodes"]
                 grown[k] = np.concatenate([grown.get(k, np.zeros(0, dtype=np.int64)), out["node_ids"]])
             # an end in a tight spot (a goal grazing a table, reachable only by turning one way) may have its few
             # valid edges beyond the connect_k nearest nodes; the nodes grown on its heading line are reachable by
             # driving straight but can rank far away under the motion metric (the camera joints re-aim on the way)
-            again = self.pl.query.plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
-                                            connect_k=max(s.query.connect_k, s.recovery.query_repair_connect_k))
+            again = self.query.plan_once(start, goals, timing, goal_costs, extra_candidates=grown,
+                                         connect_k=max(s.query.connect_k, s.recovery.query_repair_connect_k))
             if again.success or again.failure is not Failure.UNREACHABLE:
                 break
         if again is None:

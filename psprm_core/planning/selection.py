@@ -16,12 +16,18 @@ timed), so what is returned is what was checked.
 from __future__ import annotations
 
 import time
-from typing import Optional, Sequence
+from typing import TYPE_CHECKING, Optional, Sequence
 
 import numpy as np
 
 from .results import PlanResult
-from .state import Stage
+from .state import PlannerContext, QueryContext, ReadsQuerySettings
+
+if TYPE_CHECKING:
+    from .query import Query
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
+
 
 #: Weight factor of the edges of the routes found before in an ``alt`` search.
 ALT_PENALTY = 3.0
@@ -29,8 +35,15 @@ ALT_PENALTY = 3.0
 PERCEPTION_STRIDE = 4
 
 
-class RouteSelection(Stage):
+class RouteSelection(ReadsQuerySettings):
     """Runs a query's extra searches and picks the route that sees most."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, qc: QueryContext, query: Query, scoring: Scoring):
+        self.ctx = ctx
+        self.rm = rm
+        self.qc = qc
+        self.query = query
+        self.scoring = scoring
 
     def choose(self, first: PlanResult, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool,
                goal_costs: Optional[np.ndarray]) -> PlanResult:
@@ -56,10 +69,10 @@ class RouteSelection(Stage):
                 continue
             alt = base.changed({"scoring.objective": "motion" if other else objective, "scoring.alpha": alpha,
                                 "query.route_searches": ()})
-            with self.pl.scoring.weighted_for(alt, penalize=(used, ALT_PENALTY) if other else None):
+            with self.scoring.weighted_for(alt, penalize=(used, ALT_PENALTY) if other else None):
                 self.qc.settings = alt
                 try:
-                    res = self.pl.query.plan_once(start, goals, timing, goal_costs)
+                    res = self.query.plan_once(start, goals, timing, goal_costs)
                 finally:
                     self.qc.settings = saved
             if not res.success:
@@ -78,4 +91,4 @@ class RouteSelection(Stage):
         configuration and the last (scored now: the scene as it is)."""
         d = np.asarray(res.dense)
         idx = np.unique(np.r_[np.arange(0, len(d), PERCEPTION_STRIDE), len(d) - 1])
-        return self.pl.scoring.route_perception(d[idx], self.pl.scoring.score_numpy(d[idx]))
+        return self.scoring.route_perception(d[idx], self.scoring.score_numpy(d[idx]))

@@ -3,20 +3,47 @@ it is shorter, collision-free, stays on the visibility manifold and its Eq. 1 sc
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import torch
 
 from .. import fastpath
+from .state import PlannerContext, QueryContext, ReadsQuerySettings
 
-from .state import Stage
+if TYPE_CHECKING:
+    from .edges import Edges
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
 
 
 SHORTCUT_CANDIDATES = 8  # later path nodes a shortcut from one node tries at most (the farthest ones)
 
 
-class Shortcut(Stage):
+class QueryEdges(Protocol):
+    """What :class:`Shortcut` uses of :class:`~.query.Query`: adding a query edge (a taken shortcut joins the
+    query's edges). A protocol, not the class: ``query`` imports this module."""
+
+    def add_query_edges(self, ua: np.ndarray, vb: np.ndarray, p: np.ndarray, dist: np.ndarray,
+                        verified: bool = True) -> list: ...
+
+
+class Shortcut(ReadsQuerySettings):
     """Shortcuts found paths without losing perception."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, qc: QueryContext, edges: Edges, scoring: Scoring):
+        self.ctx = ctx
+        self.rm = rm
+        self.qc = qc
+        self.edges = edges
+        self.scoring = scoring
+        self.query: QueryEdges  # bound by bind_query: the query stage is made from this one
+
+    def bind_query(self, query: QueryEdges) -> None:
+        """The query stage (:class:`~.query.Query`), made from this one: the query shortcuts the path it found
+        (:meth:`shortcut_path`), and a shortcut taken joins the query's edges (:meth:`~.query.Query.add_query_edges`).
+        :class:`~.pipeline.Pipeline` binds it right after making both."""
+        self.query = query
 
     def shortcut_path(self, path: list, cost: float, added_edges: list) -> tuple:
         """Perception-preserving shortcuts of a found path (``shortcut_rounds`` greedy passes): from each kept node,
@@ -54,7 +81,7 @@ class Shortcut(Stage):
         P = np.asarray(path)
         src, dst, dist, need = [], [], [], []
         I, J = np.triu_indices(len(path), 2)  # every (i, j) with j >= i + 2, by i then j
-        D = self.pl.edges.motion_distance(g.configs[P[I]], g.configs[P[J]]) if len(I) else np.zeros(0)
+        D = self.edges.motion_distance(g.configs[P[I]], g.configs[P[J]]) if len(I) else np.zeros(0)
         for i in range(len(path) - 2):
             later, d = J[I == i], D[I == i]
             span = arc[later] - arc[i]
@@ -74,14 +101,14 @@ class Shortcut(Stage):
         if new:
             a, b = np.asarray([k[0] for k in new]), np.asarray([k[1] for k in new])
             with fastpath.bulk():  # a few hundred edges' knots and dense pieces: the compiled kernels at any size
-                kn, ki = self.pl.edges.edge_knots(self.ctx.t(g.configs[a]), self.ctx.t(g.configs[b]))
+                kn, ki = self.edges.edge_knots(self.ctx.t(g.configs[a]), self.ctx.t(g.configs[b]))
                 M = kn.shape[1]
                 on = self.ctx.constraint.error(kn[:, 1:-1].reshape(-1, kn.shape[-1])).reshape(len(new), M - 2)
                 ok = (on <= tol).all(-1) if M > 2 else torch.ones(len(new), dtype=torch.bool)
-                ok &= self.pl.edges.knots_valid(kn, dense=True)
+                ok &= self.edges.knots_valid(kn, dense=True)
                 p = torch.zeros(len(new), dtype=self.ctx.dtype, device=self.ctx.device)
                 if ok.any():
-                    p[ok] = self.pl.scoring.knots_perception(kn[ok], ki[ok])
+                    p[ok] = self.scoring.knots_perception(kn[ok], ki[ok])
             for r, k in enumerate(new):
                 checked[k] = (bool(ok[r]), p[r:r + 1], kn[r:r + 1], ki[r:r + 1])
         rows = [checked[k] for k in keys]
@@ -100,9 +127,9 @@ class Shortcut(Stage):
             if len(mine):
                 m = int(mine[np.argmax(dst[mine])])
                 jj = int(dst[m])
-                e = self.pl.query.add_query_edges(np.asarray([path[i]]), np.asarray([path[jj]]),
-                                                  p[m:m + 1].cpu().numpy(), dist[m:m + 1])
-                self.pl.edges.put_knots(np.asarray(e), np.asarray([path[i]]), kn[m:m + 1], ki[m:m + 1])
+                e = self.query.add_query_edges(np.asarray([path[i]]), np.asarray([path[jj]]),
+                                               p[m:m + 1].cpu().numpy(), dist[m:m + 1])
+                self.edges.put_knots(np.asarray(e), np.asarray([path[i]]), kn[m:m + 1], ki[m:m + 1])
                 added_edges.extend(e)
                 out.append(path[jj])
                 i, changed = jj, True
