@@ -5,7 +5,7 @@ they left."""
 from __future__ import annotations
 
 import time
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import torch
@@ -13,11 +13,22 @@ import torch
 from ..collision import BoxTensors
 from ..scene import Scene
 from .graph_search import edge_perception
-from .state import Stage, large_batches
+from .state import PlannerContext, large_batches
+
+if TYPE_CHECKING:
+    from .knots import KnotStore
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
 
 
-class Dynamics(Stage):
+class Dynamics:
     """Updates the roadmap when targets or obstacles move."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, scoring: Scoring):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.scoring = scoring
 
     def set_scene(self, scene: Scene) -> None:
         """Adopt moved targets/obstacles: the scorer's occluders and the collision checker's boxes follow ``scene``.
@@ -76,7 +87,7 @@ class Dynamics(Stage):
             if full:
                 p = np.empty(len(e))
                 for s0 in range(0, len(e), 4096):
-                    p[s0:s0 + 4096] = self.pl.scoring.stored_perception(e[s0:s0 + 4096]).double().cpu().numpy()
+                    p[s0:s0 + 4096] = self.scoring.stored_perception(e[s0:s0 + 4096]).double().cpu().numpy()
                 ver[e] = 1.0
             else:
                 scale = self.rm.score_scale
@@ -85,7 +96,7 @@ class Dynamics(Stage):
                 ver[e] = 0.0
                 self.rm.unverified = True
             c_p[e] = p
-            g.set_weights(e, self.pl.scoring.weight(p, g.edge_attribute("c_m")[e]))
+            g.set_weights(e, self.scoring.weight(p, g.edge_attribute("c_m")[e]))
         return {"nodes": int(len(ids)), "changed_nodes": int(changed.sum()), "edges": int(len(e)),
                 "nodes_ms": t_nodes * 1e3, "total_ms": (time.perf_counter() - t0) * 1e3}
 

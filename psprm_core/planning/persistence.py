@@ -6,17 +6,32 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..errors import ConfigError
 from .graph import Roadmap
 from .settings import query_only_settings
-from .state import Stage
+from .state import PlannerContext
+
+if TYPE_CHECKING:
+    from .heuristics import Heuristics
+    from .knots import KnotStore
+    from .roadmap_state import RoadmapState
+    from .scoring import Scoring
 
 
-class Persistence(Stage):
+class Persistence:
     """Saves and loads roadmaps."""
+
+    def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, heuristics: Heuristics,
+                 scoring: Scoring):
+        self.ctx = ctx
+        self.rm = rm
+        self.knots = knots
+        self.heuristics = heuristics
+        self.scoring = scoring
 
     def fingerprint(self) -> str:
         """Hash of the robot, scene geometry, focus point and settings the roadmap was built for."""
@@ -58,7 +73,7 @@ class Persistence(Stage):
                     edge_capacity=len(data["eu"]) + 1024)
         g.add_nodes(data["configs"])
         bad = np.nonzero(~data["node_valid"])[0]
-        w = self.pl.scoring.weight(data["c_p"], data["c_m"])
+        w = self.scoring.weight(data["c_p"], data["c_m"])
         g.add_edges(data["eu"], data["ev"], w, c_m=data["c_m"], c_p=data["c_p"], verified=data["verified"],
                     checked=data["checked"])
         if len(bad):
@@ -68,4 +83,4 @@ class Persistence(Stage):
                       unverified=bool((data["verified"] < 0.5).any()) and not self.ctx.settings.edges.lazy_edges)
         self.knots.clear()
         self.rm.stats = json.loads(str(data["stats"]))
-        self.pl.heuristics.build_hop_table()
+        self.heuristics.build_hop_table()

@@ -40,12 +40,29 @@ class Pipeline:
     (connection and search), ``shortcut`` (path shortcuts), ``recovery`` (escape, repair), ``trajectory`` (waypoints
     and timing), ``dynamics`` (moved targets and obstacles), ``persistence`` (save, load).
 
-    Calls go downwards: ``builder``, ``query``, ``recovery``, ``shortcut`` and ``dynamics`` use the lower stages
-    (``sampling``, ``neighbours``, ``edges``, ``scoring``, ``heuristics``, ``verify``, ``trajectory``), which use
-    each other only for knots and scores (``edges`` <-> ``scoring``). :meth:`plan` runs one search
-    (``query.plan_once``) and, when no goal is reachable, the strategies of ``recovery``, which search again through
-    ``query.plan_once``: ``recovery`` calls ``query``, never the other way round; with ``route_searches``,
-    ``selection`` searches again with other weights and keeps the route that sees most."""
+    Each stage is given, in its constructor, the state objects it reads and the stages it calls, and keeps them as
+    attributes of the same names; :meth:`__init__` makes the stages in an order where every stage it passes exists.
+    Calls go downwards, in four layers:
+
+    - ``edges``, ``scoring``: knots, dense checks and scores. ``scoring`` is made with ``edges``; ``edges`` gets
+      ``scoring`` back by :meth:`~.edges.Edges.bind_scoring` (it scores the edges it checks);
+    - ``sampling`` (uses ``scoring``), ``neighbours``, ``heuristics``, ``verify`` and ``trajectory`` (use ``edges``
+      and ``scoring``);
+    - ``builder`` (the stages above but ``verify``), ``shortcut`` (``edges``, ``scoring``), ``dynamics`` and ``persistence``
+      (``scoring``; ``persistence`` also ``heuristics``), ``query`` (``edges``, ``scoring``, ``heuristics``,
+      ``verify``, ``shortcut``, ``trajectory``);
+    - ``selection`` (``query``, ``scoring``) and ``recovery`` (``query``, ``builder``, ``edges``).
+
+    Two calls go up, bound after the upper stage is made: a shortcut taken joins the query's edges
+    (:meth:`~.shortcut.Shortcut.bind_query`: ``shortcut`` calls ``query.add_query_edges``), and a start inside the
+    collision padding is moved out of it by the recovery's start fix before the search
+    (:meth:`~.query.Query.bind_recovery`: ``query`` calls ``recovery.move_out``). The late-bound attributes are typed
+    by the protocol of what they call (:class:`~.edges.KnotScorer`, :class:`~.shortcut.QueryEdges`,
+    :class:`~.query.StartFix`): the lower module does not import the upper one.
+
+    :meth:`plan` runs one search (``query.plan_once``) and, when no goal is reachable, the strategies of
+    ``recovery``, which search again through ``query.plan_once``; with ``route_searches``, ``selection`` searches
+    again with other weights and keeps the route that sees most."""
 
     def __init__(self, ctx: PlannerContext):
         self.ctx = ctx
@@ -72,8 +89,8 @@ class Pipeline:
         self.selection = RouteSelection(ctx, rm, qc, query=self.query, scoring=self.scoring)
         self.recovery = Recovery(ctx, rm, builder=self.builder, edges=self.edges, query=self.query)
         self.query.bind_recovery(self.recovery)  # upward: the query's start fix is a recovery strategy
-        self.dynamics = Dynamics(self)
-        self.persistence = Persistence(self)
+        self.dynamics = Dynamics(ctx, rm, knots, scoring=self.scoring)
+        self.persistence = Persistence(ctx, rm, knots, heuristics=self.heuristics, scoring=self.scoring)
 
     @one_thread
     def plan(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,

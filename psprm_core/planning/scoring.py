@@ -62,7 +62,7 @@ class Scoring(ReadsQuerySettings):
     def weight(self, p, c_m):
         """Edge weight of the configured objective (:func:`~.graph_search.edge_weight`): Eq. 2 or the motion-weighted
         form, from the Eq. 1 perception ``p`` and the normalised motion cost ``c_m`` (numpy or torch); the running
-        query's alpha and objective (:attr:`~.state.Stage.qs`), else the planner's."""
+        query's alpha and objective (:attr:`~.state.ReadsQuerySettings.qs`), else the planner's."""
         return edge_weight(p, c_m, self.qs.scoring.alpha, self.qs.scoring.objective)
 
     def apply_weights(self, settings) -> None:

@@ -9,7 +9,9 @@
 - :class:`QueryContext`: what one query keeps while it runs (its connection edges' pending knots, the compiled
   scorer's arguments), cleared when it ends.
 
-Each stage (:class:`Stage`) reads these through the :class:`~.pipeline.Pipeline` that composes the stages.
+Each stage is given the state objects it reads, and the other stages it calls, in its constructor (the
+:class:`~.pipeline.Pipeline` makes them); :class:`ReadsQuerySettings` gives a stage that holds ``ctx`` and ``qc``
+the settings of the running query.
 """
 
 from __future__ import annotations
@@ -99,35 +101,6 @@ class ReadsQuerySettings:
     def qs(self) -> PSPRMSettings:
         """The settings of the running query (the planner's, with the query's options), else the planner's."""
         return self.qc.settings if self.qc.settings is not None else self.ctx.settings
-
-
-class Stage:
-    """A stage of the planner's pipeline: reads the shared state objects and calls its sibling stages through
-    :attr:`pl`."""
-
-    def __init__(self, pl):
-        self.pl = pl  # the :class:`~.pipeline.Pipeline` this stage belongs to
-
-    @property
-    def ctx(self) -> PlannerContext:
-        return self.pl.ctx
-
-    @property
-    def rm(self):
-        return self.pl.rm
-
-    @property
-    def knots(self):
-        return self.pl.knots
-
-    @property
-    def qc(self) -> QueryContext:
-        return self.pl.qc
-
-    @property
-    def qs(self):
-        """The settings of the running query (the planner's, with the query's options), else the planner's."""
-        return self.qc.settings if self.qc.settings is not None else self.pl.ctx.settings
 
 
 def one_thread(method: Callable) -> Callable:
