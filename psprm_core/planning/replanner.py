@@ -50,6 +50,7 @@ from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .execution import commit_time, progress_time, splice
 from .psprm import PSPRM, PlanResult
 from .results import Failure
+from .settings import field_specs, setting
 
 log = logging.getLogger(__name__)
 
@@ -62,64 +63,73 @@ HISTORY = 1000  # replans kept in Replanner.history (a long-running node must no
 
 @dataclass(frozen=True)
 class ReplanSettings:
-    """Replanning triggers and repair (``config/planners/replan.yaml``)."""
+    """Replanning triggers and repair (``config/planners/replan.yaml``). Each field carries its metadata
+    (:func:`~.settings.setting`: description, range or choices; ``live``: a running server changes it through its
+    parameter of the field's name), listed by :meth:`specs`."""
 
-    target_move_m: float = 0.05  # target translation that counts as a move (re-score, replan)
-    target_turn_rad: float = 0.15  # target rotation that counts as a move
-    obstacle_move_m: float = 0.03  # obstacle translation that counts as a move (re-check, replan)
-    obstacle_turn_rad: float = 0.1
-    focus_move_m: float = 0.25  # the visibility focus follows a target that moved further than this
-    replan_on_move: bool = False  # a target/obstacle move alone triggers a replan (default: it triggers the score and
-    # collision checks, and those decide)
-    score_min: float = 0.1  # replan when the normalised predicted mean score along the remaining path falls below this
-    # (and, for a plan made below it, whenever the target moved: another route may see it now)
-    score_drop: float = 0.15  # ... or falls by more than this since the plan was made (scores normalised as in Eq. 1)
-    goal_switch_margin: float = 0.2  # switch to another goal only when it is cheaper by this fraction of the current
-    # plan's cost (a terminal cost on the other goals, one search)
-    final_approach_m: float = 1.0  # no score-triggered replan once the remaining base path is shorter than this (m):
-    # the robot finishes its approach; a collision or a new goal still replans
-    goal_commit_s: float = 10.0  # keep a chosen goal this long (s, the caller's clock) before another may replace it;
-    # earlier only when no path reaches it (0: off). A person turning back and forth makes the cheapest goal alternate
-    # faster than the robot can drive to either
-    goal_commit_growth: float = 2.0  # each switch between the candidate goals multiplies the next commitment by this
-    # (1: constant); a new goal set starts again at goal_commit_s. Bounds the switching: a person who keeps turning
-    # cannot keep the robot away from both goals
-    keep_unless_better: bool = True  # a replan triggered by the view alone (VIEW_TRIGGERS) is adopted only when it
-    # sees more (keep_score_margin) or is shorter (keep_length_margin) than the remaining path, or goes to another goal
-    keep_score_margin: float = 0.05  # normalised mean score along the path (c_p, Eq. 1) a new plan must add
-    keep_length_margin: float = 0.1  # fraction of the remaining path's motion cost a new plan must save
-    min_interval_s: float = 1.0  # at most one replan per interval, except when the path collides or the goal changed
-    score_samples: int = 200  # configurations of the remaining path scored for the score trigger
-    repair_rounds: int = 2  # roadmap repair attempts when no goal is reachable
-    repair_nodes: int = 150  # nodes sampled per repair round
-    repair_radius_m: float = 1.5  # around the moved obstacles and the start
-    repair_budget_nodes: int = 1500  # at most this many nodes added by repair over the replanner's life
-    heuristic: str = "exact"  # A* heuristic of the replans: "exact" (cost-to-go from one compiled Dijkstra over the
-    # current weights; every update changes weights, and A* then expands little more than the path), "hop" (Eq. 3,
-    # the paper's), or "planner" (keep the planner's setting)
-    smooth_timing: bool = True  # replanned trajectories pass the knots of a base phase without stopping: about a
-    # third shorter to execute, for about +25 ms per replan (per-phase TOPP-RA); within the latency goals
-    # (docs/benchmarks.md, "Replanning latency")
-    shortcut: bool = False  # perception-preserving shortcuts of replanned paths (PSPRMSettings.query.shortcut): off, since
-    # checking the candidate shortcuts costs tens of ms per replan
-    route_selection: bool = False  # the planner's route selection (PSPRMSettings.query.route_searches) in replans: off,
-    # since every extra search adds a search's time to each replan
-    commit: bool = True  # a robot in motion replans from its committed state (planning.execution): the trajectory
-    # under way is kept to its first rest instant after planning and delivery, the new plan starts there
-    commit_horizon_s: float = 0.3  # planning and delivery time when the caller gives none (s)
-    predict_lead_s: float = 1.5  # the roadmap is scored against the target pose extrapolated this far ahead (s)
-    score_bins: int = 4  # a path's predicted score: its duration split into this many stretches, each scored against
-    # the targets' predicted poses (the mixture, prediction) at its middle
-    predict_samples: int = 48  # ... at this many configurations of the path, evenly in time
+    target_move_m: float = setting(0.05, "target translation that counts as a move (m; re-score, replan)", live=True)
+    target_turn_rad: float = setting(0.15, "target rotation that counts as a move (rad)", live=True)
+    obstacle_move_m: float = setting(0.03, "obstacle translation that counts as a move (m; re-check, replan)",
+                                     live=True)
+    obstacle_turn_rad: float = setting(0.1, "obstacle rotation that counts as a move (rad)", live=True)
+    focus_move_m: float = setting(0.25, "the visibility focus follows a target that moved further than this (m)")
+    replan_on_move: bool = setting(False, "a target/obstacle move alone triggers a replan (else it triggers the "
+                                          "score and collision checks, and those decide)", live=True)
+    score_min: float = setting(0.1, "replan when the predicted normalised score along the remaining path falls below "
+                                    "this (and, for a plan made below it, whenever the target moved)", live=True)
+    score_drop: float = setting(0.15, "... or drops by more than this since the plan (scores normalised as in "
+                                      "Eq. 1)", live=True)
+    goal_switch_margin: float = setting(0.2, "goal hysteresis: switch to another goal only when it is cheaper by "
+                                             "this fraction of the current plan's cost", live=True)
+    final_approach_m: float = setting(1.0, "no score-triggered replan within this base path length of the goal (m); "
+                                           "a collision or a new goal still replans", live=True)
+    goal_commit_s: float = setting(10.0, "keep a chosen goal this long (s) unless no path reaches it (0: off)",
+                                   live=True)
+    goal_commit_growth: float = setting(2.0, "each goal switch multiplies the next commitment by this (1: constant); "
+                                             "a new goal set starts again at goal_commit_s", range=(1.0, None),
+                                        live=True)
+    keep_unless_better: bool = setting(True, "a replan the view alone triggered replaces the trajectory only when it "
+                                             "sees more or is shorter (else the robot keeps driving it)", live=True)
+    keep_score_margin: float = setting(0.05, "normalised mean score along the path a new plan must add to replace "
+                                             "the current", live=True)
+    keep_length_margin: float = setting(0.1, "fraction of the remaining path's motion cost a new plan must save to "
+                                             "replace the current", live=True)
+    min_interval_s: float = setting(1.0, "at most one score/move-triggered replan per interval (s)", live=True)
+    score_samples: int = setting(200, "configurations of the remaining path scored for the score trigger",
+                                 range=(1, None))
+    repair_rounds: int = setting(2, "roadmap repair attempts when no goal is reachable")
+    repair_nodes: int = setting(150, "nodes sampled per repair round")
+    repair_radius_m: float = setting(1.5, "repair nodes around the moved obstacles and the start within this (m)")
+    repair_budget_nodes: int = setting(1500, "at most this many nodes added by repair over the replanner's life")
+    heuristic: str = setting("exact", "A* heuristic of the replans: exact (cost-to-go from one compiled Dijkstra over "
+                                      "the current weights) | hop (Eq. 3) | planner (the planner's query.heuristic)",
+                             choices=HEURISTICS)
+    smooth_timing: bool = setting(True, "replanned trajectories pass the knots of a base phase without stopping "
+                                        "(about a third shorter to execute, about +25 ms per replan)")
+    shortcut: bool = setting(False, "perception-preserving shortcuts of replanned paths (query.shortcut; tens of ms "
+                                    "per replan)")
+    route_selection: bool = setting(False, "the planner's route selection (query.route_searches) in replans (each "
+                                           "extra search adds a search's time)")
+    commit: bool = setting(True, "a robot in motion replans from its committed state: the trajectory under way is "
+                                 "kept to its first rest instant after planning and delivery, the new plan is spliced "
+                                 "on there", live=True)
+    commit_horizon_s: float = setting(0.3, "planning and delivery time when the caller gives none (s)")
+    predict_lead_s: float = setting(1.5, "the roadmap is scored against the target pose extrapolated this far ahead "
+                                         "(s)")
+    score_bins: int = setting(4, "a path's predicted score: its duration split into this many stretches, each scored "
+                                 "against the targets' predicted poses at its middle", range=(1, None))
+    predict_samples: int = setting(48, "... at this many configurations of the path, evenly in time",
+                                   range=(1, None))
     prediction: PredictionSettings = field(default_factory=PredictionSettings)
 
     def __post_init__(self):
-        if not (self.goal_commit_growth >= 1.0 and math.isfinite(self.goal_commit_growth)):
-            raise PsprmError(f"goal_commit_growth must be a finite factor >= 1, got {self.goal_commit_growth}")
-        if self.score_bins < 1:
-            raise PsprmError(f"score_bins must be >= 1, got {self.score_bins}")
-        if self.heuristic not in HEURISTICS:
-            raise PsprmError(f"replan heuristic must be one of {', '.join(HEURISTICS)}, got {self.heuristic!r}")
+        for spec in self.specs():
+            spec.check(getattr(self, spec.name), "replan settings")
+
+    @staticmethod
+    def specs() -> tuple:
+        """Every field but ``prediction`` as a :class:`~.settings.SettingSpec` (named by the field's name)."""
+        return field_specs(ReplanSettings)
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "ReplanSettings":

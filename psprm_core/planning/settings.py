@@ -447,12 +447,23 @@ def parameter_specs() -> tuple:
         members = [(group.name, fl, meta) for fl, meta in _group_fields(cls)] if cls is not None else \
             [("", group, dict(group.metadata))]
         for prefix, fl, meta in members:
-            default = fl.default
-            out.append(SettingSpec(name=f"{prefix}.{fl.name}" if prefix else fl.name, type=meta["type"],
-                                   default=default, range=meta["range"], choices=meta["choices"],
-                                   description=meta["description"], live=meta["live"], query=meta["query"],
-                                   build=meta["build"]))
+            out.append(_spec(f"{prefix}.{fl.name}" if prefix else fl.name, fl, meta))
     return tuple(out)
+
+
+def _spec(name: str, fl, meta: dict) -> SettingSpec:
+    """The :class:`SettingSpec` named ``name`` of field ``fl`` with :func:`setting`'s metadata ``meta``."""
+    return SettingSpec(name=name, type=meta["type"], default=fl.default, range=meta["range"],
+                       choices=meta["choices"], description=meta["description"], live=meta["live"],
+                       query=meta["query"], build=meta["build"])
+
+
+@functools.lru_cache(maxsize=None)
+def field_specs(cls) -> tuple:
+    """The fields of a settings dataclass ``cls`` made with :func:`setting` (e.g. the replanner's ``ReplanSettings``)
+    as :class:`SettingSpec` named by the field's name, in field order; fields without that metadata (nested
+    groups) are left out."""
+    return tuple(_spec(fl.name, fl, fl.metadata) for fl in dataclasses.fields(cls) if "description" in fl.metadata)
 
 
 def _nested(fl) -> type | None:
@@ -529,8 +540,7 @@ def _check_name(name: str, groups_too: bool = False) -> None:
 def deprecated_field_names(changes: dict) -> dict:
     """Deprecated: ``changes`` with each field's own name (``n_nodes``) replaced by its dotted path
     (``roadmap.n_nodes``); dotted paths are kept. Only for callers whose settings arrive as Python keywords:
-    :func:`~.factory.make_planner`'s ``**overrides`` (``psprm_ros.core.make_planner_for`` passes ``n_nodes``,
-    ``seed``, ``collision_padding`` so). A name that is neither is left for :meth:`PSPRMSettings.changed` to
-    refuse."""
+    :func:`~.factory.make_planner`'s ``**overrides`` (the evaluation and command modules pass ``n_nodes=``,
+    ``seed=`` so). A name that is neither is left for :meth:`PSPRMSettings.changed` to refuse."""
     by_leaf = {sp.name.rpartition(".")[2]: sp.name for sp in parameter_specs()}
     return {by_leaf.get(k, k) if "." not in k else k: v for k, v in changes.items()}
