@@ -11,11 +11,11 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import numpy as np
 
-from psprm_core.errors import InputError
+from psprm_core.errors import InputError, PsprmError
 
 log = logging.getLogger(__name__)
 
@@ -24,7 +24,9 @@ log = logging.getLogger(__name__)
 class Param:
     """A node parameter: its default, what it means, and whether a running node applies a change (``live``) or the
     change needs a rebuild (``rebuild``: read-only while the node runs; set it in the params file and restart or
-    reconfigure). ``lo``/``hi``: range of a number."""
+    reconfigure). ``lo``/``hi``: range of a number; ``choices``: the values a string may take. A None ``default`` is
+    declared typed (``type``) but unset. ``check``: called with a coerced value, raises
+    :class:`~psprm_core.errors.PsprmError` (or ValueError) with the reason a value is refused."""
 
     default: Any
     description: str = ""
@@ -32,7 +34,37 @@ class Param:
     rebuild: bool = False
     lo: Optional[float] = None
     hi: Optional[float] = None
+    choices: Optional[tuple] = None
+    type: Optional[type] = None
+    check: Optional[Callable[[Any], None]] = dataclasses.field(default=None, compare=False)
 
+    @property
+    def exemplar(self) -> Any:
+        """A value of the parameter's type (its default, else one made from :attr:`type`) for :func:`coerce`."""
+        return self.default if self.default is not None or self.type is None else self.type()
+
+
+def setting_param(spec, default: Any = dataclasses.MISSING, source: str = "ROS parameter") -> Param:
+    """The node parameter of a setting (a :class:`~psprm_core.planning.settings.SettingSpec`: a planner setting by
+    its dotted path, a replanner setting by its name): description, range, choices, type and ``live`` from the spec,
+    a setting that is not live needs a rebuild; ``default`` (the spec's default unless given) None declares it typed
+    but unset. A tuple setting (``query.route_searches``) is a string parameter in its text form. Its ``check``
+    refuses what the spec refuses, with the :class:`~psprm_core.errors.ConfigError` naming the setting."""
+    default = spec.default if default is dataclasses.MISSING else default
+    kind = spec.type
+    if kind is tuple:
+        kind, default = str, ",".join(str(x) for x in (default or ()))
+    lo, hi = spec.range if spec.range is not None else (None, None)
+
+    def check(value):
+        if spec.type is tuple:
+            from psprm_core.planning.settings import PSPRMSettings
+
+            value = PSPRMSettings.coerce(spec.name, value, source)
+        spec.check(value, source)
+
+    return Param(default, spec.description, live=spec.live, rebuild=not spec.live, lo=lo, hi=hi,
+                 choices=spec.choices, type=kind, check=check)
 
 
 #: topics shared by the nodes (absolute, so the nodes can be started in any namespace layout)
@@ -110,11 +142,16 @@ GOALS_TOPIC = f"{STATE_PREFIX}/goals"
 
 
 # ---------------------------------------------------------------------------------------------------------- params
-def declare_params(node, spec: dict) -> dict:
+def declare_params(node, spec: dict, refusals: Optional[list] = None) -> dict:
     """Declare ``spec`` (name -> default or :class:`Param`) with dynamic typing and descriptors (description,
-    read-only for rebuild parameters, ranges) and return the values coerced to the defaults' types (a YAML ``4`` for
-    a float parameter is accepted; ``[]`` defaults accept any list)."""
-    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+    read-only for rebuild parameters, ranges, choices as a described constraint) and return the values coerced to the
+    defaults' types (a YAML ``4`` for a float parameter is accepted; ``[]`` defaults accept any list). A
+    :class:`Param` whose default is None is declared statically typed (its ``type``) and unset; its value is None.
+
+    With ``refusals`` (a list), a value the node is given that the parameter refuses (type, range, choices, its
+    ``check``) does not raise: the reason is appended (``"name: why"``) and a value rclpy refused is replaced by the
+    default."""
+    from rclpy.exceptions import ParameterException
 
     out = {}
     for name, item in spec.items():
@@ -122,17 +159,64 @@ def declare_params(node, spec: dict) -> dict:
         if node.has_parameter(name):
             p = node.get_parameter(name)
         else:
-            d = ParameterDescriptor(dynamic_typing=True, description=prm.description, read_only=prm.rebuild)
-            if prm.lo is not None or prm.hi is not None:
-                lo = -1e300 if prm.lo is None else prm.lo
-                hi = 1e300 if prm.hi is None else prm.hi
-                if isinstance(prm.default, float):
-                    d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
-                elif isinstance(prm.default, int) and not isinstance(prm.default, bool):
-                    d.integer_range = [IntegerRange(from_value=int(max(lo, -2**62)), to_value=int(min(hi, 2**62)))]
-            p = node.declare_parameter(name, prm.default, d)
-        out[name] = coerce(name, p.value, prm.default)
+            try:
+                p = _declare(node, name, prm)
+            except (ParameterException, ValueError, TypeError) as exc:
+                if refusals is None:
+                    raise
+                refusals.append(f"{name}: {exc}")
+                p = _declare(node, name, prm, ignore_override=True)
+        try:
+            out[name] = coerce(name, p.value, prm.exemplar) if p.value is not None else None
+            if out[name] is not None:
+                check_value(prm, out[name])
+        except (PsprmError, ValueError, TypeError) as exc:
+            if refusals is None:
+                raise
+            refusals.append(_reason(name, exc))
+            out[name] = prm.default
     return out
+
+
+def param_descriptor(prm: Param):
+    """The ``rcl_interfaces/ParameterDescriptor`` of ``prm``: description, read-only for rebuild parameters, range
+    (FloatingPointRange / IntegerRange), choices (additional_constraints); dynamic typing unless the default is None
+    (statically typed, its ``type``)."""
+    from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+
+    d = ParameterDescriptor(dynamic_typing=prm.default is not None, description=prm.description,
+                            read_only=prm.rebuild)
+    if prm.default is None:
+        d.type = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+                  float: ParameterType.PARAMETER_DOUBLE}.get(prm.type, ParameterType.PARAMETER_STRING)
+    if prm.choices is not None:
+        d.additional_constraints = f"one of: {', '.join(map(str, prm.choices))}"
+    if prm.lo is not None or prm.hi is not None:
+        lo = -1e300 if prm.lo is None else prm.lo
+        hi = 1e300 if prm.hi is None else prm.hi
+        example = prm.exemplar
+        if isinstance(example, float):
+            d.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi))]
+        elif isinstance(example, int) and not isinstance(example, bool):
+            d.integer_range = [IntegerRange(from_value=int(max(lo, -2**62)), to_value=int(min(hi, 2**62)))]
+    return d
+
+
+def _declare(node, name: str, prm: Param, ignore_override: bool = False):
+    from rclpy.parameter import Parameter
+
+    d = param_descriptor(prm)
+    if prm.default is None:
+        return node.declare_parameter(name, Parameter.Type(d.type), d, ignore_override=ignore_override)
+    return node.declare_parameter(name, prm.default, d, ignore_override=ignore_override)
+
+
+def check_value(prm: Param, value: Any) -> None:
+    """Raise when ``prm``'s ``check`` refuses ``value`` (coerced) or it lies outside ``prm``'s choices."""
+    if prm.check is not None:
+        prm.check(value)
+    if prm.choices is not None and value not in prm.choices:
+        raise InputError(f"unknown value {value!r} (one of: {', '.join(map(str, prm.choices))})")
 
 
 def coerce(name: str, value: Any, default: Any) -> Any:
@@ -182,24 +266,35 @@ def install_param_callback(node, spec: dict, values: dict, apply) -> None:
                     "is read when the node is configured: deactivate, cleanup and configure to change it"
                 return SetParametersResult(successful=False, reason=f"{prm.name} {why}")
             try:
-                v = coerce(prm.name, prm.value, p.default)
+                if prm.value is None:
+                    raise InputError("cannot be unset while the node runs")
+                v = coerce(prm.name, prm.value, p.exemplar)
                 if isinstance(v, float) and not math.isfinite(v):
                     raise InputError("must be finite")
                 if isinstance(v, (int, float)) and not isinstance(v, bool):
                     if (p.lo is not None and v < p.lo) or (p.hi is not None and v > p.hi):
                         raise InputError(f"must lie in [{p.lo}, {p.hi}]")
+                check_value(p, v)
                 staged[prm.name] = v
-            except (TypeError, ValueError) as exc:
-                return SetParametersResult(successful=False, reason=f"{prm.name}: {exc}")
+            except (TypeError, ValueError, PsprmError) as exc:
+                return SetParametersResult(successful=False, reason=_reason(prm.name, exc))
         for k, v in staged.items():
             try:
                 apply(k, v)
-            except ValueError as exc:
-                return SetParametersResult(successful=False, reason=f"{k}: {exc}")
+            except (ValueError, PsprmError) as exc:
+                return SetParametersResult(successful=False, reason=_reason(k, exc))
             values[k] = v
         return SetParametersResult(successful=True)
 
     node.add_on_set_parameters_callback(cb)
+
+
+def _reason(name: str, exc: Exception) -> str:
+    """Why a parameter change is refused: a configuration error as it is (it names the setting), others after the
+    parameter's name."""
+    from psprm_core.errors import ConfigError
+
+    return str(exc) if isinstance(exc, ConfigError) else f"{name}: {exc}"
 
 
 # ---------------------------------------------------------------------------------------------------------- scene
@@ -375,35 +470,78 @@ def goal_region_configurations(robot, scene, names) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------------- planner
+#: the planner settings (dotted paths) the roadmap server declares as parameters besides the live ones: those that
+#: shape its roadmap (read-only: a change needs a restart)
+SERVER_BUILD_SETTINGS = ("roadmap.n_nodes", "seed", "edges.collision_padding")
+#: the roadmap server's own values of planner settings, over the settings file's: 5 cm kept from every obstacle, so
+#: that a robot tracking its path a few cm off stays clear (the final check before publishing uses the obstacles as
+#: they are)
+SERVER_SETTING_DEFAULTS = {"edges.collision_padding": 0.05}
+
+
 @dataclasses.dataclass
 class PlannerSpec:
-    """What the roadmap server builds (node parameters of the same names)."""
+    """What the roadmap server builds (node parameters of the same names; ``settings``: planner settings by dotted
+    path over the settings file and :data:`SERVER_SETTING_DEFAULTS`, None leaves one as the file has it)."""
 
     variant: str = "neural-psprm-line"
-    n_nodes: int = 3000
-    seed: int = 0
     planner_settings: str = ""  # PSPRMSettings YAML ("" = config/planners/psprm.yaml)
     replan_settings: str = "replan_reactive"  # ReplanSettings: a name in config/planners/ or a YAML path
     roadmap_file: str = ""  # "" = cache under ~/.cache/psprm/roadmaps; "none" = always build, never save
     checkpoint: str = ""  # surrogate checkpoint ("" = the shipped one)
-    collision_padding: float = 0.05  # m the planner keeps from obstacles (its edges.collision_padding); the final
-    # check before publishing uses the obstacles as they are
+    settings: dict = dataclasses.field(default_factory=dict)
 
 
-PLANNER_PARAMS = {f.name: f.default for f in dataclasses.fields(PlannerSpec)}
+PLANNER_PARAMS = {f.name: f.default for f in dataclasses.fields(PlannerSpec) if f.name != "settings"}
+
+
+def server_setting_specs() -> tuple:
+    """The planner settings the roadmap server declares as parameters (their
+    :class:`~psprm_core.planning.settings.SettingSpec`): every live one, and :data:`SERVER_BUILD_SETTINGS`."""
+    from psprm_core.planning.settings import parameter_specs
+
+    return tuple(s for s in parameter_specs() if s.live or s.name in SERVER_BUILD_SETTINGS)
+
+
+def planner_file_settings(planner_settings: str, robot_name: str):
+    """The settings a planner of the server starts from: the file ``planner_settings`` ('' = the shipped preset) for
+    robot ``robot_name``, validated (a :class:`~psprm_core.errors.ConfigError` for a bad file)."""
+    from psprm_core.planning.factory import load_preset
+    from psprm_core.planning.psprm import PSPRMSettings
+
+    if planner_settings:
+        return PSPRMSettings.from_yaml(planner_settings, robot=robot_name)
+    return load_preset(robot=robot_name)
+
+
+def server_setting_values(settings) -> dict:
+    """The server's planner-setting parameters' defaults (dotted path -> value): ``settings`` (from
+    :func:`planner_file_settings`) with :data:`SERVER_SETTING_DEFAULTS` applied; ``scoring.alpha`` None when the
+    file leaves it unset."""
+    return {spec.name: SERVER_SETTING_DEFAULTS.get(spec.name, settings.value(spec.name))
+            for spec in server_setting_specs()}
+
+
+def resolve_live_settings(settings, changes: dict, variant: str):
+    """``settings`` (a planner's) with ``changes`` (dotted paths) applied; ``scoring.alpha`` None in ``changes`` is
+    the default of ``variant``'s scorer for the objective (:func:`~psprm_core.planning.settings.default_alpha`)."""
+    from psprm_core.planning.settings import VARIANTS
+
+    new = settings.changed(changes)
+    if "scoring.alpha" in changes and changes["scoring.alpha"] is None:
+        new = new.changed({"scoring.alpha": None}).resolved(VARIANTS.get(variant, (None, None))[1])
+    return new
 
 
 def make_planner_for(scene, robot, targets, spec: PlannerSpec):
+    """The planner ``spec`` describes: its variant, settings file and ``settings`` (over
+    :data:`SERVER_SETTING_DEFAULTS`), by dotted path."""
     from psprm_core.planning.factory import make_planner
-    from psprm_core.planning.psprm import PSPRMSettings
 
-    settings = None
-    if spec.planner_settings:
-        settings = PSPRMSettings.from_yaml(spec.planner_settings, robot=robot.name)
+    settings = planner_file_settings(spec.planner_settings, robot.name) if spec.planner_settings else None
+    overrides = {**SERVER_SETTING_DEFAULTS, **spec.settings}
     return make_planner(spec.variant, scene, targets, robot=robot, settings=settings,
-                        checkpoint=Path(spec.checkpoint) if spec.checkpoint else None,
-                        n_nodes=int(spec.n_nodes), seed=int(spec.seed),
-                        collision_padding=float(spec.collision_padding))
+                        checkpoint=Path(spec.checkpoint) if spec.checkpoint else None, **overrides)
 
 
 def roadmap_cache_path(planner, scene, spec: PlannerSpec) -> Optional[Path]:
@@ -413,7 +551,8 @@ def roadmap_cache_path(planner, scene, spec: PlannerSpec) -> Optional[Path]:
         return None
     if spec.roadmap_file:
         return Path(spec.roadmap_file)
-    return cache_dir() / "roadmaps" / f"{scene.name}_{spec.variant}_{spec.n_nodes}_{planner.fingerprint()}.npz"
+    n_nodes = planner.settings.roadmap.n_nodes
+    return cache_dir() / "roadmaps" / f"{scene.name}_{spec.variant}_{n_nodes}_{planner.fingerprint()}.npz"
 
 
 def build_or_load(planner, scene, spec: PlannerSpec, template=None, force_build: bool = False) -> dict:

@@ -32,9 +32,9 @@ import numpy as np
 
 from . import conversions as cv
 from . import core
-from .server import LIVE_REPLAN, LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples
+from .server import LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples, live_replan
 
-__all__ = ["RoadmapServer", "SERVER_PARAMS", "LIVE_REPLAN", "main"]
+__all__ = ["RoadmapServer", "SERVER_PARAMS", "main"]
 
 P = core.Param
 SERVER_PARAMS = {
@@ -50,11 +50,8 @@ SERVER_PARAMS = {
     **LOOP_PARAMS,  # what the planning loop reads
 }
 PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-line, ...)",
-                        "n_nodes": "roadmap nodes", "seed": "roadmap sampling seed",
-                        "planner_settings": "PSPRMSettings YAML ('' = config/planners/psprm.yaml)",
-                        "collision_padding": "clearance (m) the planner keeps from every obstacle, so that a robot "
-                                             "tracking its path a few cm off stays clear (overrides the settings "
-                                             "file's edges.collision_padding; a start inside it is moved out first)",
+                        "planner_settings": "PSPRMSettings YAML ('' = config/planners/psprm.yaml): the defaults of "
+                                            "the planner-setting parameters (scoring.alpha, roadmap.n_nodes, ...)",
                         "replan_settings": "ReplanSettings: a name in config/planners/ or a YAML path",
                         "roadmap_file": "'' = cache under ~/.cache/psprm/roadmaps; 'none' = always build",
                         "checkpoint": "surrogate checkpoint ('' = the shipped one)"}
@@ -64,18 +61,22 @@ def planner_params() -> dict:
     return {k: P(v, PLANNER_DESCRIPTIONS.get(k, ""), rebuild=True) for k, v in core.PLANNER_PARAMS.items()}
 
 
+def planner_setting_params(defaults: dict) -> dict:
+    """The planner settings the server declares (:func:`~psprm_ros.core.server_setting_specs`), by dotted path, made
+    from their specs (:func:`~psprm_ros.core.setting_param`) with ``defaults`` (dotted path -> value:
+    :func:`~psprm_ros.core.server_setting_values`); the live ones are applied to the running planner, the others are
+    read-only."""
+    return {spec.name: core.setting_param(spec, defaults[spec.name]) for spec in core.server_setting_specs()}
+
+
 def replan_params(settings_name: str) -> dict:
-    """Live replanning thresholds with the settings file's values as defaults."""
+    """The live replan settings (:func:`~psprm_ros.server.params.live_replan`), made from their specs with the
+    settings file's values as defaults."""
     from psprm_core.paths import resolve_named
     from psprm_core.planning.replanner import ReplanSettings
 
     rs = ReplanSettings.from_yaml(resolve_named("planner", settings_name)) if settings_name else ReplanSettings()
-    out = {}
-    for k, d in LIVE_REPLAN.items():
-        v = getattr(rs, k)
-        lo = 1.0 if k == "goal_commit_growth" else 0.0  # a factor: below 1 the commitment would shrink
-        out[k] = P(v, d, live=True) if isinstance(v, bool) else P(float(v), d, live=True, lo=lo)
-    return out
+    return {name: core.setting_param(spec, getattr(rs, name)) for name, spec in live_replan().items()}
 
 
 class RoadmapServer:
@@ -98,12 +99,20 @@ class RoadmapServer:
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
         common = {**core.common_params(), **planner_params(), **SERVER_PARAMS}
-        self.p = core.declare_params(node, common)
-        self.spec_params = {**common, **replan_params(self.p["replan_settings"])}
-        self.p.update(core.declare_params(node, self.spec_params))
+        refusals: list = []  # parameters given values they refuse: the node stays up and refuses to configure
+        self.p = core.declare_params(node, common, refusals)
+        replan = replan_params(self.p["replan_settings"])
+        self.p.update(core.declare_params(node, replan, refusals))
         torch.set_num_threads(max(1, self.p["torch_threads"]))
-        self.spec = core.PlannerSpec(**{k: self.p[k] for k in core.PLANNER_PARAMS})
         self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
+        settings = self._planner_setting_params(refusals)
+        self.p.update(core.declare_params(node, settings, refusals))
+        self.spec_params = {**common, **replan, **settings}
+        self.spec = core.PlannerSpec(**{k: self.p[k] for k in core.PLANNER_PARAMS},
+                                     settings={k: self.p[k] for k in settings})
+        if refusals:
+            node.refuse_configure("; ".join(filter(None, [node.configure_refusal,
+                                                          f"parameters refused: {'; '.join(refusals)}"])))
         self.frame = self.scene.frame
         self.targets = core.scene_targets(self.scene, self.p["targets"])
         for o in self.p["dynamic_obstacles"]:
@@ -153,6 +162,19 @@ class RoadmapServer:
             node.create_timer(self.p["heap_trim_period_s"],
                               lambda: self.loop.submit_side("heap trim", self.loop.trim_heap),
                               callback_group=MutuallyExclusiveCallbackGroup())
+
+    def _planner_setting_params(self, refusals: list) -> dict:
+        """The planner-setting parameters (:func:`planner_setting_params`) with the defaults of the settings file for
+        this robot; a file that cannot be read is a refusal (the specs' defaults stand in)."""
+        from psprm_core.errors import ConfigError
+        from psprm_core.planning.psprm import PSPRMSettings
+
+        try:
+            settings = core.planner_file_settings(self.p["planner_settings"], self.robot.name)
+        except ConfigError as exc:
+            refusals.append(f"planner_settings: {exc}")
+            settings = PSPRMSettings()
+        return planner_setting_params(core.server_setting_values(settings))
 
     # ------------------------------------------------------------------------------------------------ the loop's state
     # read by the launchers, benchmarks and tests (probe, latency_bench, the node tests)

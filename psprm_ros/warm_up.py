@@ -30,7 +30,8 @@ def main(args=None) -> int:
     t0 = time.perf_counter()
     scene, robot = core.load_scene_and_robot(a.scene)
     targets = core.scene_targets(scene, [])
-    spec = core.PlannerSpec(n_nodes=a.nodes, roadmap_file="none", replan_settings=a.replan_settings)
+    spec = core.PlannerSpec(settings={"roadmap.n_nodes": a.nodes}, roadmap_file="none",
+                            replan_settings=a.replan_settings)
     planner = core.make_planner_for(scene, robot, targets, spec)
     info = core.build_or_load(planner, scene, spec)
     rp = core.make_replanner(planner, a.replan_settings)

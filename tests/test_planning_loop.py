@@ -144,7 +144,7 @@ def make_loop(world_models, roadmap_file):
 
     def make(**params):
         rec = Record()
-        spec = core.PlannerSpec(n_nodes=400, seed=0, roadmap_file=roadmap_file)
+        spec = core.PlannerSpec(settings={"roadmap.n_nodes": 400, "seed": 0}, roadmap_file=roadmap_file)
         loop = PlanningLoop(load_scene(resolve_named("scene", SCENE)), robot, ["person_face"], spec, rec,
                             obstacles=["person_body"], q0=start, params={**PARAMS, **params})
         made.append(loop)

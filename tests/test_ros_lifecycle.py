@@ -25,7 +25,7 @@ from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
-PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": 500, "seed": 0,
+PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "roadmap.n_nodes": 500, "seed": 0,
           "stale_timeout_s": 60.0, "publish_markers": False, "input_frames": ["odom"], "interface": "topic",
           "adapter": "stretch2", "start_problem": "south_to_either"}
 
@@ -185,16 +185,16 @@ def test_live_parameters_change_behaviour_and_rebuild_parameters_are_refused(loa
             # (the roadmap's own edges: re-weighting also gives the retired query edges' slots back)
             ids = s.server.planner.roadmap_edge_ids()
             w_before = np.asarray(s.server.planner.graph.weights)[ids].copy()
-            r = srv.set_params("roadmap_server", alpha=0.3)
+            r = srv.set_params("roadmap_server", **{"scoring.alpha": 0.3})
             assert r[0].successful
             assert s.probe.wait_for(lambda: abs(s.server.planner.settings.scoring.alpha - 0.3) < 1e-9, 5)
             assert not np.allclose(w_before, np.asarray(s.server.planner.graph.weights)[ids])
             # refused, with reasons
-            r = srv.set_params("roadmap_server", n_nodes=800)
+            r = srv.set_params("roadmap_server", **{"roadmap.n_nodes": 800})
             assert not r[0].successful and "read-only" in r[0].reason
             r = srv.set_params("roadmap_server", trajectory_dt=5.0)
             assert not r[0].successful and "range" in r[0].reason.lower()
-            r = srv.set_params("roadmap_server", alpha=float("nan"))
+            r = srv.set_params("roadmap_server", **{"scoring.alpha": float("nan")})
             assert not r[0].successful
             r = srv.set_params("replan_monitor", mocap_prefix="/other")
             assert not r[0].successful and "configured" in r[0].reason

@@ -23,7 +23,8 @@ from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
-PARAMS = {"scene": "dynamic_person", "n_nodes": 400, "seed": 0, "stale_timeout_s": 60.0, "input_frames": ["odom"]}
+PARAMS = {"scene": "dynamic_person", "roadmap.n_nodes": 400, "seed": 0, "stale_timeout_s": 60.0,
+          "input_frames": ["odom"]}
 
 
 def test_two_suites_in_two_namespaces_plan_for_their_own_robots(load_robot):

@@ -26,7 +26,7 @@ from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 N_NODES = 500
-PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": N_NODES, "seed": 0,
+PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "roadmap.n_nodes": N_NODES, "seed": 0,
           "stale_timeout_s": 60.0, "publish_markers": True, "rescore_rate_hz": 5.0, "markers_period_s": 0.5,
           "input_frames": ["odom"]}
 

@@ -67,7 +67,7 @@ def test_colcon_workspace_builds_and_installs_runnable_executables(tmp_path):
 def _start(script: str, domain: int):
     env = dict(os.environ, ROS_DOMAIN_ID=str(domain), RMW_IMPLEMENTATION="rmw_fastrtps_cpp", PYTHONUNBUFFERED="1")
     # node-specific overrides: a plain "-p name:=value" does not beat the params file's per-node sections
-    cmd = ["bash", str(ROOT / "scripts" / script), str(PARAMS_FILE), "-p", f"roadmap_server:n_nodes:={N_NODES}",
+    cmd = ["bash", str(ROOT / "scripts" / script), str(PARAMS_FILE), "-p", f"roadmap_server:roadmap.n_nodes:={N_NODES}",
            "-p", "replan_monitor:stale_timeout_s:=60.0", "-p", "roadmap_server:publish_markers:=false",
            "-p", "robot_adapter:interface:=topic"]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

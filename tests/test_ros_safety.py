@@ -26,7 +26,7 @@ from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
-PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "n_nodes": 500, "seed": 0,
+PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "roadmap.n_nodes": 500, "seed": 0,
           "stale_timeout_s": 60.0, "publish_markers": False, "input_frames": ["odom"], "deviation_tolerance": 1000.0,
           "relay_deadband_m": 0.0, "relay_deadband_rad": 0.0}
 MARGIN_S = 0.05  # a pose counts as known to the server 50 ms after the test published it

@@ -338,7 +338,7 @@ def main(args=None) -> int:
         return 2
     scene, robot = cfg.scene, cfg.robot
     domain = a.domain_id or claim_domain_id(100, 200)
-    overrides = {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}
+    overrides = {"roadmap_server:roadmap.n_nodes": a.nodes, "robot_adapter:interface": "topic"}
     if a.fresh_roadmap:
         overrides["roadmap_server:roadmap_file"] = "none"
     say = lambda m: print(m, flush=True)  # noqa: E731

@@ -44,7 +44,7 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
 
     torch.set_num_threads(2)
     # the benchmark's protocol: every target move beyond the thresholds replans at once
-    overrides = {"n_nodes": int(n_nodes), "stale_timeout_s": 3600.0, "deviation_tolerance": 1000.0,
+    overrides = {"roadmap.n_nodes": int(n_nodes), "stale_timeout_s": 3600.0, "deviation_tolerance": 1000.0,
                  "replan_settings": "replan_reactive"}
     if stop_horizon >= 0:
         overrides["stop_horizon_s"] = float(stop_horizon)

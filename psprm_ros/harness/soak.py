@@ -217,7 +217,7 @@ def main(args=None) -> int:
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = RobotModel.load(scene.robot)
     domain = a.domain_id or claim_domain_id(100, 200)
-    overrides = {"roadmap_server:n_nodes": a.nodes, "robot_adapter:interface": "topic"}
+    overrides = {"roadmap_server:roadmap.n_nodes": a.nodes, "robot_adapter:interface": "topic"}
     if a.path_tolerance is not None:
         overrides["robot_adapter:path_tolerance_m"] = a.path_tolerance
     loop = ClosedLoop(a.params, overrides, out, "soak", domain, suite=a.suite).start()
@@ -488,11 +488,15 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
 
 
 def _params_padding(params_file: str) -> float:
-    """The roadmap server's ``collision_padding`` in the params file (0 when it sets none)."""
+    """The roadmap server's ``edges.collision_padding`` in the params file, as a dotted key or nested (0 when it sets
+    none)."""
     import yaml
 
     data = yaml.safe_load(Path(params_file).read_text()) or {}
-    return float(((data.get("roadmap_server") or {}).get("ros__parameters") or {}).get("collision_padding", 0.0))
+    params = (data.get("roadmap_server") or {}).get("ros__parameters") or {}
+    if "edges.collision_padding" in params:
+        return float(params["edges.collision_padding"])
+    return float((params.get("edges") or {}).get("collision_padding", 0.0))
 
 
 def save_record(path: Path, ex: list, trajs: list, names: list, commands: list = ()) -> None:

@@ -4,6 +4,6 @@ The ``roadmap_server`` node only converts messages; tests drive the loop directl
 
 from .loop import PlanningLoop
 from .outputs import Outputs, TrajectorySamples
-from .params import LIVE_REPLAN, LOOP_PARAMS, default_params
+from .params import LOOP_PARAMS, default_params, live_replan
 
-__all__ = ["PlanningLoop", "Outputs", "TrajectorySamples", "LIVE_REPLAN", "LOOP_PARAMS", "default_params"]
+__all__ = ["PlanningLoop", "Outputs", "TrajectorySamples", "LOOP_PARAMS", "default_params", "live_replan"]

@@ -31,7 +31,7 @@ from .diagnostics import loop_diagnostics
 from .executing import Executing
 from .inputs import Inputs
 from .outputs import Outputs
-from .params import LIVE_REPLAN, TRANSITIONS, default_params
+from .params import TRANSITIONS, default_params, live_replan
 from .robot_motion import RobotMotion
 from .views import RoadmapViews, SideJobs
 from .worker import PlanningWorker
@@ -160,11 +160,14 @@ class PlanningLoop:
         return self.inputs.request(kind, timeout, lambda: self._running)
 
     def stage_param(self, name: str, value) -> None:
-        """A live parameter change: checked here (a replan setting the replanner refuses raises ValueError), applied
-        by the worker before its next cycle."""
-        rp = self.worker.rp
-        if name in LIVE_REPLAN and rp is not None:
+        """A live parameter change: checked here (a replan setting the replanner refuses, or planner settings that
+        do not go together, raise :class:`~psprm_core.errors.PsprmError`), applied by the worker before its next
+        cycle."""
+        rp, planner = self.worker.rp, self.worker.planner
+        if name in live_replan() and rp is not None:
             dataclasses.replace(rp.settings, **{name: value})  # ReplanSettings refuses bad values
+        if name in self.spec.settings and planner is not None:
+            core.resolve_live_settings(planner.settings, {name: value}, self.spec.variant).validate("ROS parameter")
         self.inputs.live(name, value)
         self.inputs.wake.set()
 

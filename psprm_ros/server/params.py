@@ -1,7 +1,9 @@
-"""The planning loop's parameters, its constants and the live replan settings a running server changes."""
+"""The planning loop's parameters, its constants and the live replan settings a running server changes (the planner's
+settings are declared from their specs by the roadmap server, :func:`psprm_ros.core.server_setting_specs`)."""
 
 from __future__ import annotations
 
+import functools
 from typing import Optional
 
 import numpy as np
@@ -34,8 +36,6 @@ LOOP_PARAMS = {
                              "trajectory being executed stops the robot at once, on the message's arrival, before the "
                              "replan (0 = off: the robot follows the old trajectory until a new one is planned)",
                         live=True, lo=0.0),
-    "alpha": P(-1.0, "Eq. 2 weight of perception against motion cost (< 0: the planner variant's default)",
-               live=True, lo=-1.0, hi=1.0),
     "commit_horizon_min_s": P(0.25, "a replan of a robot in motion commits at least this far ahead (s): planning "
                                     "and delivery, measured from recent replans, clamped to [min, max]", live=True,
                               lo=0.0),
@@ -54,26 +54,18 @@ LOOP_PARAMS = {
 }
 #: plans withdrawn in a row for a stale start before one is handed to the robot anyway (the adapter decides)
 MAX_STALE_STARTS = 2
-#: the replanner's settings a running server changes live (their defaults come from the replan settings file)
-LIVE_REPLAN = {"target_move_m": "target translation that counts as a move (m)",
-               "target_turn_rad": "target rotation that counts as a move (rad)",
-               "obstacle_move_m": "obstacle translation that counts as a move (m)",
-               "obstacle_turn_rad": "obstacle rotation that counts as a move (rad)",
-               "replan_on_move": "a target/obstacle move alone triggers a replan",
-               "score_min": "replan when the predicted normalised score along the remaining path falls below this",
-               "score_drop": "... or drops by more than this since the plan",
-               "goal_switch_margin": "goal hysteresis (fraction of the current plan's cost)",
-               "goal_commit_s": "keep a chosen goal this long (s) unless no path reaches it",
-               "goal_commit_growth": "each goal switch multiplies the next commitment by this (>= 1)",
-               "final_approach_m": "no score-triggered replan within this base path length of the goal (m)",
-               "min_interval_s": "at most one score/move-triggered replan per interval (s)",
-               "keep_unless_better": "a replan the view alone triggered replaces the trajectory only when it sees more "
-                                     "or is shorter (else the robot keeps driving it)",
-               "keep_score_margin": "normalised mean score along the path a new plan must add to replace the current",
-               "keep_length_margin": "fraction of the remaining path's motion cost a new plan must save to replace "
-                                     "the current",
-               "commit": "a robot in motion replans from its committed state: the trajectory under way is kept to its "
-                         "first rest instant after planning and delivery, the new plan is spliced on there"}
+
+
+@functools.lru_cache(maxsize=None)
+def live_replan() -> dict:
+    """The replanner's settings a running server changes live, by name: the ``live`` fields of
+    :class:`~psprm_core.planning.replanner.ReplanSettings` as their :class:`~psprm_core.planning.settings.SettingSpec`
+    (their defaults come from the replan settings file)."""
+    from psprm_core.planning.replanner import ReplanSettings
+
+    return {spec.name: spec for spec in ReplanSettings.specs() if spec.live}
+
+
 TRANSITIONS = ("configure", "activate", "deactivate", "cleanup", "shutdown")
 REQUESTS = ("plan", "rebuild", "stop")
 
@@ -85,7 +77,7 @@ def default_params(replan_settings: str = "") -> dict:
     from psprm_core.planning.replanner import ReplanSettings
 
     rs = ReplanSettings.from_yaml(resolve_named("planner", replan_settings)) if replan_settings else ReplanSettings()
-    return {**{k: v.default for k, v in LOOP_PARAMS.items()}, **{k: getattr(rs, k) for k in LIVE_REPLAN}}
+    return {**{k: v.default for k, v in LOOP_PARAMS.items()}, **{k: getattr(rs, k) for k in live_replan()}}
 
 
 def finite_or_none(x) -> Optional[float]:

@@ -16,7 +16,7 @@ from psprm_core.errors import PsprmError
 
 from .. import core
 from .checks import FinalCheck, StopGuard, remaining
-from .params import LIVE_REPLAN, MAX_STALE_STARTS, SPLICE_DELIVERY_S, finite_or_none as _f
+from .params import MAX_STALE_STARTS, SPLICE_DELIVERY_S, finite_or_none as _f, live_replan
 
 
 class PlanningWorker:
@@ -64,9 +64,6 @@ class PlanningWorker:
         try:
             if kind == "configure":
                 self._build(initial=True)
-                if self.p["alpha"] >= 0:
-                    self.apply_live({"alpha": self.p["alpha"]})
-                self.apply_live({k: self.p[k] for k in LIVE_REPLAN})
                 ok = True
             elif kind == "deactivate":
                 if self.rp is not None:
@@ -91,28 +88,37 @@ class PlanningWorker:
             done.set()
 
     def apply_live(self, live: dict) -> None:
-        """Live parameter changes: the replanner's settings, and alpha (>= 0) into the planner."""
-        rp_changes = {k: v for k, v in live.items() if k in LIVE_REPLAN}
+        """Live parameter changes: the replanner's settings (:func:`~.params.live_replan`), and the planner's
+        (dotted paths of ``spec.settings``) through its settings (``scoring.alpha`` None: the variant's default)."""
+        rp_changes = {k: v for k, v in live.items() if k in live_replan()}
         if rp_changes and self.rp is not None:
             self.rp.update_settings(**rp_changes)
-        a = live.get("alpha")
-        if a is not None and a >= 0 and self.planner is not None and hasattr(self.planner, "set_alpha"):
-            self.planner.set_alpha(float(a))
+        planner_changes = {k: v for k, v in live.items() if k in self.spec.settings}
+        if planner_changes and "scoring.alpha" in self.spec.settings and self.p.get("scoring.alpha") is None:
+            planner_changes["scoring.alpha"] = None  # unset: the variant's default for the objective now in use
+        if planner_changes and self.planner is not None:
+            self.planner.update_settings(core.resolve_live_settings(self.planner.settings, planner_changes,
+                                                                    self.spec.variant))
         if live:
             self.outputs.status(f"parameters applied: {', '.join(f'{k}={v}' for k, v in sorted(live.items()))}")
 
     def _build(self, initial: bool = False) -> None:
         scene = self.safety_scene
-        self.outputs.status(f"{'building' if initial else 'rebuilding'} the {self.spec.variant} roadmap "
-                            f"({self.spec.n_nodes} nodes) for scene '{scene.name}'")
+        # the planner settings as their parameters have them now (live changes included)
+        settings = {k: self.p.get(k, v) for k, v in self.spec.settings.items()}
+        spec = core.PlannerSpec(**{**vars(self.spec), "settings": settings,
+                                   **({} if initial else {"roadmap_file": "none"})})
+        planner = core.make_planner_for(scene, self.robot, self.targets, spec)
+        self.outputs.status(f"{'building' if initial else 'rebuilding'} the {spec.variant} roadmap "
+                            f"({planner.settings.roadmap.n_nodes} nodes) for scene '{scene.name}'")
         self.outputs.state("building" if initial else "rebuilding")
-        planner = core.make_planner_for(scene, self.robot, self.targets, self.spec)
-        spec = self.spec if initial else core.PlannerSpec(**{**vars(self.spec), "roadmap_file": "none"})
         info = core.build_or_load(planner, scene, spec, template=self.q, force_build=not initial)
         if info["source"] == "failed":
             raise RuntimeError(info.get("reason", "roadmap build failed"))
         self.planner, self.build_info = planner, info
         self.rp = core.make_replanner(planner, self.spec.replan_settings)
+        # the live replan settings as their parameters have them (the file's values until changed)
+        self.rp.update_settings(**{k: self.p[k] for k in live_replan() if k in self.p})
         # re-apply the scene state the new replanner has not seen (targets/obstacles moved since the YAML)
         for t in scene.targets:
             if t.name in self.targets:
