@@ -32,7 +32,8 @@ class Builder:
     """Builds and grows the roadmap."""
 
     def __init__(self, ctx: PlannerContext, rm: RoadmapState, knots: KnotStore, sampling: Sampling,
-                 neighbours: Neighbours, edges: Edges, scoring: Scoring, heuristics: Heuristics, trajectory: Trajectory):
+                 neighbours: Neighbours, edges: Edges, scoring: Scoring, heuristics: Heuristics,
+                 trajectory: Trajectory):
         self.ctx = ctx
         self.rm = rm
         self.knots = knots

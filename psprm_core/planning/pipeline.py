@@ -48,9 +48,9 @@ class Pipeline:
       ``scoring`` back by :meth:`~.edges.Edges.bind_scoring` (it scores the edges it checks);
     - ``sampling`` (uses ``scoring``), ``neighbours``, ``heuristics``, ``verify`` and ``trajectory`` (use ``edges``
       and ``scoring``);
-    - ``builder`` (the stages above but ``verify``), ``shortcut`` (``edges``, ``scoring``), ``dynamics`` and ``persistence``
-      (``scoring``; ``persistence`` also ``heuristics``), ``query`` (``edges``, ``scoring``, ``heuristics``,
-      ``verify``, ``shortcut``, ``trajectory``);
+    - ``builder`` (the stages above but ``verify``), ``shortcut`` (``edges``, ``scoring``), ``dynamics`` and
+      ``persistence`` (``scoring``; ``persistence`` also ``heuristics``), ``query`` (``edges``, ``scoring``,
+      ``heuristics``, ``verify``, ``shortcut``, ``trajectory``);
     - ``selection`` (``query``, ``scoring``) and ``recovery`` (``query``, ``builder``, ``edges``).
 
     Two calls go up, bound after the upper stage is made: a shortcut taken joins the query's edges
