@@ -374,7 +374,8 @@ def test_replan_settings_are_typed_and_checked():
     assert got == {"route_selection": True, "goal_commit_s": 4.0, "heuristic": "hop"}
     assert isinstance(got["goal_commit_s"], float)
     bad = {"route_selection": "expected KEY=VALUE", "nope=1": "--replan 'nope=1': 'nope' is not a setting",
-           "route_selection=3": "takes true or false", "heuristic=astar": "heuristic must be one of",
+           "route_selection=3": "takes true or false",
+           "heuristic=astar": r"heuristic': unknown value 'astar' \(choices: exact, hop, planner\)",
            "goal_commit_growth=0.5": "goal_commit_growth"}
     for item, msg in bad.items():
         with pytest.raises(PsprmError, match=msg):
