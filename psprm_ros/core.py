@@ -632,6 +632,9 @@ def lifecycle_node(owner, node_name: str, **node_kwargs):
         except Exception as exc:  # a configuration error: the transition fails, the node lives on
             failed(name, exc)
             return TransitionCallbackReturn.FAILURE
+        if name == "on_configure":
+            for text in bare_setting_names(node):
+                node.get_logger().warning(text)
         return TransitionCallbackReturn.FAILURE if ok is False else TransitionCallbackReturn.SUCCESS
 
     class _Managed(LifecycleNode):
@@ -668,6 +671,24 @@ def lifecycle_node(owner, node_name: str, **node_kwargs):
 
     node = _Managed(node_name, **node_kwargs)
     return node
+
+
+def bare_setting_names(node) -> list:
+    """Warnings for the parameters ``node`` was given (params file, ``-p``) under a bare name that it declares only
+    under a dotted one (``alpha`` for ``scoring.alpha``): rclpy ignores a parameter that is not declared, so the
+    value would silently not apply. Names shared by every node (the ``/**`` section) that this node does not
+    declare at all are left alone."""
+    given = getattr(node, "_parameter_overrides", None) or {}  # rclpy keeps the node's overrides there
+    declared = list(node.list_parameters([], 0).names)  # depth 0: every name, dotted ones included
+    out = []
+    for name in sorted(given):
+        if "." in name or node.has_parameter(name):
+            continue
+        full = [d for d in declared if d.endswith("." + name)]
+        if len(full) == 1:
+            out.append(f"parameter '{name}' is not a parameter of {node.get_name()}; the setting is "
+                       f"'{full[0]}' (ignored)")
+    return out
 
 
 def lifecycle_state(node) -> str:

@@ -228,3 +228,26 @@ def test_live_settings_resolve_an_unset_alpha_to_the_variant_default():
     unset = resolve_live_settings(s, {"scoring.alpha": None, "scoring.objective": "motion"}, "psprm-line")
     assert unset.scoring.alpha == DEFAULT_ALPHA[("motion", "oracle")]
     assert resolve_live_settings(s, {"query.connect_k": 20}, "psprm-line").scoring.alpha == 0.3
+
+
+def test_a_bare_setting_name_is_named_on_the_log_with_its_dotted_path():
+    """A params file that gives ``alpha`` (not ``scoring.alpha``): rclpy ignores an undeclared parameter, so the
+    server says on /rosout which dotted name the value was meant for, and alpha stays unset."""
+    from lifecycle_msgs.msg import Transition
+    from rcl_interfaces.msg import Log
+
+    with InProcessSuite(dict(PARAMS, alpha=0.9, adapter="stretch2"), domain_id=claim_domain_id(), nodes=("server",),
+                        autostart=False) as s:
+        obs = s.probe.node
+        heard = []
+        obs.create_subscription(Log, "/rosout", lambda m: heard.append((m.name, m.level, m.msg)), 100)
+        assert _transition(obs, Transition.TRANSITION_CONFIGURE)
+        for _ in range(50):
+            if any("scoring.alpha" in m for _, _, m in heard):
+                break
+            threading.Event().wait(0.1)
+        warned = [(n, lv) for n, lv, m in heard if "'alpha'" in m and "'scoring.alpha'" in m]
+        assert warned and all(n.endswith("roadmap_server") and lv == Log.WARN for n, lv in warned), heard
+        assert s.server.node.get_parameter_or("scoring.alpha").value is None
+        # names every node shares and this one does not declare (the adapter's) are not warned about
+        assert not any("'adapter'" in m for _, _, m in heard)
