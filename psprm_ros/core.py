@@ -539,9 +539,9 @@ def make_planner_for(scene, robot, targets, spec: PlannerSpec):
     from psprm_core.planning.factory import make_planner
 
     settings = planner_file_settings(spec.planner_settings, robot.name) if spec.planner_settings else None
-    overrides = {**SERVER_SETTING_DEFAULTS, **spec.settings}
     return make_planner(spec.variant, scene, targets, robot=robot, settings=settings,
-                        checkpoint=Path(spec.checkpoint) if spec.checkpoint else None, **overrides)
+                        checkpoint=Path(spec.checkpoint) if spec.checkpoint else None,
+                        options={**SERVER_SETTING_DEFAULTS, **spec.settings})
 
 
 def roadmap_cache_path(planner, scene, spec: PlannerSpec) -> Optional[Path]:

@@ -439,7 +439,7 @@ def test_verify_success_on_real_and_made_up_paths(home):
     motion = DiffDriveMotion(robot)
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     prob = make_problems(scene, robot, [["tv"]], 1, seed=2)[0]
-    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=300, seed=0)
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, options={"roadmap.n_nodes": 300, "seed": 0})
     p.build()
     res = p.plan(prob["start"], prob["goal"], timing=False)
     assert res.success, res.reason

@@ -62,7 +62,8 @@ def episodes():
     robot = RobotModel.load(scene.robot)
 
     def fresh():
-        return make_planner(sc.planner, scene, list(sc.targets), robot=robot, n_nodes=sc.nodes, seed=sc.seed)
+        return make_planner(sc.planner, scene, list(sc.targets), robot=robot,
+                            options={"roadmap.n_nodes": sc.nodes, "seed": sc.seed})
 
     p = fresh()
     assert p.build()["success"]

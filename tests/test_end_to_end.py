@@ -68,7 +68,7 @@ def test_oracle_variant_plans_a_query_seen_as_the_oracle_sees_it(variant, load_r
     robot = load_robot(scene.robot)
     target = "person_face"
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
-    p = make_planner(variant, scene, [target], robot=robot, n_nodes=24, seed=0)
+    p = make_planner(variant, scene, [target], robot=robot, options={"roadmap.n_nodes": 24, "seed": 0})
     assert isinstance(p.scorer, OracleScorer) and p.settings.visibility.constraint == variant.split("-")[1]
     assert p.build(template=start)["success"]
     res = p.plan(start, goals)
@@ -110,7 +110,7 @@ def test_nursing_planner_combines_both_faces(load_robot):
     faces = ["nurse_1_face", "nurse_2_face"]
     prob = scene.problem("west_to_east_nurses")
     start, goals = problem_configurations(robot, scene, prob)
-    p = make_planner("neural-psprm-line", scene, faces, robot=robot, n_nodes=300, seed=0)
+    p = make_planner("neural-psprm-line", scene, faces, robot=robot, options={"roadmap.n_nodes": 300, "seed": 0})
     assert p.build(template=start)["success"]
     res = p.plan(start, goals)
     _valid_plan(res, robot, scene, start, goals)

@@ -103,8 +103,9 @@ def test_planner_built_with_pytorch_kinematics_plans_collision_free(load_robot):
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")
-    p = make_planner("neural-psprm-line", scene, ["person_face"], robot=robot, n_nodes=300, seed=0,
-                     kinematics="pytorch_kinematics", biased_share=0.0)
+    p = make_planner("neural-psprm-line", scene, ["person_face"], robot=robot,
+                     options={"roadmap.n_nodes": 300, "seed": 0, "visibility.kinematics": "pytorch_kinematics",
+                              "roadmap.biased_share": 0.0})
     assert isinstance(p.constraint.kin, PKCameraKinematics)
     p.build()
     ids = p.graph.valid_node_ids()[:200]

@@ -134,8 +134,9 @@ def test_planner_built_with_pytorch_kinematics_checks_collisions_with_it(load_ro
 
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
-    p = make_planner("neural-psprm-line", scene, [scene.problems[0].target], robot=robot, n_nodes=300, seed=0,
-                     kinematics="pytorch_kinematics", biased_share=0.0)
+    p = make_planner("neural-psprm-line", scene, [scene.problems[0].target], robot=robot,
+                     options={"roadmap.n_nodes": 300, "seed": 0, "visibility.kinematics": "pytorch_kinematics",
+                              "roadmap.biased_share": 0.0})
     assert isinstance(p.checker.kin, PKBodyKinematics)
     counting = CountingKinematics(p.checker.kin)
     p.checker.kin = counting

@@ -349,20 +349,24 @@ def test_make_planner_applies_overrides_and_the_shipped_settings(load_robot):
     shipped = yaml.safe_load((config_dir() / "planners" / "psprm.yaml").read_text())
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
-    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50, biased_share=0.3, objective="eq2")
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot,
+                     options={"roadmap.n_nodes": 50, "roadmap.biased_share": 0.3, "scoring.objective": "eq2"})
     assert p.settings.roadmap.biased_share == 0.3 and p.settings.scoring.objective == "eq2"
     assert p.settings.scoring.alpha == DEFAULT_ALPHA[("eq2", "neural")] == 0.8
-    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50)
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, options={"roadmap.n_nodes": 50})
     assert p.settings.scoring.objective == shipped["scoring"]["objective"]
     assert p.settings.query.shortcut == shipped["query"]["shortcut"]
     assert p.settings.roadmap.biased_share == shipped["roadmap"]["biased_share"]
     assert p.settings.scoring.alpha == DEFAULT_ALPHA[(shipped["scoring"]["objective"], "neural")]
-    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot, n_nodes=50, alpha=0.5)
+    p = make_planner("neural-psprm-line", scene, ["tv"], robot=robot,
+                     options={"roadmap.n_nodes": 50, "scoring.alpha": 0.5})
     assert p.settings.scoring.alpha == 0.5
-    p = make_planner("psprm-line", scene, ["tv"], robot=robot, n_nodes=50, biased_share=0.5)
+    p = make_planner("psprm-line", scene, ["tv"], robot=robot,
+                     options={"roadmap.n_nodes": 50, "roadmap.biased_share": 0.5})
     assert p.settings.roadmap.biased_share == 0.0
     alley = load_scene(resolve_named("scene", "blind_spot_alley"))
-    p = make_planner("neural-psprm-line", alley, [alley.target_names[0]], robot=load_robot("ur5_mobile"), n_nodes=50)
+    p = make_planner("neural-psprm-line", alley, [alley.target_names[0]], robot=load_robot("ur5_mobile"),
+                     options={"roadmap.n_nodes": 50})
     assert p.settings.roadmap.biased_share == shipped["robots"]["ur5_mobile"]["roadmap"]["biased_share"] == 0.0
     # the rest of the group keeps the shared values
     assert p.settings.roadmap.n_nodes == 50 and p.settings.roadmap.k_long == shipped["roadmap"]["k_long"]

@@ -145,7 +145,8 @@ def test_alpha_set_live_plans_as_a_planner_made_with_it(tmp_path):
         def own(**settings):
             """A planner the test makes itself, on the roadmap the server saved, with ``settings`` given directly."""
             p = make_planner("neural-psprm-line", scene, list(server.targets), robot=robot,
-                             **{"roadmap.n_nodes": N_NODES, "seed": 0, "edges.collision_padding": 0.05, **settings})
+                             options={"roadmap.n_nodes": N_NODES, "seed": 0, "edges.collision_padding": 0.05,
+                                      **settings})
             p.load(roadmap)
             return p
 

@@ -153,9 +153,11 @@ def test_alpha_unset_is_the_variants_default_for_the_objective(load_robot, tmp_p
     robot = load_robot("stretch2")
     for (objective, kind), alpha in paper.items():
         variant = "neural-psprm-line" if kind == "neural" else "psprm-line"
-        p = make_planner(variant, scene, ["tv"], robot=robot, n_nodes=50, objective=objective)
+        p = make_planner(variant, scene, ["tv"], robot=robot,
+                         options={"roadmap.n_nodes": 50, "scoring.objective": objective})
         assert p.settings.scoring.alpha == alpha, (objective, kind)
-    p = make_planner("psprm-line", scene, ["tv"], robot=robot, n_nodes=50, objective="eq2", alpha=0.4)
+    p = make_planner("psprm-line", scene, ["tv"], robot=robot,
+                     options={"roadmap.n_nodes": 50, "scoring.objective": "eq2", "scoring.alpha": 0.4})
     assert p.settings.scoring.alpha == 0.4
     path = tmp_path / "p.yaml"
     path.write_text("scoring:\n  objective: motion\n  alpha: 0.6\n")
@@ -251,7 +253,7 @@ def test_presets_load_validate_and_hold_their_configurations(load_robot):
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
     for variant, alpha in (("neural-psprm-line", 0.8), ("psprm-line", 0.75)):
-        p = make_planner(variant, scene, ["tv"], robot=robot, preset="psprm_paper", n_nodes=50)
+        p = make_planner(variant, scene, ["tv"], robot=robot, preset="psprm_paper", options={"roadmap.n_nodes": 50})
         assert (p.settings.scoring.alpha, p.settings.scoring.objective, p.settings.roadmap.n_nodes) == (
             alpha, "eq2", 50)
     with pytest.raises(ConfigError, match="unknown preset 'nope'"):

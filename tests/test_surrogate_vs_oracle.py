@@ -33,7 +33,7 @@ def views(load_robot):
     for scene_name, target, k in CASES:
         scene = load_scene(resolve_named("scene", scene_name))
         robot = load_robot(scene.robot)
-        p = make_planner("neural-psprm-line", scene, [target], robot=robot, n_nodes=150, seed=0)
+        p = make_planner("neural-psprm-line", scene, [target], robot=robot, options={"roadmap.n_nodes": 150, "seed": 0})
         assert p.build()["success"]
         ids = np.random.default_rng(0).choice(p.roadmap_node_ids(), k, replace=False)
         cams = robot.camera_poses(torch.as_tensor(p.graph.configs[ids], dtype=torch.float64))

@@ -38,7 +38,8 @@ class PSPRMBenchPlanner:
 
         self.name = name
         self.targets = list(targets)
-        self.planner = make_planner(name, scene, self.targets, robot=robot, n_nodes=n_nodes, seed=seed, **overrides)
+        self.planner = make_planner(name, scene, self.targets, robot=robot,
+                                    options={"roadmap.n_nodes": n_nodes, "seed": seed, **overrides})
         self.robot = self.planner.robot
         self._built = False
         self._snapshot: Optional[dict] = None  # the planner's state after prepare() (see reset)

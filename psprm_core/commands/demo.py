@@ -130,8 +130,8 @@ def _plan(args, scene, robot, out: Path) -> dict:
     except KeyError as exc:
         raise PsprmError(str(exc).strip("'\"")) from None
     try:
-        planner = make_planner(args.planner, scene, prob.all_targets, robot=robot, n_nodes=args.nodes,
-                               seed=args.seed)
+        planner = make_planner(args.planner, scene, prob.all_targets, robot=robot,
+                               options={"roadmap.n_nodes": args.nodes, "seed": args.seed})
     except PsprmError as exc:
         return {"skipped": str(exc)}
     start, goals = problem_configurations(robot, scene, prob)

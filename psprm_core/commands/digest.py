@@ -44,7 +44,8 @@ def scene_digest(scene_name: str, nodes: int = 400, seed: int = 3, random: int =
     robot = RobotModel.load(scene.robot)
     prob = scene.problems[0]
     targets = prob.all_targets
-    planner = make_planner("neural-psprm-line", scene, targets, robot=robot, n_nodes=nodes, seed=seed)
+    planner = make_planner("neural-psprm-line", scene, targets, robot=robot,
+                           options={"roadmap.n_nodes": nodes, "seed": seed})
     start, goals = problem_configurations(robot, scene, prob)
     stats = planner.build(template=start)
     out = {"scene": scene_name, "nodes": int(stats.get("n_nodes", 0)), "edges": int(stats.get("n_edges", 0)),

@@ -54,8 +54,8 @@ def run(args) -> int:
     prob = problems[0]
     targets = targets or prob.all_targets
     planner = make_planner(args.planner, scene, targets, robot=robot, checkpoint=args.checkpoint,
-                           multi_mode=args.multi, preset=args.preset, n_nodes=args.nodes, seed=args.seed,
-                           alpha=args.alpha)
+                           multi_mode=args.multi, preset=args.preset,
+                           options={"roadmap.n_nodes": args.nodes, "seed": args.seed, "scoring.alpha": args.alpha})
     start, goals = problem_configurations(robot, scene, prob)
     loaded = False
     if args.roadmap and Path(args.roadmap).is_file():

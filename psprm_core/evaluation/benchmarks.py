@@ -116,8 +116,9 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
     target = target or (scene.problems[0].target if scene.problems else scene.target_names[0])
-    p = make_planner(planner, scene, [target], robot=robot, **{"n_nodes": nodes, "seed": seed, "heuristic": heuristic,
-                                                                **(overrides or {})})
+    p = make_planner(planner, scene, [target], robot=robot,
+                     options={"roadmap.n_nodes": nodes, "seed": seed, "query.heuristic": heuristic,
+                              **(overrides or {})})
     stats = p.build()
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     probs = random_problems(robot, scene, checker, problems, np.random.default_rng(seed + 1),
@@ -477,7 +478,7 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     robot = RobotModel.load(scene.robot)
     prob = scene.problems[0]
     target = target or prob.target
-    p = make_planner(planner, scene, [target], robot=robot, n_nodes=nodes, seed=seed)
+    p = make_planner(planner, scene, [target], robot=robot, options={"roadmap.n_nodes": nodes, "seed": seed})
     stats = p.build()
     rng = np.random.default_rng(seed + 7)
     start, goals = problem_configurations(robot, scene, prob)

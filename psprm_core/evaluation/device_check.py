@@ -116,8 +116,8 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
 
     def build(dev, ctx):
         with ctx():
-            p = make_planner("neural-psprm-line", scene, [target], robot=robot, n_nodes=nodes, seed=seed,
-                             device=str(dev))
+            p = make_planner("neural-psprm-line", scene, [target], robot=robot, device=str(dev),
+                             options={"roadmap.n_nodes": nodes, "seed": seed})
             t0 = time.perf_counter()
             p.build()
             return p, time.perf_counter() - t0

@@ -133,7 +133,7 @@ def _roadmap(cache, scenario, overrides: dict) -> tuple:
         scene = load_scene(resolve_named("scene", scenario.scene))
         robot = RobotModel.load(scene.robot)
         p = make_planner(scenario.planner, scene, list(scenario.targets), robot=robot,
-                         **{"n_nodes": scenario.nodes, "seed": scenario.seed, **overrides})
+                         options={"roadmap.n_nodes": scenario.nodes, "seed": scenario.seed, **overrides})
         t0 = time.perf_counter()
         stats = p.build()
         tmp = tempfile.mkdtemp(prefix="psprm_dynbench_")
@@ -185,7 +185,8 @@ def run_episode_modes(scenario, episode: int, cfg: dict, cache=None) -> dict:
         for mode in cfg["modes"]:
             t0 = time.perf_counter()
             planner = make_planner(scenario.planner, scene, list(scenario.targets), robot=robot,
-                                   **{"n_nodes": scenario.nodes, "seed": scenario.seed, **cfg["planner_overrides"]})
+                                   options={"roadmap.n_nodes": scenario.nodes, "seed": scenario.seed,
+                                            **cfg["planner_overrides"]})
             planner.load(path)
             ep = run_episode(scenario, mode=mode, planner=planner, replan_settings=rs, latency_s=cfg["latency_s"],
                              variation=variation, judge=judge, hindsight_searches=cfg["hindsight_searches"],

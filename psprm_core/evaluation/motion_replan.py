@@ -39,7 +39,8 @@ def motion_replan_benchmark(nodes: int = 3000, replans: int = 30, rounds: int = 
 
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", "dynamic_person"))
-    planner = make_planner("neural-psprm-line", scene, ["person_face"], n_nodes=nodes, seed=seed)
+    planner = make_planner("neural-psprm-line", scene, ["person_face"],
+                           options={"roadmap.n_nodes": nodes, "seed": seed})
     planner.build()
     start, goals = problem_configurations(planner.robot, scene, scene.problem("south_to_either"))
     face = scene.target("person_face")

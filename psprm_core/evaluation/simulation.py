@@ -124,7 +124,7 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
     scene = load_scene(resolve_named("scene", scenario.scene))  # the scenario's world, as the file has it
     if planner is None:
         planner = make_planner(scenario.planner, scene, list(scenario.targets), robot=RobotModel.load(scene.robot),
-                               n_nodes=scenario.nodes, seed=scenario.seed)
+                               options={"roadmap.n_nodes": scenario.nodes, "seed": scenario.seed})
         planner.build()
     robot = planner.robot
     world = World(scenario, scene, robot, variation)
@@ -372,7 +372,7 @@ def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optio
 
     def fresh():
         return make_planner(sc.planner, scene, list(sc.targets), robot=robot,
-                            **{"n_nodes": sc.nodes, "seed": sc.seed, **(planner_overrides or {})})
+                            options={"roadmap.n_nodes": sc.nodes, "seed": sc.seed, **(planner_overrides or {})})
 
     rs = ReplanSettings(**(replan_overrides or {}))
     planner = fresh()

@@ -73,7 +73,8 @@ def roadmap_views(scene, targets: Sequence[str], n_per_target: int, nodes: int =
     rng = np.random.default_rng(seed)
     poses, tidx, origin, stats = [], [], [], {}
     for i, name in enumerate(targets):
-        p = make_planner(planner, scene, [name], robot=robot, n_nodes=nodes, seed=seed + i, checkpoint=checkpoint)
+        p = make_planner(planner, scene, [name], robot=robot, checkpoint=checkpoint,
+                         options={"roadmap.n_nodes": nodes, "seed": seed + i})
         p.build()
         node_ids, edge_ids = p.roadmap_node_ids(), p.roadmap_edge_ids()
         want = 2 * n_per_target  # draw extra: occluded views are dropped below

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Any, Mapping, Optional, Sequence
 
 import numpy as np
 
@@ -12,7 +12,7 @@ from ..paths import config_dir, project_root
 from ..robot import RobotModel
 from ..scene import Scene
 from .psprm import PSPRM, VARIANTS, PSPRMSettings
-from .settings import DEFAULT_ALPHA, default_alpha, deprecated_field_names
+from .settings import DEFAULT_ALPHA, default_alpha
 
 __all__ = ["DEFAULT_ALPHA", "PRESETS", "default_alpha", "default_checkpoint", "load_preset", "make_scorer",
            "make_planner", "problem_configurations"]
@@ -70,20 +70,20 @@ def make_scorer(kind: str, scene: Scene, targets: Sequence[str], intrinsics, che
 
 def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Optional[RobotModel] = None,
                  settings: Optional[PSPRMSettings] = None, checkpoint: Optional[Path] = None,
-                 multi_mode: str = "mean", device: str = "cpu", preset: str = "psprm", **overrides) -> PSPRM:
+                 multi_mode: str = "mean", device: str = "cpu", preset: str = "psprm",
+                 options: Optional[Mapping[str, Any]] = None) -> PSPRM:
     """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint.
-    ``settings`` None: the preset ``preset`` (:func:`load_preset`) for the robot. ``overrides``: settings by dotted
-    path (``**{"scoring.alpha": 0.5}``), or, deprecated, by a field's own name (``n_nodes=300``:
-    :func:`~.settings.deprecated_field_names`). ``scoring.alpha`` left unset (by ``settings`` and ``overrides``) is
-    the variant's :func:`default_alpha` for the objective."""
+    ``settings`` None: the preset ``preset`` (:func:`load_preset`) for the robot. ``options``: settings changed
+    from those, by dotted path (``{"roadmap.n_nodes": 300, "scoring.alpha": 0.5}``; a None value keeps the
+    setting; a field's bare name is refused with its dotted path). ``scoring.alpha`` left unset (by ``settings`` and
+    ``options``) is the variant's :func:`default_alpha` for the objective."""
     if variant not in VARIANTS:
         raise PsprmError(f"unknown planner '{variant}' (choose from {', '.join(sorted(VARIANTS))})")
     constraint, kind = VARIANTS[variant]
     robot = robot or RobotModel.load(scene.robot)
     if settings is None:
         settings = load_preset(preset, robot.name)
-    overrides = deprecated_field_names({k: v for k, v in overrides.items() if v is not None})
-    settings = settings.changed(overrides).resolved(kind)
+    settings = settings.changed({k: v for k, v in (options or {}).items() if v is not None}).resolved(kind)
     settings = settings.changed({
         "visibility.constraint": constraint,
         "edges.lazy_edges": settings.edges.lazy_edges or kind == "oracle",

@@ -535,12 +535,3 @@ def _check_name(name: str, groups_too: bool = False) -> None:
     if dotted:
         raise ConfigError("settings", name, f"settings are named by their dotted path: '{dotted[0]}'")
     raise ConfigError("settings", name, "unknown setting of PSPRMSettings (a dotted path such as 'scoring.alpha')")
-
-
-def deprecated_field_names(changes: dict) -> dict:
-    """Deprecated: ``changes`` with each field's own name (``n_nodes``) replaced by its dotted path
-    (``roadmap.n_nodes``); dotted paths are kept. Only for callers whose settings arrive as Python keywords:
-    :func:`~.factory.make_planner`'s ``**overrides`` (the evaluation and command modules pass ``n_nodes=``,
-    ``seed=`` so). A name that is neither is left for :meth:`PSPRMSettings.changed` to refuse."""
-    by_leaf = {sp.name.rpartition(".")[2]: sp.name for sp in parameter_specs()}
-    return {by_leaf.get(k, k) if "." not in k else k: v for k, v in changes.items()}
