@@ -234,8 +234,10 @@ def joint_state_to_planning(msg, robot, base: Optional[np.ndarray] = None, templ
     return q, found
 
 
-def planning_joint_state(q: np.ndarray, names: Sequence[str], stamp=None, frame: str = ""):
-    """Planning configuration -> ``sensor_msgs/JointState`` with planning joint names."""
+def planning_joint_state(q: np.ndarray, names: Sequence[str], stamp=None, frame: str = "",
+                         velocity: Optional[np.ndarray] = None):
+    """Planning configuration -> ``sensor_msgs/JointState`` with planning joint names; ``velocity`` (dof,), NaN
+    where a joint's velocity is not measured, fills the message's velocities (left empty when None)."""
     from sensor_msgs.msg import JointState
 
     m = JointState()
@@ -244,7 +246,34 @@ def planning_joint_state(q: np.ndarray, names: Sequence[str], stamp=None, frame:
         m.header.stamp = stamp
     m.name = list(names)
     m.position = [float(v) for v in q]
+    if velocity is not None:
+        m.velocity = [float(v) for v in velocity]
     return m
+
+
+def base_world_rates(q: np.ndarray, base_velocity, dof: int) -> np.ndarray:
+    """(dof,) joint velocities of a mobile base moving at ``base_velocity`` (v along its heading, omega) at ``q``:
+    ``base_x``, ``base_y``, ``base_theta`` as scene-frame rates, NaN for every other joint (not measured here)."""
+    v, w = (float(x) for x in base_velocity)
+    out = np.full(dof, np.nan)
+    out[:3] = (v * math.cos(float(q[2])), v * math.sin(float(q[2])), w)
+    return out
+
+
+def base_velocity_of(msg, theta: float) -> Optional[np.ndarray]:
+    """(v, omega) of the base from a planning ``sensor_msgs/JointState`` whose velocities carry finite
+    ``base_x``, ``base_y``, ``base_theta`` rates (:func:`base_world_rates`), at heading ``theta``; None when the
+    message has no such velocities."""
+    if len(msg.velocity) != len(msg.name):
+        return None
+    vel = dict(zip(msg.name, msg.velocity))
+    try:
+        dx, dy, dth = (float(vel[n]) for n in ("base_x", "base_y", "base_theta"))
+    except KeyError:
+        return None
+    if not all(math.isfinite(x) for x in (dx, dy, dth)):
+        return None
+    return np.array([dx * math.cos(theta) + dy * math.sin(theta), dth])
 
 
 def configs_to_joint_trajectory(Q: np.ndarray, names: Sequence[str], frame: str = "", stamp=None):

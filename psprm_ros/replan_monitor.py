@@ -426,6 +426,9 @@ class ReplanMonitor:
             if self.tracker is None:
                 return
             q, why = self.tracker.state(time.monotonic())
+            vel = None  # the base's measured velocity (odometry, tf) goes with its pose: the server's braking model
+            if q is not None and self.tracker.robot.mobile and self.tracker.base_velocity_measured:
+                vel = cv.base_world_rates(q, self.tracker.base_velocity, len(q))
             was = self.robot_state_problem
             self.robot_state_problem = "" if q is not None else why
             if q is not None:
@@ -443,7 +446,8 @@ class ReplanMonitor:
         if hz > 0 and now - self._robot_fwd_t < 1.0 / hz:
             return
         self._robot_fwd_t = now
-        self.pub_robot.publish(cv.planning_joint_state(q, self.names, stamp or self.node.get_clock().now().to_msg()))
+        self.pub_robot.publish(cv.planning_joint_state(q, self.names, stamp or self.node.get_clock().now().to_msg(),
+                                                       velocity=vel))
         self._check_deviation(q)
 
     def _goal_cb(self, msg) -> None:

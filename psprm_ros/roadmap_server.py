@@ -278,7 +278,7 @@ class RoadmapServer:
         except Exception as exc:
             self.status(f"ignored {exc}", "warning")
             return
-        self.loop.robot_state(q)
+        self.loop.robot_state(q, cv.base_velocity_of(msg, float(q[2])) if self.robot.mobile else None)
 
     def _goals_cb(self, msg) -> None:
         try:

@@ -68,6 +68,7 @@ class RobotStateTracker:
         self.base_t: Optional[float] = None
         self.joints_t: Optional[float] = None
         self.base_velocity = np.zeros(2)  # (v, omega) from odometry when given
+        self.base_velocity_measured = False  # a velocity came from odometry or tf (a mocap pose has none)
         self.base_frame = str(base_frame or "").strip().lstrip("/")
         self.tf: Optional[TfTree] = None
         self.base_problem = ""  # why there is no base pose yet (tf source: the missing link)
@@ -102,6 +103,7 @@ class RobotStateTracker:
         tw = msg.twist.twist
         v = np.array([tw.linear.x, tw.angular.z], float)
         self.base_velocity = v if np.isfinite(v).all() else np.zeros(2)
+        self.base_velocity_measured = bool(np.isfinite(v).all())
         return self._set_base(p, q, t)
 
     def update_pose(self, msg, t: float, now_sec: Optional[float] = None, max_age_s: float = 0.0) -> np.ndarray:
@@ -152,13 +154,14 @@ class RobotStateTracker:
             return
         dt = link.stamp - prev[0]
         if not 1e-4 < dt <= 1.0:  # time went back or a gap: no velocity from this pair
-            self.base_velocity = np.zeros(2)
+            self.base_velocity, self.base_velocity_measured = np.zeros(2), False
             return
         dyaw = _wrap(yaw - prev[3])
         mid = prev[3] + 0.5 * dyaw
         v = (math.cos(mid) * (x - prev[1]) + math.sin(mid) * (y - prev[2])) / dt
         vel = np.array([v, dyaw / dt])
         self.base_velocity = vel if np.isfinite(vel).all() else np.zeros(2)
+        self.base_velocity_measured = bool(np.isfinite(vel).all())
 
     def _set_base(self, p: np.ndarray, q: np.ndarray, t: float) -> np.ndarray:
         base = np.array([p[0], p[1], cv.yaw_of(q)])

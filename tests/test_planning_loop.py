@@ -164,9 +164,9 @@ def world(world_models):
     w.close()
 
 
-def _first_trajectory(loop, rec, q, goals, timeout=60.0) -> TrajectorySamples:
+def _first_trajectory(loop, rec, q, goals, timeout=60.0, base_velocity=None) -> TrajectorySamples:
     t0 = time.perf_counter()
-    loop.robot_state(q)
+    loop.robot_state(q, base_velocity)
     loop.goals(goals)
     ev = rec.wait(t0, ("trajectory", "stop"), timeout)
     assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
@@ -331,6 +331,35 @@ def test_a_plan_for_a_braking_base_starts_where_it_comes_to_rest(make_loop, worl
     s = _first_trajectory(loop, rec, q, goals)
     err = float(np.hypot(*(s.positions[0, :2] - rest)))
     assert err < 0.01, (s.positions[0, :2], rest, err)
+
+
+def test_a_braking_base_whose_states_arrive_irregularly_rests_where_its_measured_velocity_says(make_loop,
+                                                                                                  world_models):
+    """Robot states of a base braking from 0.3 m/s, each taken every 20 ms of the robot's time but received
+    irregularly (5 and 35 ms apart in turn, as on a busy machine), each with the velocity the robot measured
+    (odometry): the plan starts where the test's own uniform-deceleration kinematics bring the base to rest, within
+    5 mm. The estimate from receipt times, which the loop falls back to without a measured velocity, is 1.6 cm
+    off on these states."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    a = float(robot.config.base.linear_acceleration)
+    v0, dt, n = 0.3, 0.02, 8
+    heading = np.array([np.cos(start[2]), np.sin(start[2])])
+    gaps = [0.005 if k % 2 else 0.035 for k in range(n)]
+    t_run = time.monotonic()
+    for k in range(n):  # the robot's time k * dt; received after the gaps
+        time.sleep(max(0.0, t_run + sum(gaps[:k]) - time.monotonic()))
+        t = k * dt
+        q = start.copy()
+        q[:2] += (v0 * t - 0.5 * a * t * t) * heading
+        loop.robot_state(q, np.array([v0 - a * t, 0.0]))
+    t_last = (n - 1) * dt
+    v_last = v0 - a * t_last
+    assert 0.1 < v_last < v0  # precondition: still braking at the last state
+    rest = start[:2] + (v0 * t_last - 0.5 * a * t_last ** 2 + v_last ** 2 / (2 * a)) * heading
+    s = _first_trajectory(loop, rec, q, goals, base_velocity=np.array([v_last, 0.0]))
+    err = float(np.hypot(*(s.positions[0, :2] - rest)))
+    assert err < 0.005, (s.positions[0, :2], rest, err)
 
 
 def test_a_robot_resting_at_the_end_of_its_trajectory_takes_the_next_goal(make_loop, world, world_models):

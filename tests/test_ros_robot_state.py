@@ -246,3 +246,40 @@ def test_sim_robot_mocap_pose_of_its_base(load_robot):
         assert np.allclose(T_map_base[:2, 3], [2.0, 1.5], atol=1e-6)
         s.probe.node.destroy_subscription(s1)
         s.probe.node.destroy_subscription(s2)
+
+
+def test_the_forwarded_robot_state_carries_the_odometry_velocity_of_the_base(load_robot):
+    """The monitor forwards the base's measured velocity with its pose (the roadmap server's braking model uses the
+    odometry the adapter uses): base_x / base_y / base_theta velocities are the scene-frame rates of the twist the
+    test publishes at the heading it publishes, the other joints' velocities are not measured (NaN); an odometry
+    with a non-finite twist forwards no velocity."""
+    from sensor_msgs.msg import JointState
+
+    from psprm_ros import core
+
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    robot = load_robot("stretch2")
+    with InProcessSuite(dict(BASE, input_frames=["odom"]), domain_id=claim_domain_id(), nodes=("monitor",)) as s:
+        q = start_q(robot, scene)
+        q[2] = 0.7
+        from rclpy.qos import qos_profile_sensor_data
+
+        got, sub = _subscribe(s.probe.node, JointState, "/" + core.ROBOT_STATE_TOPIC, qos=qos_profile_sensor_data)
+        state = s.probe.hold_robot_state(q, robot.joint_names)
+        state.twist = (0.3, -0.2)
+        try:
+            last = s.probe.wait_for(lambda: next((m for _, m in reversed(got) if len(m.velocity)), None), 20)
+            assert last is not None, "no robot state with velocities"
+            vel = dict(zip(last.name, last.velocity))
+            assert vel["base_x"] == pytest.approx(0.3 * math.cos(0.7), abs=1e-9)
+            assert vel["base_y"] == pytest.approx(0.3 * math.sin(0.7), abs=1e-9)
+            assert vel["base_theta"] == pytest.approx(-0.2, abs=1e-9)
+            assert all(math.isnan(vel[n]) for n in robot.joint_names[3:])
+            assert cv.base_velocity_of(last, 0.7) == pytest.approx([0.3, -0.2], abs=1e-9)
+            state.twist = (float("nan"), 0.0)
+            t0 = time.perf_counter()
+            later = s.probe.wait_for(lambda: [m for t, m in got if t > t0 + 0.3], 10)
+            assert later and all(len(m.velocity) == 0 for m in later)
+        finally:
+            state.stop()
+            s.probe.node.destroy_subscription(sub)

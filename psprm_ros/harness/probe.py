@@ -179,6 +179,7 @@ class StatePublisher:
 
         self.node, self.names, self.rate, self.odom_frame = node, list(names), rate_hz, odom_frame
         self.q = list(map(float, q))
+        self.twist = (0.0, 0.0)  # the odometry's (v, omega)
         self.mobile = self.names[:3] == ["base_x", "base_y", "base_theta"]
         self.pub_js = node.create_publisher(JointState, "joint_states", 10)
         self.pub_odom = node.create_publisher(Odometry, "odom", 10)
@@ -203,6 +204,7 @@ class StatePublisher:
             od.header.frame_id = self.odom_frame
             od.child_frame_id = "base_link"
             cv.numpy_to_pose([q[0], q[1], 0.0], cv.yaw_quat(q[2]), od.pose.pose)
+            od.twist.twist.linear.x, od.twist.twist.angular.z = (float(x) for x in self.twist)
             self.pub_odom.publish(od)
         self.published += 1
 

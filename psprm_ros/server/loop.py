@@ -135,12 +135,13 @@ class PlanningLoop:
         self._guard(kind, name, p, q)
         self.inputs.wake.set()
 
-    def robot_state(self, q: np.ndarray) -> None:
-        """The measured robot configuration (every planning joint, the base pose included). Every state, at its
-        receipt, feeds the robot's measured motion (the worker takes only the newest state of each cycle, which
-        may be seconds apart while it plans)."""
+    def robot_state(self, q: np.ndarray, base_velocity: Optional[np.ndarray] = None) -> None:
+        """The measured robot configuration (every planning joint, the base pose included) and, where measured
+        (odometry, tf), the base's velocity (v, omega). Every state, at its receipt, feeds the robot's measured
+        motion (the worker takes only the newest state of each cycle, which may be seconds apart while it
+        plans)."""
         q = np.array(q, float)
-        self.motion.add(q, self.inputs.robot_state(q))
+        self.motion.add(q, self.inputs.robot_state(q), base_velocity)
         self.inputs.wake.set()
 
     def goals(self, G: np.ndarray) -> None:

@@ -31,21 +31,23 @@ class RobotMotion:
     def __init__(self, robot):
         self.robot = robot
         self._lock = threading.Lock()
-        self._hist: deque = deque()  # (monotonic receipt, q)
+        self._hist: deque = deque()  # (monotonic receipt, q, measured base velocity (v, omega) or None)
         self._along: Optional[tuple] = None  # (trajectory, time along it, perf_counter) of the last estimate
 
-    def add(self, q: np.ndarray, now: float) -> None:
-        """A robot state received at ``now`` (monotonic s)."""
+    def add(self, q: np.ndarray, now: float, base_velocity: Optional[np.ndarray] = None) -> None:
+        """A robot state received at ``now`` (monotonic s), with the base's measured velocity (v, omega) where the
+        robot reports one (odometry, tf)."""
+        v = None if base_velocity is None else np.asarray(base_velocity, float).reshape(2)
         with self._lock:
             h = self._hist
-            h.append((now, q))
+            h.append((now, q, v if v is not None and np.isfinite(v).all() else None))
             while len(h) > 2 and now - h[1][0] >= KEEP_S:
                 h.popleft()
 
     def states(self) -> list:
         """The robot states of about the last :data:`KEEP_S`, (monotonic receipt time, q), oldest first."""
         with self._lock:
-            return list(self._hist)
+            return [(t, q) for t, q, _ in self._hist]
 
     def newest(self) -> Optional[np.ndarray]:
         """The newest robot state (None before the first)."""
@@ -66,14 +68,25 @@ class RobotMotion:
         return float((d / np.maximum(self.robot.velocity, 1e-6)).max()) / (h[-1][0] - h[0][0])
 
     def rest_point(self, q: np.ndarray) -> np.ndarray:
-        """Where a mobile base moving at the velocity of its newest robot states (the newest and the newest one at
-        least :data:`REST_VELOCITY_SPAN_S` older) comes to rest braking at the robot config's base accelerations
-        (:func:`psprm_ros.adapters.braking_configurations`); ``q`` itself for a fixed base or a base at rest. A base
-        braking from a stop slows all the while: the speed over the span is its speed at the span's middle, so it is
-        brought forward to the newest state at the braking deceleration (a longer average would overstate the speed
-        and put the rest point beyond where the base stops)."""
+        """Where a mobile base comes to rest braking at the robot config's base accelerations
+        (:func:`psprm_ros.adapters.braking_configurations`, the model the robot adapter refuses by); ``q`` itself for
+        a fixed base or a base at rest. Its velocity is the one the robot measured with its newest state (odometry,
+        tf: the adapter's own), else the velocity of its newest robot states (the newest and the newest one at
+        least :data:`REST_VELOCITY_SPAN_S` older): a base braking from a stop slows all the while, so the speed over
+        the span, its speed at the span's middle, is brought forward to the newest state at the braking
+        deceleration. Receipt times jitter on a busy machine; a measured velocity does not."""
+        if not self.robot.mobile:
+            return q
+        lim = Limits.for_robot(self.robot)
+        with self._lock:
+            measured = self._hist[-1][2] if self._hist else None
+        if measured is not None:
+            v, w = (float(x) for x in measured)
+            if abs(v) < 0.02 and abs(w) < 0.05:
+                return q
+            return braking_configurations(q, (v, w), lim)[-1]
         h = self.states()
-        if not self.robot.mobile or len(h) < 2:
+        if len(h) < 2:
             return q
         older = [e for e in h[:-1] if h[-1][0] - e[0] >= REST_VELOCITY_SPAN_S]
         if not older:
@@ -85,7 +98,6 @@ class RobotMotion:
         w = float((b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi) / dt
         if abs(v) < 0.02 and abs(w) < 0.05:
             return q
-        lim = Limits.for_robot(self.robot)
         v = np.sign(v) * max(0.0, abs(v) - 0.5 * dt * lim.linear_acceleration)
         w = np.sign(w) * max(0.0, abs(w) - 0.5 * dt * lim.angular_acceleration)
         return braking_configurations(q, (v, w), lim)[-1]
