@@ -21,6 +21,12 @@ from ..base_follower import Limits
 REST_VELOCITY_SPAN_S = 0.1
 #: the robot states kept (s)
 KEEP_S = 0.3
+#: a base slower than this on both axes (m/s, rad/s) brakes over a negligible distance: its rest point is where it is
+BRAKING_MIN_MPS, BRAKING_MIN_RADPS = 0.02, 0.05
+
+
+def _moving(v: float, w: float) -> bool:
+    return abs(v) >= BRAKING_MIN_MPS or abs(w) >= BRAKING_MIN_RADPS
 
 
 class RobotMotion:
@@ -81,26 +87,28 @@ class RobotMotion:
         with self._lock:
             measured = self._hist[-1][2] if self._hist else None
         if measured is not None:
-            v, w = (float(x) for x in measured)
-            if abs(v) < 0.02 and abs(w) < 0.05:
-                return q
-            return braking_configurations(q, (v, w), lim)[-1]
+            vel = (float(measured[0]), float(measured[1]))
+            vel = vel if _moving(*vel) else None
+        else:
+            vel = self._states_velocity(lim)
+        return q if vel is None else braking_configurations(q, vel, lim)[-1]
+
+    def _states_velocity(self, lim: Limits) -> Optional[tuple]:
+        """(v, omega) from the newest robot states' receipt times, brought forward to the newest state at the
+        braking deceleration (:meth:`rest_point`); None without two states a span apart, or at rest."""
         h = self.states()
-        if len(h) < 2:
-            return q
         older = [e for e in h[:-1] if h[-1][0] - e[0] >= REST_VELOCITY_SPAN_S]
         if not older:
-            return q
+            return None
         (ta, a), (tb, b) = older[-1], h[-1]
         dt = tb - ta
         th = 0.5 * (a[2] + b[2])
         v = ((b[0] - a[0]) * np.cos(th) + (b[1] - a[1]) * np.sin(th)) / dt
         w = float((b[2] - a[2] + np.pi) % (2 * np.pi) - np.pi) / dt
-        if abs(v) < 0.02 and abs(w) < 0.05:
-            return q
-        v = np.sign(v) * max(0.0, abs(v) - 0.5 * dt * lim.linear_acceleration)
-        w = np.sign(w) * max(0.0, abs(w) - 0.5 * dt * lim.angular_acceleration)
-        return braking_configurations(q, (v, w), lim)[-1]
+        if not _moving(v, w):
+            return None
+        return (float(np.sign(v) * max(0.0, abs(v) - 0.5 * dt * lim.linear_acceleration)),
+                float(np.sign(w) * max(0.0, abs(w) - 0.5 * dt * lim.angular_acceleration)))
 
     def stale_start(self, times: np.ndarray, positions: np.ndarray, tol: float, window_s: float = 2.0) -> str:
         """Why a plan from the robot's state no longer starts where the robot is ("" = it does, or no state came):
