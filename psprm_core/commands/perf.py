@@ -207,7 +207,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=_json_only(_replan))
     rm = ps.add_parser("replan-motion", help="replans of a robot in motion (committed state, splice, keep decision) "
-                                             "with target prediction off and on, alternated")
+                                             "with target prediction off, on, and on with the routes of the predicted "
+                                             "headings, alternated")
     rm.add_argument("--nodes", type=int, default=3000)
     rm.add_argument("--replans", type=int, default=30)
     rm.add_argument("--rounds", type=int, default=2)

@@ -1,9 +1,12 @@
-"""``psprm perf replan-motion``: what replanning a robot in motion costs, with and without target prediction.
+"""``psprm perf replan-motion``: what replanning a robot in motion costs, with and without target prediction and the
+routes of the predicted headings.
 
 The replanner on a built roadmap of ``dynamic_person``; the person turns side to side as in the shipped recording
 (dwelling at each side, 20 s a cycle, poses at 30 Hz); the robot follows its trajectory and every 0.5 s replans from
-its committed state (:mod:`psprm_core.planning.execution`) with a view trigger. Rounds alternate prediction off and
-on, each from the same saved roadmap, so that both see the same load. Reports, per round, the median time of the
+its committed state (:mod:`psprm_core.planning.execution`) with a view trigger. Rounds alternate three variants,
+each from the same saved roadmap, so that all see the same load: prediction off (``off``), prediction with the
+search of the extrapolated pose alone (``prediction``), and the shipped settings, which add the routes of the other
+predicted headings (``predicted_routes``). Reports, per round, the median time of the
 remaining path's predicted score (the trigger evaluation) and of the replan (commitment, search, splice, keep
 decision), and how many replans were adopted.
 """
@@ -21,6 +24,9 @@ import numpy as np
 import torch
 
 log = logging.getLogger(__name__)
+
+
+VARIANTS = ("off", "prediction", "predicted_routes")
 
 
 def _yaw(t: float) -> float:
@@ -49,11 +55,12 @@ def motion_replan_benchmark(nodes: int = 3000, replans: int = 30, rounds: int = 
     with tempfile.TemporaryDirectory() as tmp:
         saved = planner.save(Path(tmp) / "roadmap.npz")
         for r in range(rounds):
-            for predict in (False, True):
+            for variant in VARIANTS:
                 planner.set_scene(scene)
                 planner.load(saved, check=False)
-                rp = Replanner(planner, dataclasses.replace(base, prediction=PredictionSettings(enabled=predict)),
-                               targets=["person_face"])
+                settings = dataclasses.replace(base, prediction=PredictionSettings(enabled=variant != "off"),
+                                               predicted_routes=variant == "predicted_routes")
+                rp = Replanner(planner, settings, targets=["person_face"])
                 for k in range(120):
                     rp.update_target("person_face", face.center, yaw_to_quat(_yaw(k / 30)), stamp=k / 30)
                 rp.set_robot_state(start)
@@ -76,7 +83,7 @@ def motion_replan_benchmark(nodes: int = 3000, replans: int = 30, rounds: int = 
                     replan_ms.append((c - b) * 1e3)
                     if res.success and not res.kept:
                         traj, t0 = res.trajectory, t
-                out["rounds"].append({"prediction": predict, "path_score_ms_median": float(np.median(score_ms)),
+                out["rounds"].append({"variant": variant, "path_score_ms_median": float(np.median(score_ms)),
                                       "replan_ms_median": float(np.median(replan_ms)),
                                       "replan_ms_p95": float(np.percentile(replan_ms, 95)),
                                       "adopted": rp.adopted - 1, "declined": rp.declined})

@@ -45,7 +45,7 @@ import torch
 
 from .. import fastpath
 from ..errors import InputError, PsprmError
-from ..prediction import PredictionSettings, TargetPredictor
+from ..prediction import PredictionSettings, TargetPredictor, quat_yaw
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .execution import commit_time, progress_time, splice
 from .psprm import PSPRM, PlanResult
@@ -59,6 +59,10 @@ HEURISTICS = ("exact", "hop", "planner")
 #: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
 VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
 HISTORY = 1000  # replans kept in Replanner.history (a long-running node must not keep them all)
+
+
+def _wrap_angle(a: float) -> float:
+    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 @dataclass(frozen=True)
@@ -120,6 +124,12 @@ class ReplanSettings:
                                  "against the targets' predicted poses at its middle", range=(1, None))
     predict_samples: int = setting(48, "... at this many configurations of the path, evenly in time",
                                    range=(1, None))
+    predicted_routes: bool = setting(True, "a replan also searches the roadmap scored against each other heading of "
+                                           "the targets' predicted mixture and keeps the route of the best predicted "
+                                           "objective (a re-scoring and a search per heading)", live=True)
+    predicted_route_turn_rad: float = setting(0.5, "... the headings that differ by more than this (rad) from the "
+                                                   "extrapolated one and from each other", range=(0.0, None),
+                                              live=True)
     prediction: PredictionSettings = field(default_factory=PredictionSettings)
 
     def __post_init__(self):
@@ -195,6 +205,7 @@ class Replanner:
         self._obstacle_ref = {b.name: (b.center.copy(), b.quat.copy()) for b in self.scene.obstacles}
         self._moved_obstacles: dict = {}  # name -> Box (new pose) since the last plan, for repair sampling
         self._score_stale = False
+        self._rescore_all = False  # the roadmap was scored against another heading: every edge is estimated again
         self._pending: set = set()
         self.q: Optional[np.ndarray] = None
         self.goals: Optional[np.ndarray] = None
@@ -461,8 +472,6 @@ class Replanner:
         """[(weight, key, scene)]: the scene with every predicted target at its k-th mixture component at time ``t``
         (the components of all targets taken together by index; the weights of the target with the most); ``key``
         identifies the poses (3 cm, 0.02 rad)."""
-        from ..prediction import quat_yaw
-
         mixes = {n: pr.mixture(t) for n, pr in self.predictors.items() if pr.ready}
         if not mixes:
             return [(1.0, (), self.scene)]
@@ -630,8 +639,9 @@ class Replanner:
         p = self.planner
         self._sync_scene()
         info = {}
-        if self._score_stale:
-            info["rescore"] = p.rescore()
+        if self._score_stale or self._rescore_all:
+            info["rescore"] = p.rescore(tol=-1.0 if self._rescore_all else 1e-4)
+            self._rescore_all = False
             for t in self.scene.targets:
                 self._target_ref[t.name] = (t.center.copy(), t.quat.copy())
             self._score_stale = False
@@ -663,6 +673,9 @@ class Replanner:
                 self._repaired_nodes += got["added_nodes"]
                 info.setdefault("repair", []).append(got)
             res = self._plan_goals(self._last_plan_time, start)
+        if res.success and res.trajectory is not None and "collision" not in triggers \
+                and "collision" not in self._pending:
+            res = self._predicted_routes(res, start, commit)
         if commit is not None and res.success and res.trajectory is None:
             # the committed state is the goal: the trajectory under way already ends there
             res = PlanResult(True, "kept the current plan: the trajectory under way ends at the best goal",
@@ -696,6 +709,7 @@ class Replanner:
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
                              "repair_rounds": rounds, "kept": res.kept, "spliced": commit is not None,
+                             "route": res.route,
                              **{k: v for k, v in info.items() if k == "rescore"}})
         self.replans += 1
         self._last_failed = not res.success
@@ -783,6 +797,69 @@ class Replanner:
             return None
         return (f"kept the current plan: the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} against "
                 f"the remaining path's {current:.3f} along {rem_len:.2f}", current)
+
+    def _predicted_routes(self, res: PlanResult, start: np.ndarray, commit: Optional[dict]) -> PlanResult:
+        """The route of the best predicted objective among ``res`` (the search over the roadmap scored against the
+        targets' extrapolated poses) and one search per other heading of their predicted mixture
+        (:meth:`_mixture_scenes` halfway along ``res``): each heading that differs by more than
+        ``predicted_route_turn_rad`` from the extrapolated one and from the headings searched before re-scores the
+        roadmap, and the goals are searched again from ``start``. A person turned away while the plan is made is
+        predicted to look back where they looked before; a route that sees those views is a candidate beside the one
+        that sees the extrapolated view (not for a collision: that replan must be quick). A route of another heading
+        must be predicted to see more than the extrapolated one (P, the perception predicted along the route's
+        timing, :meth:`predicted_score`, by ``keep_score_margin``); among those and the extrapolated one the
+        motion-weighted objective over the whole route (:func:`~.objectives.motion_weighted`),
+        L ((1 - alpha) + alpha (1 - P)), decides. The roadmap's scores stay on the last heading until the next replan
+        re-scores every node and edge."""
+        s = self.settings
+        if not (s.predicted_routes and self._predicting()):
+            return res
+        lead = 0.0 if commit is None else commit["t_commit"] - commit["t_from"]
+        t_mid = self._stamp + lead + 0.5 * float(res.trajectory.duration)
+        base = self.planning_scene()
+        heads = [self._target_yaws(base)]
+        alts = []
+        for _, _, scene in self._mixture_scenes(t_mid):
+            yaws = self._target_yaws(scene)
+            if all(max(abs(_wrap_angle(yaws[n] - h[n])) for n in yaws) > s.predicted_route_turn_rad for h in heads):
+                heads.append(yaws)
+                alts.append(scene)
+        if not alts:
+            return res
+        p = self.planner
+        judged = [(self._route_objective(res, lead), res)]
+        try:
+            for scene in alts:
+                p.set_scorer_scene(scene)
+                p.rescore()
+                cand = self._plan_goals(self._last_plan_time, start)
+                if cand.success and cand.trajectory is not None:
+                    judged.append((self._route_objective(cand, lead), cand))
+        finally:
+            p.set_scene(base)
+            self._rescore_all = True
+        # another heading's route replaces the extrapolated one only when it is predicted to see more (by the keep
+        # margin): the mixture blurs every route's perception, and judged by the objective alone the shortest would win
+        seen = judged[0][0][1] + s.keep_score_margin
+        best = min((i for i in range(len(judged)) if i == 0 or judged[i][0][1] > seen), key=lambda i: judged[i][0][0])
+        names = ["extrapolated"] + [f"predicted heading {i}" for i in range(1, len(judged))]
+        out = judged[best][1]
+        out.route = names[best]
+        out.route_candidates = {n: (j[1], j[2]) for n, (j, _) in zip(names, judged)}
+        return out
+
+    def _target_yaws(self, scene) -> dict:
+        """Heading (rad) of every predicted target of ``scene``."""
+        return {n: quat_yaw(scene.target(n).quat) for n, pr in self.predictors.items() if pr.ready}
+
+    def _route_objective(self, res: PlanResult, lead: float) -> tuple:
+        """(L ((1 - alpha) + alpha (1 - P)), P, L) of a planned route: P its predicted perception from the time its
+        start is reached (``lead`` s from now), L its motion length (:meth:`_predicted_routes`)."""
+        P = self.predicted_score(res.trajectory, 0.0, lead_s=lead)
+        d = torch.as_tensor(np.asarray(res.dense), dtype=torch.float64)
+        L = float(self.planner.motion.distance(d[:-1], d[1:]).sum()) if len(d) > 1 else 0.0
+        a = float(self.planner.settings.scoring.alpha)
+        return L * ((1.0 - a) + a * (1.0 - P)), P, L
 
     def _committed_goal(self, now: float) -> Optional[np.ndarray]:
         """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s`` times

@@ -533,7 +533,8 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
                      "apply_ms": info.get("apply_ms"), "msg_ms": info.get("msg_ms"), "check_ms": info.get("check_ms"),
                      "input_age_ms": info.get("input_age_ms"), "triggers_ms": info.get("triggers_ms"),
-                     "predicted_score": info.get("mean_score"), "reason": info.get("reason")})
+                     "predicted_score": info.get("mean_score"), "reason": info.get("reason"),
+                     "route": info.get("route", "")})
     goal_names = cfg.goal_names
     say("[demo] plans (t = seconds since the replay started):")
     for r in rows:
@@ -543,7 +544,8 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
         lat = "" if r["pose_to_trajectory_ms"] is None else f", pose->trajectory {r['pose_to_trajectory_ms']:.0f} ms"
         rp = "" if r["replan_ms"] is None else f", replan {r['replan_ms']:.0f} ms"
         sc = "" if r["predicted_score"] is None else f", predicted score {r['predicted_score']:.3f}"
-        say(f"  t={r['t']:6.2f}  {what:6s} -> {goal:10s} triggers: {', '.join(r['reasons'] or [])}{lat}{rp}{sc}")
+        route = f", route: {r['route']}" if r["route"] else ""
+        say(f"  t={r['t']:6.2f}  {what:6s} -> {goal:10s} triggers: {', '.join(r['reasons'] or [])}{lat}{rp}{sc}{route}")
     # pose -> trajectory: plans a pose triggered (a move, a score or collision trigger after it); plans for a new
     # goal or on request are goal -> trajectory (their first input is the goal, not a pose)
     lat = np.array([r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None
