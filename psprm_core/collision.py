@@ -25,7 +25,7 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
-from . import fastpath
+from .kernels import fastpath
 from .errors import InputError
 from .geometry import obb_overlap
 from .robot import RobotModel, load_acm
@@ -68,9 +68,10 @@ class BoxTensors:
         return torch.cat([self.center - ext, self.center + ext], -1)
 
     def kernel_pack(self):
-        """The boxes as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
-        :class:`~psprm_core._fast_packs.BoxPack` of centres, rotations, half extents and :meth:`aabb`, float64."""
-        from ._fast_packs import BoxPack
+        """The boxes as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): a
+        :class:`~psprm_core.kernels._fast_packs.BoxPack` of centres, rotations, half extents and :meth:`aabb`,
+        float64."""
+        from .kernels._fast_packs import BoxPack
 
         f64 = fastpath.as_f64
         return BoxPack(f64(self.center).reshape(-1, 3), f64(self.rotation).reshape(-1, 3, 3),
@@ -109,8 +110,8 @@ class CollisionChecker:
         Configurations processed per batch (bounds peak memory).
     kinematics : object with ``body_poses(q)``, optional
         The body poses of the torch path, in the format of :meth:`RobotModel.body_poses`: the robot model itself
-        (default) or e.g. :class:`~psprm_core.kinematics_pk.PKBodyKinematics`. The compiled small-batch CPU path
-        (:mod:`~psprm_core.fastpath`) runs the robot model's own FK either way.
+        (default) or e.g. :class:`~psprm_core.robot.kinematics_pk.PKBodyKinematics`. The compiled small-batch CPU path
+        (:mod:`~psprm_core.kernels.fastpath`) runs the robot model's own FK either way.
     padding : float
         Clearance (m) kept from every obstacle box: the environment checks run against the boxes grown by this much
         on every face (:meth:`BoxTensors.padded`); :attr:`true_boxes` keeps the boxes as given, for
@@ -200,13 +201,13 @@ class CollisionChecker:
         self.boxes = self.true_boxes.padded(self.padding)
 
     def kernel_pack(self):
-        """The checker as the compiled kernels take it (:mod:`psprm_core.fastpath`): a
-        :class:`~psprm_core._fast_packs.CollisionPack` of the joint limits, the collision model (bodies with
+        """The checker as the compiled kernels take it (:mod:`psprm_core.kernels.fastpath`): a
+        :class:`~psprm_core.kernels._fast_packs.CollisionPack` of the joint limits, the collision model (bodies with
         elements, body spheres and boxes, element boxes, self-collision pairs; float64, int64), the separating-axis
         eps of :func:`obb_overlap` and the obstacle boxes :attr:`boxes` (:meth:`BoxTensors.kernel_pack`). Kept on
         the checker; the limits are read again when they change (in place, or by new storage), the boxes when
         :meth:`set_boxes` replaces them."""
-        from ._fast_packs import CollisionPack
+        from .kernels._fast_packs import CollisionPack
 
         f64, i64 = fastpath.as_f64, fastpath.as_i64
         cache = self.__dict__.get("_kernel_pack")

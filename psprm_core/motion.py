@@ -16,7 +16,7 @@ import math
 
 import torch
 
-from . import fastpath
+from .kernels import fastpath
 from .geometry import wrap_angle
 from .robot import RobotModel
 
@@ -31,9 +31,9 @@ class DiffDriveMotion:
         self.continuous = torch.as_tensor(robot.continuous)
 
     def kernel_pack(self):
-        """The metric's parameters as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
-        :class:`~psprm_core._fast_packs.MotionPack` (w_rot, mobile) of :meth:`distance`."""
-        from ._fast_packs import MotionPack
+        """The metric's parameters as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): a
+        :class:`~psprm_core.kernels._fast_packs.MotionPack` (w_rot, mobile) of :meth:`distance`."""
+        from .kernels._fast_packs import MotionPack
 
         return MotionPack(float(self.w_rot), bool(self.mobile))
 

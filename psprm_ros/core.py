@@ -380,7 +380,8 @@ class ConfigureScope:
         return t
 
     def own(self, subscriptions) -> None:
-        """Subscriptions made elsewhere (e.g. :func:`psprm_ros.tf_tree.subscribe_tf`), released with the rest."""
+        """Subscriptions made elsewhere (e.g. :func:`psprm_ros.interfaces.tf_tree.subscribe_tf`), released with the
+        rest."""
         self._subs.extend(subscriptions)
 
     def release(self) -> None:
@@ -421,13 +422,14 @@ def share_dir() -> Optional[Path]:
 def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, params: Optional[dict] = None):
     """The scene and its robot model (``robot_name``, or the scene's robot). With ``node`` and its parameter values
     ``params``, the robot model is built as the node's ``robot_description`` parameters say
-    (:func:`psprm_ros.robot_description.robot_from_params`: the packaged URDF, or the robot's own from its topic)."""
+    (:func:`psprm_ros.robots.robot_description.robot_from_params`: the packaged URDF, or the robot's own from its
+    topic)."""
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
     scene = load_scene(resolve_scene(scene_name))
     if node is not None:
-        from .robot_description import robot_from_params
+        from .robots.robot_description import robot_from_params
 
         return scene, robot_from_params(node, {**(params or {}), "robot": robot_name}, scene)
     robot = RobotModel.load(robot_name or scene.robot)

@@ -3,8 +3,8 @@
     mocap_replay config/recordings/person_turning.csv [--prefix /mocap] [--rate 1.0] [--loop] [--bodies a,b]
                  [--keep-stamps] [--clock] [--frame world] [--ros-args ...]
 
-Input: a CSV recording or a rosbag2 (read with ``rosbags``; format in :mod:`psprm_ros.recordings`). Each body is
-published on ``<prefix>/<body>/pose`` with sensor-data QoS (best effort, keep last 1), like a motion-capture driver.
+Input: a CSV recording or a rosbag2 (read with ``rosbags``; format in :mod:`psprm_ros.interfaces.recordings`). Each body
+is published on ``<prefix>/<body>/pose`` with sensor-data QoS (best effort, keep last 1), like a motion-capture driver.
 Stamps are re-written to the current time; ``--keep-stamps`` keeps the recorded ones. ``--clock`` publishes
 ``/clock`` (rosgraph_msgs/Clock) with the replay's time -- the recorded time with ``--keep-stamps``, else the wall
 time at the start plus the replayed time -- so nodes started with ``use_sim_time:=true`` see the poses as fresh
@@ -25,9 +25,9 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
-from . import conversions as cv
+from .interfaces import conversions as cv
 from .heap import freeze_long_lived
-from .recordings import Recording, load_recording
+from .interfaces.recordings import Recording, load_recording
 
 
 class Replayer:

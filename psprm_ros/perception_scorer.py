@@ -16,7 +16,7 @@ from typing import Optional
 
 import numpy as np
 
-from . import conversions as cv
+from .interfaces import conversions as cv
 from . import core
 
 P = core.Param

@@ -25,7 +25,7 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
-from . import conversions as cv
+from .interfaces import conversions as cv
 from . import core
 
 P = core.Param
@@ -90,7 +90,7 @@ class ReplanMonitor:
         from std_msgs.msg import String
         from std_srvs.srv import Trigger
 
-        from .frames import declare_frame_params
+        from .interfaces.frames import declare_frame_params
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
@@ -169,9 +169,9 @@ class ReplanMonitor:
 
         from psprm_core.collision import CollisionChecker
 
-        from .adapters import load_adapter
-        from .frames import declare_frame_params
-        from .robot_state import RobotStateTracker, offset_from_params
+        from .robots.adapters import load_adapter
+        from .interfaces.frames import declare_frame_params
+        from .robots.robot_state import RobotStateTracker, offset_from_params
 
         node, p = self.node, dict(self.p)
         scene, robot = core.load_configured_scene_and_robot(node, p)
@@ -224,7 +224,7 @@ class ReplanMonitor:
         if robot.mobile and src == "odom":
             self._made.subscription(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
         if (robot.mobile and src == "tf") or p["input_frames_from_tf"]:
-            from .tf_tree import TfTree, subscribe_tf
+            from .interfaces.tf_tree import TfTree, subscribe_tf
 
             # one tree: the tracker's when the base pose comes from tf
             frames.tf = tracker.tf if tracker.tf is not None else TfTree()
@@ -336,7 +336,7 @@ class ReplanMonitor:
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def _pose_cb(self, kind: str, name: str):
-        from .frames import validated_pose_in
+        from .interfaces.frames import validated_pose_in
 
         def cb(msg):
             if self.frames is None:  # released by a cleanup while this message was on its way
@@ -452,7 +452,7 @@ class ReplanMonitor:
 
     def _goal_cb(self, msg) -> None:
         try:
-            from .frames import validated_pose_in
+            from .interfaces.frames import validated_pose_in
 
             p, q = validated_pose_in(msg, self.frames, None, 0.0, "goal")
             if not self._robot.mobile:

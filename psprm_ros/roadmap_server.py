@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from . import conversions as cv
+from .interfaces import conversions as cv
 from . import core
 from .server import LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples, live_replan
 
@@ -352,7 +352,7 @@ class _Publications(Outputs):
         self.s.pub_rm_cams.publish(cv.pose_array(cameras, self.s.frame, self._stamp()))
 
     def roadmap_markers(self, scene, cam_xyz, scores, base_xy, edges) -> None:
-        from . import markers as mk
+        from .interfaces import markers as mk
 
         s, stamp = self.s, self._stamp()
         ms = mk.scene_markers(scene, stamp)
@@ -360,7 +360,7 @@ class _Publications(Outputs):
         s.pub_markers.publish(mk.marker_array(ms))
 
     def path(self, cameras, base_xy, scores, scene) -> None:
-        from . import markers as mk
+        from .interfaces import markers as mk
 
         s, stamp = self.s, self._stamp()
         s.pub_path_cams.publish(cv.pose_array(cameras, s.frame, stamp))

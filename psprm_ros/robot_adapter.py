@@ -8,11 +8,11 @@ the ``input_frames`` transforms). Each new trajectory is checked against the mea
 each controller's ``start_tolerance``, the base within ``start_tolerance_m`` / ``_rad``); a mismatch stops the
 robot and requests a replan from the roadmap server (as MoveIt refuses a trajectory whose start is not the current
 state). An accepted trajectory goes to every controller of the adapter config (``config/ros/adapters/<robot>.yaml``,
-:mod:`psprm_ros.adapters`): a JointTrajectory topic or a FollowJointTrajectory action (control_msgs, imported only
-then), the exact joint set under the robot's names, stamped 0 or now + lead, at most one goal per
+:mod:`psprm_ros.robots.adapters`): a JointTrajectory topic or a FollowJointTrajectory action (control_msgs, imported
+only then), the exact joint set under the robot's names, stamped 0 or now + lead, at most one goal per
 ``min_goal_interval_s``; the base follows the planned base path in closed loop from the measured pose at the
 adapter's ``rate_hz`` (Twist or TwistStamped on cmd_vel, within the base's velocity and acceleration limits;
-:mod:`psprm_ros.base_follower`). A one-point trajectory (the server's stop), a stale base pose or joint state, a
+:mod:`psprm_ros.robots.base_follower`). A one-point trajectory (the server's stop), a stale base pose or joint state, a
 deactivation and shutdown stop the robot: zero twist, a hold at the measured configuration with a positive
 time_from_start on every topic controller, and a cancel of every active action goal.
 
@@ -35,10 +35,10 @@ import numpy as np
 from psprm_core.errors import InputError
 from psprm_core.tracking import CheckedPath, displacement
 
-from . import adapters as ad
-from . import conversions as cv
+from .robots import adapters as ad
+from .interfaces import conversions as cv
 from . import core
-from .base_follower import BaseFollower, BaseReference, Gains, Limits
+from .robots.base_follower import BaseFollower, BaseReference, Gains, Limits
 
 P = core.Param
 REST_MPS, REST_RADPS = 0.01, 0.02  # a base slower than this on both axes ...
@@ -95,7 +95,7 @@ class RobotAdapter:
         from std_msgs.msg import String
         from trajectory_msgs.msg import JointTrajectory
 
-        from .frames import declare_frame_params
+        from .interfaces.frames import declare_frame_params
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
@@ -162,7 +162,7 @@ class RobotAdapter:
             node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._pose_cb, qos_profile_sensor_data,
                                      callback_group=self.cb)
         if self.robot.mobile and self.p["base_pose_source"] == "tf":
-            from .tf_tree import TfTree, subscribe_tf
+            from .interfaces.tf_tree import TfTree, subscribe_tf
 
             self.tf_tree = TfTree()
             subscribe_tf(node, self._tf_cb, self.cb)
@@ -180,15 +180,15 @@ class RobotAdapter:
         from geometry_msgs.msg import Twist, TwistStamped
         from trajectory_msgs.msg import JointTrajectory
 
-        from .robot_state import RobotStateTracker, offset_from_params
+        from .robots.robot_state import RobotStateTracker, offset_from_params
 
         cfg = ad.load_adapter(self.p["adapter"] or self.robot.name, self.robot)
         if self.p["interface"]:
             cfg = cfg.with_interface(self.p["interface"])
         if cfg.base.mode == "stretch_translate_rotate":
             raise InputError("base.mode stretch_translate_rotate: its goals are built by "
-                             "psprm_ros.adapters.stretch_base_steps / stretch_base_command; this node drives the "
-                             "base with cmd_vel or in Stretch's trajectory mode (base.mode stretch_trajectory)")
+                             "psprm_ros.robots.adapters.stretch_base_steps / stretch_base_command; this node drives "
+                             "the base with cmd_vel or in Stretch's trajectory mode (base.mode stretch_trajectory)")
         fjt = None
         if any(c.interface == "action" for c in cfg.controllers):
             fjt = ad.import_follow_joint_trajectory()
@@ -601,8 +601,8 @@ class RobotAdapter:
 
     def _execute_trajectory_mode(self, t, P, V, q, now: float) -> bool:
         """Stretch's trajectory mode: the trajectory from now on as one goal with the base
-        (:func:`psprm_ros.stretch.goal_for_controller`), its first waypoint where the joints are; what the driver makes
-        of it must stay within ``max_goal_deviation_m`` of the planned trajectory. Goals closer than the goal
+        (:func:`psprm_ros.robots.stretch.goal_for_controller`), its first waypoint where the joints are; what the driver
+        makes of it must stay within ``max_goal_deviation_m`` of the planned trajectory. Goals closer than the goal
         interval wait for it (trimmed to the moment they leave)."""
         c = self.cfg.controllers[0]
         item = (t, P, V, now)
@@ -622,7 +622,7 @@ class RobotAdapter:
         return ok
 
     def _send_trajectory_mode(self, c, t, P, V, start_at: float, now: float, q=None) -> bool:
-        from . import stretch
+        from .robots import stretch
 
         late = now - start_at
         if late > 1e-6:
@@ -661,7 +661,7 @@ class RobotAdapter:
 
     def _send_goal(self, c, goal) -> None:
         """A trajectory-mode goal (joints and the base) on ``c``'s action."""
-        from . import stretch
+        from .robots import stretch
 
         cl = self._clients[c.name]
         if not cl.server_is_ready():

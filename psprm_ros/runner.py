@@ -32,7 +32,7 @@ def self_check() -> dict:
             "psprm_ros.mocap_replay", "psprm_ros.harness.soak"]
     for m in mods:
         importlib.import_module(m)
-    from .adapters import import_follow_joint_trajectory
+    from .robots.adapters import import_follow_joint_trajectory
 
     return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods),
             "control_msgs": import_follow_joint_trajectory() is not None}

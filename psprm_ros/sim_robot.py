@@ -26,10 +26,10 @@ from typing import Optional
 
 import numpy as np
 
-from . import conversions as cv
+from .interfaces import conversions as cv
 from . import core
-from .adapters import AdapterConfig, ControllerConfig, load_adapter
-from .frames import compose_pose, invert_pose
+from .robots.adapters import AdapterConfig, ControllerConfig, load_adapter
+from .interfaces.frames import compose_pose, invert_pose
 
 SIM_PARAMS = {
     "adapter": "",  # adapter config name or path ("" = the robot's name)
@@ -52,7 +52,8 @@ SIM_PARAMS = {
     "mocap_world.quat": [0.0, 0.0, 0.0, 1.0],
     "mocap_body_offset.xyz": [0.0, 0.0, 0.0],  # pose of base_link in the mocap body's frame
     "mocap_body_offset.quat": [0.0, 0.0, 0.0, 1.0],
-    "driver": "",  # "" = ros2_control JointTrajectory topics; "stretch" = Stretch 2's driver (psprm_ros.sim_stretch)
+    # "" = ros2_control JointTrajectory topics; "stretch" = Stretch 2's driver (psprm_ros.robots.sim_stretch)
+    "driver": "",
     "driver_mode": "position",  # the Stretch driver's mode at start-up (its own default: position)
     "runstop_service": "/runstop",  # std_srvs/SetBool of the Stretch driver
     "status_rate_hz": 10.0,  # /mode and /is_runstopped of the Stretch driver
@@ -237,7 +238,7 @@ class SimRobotNode:
         cb = MutuallyExclusiveCallbackGroup()
         self._goal_futures: dict = {}
         if self.p["driver"] == "stretch":
-            from .sim_stretch import StretchDriver
+            from .robots.sim_stretch import StretchDriver
 
             self.driver = StretchDriver(self.model, self.p["driver_mode"])
             self._stretch_interfaces(cb)
@@ -258,7 +259,7 @@ class SimRobotNode:
         self.pub_status = node.create_publisher(String, "~/status", 10)
         self.pub_description = None
         if self.p["robot_description_topic"]:
-            from .robot_description import description_qos
+            from .robots.robot_description import description_qos
 
             self.pub_description = node.create_publisher(String, self.p["robot_description_topic"], description_qos())
             self.pub_description.publish(String(data=self.robot.urdf.path.read_text()))
@@ -293,7 +294,7 @@ class SimRobotNode:
         from rclpy.action import ActionServer
         from rclpy.callback_groups import ReentrantCallbackGroup
 
-        from .adapters import import_follow_joint_trajectory
+        from .robots.adapters import import_follow_joint_trajectory
 
         fjt = import_follow_joint_trajectory()
         if fjt is None:
@@ -414,7 +415,7 @@ class SimRobotNode:
         from std_msgs.msg import Bool, String
         from std_srvs.srv import SetBool, Trigger
 
-        from .adapters import import_follow_joint_trajectory
+        from .robots.adapters import import_follow_joint_trajectory
 
         fjt = import_follow_joint_trajectory()
         if fjt is None:
@@ -496,7 +497,7 @@ class SimRobotNode:
     async def _execute_goal(self, goal_handle):
         from rclpy.task import Future
 
-        from .sim_stretch import BASE_JOINT
+        from .robots.sim_stretch import BASE_JOINT
 
         goal = goal_handle.request
         tr, mt = goal.trajectory, goal.multi_dof_trajectory

@@ -31,7 +31,7 @@ from psprm_core.errors import InputError  # noqa: E402
 from psprm_ros.harness.demo import adapter_stops, goal_switches, rest_arrival, strict_json  # noqa: E402
 from psprm_ros.harness.demo_config import (POSE_GOAL_THETA_TOLERANCE_RAD, POSE_GOAL_XY_TOLERANCE_M,  # noqa: E402
                                    default_recording, demo_config)
-from psprm_ros.recordings import load_recording  # noqa: E402
+from psprm_ros.interfaces.recordings import load_recording  # noqa: E402
 
 #: params file -> the recording shipped for it (the test's own table)
 SHIPPED = {
@@ -322,8 +322,8 @@ def test_nursing_and_alley_recordings_move_the_way_their_scenes_need(tmp_path):
 
 
 def test_shipped_recordings_are_what_their_generator_writes(tmp_path):
-    """The CSVs are generated (``python -m psprm_ros.recordings``), not edited by hand: regenerated, they are the
-    same files."""
+    """The CSVs are generated (``python -m psprm_ros.interfaces.recordings``), not edited by hand: regenerated, they are
+    the same files."""
     from psprm_ros import recordings
 
     for name, (_, path, params) in recordings.SHIPPED.items():

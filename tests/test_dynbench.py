@@ -1,4 +1,5 @@
-"""The dynamic benchmark (``psprm dynbench``, :mod:`psprm_core.evaluation.dynamic_bench`) and the episode modes of
+"""The dynamic benchmark (``psprm dynbench``, :mod:`psprm_core.evaluation.dynamic.dynamic_bench`) and the episode modes
+of
 :func:`psprm_core.evaluation.simulation.run_episode`, judged from records the code did not produce: the person's poses
 computed here from the scenario's numbers, finite differences of the executed configurations against the robot's
 velocity limits, the old trajectory's own ``evaluate``, pybullet's exact check (``judges.Judge``) on the poses computed
@@ -300,7 +301,7 @@ def test_simulate_json_is_strict(tmp_path, capsys):
 def test_a_frame_judge_starts_from_the_scene_file_whatever_the_oracle_judged_before(load_robot):
     """A worker keeps one oracle per scene: the chair moved by one scenario's episode must be back where the scene
     file has it in the next scenario's frames (read from the renderer's pybullet bodies)."""
-    from psprm_core.evaluation.episodes import FrameJudge
+    from psprm_core.evaluation.dynamic.episodes import FrameJudge
     from psprm_core.perception.oracle import Oracle
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
@@ -329,7 +330,7 @@ def test_a_frame_judge_starts_from_the_scene_file_whatever_the_oracle_judged_bef
 def test_scenario_summary_ratios_and_headroom_share_from_hand_made_episodes():
     """The summary's means, ratios and share of the dynamic headroom written out by hand for three episodes (one
     without a hindsight reference, which the share leaves out)."""
-    from psprm_core.evaluation.dynamic_bench import summarize_scenario
+    from psprm_core.evaluation.dynamic.dynamic_bench import summarize_scenario
 
     def row(det, reached=True, collisions=0, stops=0, time_ratio=1.0, switches=0):
         return {"det_rate": det, "det_rate_any": det, "reached": reached, "collisions": collisions, "stops": stops,

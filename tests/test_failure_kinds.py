@@ -16,10 +16,10 @@ import pytest
 
 from psprm_core.evaluation.reference import PybulletWorld
 from psprm_core.planning.factory import problem_configurations
-from psprm_core.planning.graph import Roadmap
-from psprm_core.planning.graph_search import astar, lazy_astar
+from psprm_core.planning.search.graph import Roadmap
+from psprm_core.planning.search.graph_search import astar, lazy_astar
 from psprm_core.planning.results import Failure, PlanResult
-from psprm_core.planning.search_types import EdgeCheck
+from psprm_core.planning.search.search_types import EdgeCheck
 
 ROOT = Path(__file__).resolve().parents[1]
 

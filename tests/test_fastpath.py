@@ -1,6 +1,6 @@
-"""Small-batch CPU fast paths (``psprm_core.fastpath``): the compiled kernels give the torch path's results (camera
-poses, manifold projection, collision flags) on random inputs, the planner returns the same paths with them on and
-off, and without numba (or for large batches, gradients) every call takes the torch path."""
+"""Small-batch CPU fast paths (``psprm_core.kernels.fastpath``): the compiled kernels give the torch path's results
+(camera poses, manifold projection, collision flags) on random inputs, the planner returns the same paths with them on
+and off, and without numba (or for large batches, gradients) every call takes the torch path."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstr
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.planning.pipeline import Pipeline
 from psprm_core.planning.state import PlannerContext
-from psprm_core.planning.verification import Verification
+from psprm_core.planning.roadmap.verification import Verification
 from psprm_core.scene import load_scene
 
 ROBOT_SCENES = {"stretch2": "home", "fetchlike": "nursing", "ur5_mobile": "blind_spot_alley"}

@@ -19,8 +19,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from psprm_core.planning import search_kernels
-from psprm_core.planning.graph import Roadmap
-from psprm_core.planning.graph_search import (
+from psprm_core.planning.search.graph import Roadmap
+from psprm_core.planning.search.graph_search import (
     EdgeCheck,
     astar,
     combined_weight,
@@ -590,7 +590,7 @@ def test_warm_up_compiles_what_searches_call() -> None:
     writable weights: another numba signature) compile nothing more (a first plan would otherwise pay ~1 s)."""
     if not search_kernels.available():
         pytest.skip("numba not installed")
-    from psprm_core.planning.graph_search import warm_up
+    from psprm_core.planning.search.graph_search import warm_up
 
     warm_up()
     S = search_kernels.kernels()
@@ -605,7 +605,7 @@ def test_warm_up_compiles_what_searches_call() -> None:
 
 # ---------------------------------------------------------------------------- the motion-weighted objective
 def test_motion_weighted_weight_formula():
-    from psprm_core.planning.graph_search import edge_weight, motion_weighted
+    from psprm_core.planning.search.graph_search import edge_weight, motion_weighted
 
     p, cm = np.array([0.0, 0.5, 1.0, 0.25]), np.array([1.0, 0.4, 0.3, 0.0])
     for a in (0.0, 0.8, 1.0):
@@ -638,7 +638,7 @@ def metric_graphs(draw: Any) -> dict[str, Any]:
 def test_motion_heuristic_is_consistent_and_astar_optimal(case: dict[str, Any]) -> None:
     """The motion-weighted objective with the distance heuristic: consistent on every edge, and A* (plain and lazy,
     starting from optimistic weights) returns the cost of a textbook Dijkstra over the test's own weights."""
-    from psprm_core.planning.graph_search import motion_heuristic, motion_weighted
+    from psprm_core.planning.search.graph_search import motion_heuristic, motion_weighted
 
     xy, pairs, a, scale = case["xy"], case["pairs"], case["alpha"], 2.5
     n = len(xy)

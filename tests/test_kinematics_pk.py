@@ -1,4 +1,4 @@
-"""Camera kinematics from pytorch-kinematics (psprm_core/kinematics_pk.py), the second implementation of the
+"""Camera kinematics from pytorch-kinematics (psprm_core/robot/kinematics_pk.py), the second implementation of the
 camera chain: its FK against pybullet's, its Jacobian against finite differences of its own FK and against the
 robot model's analytic camera Jacobian, on the three robots."""
 
@@ -9,7 +9,7 @@ import torch
 from psprm_core import fastpath
 from psprm_core.evaluation.benchmarks import rotation_angle_error
 from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
-from psprm_core.kinematics_pk import PKCameraKinematics
+from psprm_core.robot.kinematics_pk import PKCameraKinematics
 
 ROBOTS = ["stretch2", "fetchlike", "ur5_mobile"]
 WORKSPACE = np.array([[-3.0, -3.0], [3.0, 3.0]])

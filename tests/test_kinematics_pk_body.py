@@ -1,4 +1,4 @@
-"""Whole-body kinematics from pytorch-kinematics (``PKBodyKinematics`` in psprm_core/kinematics_pk.py), the second
+"""Whole-body kinematics from pytorch-kinematics (``PKBodyKinematics`` in psprm_core/robot/kinematics_pk.py), the second
 implementation of the body FK the collision checker's torch path runs on: body poses against pybullet's own FK of the
 same links and against the robot model's, a checker on it flagging exactly what the native checker flags (and
 missing nothing pybullet's exact mesh check finds), and a planner built with ``kinematics: pytorch_kinematics``
@@ -15,7 +15,7 @@ from psprm_core.collision import CollisionChecker
 from psprm_core.errors import InputError
 from psprm_core.evaluation.benchmarks import rotation_angle_error
 from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
-from psprm_core.kinematics_pk import PKBodyKinematics
+from psprm_core.robot.kinematics_pk import PKBodyKinematics
 from psprm_core.paths import resolve_named
 from psprm_core.scene import load_scene
 

@@ -76,7 +76,7 @@ def test_head_camera_images_are_upright(name, load_robot):
 def test_camera_roll_turns_the_image_about_the_optical_axis(tmp_path, load_robot):
     """``camera.roll_deg`` turns the image frame about the optical axis and nothing else."""
     from psprm_core.robot import image_roll
-    from psprm_core.urdf import parse_urdf
+    from psprm_core.robot.urdf import parse_urdf
 
     r = load_robot("stretch2")
     text = Path(r.config.source).read_text()
@@ -129,14 +129,14 @@ def test_unknown_robot_name():
 def test_unknown_urdf_joint_in_drives(tmp_path):
     p = _write_robot(tmp_path, BASE.replace("name: shoulder_pan_joint,", "name: shoulder_pan_joint, drives: {no_such_joint: 1.0},"))
     with pytest.raises(ConfigError, match=r"field 'joints\[0\]\.drives'.*no_such_joint"):
-        RobotModel(load_robot_config(str(p)), __import__("psprm_core.urdf").urdf.parse_urdf(
+        RobotModel(load_robot_config(str(p)), __import__("psprm_core.robot.urdf").urdf.parse_urdf(
             urdf_path_for(load_robot_config(str(p)))))
 
 
 def test_missing_camera_link(tmp_path):
     p = _write_robot(tmp_path, BASE.replace("  link: wrist_camera_optical_frame", "  link: no_camera_here"))
     cfg = load_robot_config(str(p))
-    from psprm_core.urdf import parse_urdf
+    from psprm_core.robot.urdf import parse_urdf
 
     with pytest.raises(RobotModelError, match=r"camera\.link.*no link 'no_camera_here'"):
         RobotModel(cfg, parse_urdf(urdf_path_for(cfg)))

@@ -1,5 +1,5 @@
 """The robot's own description: a robot model built from URDF text (``RobotModel.load(name, urdf_text=...)``) and
-the nodes' ``robot_description`` parameters (``psprm_ros.robot_description``).
+the nodes' ``robot_description`` parameters (``psprm_ros.robots.robot_description``).
 
 Judged by pybullet loaded with the very text the test gave the model (written by the test to a temporary file, the
 meshes reachable next to it as pybullet looks them up), its link frames composed with the planar base pose and the
@@ -314,7 +314,7 @@ def _node(ctx, namespace: str, **params):
 def test_topic_description_published_before_the_node_starts(ros_context, load_robot, tmp_path):
     from psprm_core.paths import resolve_named
     from psprm_core.scene import load_scene
-    from psprm_ros.robot_description import robot_from_params, wait_for_robot_description
+    from psprm_ros.robots.robot_description import robot_from_params, wait_for_robot_description
 
     packaged_model = load_robot("stretch2")
     text = packaged_model.urdf.path.read_text()
@@ -344,7 +344,7 @@ def test_topic_description_published_before_the_node_starts(ros_context, load_ro
 def test_auto_without_a_publisher_falls_back_within_the_timeout(ros_context, load_robot, tmp_path):
     from psprm_core.paths import resolve_named
     from psprm_core.scene import load_scene
-    from psprm_ros.robot_description import robot_from_params
+    from psprm_ros.robots.robot_description import robot_from_params
 
     packaged_model = load_robot("stretch2")
     text = packaged_model.urdf.path.read_text()
@@ -426,7 +426,7 @@ def test_sim_robot_publishes_its_urdf_as_the_robot_description(ros_context, load
 
     from psprm_core.paths import resolve_named
     from psprm_core.scene import load_scene
-    from psprm_ros.robot_description import robot_from_params, wait_for_robot_description
+    from psprm_ros.robots.robot_description import robot_from_params, wait_for_robot_description
     from psprm_ros.sim_robot import SimRobotNode
     from psprm_ros.spinning import NodeSpinner
 

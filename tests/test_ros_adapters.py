@@ -32,7 +32,7 @@ from stalls import freeze_this_process  # noqa: E402
 from psprm_core.planning.timing import time_parameterize  # noqa: E402
 from psprm_ros import adapters as ad  # noqa: E402
 from psprm_ros import conversions as cv  # noqa: E402
-from psprm_ros.base_follower import BaseFollower, BaseReference, Gains, Limits  # noqa: E402
+from psprm_ros.robots.base_follower import BaseFollower, BaseReference, Gains, Limits  # noqa: E402
 
 # the controllers' joint sets as the robots' drivers name them (robot-interfaces facts: stretch_core, TIAGo's
 # tiago_controller_configuration, ur_robot_driver)

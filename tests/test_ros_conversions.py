@@ -1,5 +1,5 @@
-"""psprm_ros.conversions: validation of poses (finite, frame, age), /joint_states with URDF joint names -> planning
-configuration, trajectory messages that follow the planned path, stop trajectories."""
+"""psprm_ros.interfaces.conversions: validation of poses (finite, frame, age), /joint_states with URDF joint names ->
+planning configuration, trajectory messages that follow the planned path, stop trajectories."""
 
 from __future__ import annotations
 

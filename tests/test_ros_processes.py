@@ -53,7 +53,7 @@ def test_colcon_workspace_builds_and_installs_runnable_executables(tmp_path):
     out = json.loads(r.stdout.strip().splitlines()[-1])
     assert out["ok"] and out["psprm_ros"].startswith(str(site))  # the installed copy, not the source tree
     # the installed adapter configs are the ones found by name (share/ before the repository)
-    r = subprocess.run([sys.executable, "-c", "import json; from psprm_ros.adapters import resolve_adapter; "
+    r = subprocess.run([sys.executable, "-c", "import json; from psprm_ros.robots.adapters import resolve_adapter; "
                         "print(json.dumps(str(resolve_adapter('stretch2'))))"],
                        env=dict(run_env, AMENT_PREFIX_PATH=str(install / "psprm_ros")), capture_output=True,
                        text=True, timeout=60, cwd=str(tmp_path))

@@ -1,7 +1,7 @@
-"""The tf base pose source: :class:`psprm_ros.tf_tree.TfTree` composing ``map -> odom -> base_link`` (judged against
-the test's own 4x4 homogeneous matrices), the missing link named, bad transforms discarded; the robot state tracker
-with ``base_pose_source: tf`` giving the true pose of a robot whose odometry drifts, corrected by ``map -> odom``
-(judged against the test's own ground truth); and over real rclpy the replan monitor forwarding the base pose the
+"""The tf base pose source: :class:`psprm_ros.interfaces.tf_tree.TfTree` composing ``map -> odom -> base_link`` (judged
+against the test's own 4x4 homogeneous matrices), the missing link named, bad transforms discarded; the robot state
+tracker with ``base_pose_source: tf`` giving the true pose of a robot whose odometry drifts, corrected by ``map ->
+odom`` (judged against the test's own ground truth); and over real rclpy the replan monitor forwarding the base pose the
 test's ``/tf_static`` and ``/tf`` messages say."""
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from psprm_core.errors import InputError  # noqa: E402
-from psprm_ros.frames import FrameTable  # noqa: E402
-from psprm_ros.robot_state import RobotStateTracker  # noqa: E402
-from psprm_ros.tf_tree import TfLookupError, TfTree  # noqa: E402
+from psprm_ros.interfaces.frames import FrameTable  # noqa: E402
+from psprm_ros.robots.robot_state import RobotStateTracker  # noqa: E402
+from psprm_ros.interfaces.tf_tree import TfLookupError, TfTree  # noqa: E402
 
 
 # ---------------------------------------------------------------------------------------------------------- the test's
@@ -192,7 +192,7 @@ def test_input_frames_resolve_through_tf_where_the_fixed_table_has_none():
 
 def test_a_missing_tf2_msgs_is_named(monkeypatch):
     from psprm_core.errors import InputError
-    from psprm_ros.tf_tree import import_tf_message
+    from psprm_ros.interfaces.tf_tree import import_tf_message
 
     monkeypatch.setitem(sys.modules, "tf2_msgs.msg", None)  # import fails as without the package
     with pytest.raises(InputError, match=r"tf2_msgs.*ros-jazzy-tf2-msgs.*build_interfaces"):

@@ -1,8 +1,8 @@
 """Stretch 2's driver rules (stretch_ros2 ``stretch_core`` and Stretch Body, written out here from their public
 sources as numbers and cases, not taken from psprm's code) and the trajectory-mode goals the adapter builds.
 
-The driver model (:mod:`psprm_ros.sim_stretch`) is judged against those rules case by case; the goals
-(:mod:`psprm_ros.stretch`) against the rules too, and by what the driver model makes of them: the robot, its base
+The driver model (:mod:`psprm_ros.robots.sim_stretch`) is judged against those rules case by case; the goals
+(:mod:`psprm_ros.robots.stretch`) against the rules too, and by what the driver model makes of them: the robot, its base
 integrated from the wheels' motion, must stay within the path tolerance of a real planned trajectory (the planner's
 own output on the main job's scene, compared with the robot's collision boxes, :class:`psprm_core.tracking.
 CheckedPath`) and end where it ends."""
@@ -18,7 +18,7 @@ from psprm_core.tracking import CheckedPath
 from psprm_ros import adapters as ad
 from psprm_ros import stretch as st
 from psprm_ros.sim_robot import SimModel
-from psprm_ros.sim_stretch import (DRIVER_ERROR, INVALID_GOAL, StretchDriver, pose_diff)
+from psprm_ros.robots.sim_stretch import (DRIVER_ERROR, INVALID_GOAL, StretchDriver, pose_diff)
 
 DT = 0.02
 

@@ -287,7 +287,7 @@ def test_pchip_curve_matches_scipy() -> None:
     including joints that stand still and the shape-preserving end slopes."""
     from scipy.interpolate import PchipInterpolator
 
-    from psprm_core.planning.timing_profiles import _CurvePath
+    from psprm_core.planning.timing.profiles import _CurvePath
 
     rng = np.random.default_rng(0)
     for n in (2, 3, 5, 9):

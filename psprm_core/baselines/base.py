@@ -38,7 +38,7 @@ from typing import Optional, Protocol, Sequence, Type, TypeVar, runtime_checkabl
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 from ..collision import CollisionChecker
 from ..errors import ConfigError
 from ..motion import DiffDriveMotion

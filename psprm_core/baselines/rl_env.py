@@ -55,7 +55,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 from ..errors import InputError
 
 log = logging.getLogger(__name__)

@@ -1,6 +1,6 @@
-"""``psprm dynbench``: the dynamic benchmark in simulated time (psprm_core.evaluation.dynamic_bench): every scenario's
-episodes, each with a seeded variation of the people's motion, in every mode (replanning in motion with and without
-prediction, from rest, the static first plan, the hindsight reference), judged by the oracle."""
+"""``psprm dynbench``: the dynamic benchmark in simulated time (psprm_core.evaluation.dynamic.dynamic_bench): every
+scenario's episodes, each with a seeded variation of the people's motion, in every mode (replanning in motion with and
+without prediction, from rest, the static first plan, the hindsight reference), judged by the oracle."""
 
 from __future__ import annotations
 
@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="do not judge the frames (no detection rates and no hindsight reference; a quick check)")
     p.add_argument("--hindsight-searches", default=None,
                    help="candidate searches per goal of the hindsight reference (default own,motion@1.0,eq2@0.8,alt; "
-                        "psprm_core.evaluation.hindsight): own (the "
+                        "psprm_core.evaluation.dynamic.hindsight): own (the "
                         "planner's objective and alpha), OBJECTIVE@ALPHA, alt (another route)")
     p.add_argument("--hindsight-variants", default=None,
                    help="roadmap scorings of the hindsight candidates (default start,mid): the world at t = 0, "
@@ -59,7 +59,8 @@ def _run(args) -> int:
     from pathlib import Path
 
     from ..baselines import parse_settings, settings_class
-    from ..evaluation.dynamic_bench import DEFAULT_SCENARIOS, DynBenchConfig, load_scenarios, run_dynbench, table
+    from ..evaluation.dynamic.dynamic_bench import (DEFAULT_SCENARIOS, DynBenchConfig, load_scenarios, run_dynbench,
+                                                    table)
     from ..evaluation.simulation import MODES
     from ..planning.replanner import ReplanSettings
 

@@ -264,7 +264,7 @@ def _replan(args) -> int:
 
 
 def _replan_motion(args) -> int:
-    from ..evaluation.motion_replan import motion_replan_benchmark
+    from ..evaluation.dynamic.motion_replan import motion_replan_benchmark
 
     _print(motion_replan_benchmark(nodes=args.nodes, replans=args.replans, rounds=args.rounds, seed=args.seed,
                                    threads=args.threads), args.json)

@@ -3,8 +3,8 @@
     python -m psprm_core.evaluation.device_check --device cuda  # on a CUDA machine (scripts/check_device.sh)
     python -m psprm_core.evaluation.device_check --device cpu --torch-path  # here: the same torch code, CPU kernels off
 
-On a CPU the planner runs small batches through compiled numba kernels (:mod:`psprm_core.fastpath`); on any other
-device, and on the CPU with ``--torch-path``, every call takes the torch operators the paper's GPU pipeline uses.
+On a CPU the planner runs small batches through compiled numba kernels (:mod:`psprm_core.kernels.fastpath`); on any
+other device, and on the CPU with ``--torch-path``, every call takes the torch operators the paper's GPU pipeline uses.
 Each stage is judged by something the device code does not compute:
 
 * FK: camera poses on the device against pybullet's forward kinematics (same configurations);
@@ -36,7 +36,7 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynam
         seed: int = 0) -> dict:
     import torch
 
-    from .. import fastpath
+    from ..kernels import fastpath
     from .benchmarks import rotation_angle_error
     from ..collision import CollisionChecker
     from ..paths import resolve_named

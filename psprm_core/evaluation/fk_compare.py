@@ -1,7 +1,7 @@
 """Whole-body FK side by side (``psprm perf kinematics --kinematics pytorch_kinematics``): the robot model's torch
-FK, pytorch-kinematics' (:class:`~psprm_core.kinematics_pk.PKBodyKinematics`) and pybullet's, on the configurations
-of :func:`~psprm_core.evaluation.benchmarks.kinematics_benchmark` (same seed, same workspace), with the agreement of
-the two torch implementations with pybullet and the torch-path collision checks run on each."""
+FK, pytorch-kinematics' (:class:`~psprm_core.robot.kinematics_pk.PKBodyKinematics`) and pybullet's, on the
+configurations of :func:`~psprm_core.evaluation.benchmarks.kinematics_benchmark` (same seed, same workspace), with the
+agreement of the two torch implementations with pybullet and the torch-path collision checks run on each."""
 
 from __future__ import annotations
 
@@ -23,9 +23,9 @@ def body_fk_comparison(robot_name: str, scene_name: str, n: int = 10000, seed: i
     configuration at a time, on ``min(fk_check, n)`` of them), and of the collision checker's torch path on either
     FK; the largest body position / rotation differences from pybullet (float64, on those configurations) and the
     number of configurations whose collision flags differ between the two checkers."""
-    from .. import fastpath
+    from ..kernels import fastpath
     from ..collision import CollisionChecker
-    from ..kinematics_pk import PKBodyKinematics
+    from ..robot.kinematics_pk import PKBodyKinematics
     from ..paths import resolve_named
     from ..robot import RobotModel
     from ..scene import load_scene

@@ -6,7 +6,7 @@ routes over it: searches with both objective forms (Eq. 2 and the motion-weighte
 route that only minimises what is not seen), with and without shortcutting, and alternative routes found by
 penalising the edges of the routes already found. ``psprm bench`` judges every candidate with the oracle; the best of
 them and of the planners' own paths is the problem's reference
-(:func:`psprm_core.evaluation.bench_report.annotate_headroom`).
+(:func:`psprm_core.evaluation.bench.report.annotate_headroom`).
 """
 
 from __future__ import annotations

@@ -18,7 +18,7 @@ import torch
 from ..geometry import matrix_to_quat
 from ..paths import cache_dir
 from ..robot import RobotModel, image_roll, load_acm
-from ..urdf import resolve_mesh
+from ..robot.urdf import resolve_mesh
 from ..yamlio import load_yaml
 
 log = logging.getLogger(__name__)

@@ -42,7 +42,7 @@ import torch
 
 from ..errors import PsprmError
 from ..planning.execution import SplicedTrajectory
-from .episodes import (FrameJudge, count_collisions, count_self_collisions, detection_metrics, execute_fixed,
+from .dynamic.episodes import (FrameJudge, count_collisions, count_self_collisions, detection_metrics, execute_fixed,
                        frame_every, frames_of, json_safe, judge_record, speed_ratio, wrap_heading)
 from .scenarios import (Keyframe, MotionVariation, PersonMotion, PoseKeyframe, Scenario, World, at_goal,
                         draw_variation, goal_configurations, load_scenario, person_pose)
@@ -160,7 +160,7 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
         rec["frames_scene"] = [world.poses(float(t)) for t in rec["times"][::k]]
         out.update(rec)
     elif mode == "hindsight":
-        from .hindsight import SEARCHES, VARIANTS, run_hindsight
+        from .dynamic.hindsight import SEARCHES, VARIANTS, run_hindsight
 
         h = run_hindsight(scenario, world, planner, settings, start, aim, first_traj=traj, judge=judge,
                           searches=hindsight_searches or SEARCHES, variants=hindsight_variants or VARIANTS,

@@ -46,7 +46,7 @@ from typing import Iterable, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 from ..geometry import EPS_DIR as _EPS_DIR
 from ..geometry import quat_to_matrix
 from ..scene import Box, Scene, Target
@@ -418,12 +418,12 @@ class OcclusionChecker:
         return self._cache[key]
 
     def kernel_pack(self):
-        """The occluders and target points as the compiled kernels take them (:mod:`psprm_core.fastpath`): an
-        :class:`~psprm_core._fast_packs.OcclusionPack` of the target points and their centre in every box frame, the
-        boxes grown by the points' radius (the first test of :func:`occlusion_scores`), the box centres, rotations
+        """The occluders and target points as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): an
+        :class:`~psprm_core.kernels._fast_packs.OcclusionPack` of the target points and their centre in every box frame,
+        the boxes grown by the points' radius (the first test of :func:`occlusion_scores`), the box centres, rotations
         and half extents (float64), ``count_inside`` and the direction eps. Kept until the boxes, the points or
         ``count_inside`` are replaced."""
-        from .._fast_packs import OcclusionPack
+        from ..kernels._fast_packs import OcclusionPack
 
         key = (self.boxes, self.target_points, bool(self.count_inside))
         got = self.__dict__.get("_kernel_pack")

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .. import fastpath
+from ..kernels import fastpath
 from ..errors import InputError, OutOfRangeError, UnknownNameError
 
 log = logging.getLogger(__name__)
@@ -347,11 +347,11 @@ class PerceptionSurrogate(nn.Module):
     def kernel_layers(self, cls: int) -> tuple:
         """The inference layers of one class index: ``(layers, pack)`` with ``layers`` the (W^T (in, out), b) pairs
         with the feature normalisation and the class's one-hot column folded into the first one
-        (:meth:`_folded_first_layer`), and ``pack`` the float32 :class:`~psprm_core._fast_packs.MlpPack` of the
-        compiled MLP (:mod:`psprm_core.fastpath`), None when the layers are not float32 or the net does not end in a
-        single output. Kept on the model until a parameter or buffer changes: in place (the tensors' versions) or by
-        new storage (``.to()``, ``load_state_dict``)."""
-        from .._fast_packs import MlpPack
+        (:meth:`_folded_first_layer`), and ``pack`` the float32 :class:`~psprm_core.kernels._fast_packs.MlpPack` of the
+        compiled MLP (:mod:`psprm_core.kernels.fastpath`), None when the layers are not float32 or the net does not end
+        in a single output. Kept on the model until a parameter or buffer changes: in place (the tensors' versions) or
+        by new storage (``.to()``, ``load_state_dict``)."""
+        from ..kernels._fast_packs import MlpPack
 
         cache = self.__dict__.get("_kernel_layers")
         tensors = cache[1] if cache is not None else list(self.parameters()) + list(self.buffers())

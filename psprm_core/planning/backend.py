@@ -2,7 +2,7 @@
 
 - :class:`TorchBackend`: every operation in torch on the planner's device and dtype (a GPU, or a CPU without
   numba): the reference;
-- :class:`CompiledBackend` (a CPU with numba): the compiled kernels of :mod:`psprm_core.fastpath` for the batch
+- :class:`CompiledBackend` (a CPU with numba): the compiled kernels of :mod:`psprm_core.kernels.fastpath` for the batch
   sizes they serve (a query's few edges in one fused call, the metric at any size, bulk rows inside
   :func:`fastpath.bulk`), the torch code otherwise. The kernels give the torch results (``tests/test_fastpath.py``);
   :func:`fastpath.disabled` turns them off at run time, which sends every call back to the torch code.
@@ -20,7 +20,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 
 
 def backend_for(ctx) -> "TorchBackend":

@@ -24,7 +24,7 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 from ..camera import CameraIntrinsics
 from ..geometry import wrap_angle
 from ..robot import RobotModel
@@ -71,7 +71,7 @@ class VisibilityConstraint:
         The target must be at least this far in front of the camera (default: near plane + 0.2 m).
     kinematics : object with ``camera_poses(q)`` and ``camera_jacobian(q)``, optional
         Where the camera pose and its Jacobian come from: the robot model (default; small CPU batches then run the
-        compiled iteration) or e.g. :class:`~psprm_core.kinematics_pk.PKCameraKinematics` (always the torch
+        compiled iteration) or e.g. :class:`~psprm_core.robot.kinematics_pk.PKCameraKinematics` (always the torch
         iteration).
     """
 
@@ -163,11 +163,11 @@ class VisibilityConstraint:
         return self.frustum_distance(self.target_in_camera(q)) - self.margin <= slack
 
     def kernel_pack(self, dtype: torch.dtype):
-        """h_M's parameters as the compiled kernels take them (:mod:`psprm_core.fastpath`): a
-        :class:`~psprm_core._fast_packs.ViewPack` of the target (rounded to ``dtype``, as the torch path casts it;
-        kept until the target changes), the model, the minimum distance, the far plane, the half-view tangents and
+        """h_M's parameters as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): a
+        :class:`~psprm_core.kernels._fast_packs.ViewPack` of the target (rounded to ``dtype``, as the torch path casts
+        it; kept until the target changes), the model, the minimum distance, the far plane, the half-view tangents and
         the margin (:meth:`residual_jacobian`)."""
-        from .._fast_packs import ViewPack
+        from ..kernels._fast_packs import ViewPack
 
         intr = self.intr
         return ViewPack(fastpath.const_f64(self.target, dtype), self.kind == "line", float(self.min_distance),

@@ -9,25 +9,25 @@ import numpy as np
 
 from ..errors import InputError
 from .backend import backend_for
-from .builder import Builder
-from .dynamics import Dynamics
-from .edges import Edges
-from .heuristics import Heuristics
-from .knots import KnotStore
-from .neighbours import Neighbours
-from .persistence import Persistence
+from .roadmap.builder import Builder
+from .roadmap.dynamics import Dynamics
+from .roadmap.edges import Edges
+from .search.heuristics import Heuristics
+from .roadmap.knots import KnotStore
+from .roadmap.neighbours import Neighbours
+from .roadmap.persistence import Persistence
 from .query import Query
-from .recovery import Recovery
-from .roadmap_state import RoadmapState
-from .sampling import Sampling
-from .scoring import Scoring
-from .selection import RouteSelection
-from .shortcut import Shortcut
+from .query.recovery import Recovery
+from .roadmap.roadmap_state import RoadmapState
+from .roadmap.sampling import Sampling
+from .roadmap.scoring import Scoring
+from .query.selection import RouteSelection
+from .query.shortcut import Shortcut
 from .results import Failure, PlanResult
 from .settings import query_options
 from .state import PlannerContext, QueryContext, one_thread
-from .trajectory import Trajectory
-from .verification import Verification
+from .query.trajectory import Trajectory
+from .roadmap.verification import Verification
 
 
 class Pipeline:

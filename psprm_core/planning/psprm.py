@@ -57,7 +57,8 @@ class PSPRM:
         ``scoring.alpha`` left unset is :func:`~.settings.default_alpha` of the objective (no scorer kind).
     device, dtype : torch device and dtype of all batched work.
     checker : the collision checker to use (default: one for ``robot`` and the scene's boxes, whose torch path runs
-        the body FK of :class:`~psprm_core.kinematics_pk.PKBodyKinematics` under ``kinematics: pytorch_kinematics``).
+        the body FK of :class:`~psprm_core.robot.kinematics_pk.PKBodyKinematics` under ``kinematics:
+        pytorch_kinematics``).
     """
 
     def __init__(self, robot: RobotModel, scene: Scene, scorer, focus, settings: PSPRMSettings = PSPRMSettings(),
@@ -67,7 +68,7 @@ class PSPRM:
         device = torch.device(device)
         kin = body_kin = None
         if settings.visibility.kinematics == "pytorch_kinematics":
-            from ..kinematics_pk import PKBodyKinematics, PKCameraKinematics
+            from ..robot.kinematics_pk import PKBodyKinematics, PKCameraKinematics
 
             kin = PKCameraKinematics(robot, device=device)
             body_kin = None if checker is not None else PKBodyKinematics(robot, device=device, dtype=dtype)

@@ -43,7 +43,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 from ..errors import InputError, PsprmError
 from ..prediction import PredictionSettings, TargetPredictor, quat_yaw
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
@@ -576,8 +576,8 @@ class Replanner:
         replans (the reasons of :meth:`needs_replan`); when they are all :data:`VIEW_TRIGGERS` and
         ``keep_unless_better`` is on, a new plan no better than the current one is not adopted (the result has
         ``kept`` set, no trajectory, and the new plan as ``declined``; the module's docstring). Runs with torch's
-        intra-op parallelism off, like a query (:func:`~psprm_core.fastpath.one_thread`): its re-scoring batches are a
-        few thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
+        intra-op parallelism off, like a query (:func:`~psprm_core.kernels.fastpath.one_thread`): its re-scoring batches
+        are a few thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
         with fastpath.one_thread(self.planner.device):
             return self._replan(now, tuple(triggers), horizon_s)
 

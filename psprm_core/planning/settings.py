@@ -149,7 +149,7 @@ class VisibilitySettings:
     frustum_margin: float = setting(0.05, "frustum model: room kept around the target (m)", build=True)
     kinematics: str = setting("native", "camera FK + Jacobian of the Newton projection and the collision checker's "
                                         "body FK: native (the robot model; compiled kernels for small CPU batches) | "
-                                        "pytorch_kinematics (psprm_core.kinematics_pk)",
+                                        "pytorch_kinematics (psprm_core.robot.kinematics_pk)",
                               choices=("native", "pytorch_kinematics"), build=True)
 
 

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 import numpy as np
 import torch
 
-from .. import fastpath
+from ..kernels import fastpath
 
 if TYPE_CHECKING:  # the types of the context's fields (the modules import this one)
     from ..collision import CollisionChecker

@@ -7,7 +7,7 @@
 Everything comes from the params file (:mod:`psprm_ros.harness.demo_config`): scene, robot, adapter, targets, dynamic
 obstacles, the robot's start, the goals (the server's goal regions, else its start problem's goal regions or goal
 pose) and the topic and input frame of every body; ``--recording`` defaults to the shipped recording of a shipped
-params file (:data:`psprm_ros.recordings.SHIPPED`).
+params file (:data:`psprm_ros.interfaces.recordings.SHIPPED`).
 
 1. starts the suite (roadmap server, perception scorer, replan monitor and robot adapter; ``scripts/run_nodes.sh``,
    a process per node, or ``scripts/run_all_in_one.sh`` with ``--suite one-process``) and ``sim_robot`` (a kinematic
@@ -46,7 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import conversions as cv
+from ..interfaces import conversions as cv
 from .probe import claim_domain_id
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -61,8 +61,8 @@ class Record:
         from sensor_msgs.msg import JointState
 
         from .. import core
-        from ..adapters import load_adapter
-        from ..robot_state import RobotStateTracker
+        from ..robots.adapters import load_adapter
+        from ..robots.robot_state import RobotStateTracker
 
         self.lock = threading.Lock()
         self.tracker = RobotStateTracker(robot, frames, "odom", load_adapter(adapter_name, robot).name_map(),
@@ -321,7 +321,7 @@ def main(args=None) -> int:
     from ..heap import freeze_long_lived
     from ..mocap_replay import Replayer
     from .probe import InProcessSuite
-    from ..recordings import load_recording
+    from ..interfaces.recordings import load_recording
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

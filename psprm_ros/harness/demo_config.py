@@ -70,7 +70,7 @@ class DemoConfig:
     goals: list  # DemoGoal
     goal_regions: list  # names sent on /psprm/goal_regions; [] = the single goal pose goes on /psprm/goal
     body_topics: dict  # body -> mocap topic the replan monitor subscribes to
-    frames: object  # psprm_ros.frames.FrameTable of the params' input frames
+    frames: object  # psprm_ros.interfaces.frames.FrameTable of the params' input frames
     recorded_bodies: list = dataclasses.field(default_factory=list)
     recorded_frames: dict = dataclasses.field(default_factory=dict)  # body -> frame id of its recorded poses
 
@@ -132,9 +132,9 @@ def read_params(path) -> dict:
 
 
 def params_frames(shared: dict, scene_frame: str, where: str = "params file"):
-    """The :class:`~psprm_ros.frames.FrameTable` of a node's parameters (``input_frames`` and their
+    """The :class:`~psprm_ros.interfaces.frames.FrameTable` of a node's parameters (``input_frames`` and their
     ``input_frame.<name>`` transforms, nested or dotted)."""
-    from ..frames import FrameTable
+    from ..interfaces.frames import FrameTable
 
     table = FrameTable(scene_frame)
     specs = shared.get("input_frame") or {}
@@ -191,13 +191,13 @@ def _topics(monitor: dict, names: list, key: str, where: str) -> dict:
 
 
 def demo_config(params_file, recording=None) -> DemoConfig:
-    """The closed loop of ``params_file``; with ``recording`` (a :class:`~psprm_ros.recordings.Recording`), its
-    bodies are checked to be targets or dynamic obstacles the monitor subscribes to, recorded in the scene frame or
+    """The closed loop of ``params_file``; with ``recording`` (a :class:`~psprm_ros.interfaces.recordings.Recording`),
+    its bodies are checked to be targets or dynamic obstacles the monitor subscribes to, recorded in the scene frame or
     an input frame of the params file. Raises :class:`~psprm_core.errors.InputError` naming the file and the field."""
     from psprm_core.robot import RobotModel
 
     from .. import core
-    from ..adapters import load_adapter
+    from ..robots.adapters import load_adapter
 
     where = str(params_file)
     params = read_params(params_file)
@@ -251,8 +251,9 @@ def _load_scene(name: str):
 
 
 def default_recording(params_file) -> Optional[str]:
-    """The shipped recording replayed with a shipped params file (:data:`psprm_ros.recordings.SHIPPED`), or None."""
-    from ..recordings import SHIPPED
+    """The shipped recording replayed with a shipped params file (:data:`psprm_ros.interfaces.recordings.SHIPPED`), or
+    None."""
+    from ..interfaces.recordings import SHIPPED
 
     root = Path(__file__).resolve().parents[2]
     try:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import conversions as cv
+from ..interfaces import conversions as cv
 from .probe import claim_domain_id
 
 HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]

@@ -10,7 +10,7 @@ import time
 from typing import Callable, Optional
 
 
-from .. import conversions as cv
+from ..interfaces import conversions as cv
 from .. import core
 
 

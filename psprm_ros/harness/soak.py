@@ -37,7 +37,7 @@ from typing import Optional
 
 import numpy as np
 
-from .. import conversions as cv
+from ..interfaces import conversions as cv
 from ..heap import freeze_long_lived
 from .probe import claim_domain_id
 from .demo import GOAL_REASONS, SUITE_SCRIPTS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal, rss_mb
@@ -208,7 +208,7 @@ def main(args=None) -> int:
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
 
-    from ..recordings import load_recording
+    from ..interfaces.recordings import load_recording
 
     rng = np.random.default_rng(a.seed)
     out = Path(a.out)
@@ -227,7 +227,7 @@ def main(args=None) -> int:
 
     from trajectory_msgs.msg import JointTrajectory
 
-    from ..adapters import load_adapter
+    from ..robots.adapters import load_adapter
 
     # what the adapter sent the controllers (t, points): which trajectories it executed, which it refused (a hold)
     commands, commands_lock = [], threading.Lock()

@@ -10,7 +10,7 @@ import torch
 
 from psprm_core.collision import CollisionChecker
 
-from .. import conversions as cv
+from ..interfaces import conversions as cv
 
 #: how a heading or joint difference (per rad / m) counts against base distance (m) in finding where along a
 #: published trajectory the robot is

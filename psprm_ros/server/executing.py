@@ -11,7 +11,7 @@ from typing import Optional
 
 import numpy as np
 
-from .. import conversions as cv
+from ..interfaces import conversions as cv
 from .outputs import TrajectorySamples
 from .params import ADAPTER_LEAD_S, finite_or_none as _f
 

@@ -14,8 +14,8 @@ import numpy as np
 from psprm_core.planning.execution import progress_time
 from psprm_core.tracking import CheckedPath, displacement
 
-from ..adapters import braking_configurations
-from ..base_follower import Limits
+from ..robots.adapters import braking_configurations
+from ..robots.base_follower import Limits
 
 #: the robot states a braking base's speed is measured over (s)
 REST_VELOCITY_SPAN_S = 0.1
@@ -75,8 +75,8 @@ class RobotMotion:
 
     def rest_point(self, q: np.ndarray) -> np.ndarray:
         """Where a mobile base comes to rest braking at the robot config's base accelerations
-        (:func:`psprm_ros.adapters.braking_configurations`, the model the robot adapter refuses by); ``q`` itself for
-        a fixed base or a base at rest. Its velocity is the one the robot measured with its newest state (odometry,
+        (:func:`psprm_ros.robots.adapters.braking_configurations`, the model the robot adapter refuses by); ``q`` itself
+        for a fixed base or a base at rest. Its velocity is the one the robot measured with its newest state (odometry,
         tf: the adapter's own), else the velocity of its newest robot states (the newest and the newest one at
         least :data:`REST_VELOCITY_SPAN_S` older): a base braking from a stop slows all the while, so the speed over
         the span, its speed at the span's middle, is brought forward to the newest state at the braking
