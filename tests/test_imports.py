@@ -139,3 +139,30 @@ def test_error_family_members_are_also_the_builtin_types():
     else:
         raise AssertionError("an unknown target raised nothing")
     assert issubclass(InputError, ValueError) and issubclass(OutOfRangeError, IndexError)
+
+
+
+#: modules a package may hold before it is split into sub-packages
+MAX_MODULES_PER_PACKAGE = 15
+
+
+def _oversized_packages(*roots) -> dict:
+    """{folder: number of modules} of every folder under ``roots`` with more than the limit."""
+    out = {}
+    for root in roots:
+        for d in [root, *(p for p in root.rglob("*") if p.is_dir() and p.name != "__pycache__")]:
+            n = len(list(d.glob("*.py")))
+            if n > MAX_MODULES_PER_PACKAGE:
+                out[d] = n
+    return out
+
+
+def test_no_package_holds_more_than_fifteen_modules(tmp_path):
+    """The layout: psprm_core and psprm_ros are split into sub-packages (planning/roadmap, planning/search, kernels,
+    robots, ...) before a folder grows past fifteen modules; a planted folder of sixteen is found."""
+    assert _oversized_packages(ROOT, ROOT.parent / "psprm_ros") == {}
+    planted = tmp_path / "pkg" / "sub"
+    planted.mkdir(parents=True)
+    for i in range(MAX_MODULES_PER_PACKAGE + 1):
+        (planted / f"m{i}.py").write_text("")
+    assert _oversized_packages(tmp_path) == {planted: MAX_MODULES_PER_PACKAGE + 1}
