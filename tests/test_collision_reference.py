@@ -56,7 +56,7 @@ def test_no_collision_missed_within_a_millimetre_of_pybullet_contact(robot_name,
     finds free to one it finds colliding (home scene), bisected 16 times by pybullet, both final ends kept (within
     a fraction of a millimetre, in configuration space, of pybullet's contact). Every configuration pybullet finds
     colliding is flagged by the checker, on the compiled path and on the torch path alike."""
-    from psprm_core import fastpath
+    from psprm_core.kernels import fastpath
 
     robot = load_robot(robot_name)
     scene = load_scene(resolve_named("scene", "home"))

@@ -324,7 +324,7 @@ def test_nursing_and_alley_recordings_move_the_way_their_scenes_need(tmp_path):
 def test_shipped_recordings_are_what_their_generator_writes(tmp_path):
     """The CSVs are generated (``python -m psprm_ros.interfaces.recordings``), not edited by hand: regenerated, they are
     the same files."""
-    from psprm_ros import recordings
+    from psprm_ros.interfaces import recordings
 
     for name, (_, path, params) in recordings.SHIPPED.items():
         assert SHIPPED[Path(params).name] == Path(path).name

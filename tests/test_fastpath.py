@@ -10,13 +10,13 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core import fastpath
+from psprm_core.kernels import fastpath
 from psprm_core.evaluation.reference import sample_uniform
 from psprm_core.problems import random_problems
 from psprm_core.collision import CollisionChecker
 from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer
-from psprm_core.planning import search_kernels
+from psprm_core.planning.search import search_kernels
 from psprm_core.planning.constraints import ProjectionSettings, VisibilityConstraint
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.planning.pipeline import Pipeline
@@ -585,7 +585,7 @@ def test_kernel_modules_record_the_sources_of_the_kernels_they_call():
     wrong = []
     for m in sorted(files):
         closure = sorted(reached(m, set()))
-        got = getattr(importlib.import_module(f"psprm_core.{m}"), "CALLEES_SHA256", None)
+        got = getattr(importlib.import_module(f"psprm_core.kernels.{m}"), "CALLEES_SHA256", None)
         if not closure:
             assert got is None, f"{m} imports no kernel module: no CALLEES_SHA256"
             continue

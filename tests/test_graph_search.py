@@ -18,7 +18,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from psprm_core.planning import search_kernels
+from psprm_core.planning.search import search_kernels
 from psprm_core.planning.search.graph import Roadmap
 from psprm_core.planning.search.graph_search import (
     EdgeCheck,

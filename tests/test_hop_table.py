@@ -13,7 +13,7 @@ from scipy.sparse.csgraph import shortest_path
 from psprm_core.problems import random_problems
 from psprm_core.paths import resolve_named
 from psprm_core.perception.scoring import GeometricScorer
-from psprm_core.planning import graph_search, search_kernels
+from psprm_core.planning.search import graph_search, search_kernels
 from psprm_core.planning.search.graph import Roadmap
 from psprm_core.planning.psprm import PSPRM, PSPRMSettings
 from psprm_core.scene import load_scene

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core import fastpath
+from psprm_core.kernels import fastpath
 from psprm_core.evaluation.benchmarks import rotation_angle_error
 from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
 from psprm_core.robot.kinematics_pk import PKCameraKinematics

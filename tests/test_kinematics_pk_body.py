@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core import fastpath
+from psprm_core.kernels import fastpath
 from psprm_core.collision import CollisionChecker
 from psprm_core.errors import InputError
 from psprm_core.evaluation.benchmarks import rotation_angle_error

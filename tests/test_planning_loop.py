@@ -29,7 +29,7 @@ from psprm_core.evaluation.reference import PybulletWorld  # noqa: E402
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.planning.factory import problem_configurations  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros import core  # noqa: E402
 from psprm_ros.server import Outputs, PlanningLoop, TrajectorySamples  # noqa: E402
 

@@ -170,7 +170,7 @@ def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatc
 def test_compiled_step_matches_the_torch_path(planner, env):
     """The step's compiled work (motion points, collision check, motion cost, geometric score with occlusion) gives
     the values of the torch path (PlanningContext.densify, CollisionChecker, DiffDriveMotion, GeometricScorer)."""
-    from psprm_core import fastpath
+    from psprm_core.kernels import fastpath
 
     if not fastpath.available():
         pytest.skip("numba not importable")

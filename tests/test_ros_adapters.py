@@ -30,8 +30,8 @@ from psprm_ros.harness.probe import claim_domain_id  # noqa: E402
 from stalls import freeze_this_process  # noqa: E402
 
 from psprm_core.planning.timing import time_parameterize  # noqa: E402
-from psprm_ros import adapters as ad  # noqa: E402
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.robots import adapters as ad  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros.robots.base_follower import BaseFollower, BaseReference, Gains, Limits  # noqa: E402
 
 # the controllers' joint sets as the robots' drivers name them (robot-interfaces facts: stretch_core, TIAGo's

@@ -15,7 +15,7 @@ if str(ROOT) not in sys.path:
 
 pytest.importorskip("rclpy")
 
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 
 
 def test_pose_validation():

@@ -22,7 +22,7 @@ pytest.importorskip("rclpy")
 
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 PARAMS = {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"], "roadmap.n_nodes": 500, "seed": 0,

@@ -20,7 +20,7 @@ pytest.importorskip("rclpy")
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.planning.factory import problem_configurations  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 PARAMS = {"scene": "dynamic_person", "roadmap.n_nodes": 400, "seed": 0, "stale_timeout_s": 60.0,

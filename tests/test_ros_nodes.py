@@ -22,7 +22,7 @@ pytest.importorskip("rclpy")
 from psprm_core.collision import CollisionChecker  # noqa: E402
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
 N_NODES = 500

@@ -98,7 +98,7 @@ def test_script_started_nodes_answer_poses_from_another_process(script, load_rob
 
     from psprm_core.paths import resolve_named
     from psprm_core.scene import load_scene
-    from psprm_ros import conversions as cv
+    from psprm_ros.interfaces import conversions as cv
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")
@@ -239,7 +239,7 @@ def test_soak_reports_how_far_off_its_trajectory_a_colliding_robot_was(load_robo
     its nearest point, then the same path moved onto the box."""
     from psprm_core.collision import CollisionChecker
     from psprm_core.scene import Box
-    from psprm_ros import conversions as cv
+    from psprm_ros.interfaces import conversions as cv
     from psprm_ros.harness.soak import _followed
 
     robot = load_robot("stretch2")
@@ -285,7 +285,7 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
     exceeds the 5 cm padding for the later configurations alone, and a box next to the path is reached only by them."""
     from psprm_core.collision import CollisionChecker
     from psprm_core.scene import Box
-    from psprm_ros import conversions as cv
+    from psprm_ros.interfaces import conversions as cv
     from psprm_ros.harness.soak import executed_trajectories, tracking_report
 
     robot = load_robot("stretch2")

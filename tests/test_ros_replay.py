@@ -18,7 +18,7 @@ pytest.importorskip("rclpy")
 
 from psprm_ros.harness.probe import claim_domain_id  # noqa: E402
 
-from psprm_ros import conversions as cv  # noqa: E402
+from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros.interfaces.recordings import Recording, load_recording, save_csv, save_rosbag  # noqa: E402
 
 SHIPPED = ROOT / "config" / "recordings" / "person_turning.csv"

@@ -292,7 +292,7 @@ def test_replan_monitor_forwards_the_base_pose_the_tf_topics_say(load_robot):
     from tf2_msgs.msg import TFMessage
 
     from psprm_ros import core
-    from psprm_ros import conversions as cv
+    from psprm_ros.interfaces import conversions as cv
     from psprm_ros.harness.probe import InProcessSuite, claim_domain_id
 
     robot = load_robot("stretch2")

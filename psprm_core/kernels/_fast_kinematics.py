@@ -15,7 +15,7 @@ from ._fast_packs import PRISMATIC, REVOLUTE, ROOT  # noqa: F401 - the joint typ
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "288a9a60c30886ab4bc61c3d914bb263414d0973e0be49b938ac9951435541bc"
+CALLEES_SHA256 = "d49585621181d5aa8386f25dd136da3ec759b526e82aca6f2c6f7bef20b84ac3"
 
 jit = njit(cache=True, nogil=True)
 

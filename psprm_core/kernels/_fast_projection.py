@@ -13,7 +13,7 @@ from ._fast_kinematics import PRISMATIC, ROOT, _camera, _fk, jit
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "9f39f36e46692d4b52edecb44283b90e453af7063466488b7faf85bbafe8d551"
+CALLEES_SHA256 = "d3f9d53d952a5c1aa7c8e20a6dc88410f853ae68eef61a98e4bb7b643a605a1d"
 
 
 # ---------------------------------------------------------------------------------------------- projection

@@ -15,7 +15,7 @@ from ._fast_scoring import mlp, occlusion, pose_features
 #: blanked; checked by tests/test_fastpath.py). numba's disk cache checks only the source file of the kernel it
 #: loads, not those of the kernels and the decorator it was compiled with: a change there must change this file
 #: too, or the cached kernels here would keep the old code.
-CALLEES_SHA256 = "7ce1cde2d65ab48e674279d5c7de8779d2003b2a5a0225050821d463ca50cade"
+CALLEES_SHA256 = "61159535db4c79172bfd6f4c38c36ed3518555260baceb741a20d54d6c497ab1"
 
 
 # ---------------------------------------------------------------------------------------------- a query's edges
