@@ -132,24 +132,33 @@ def test_settings_are_validated():
         TargetPredictor().mixture(0.0)  # no pose yet
 
 
-def test_the_replanners_path_score_uses_the_predicted_poses(load_robot):
-    """The same remaining path, the same latest pose: a person who has been looking at the robot's route for 20 s
-    and just turned away scores higher, predicted, than one who has always looked away (the history says they turn
-    back); with prediction off both score alike (the instantaneous view)."""
+def _person_planner(load_robot):
+    """A 500-node PS-PRM of Stretch in dynamic_person with a geometric scorer of the face, and the start and goals
+    of its problem south_to_either: (scene, robot, planner, start, goals)."""
     from psprm_core.paths import resolve_named
     from psprm_core.perception.scoring import GeometricScorer
     from psprm_core.planning.factory import problem_configurations
     from psprm_core.planning.psprm import PSPRM, PSPRMSettings
-    from psprm_core.planning.replanner import Replanner, ReplanSettings
     from psprm_core.scene import load_scene
 
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     robot = load_robot("stretch2")
-    face = scene.target("person_face")
     scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, face.center, PSPRMSettings().changed({"roadmap.n_nodes": 500, "seed": 2}))
+    p = PSPRM(robot, scene, scorer, scene.target("person_face").center,
+              PSPRMSettings().changed({"roadmap.n_nodes": 500, "seed": 2}))
     assert p.build()["success"]
     start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    return scene, robot, p, start, goals
+
+
+def test_the_replanners_path_score_uses_the_predicted_poses(load_robot):
+    """The same remaining path, the same latest pose: a person who has been looking at the robot's route for 20 s
+    and just turned away scores higher, predicted, than one who has always looked away (the history says they turn
+    back); with prediction off both score alike (the instantaneous view)."""
+    from psprm_core.planning.replanner import Replanner, ReplanSettings
+
+    scene, robot, p, start, goals = _person_planner(load_robot)
+    face = scene.target("person_face")
     south = -math.pi / 2
     away = math.pi / 2
 
@@ -178,20 +187,11 @@ def test_a_person_who_turned_away_is_planned_for_where_they_looked_before(load_r
     10 % in at least two of the four cases."""
     import torch
 
-    from psprm_core.paths import resolve_named
     from psprm_core.perception.scoring import GeometricScorer
-    from psprm_core.planning.factory import problem_configurations
-    from psprm_core.planning.psprm import PSPRM, PSPRMSettings
     from psprm_core.planning.replanner import Replanner, ReplanSettings
-    from psprm_core.scene import load_scene
 
-    scene = load_scene(resolve_named("scene", "dynamic_person"))
-    robot = load_robot("stretch2")
+    scene, robot, p, start, goals = _person_planner(load_robot)
     face = scene.target("person_face")
-    scorer = GeometricScorer(scene, "person_face", robot.config.intrinsics)
-    p = PSPRM(robot, scene, scorer, face.center, PSPRMSettings().changed({"roadmap.n_nodes": 500, "seed": 2}))
-    assert p.build()["success"]
-    start, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
     alpha = float(p.settings.scoring.alpha)
 
     def judged(traj, yaw):
