@@ -124,7 +124,7 @@ class ReplanSettings:
                                  "against the targets' predicted poses at its middle", range=(1, None))
     predict_samples: int = setting(48, "... at this many configurations of the path, evenly in time",
                                    range=(1, None))
-    predicted_routes: bool = setting(True, "a replan also searches the roadmap scored against each other heading of "
+    predicted_routes: bool = setting(False, "a replan also searches the roadmap scored against each other heading of "
                                            "the targets' predicted mixture and keeps the route of the best predicted "
                                            "objective (a re-scoring and a search per heading)", live=True)
     predicted_route_turn_rad: float = setting(0.5, "... the headings that differ by more than this (rad) from the "

@@ -5,10 +5,10 @@ The replanner on a built roadmap of ``dynamic_person``; the person turns side to
 (dwelling at each side, 20 s a cycle, poses at 30 Hz); the robot follows its trajectory and every 0.5 s replans from
 its committed state (:mod:`psprm_core.planning.execution`) with a view trigger. Rounds alternate three variants,
 each from the same saved roadmap, so that all see the same load: prediction off (``off``), prediction with the
-search of the extrapolated pose alone (``prediction``), and the shipped settings, which add the routes of the other
-predicted headings (``predicted_routes``). Reports, per round, the median time of the
-remaining path's predicted score (the trigger evaluation) and of the replan (commitment, search, splice, keep
-decision), and how many replans were adopted.
+search of the extrapolated pose alone (``prediction``, the shipped settings), and prediction with the routes of the
+other predicted headings (``predicted_routes``). Reports, per round, the median time of the remaining path's
+predicted score (the trigger evaluation) and of the replan (commitment, search, splice, keep decision), and how many
+replans were adopted.
 """
 
 from __future__ import annotations
