@@ -401,7 +401,7 @@ def main(argv=None) -> int:
     """Regenerate shipped recordings (all by default) under the repository root, or one at ``--out``."""
     import argparse
 
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parents[2]
     ap = argparse.ArgumentParser(description="Regenerate the shipped recordings (config/recordings/*.csv)")
     ap.add_argument("names", nargs="*", default=[], help=f"recordings to write (default all: {', '.join(SHIPPED)})")
     ap.add_argument("--out", default="", help="write here instead of the shipped path (one recording only)")

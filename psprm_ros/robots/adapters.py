@@ -182,7 +182,7 @@ def adapter_dirs() -> list:
         dirs.append(Path(get_package_share_directory("psprm_ros")) / "config" / "adapters")
     except Exception:  # not installed with colcon, or ament_index not importable
         pass
-    dirs.append(Path(__file__).resolve().parent.parent / "config" / "ros" / "adapters")
+    dirs.append(Path(__file__).resolve().parents[2] / "config" / "ros" / "adapters")
     return dirs
 
 
