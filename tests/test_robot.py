@@ -127,10 +127,11 @@ def test_unknown_robot_name():
 
 
 def test_unknown_urdf_joint_in_drives(tmp_path):
+    from psprm_core.robot.urdf import parse_urdf
+
     p = _write_robot(tmp_path, BASE.replace("name: shoulder_pan_joint,", "name: shoulder_pan_joint, drives: {no_such_joint: 1.0},"))
     with pytest.raises(ConfigError, match=r"field 'joints\[0\]\.drives'.*no_such_joint"):
-        RobotModel(load_robot_config(str(p)), __import__("psprm_core.robot.urdf").urdf.parse_urdf(
-            urdf_path_for(load_robot_config(str(p)))))
+        RobotModel(load_robot_config(str(p)), parse_urdf(urdf_path_for(load_robot_config(str(p)))))
 
 
 def test_missing_camera_link(tmp_path):
