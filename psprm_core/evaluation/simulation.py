@@ -43,7 +43,7 @@ import torch
 from ..errors import PsprmError
 from ..planning.execution import SplicedTrajectory
 from .dynamic.episodes import (FrameJudge, count_collisions, count_self_collisions, detection_metrics, execute_fixed,
-                       frame_every, frames_of, json_safe, judge_record, speed_ratio, wrap_heading)
+                               frame_every, frames_of, json_safe, judge_record, speed_ratio, wrap_heading)
 from .scenarios import (Keyframe, MotionVariation, PersonMotion, PoseKeyframe, Scenario, World, at_goal,
                         draw_variation, goal_configurations, load_scenario, person_pose)
 

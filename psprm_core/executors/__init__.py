@@ -52,7 +52,7 @@ from typing import Callable, Hashable, Iterable, Iterator, Optional
 from ..errors import InputError
 from .pools import _LocalPool, _RayPool, _RayWorkerBody, _local_worker_main, ray_init_kwargs
 from .tasks import (BACKENDS, DEFAULT_LOCAL_WORKERS, LOCAL_RAY_OBJECT_STORE_BYTES, BackendSettings, Outcome,
-                             Task, WorkerCache, _release, _run_one)
+                    Task, WorkerCache, _release, _run_one)
 
 log = logging.getLogger(__name__)
 

@@ -14,7 +14,7 @@ from multiprocessing.connection import wait as wait_ready
 from typing import Callable, Iterable, Optional
 
 from .tasks import (DEFAULT_LOCAL_WORKERS, LOCAL_RAY_OBJECT_STORE_BYTES, BackendSettings, Task, WorkerCache,
-                             _run_one)
+                    _run_one)
 
 log = logging.getLogger(__name__)
 

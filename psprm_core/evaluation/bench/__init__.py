@@ -50,9 +50,9 @@ import numpy as np
 from .paths import arc_lengths, evaluate_path, frame_indices, track_flags, unseen_ends, verify_success
 from .problems import DEFAULT_EXCLUDED_CLASSES, default_target_groups, make_problems, scenario_problems
 from .report import (HEADROOM_MIN_GAIN, METRICS, PAPER_TABLE2, PAPER_TABLE3, annotate_headroom, cells_table,
-                           json_summary, markdown_table, summarize, summarize_cells, write_outputs)
+                     json_summary, markdown_table, summarize, summarize_cells, write_outputs)
 from .tasks import (REFERENCE, REFERENCE_VARIANT, ROW_FIELDS, _failure_row, _worker_init, base_name, bench_task,
-                          run_task)
+                    run_task)
 
 log = logging.getLogger(__name__)
 

@@ -29,7 +29,7 @@ from . import search_kernels
 from .graph import Roadmap
 from .hops import heuristic_consistency_gap, hop_distances, hop_heuristic
 from ..objectives import (_CMIN_SAFETY, OBJECTIVES, combined_weight, edge_perception, edge_weight, motion_heuristic,
-                         motion_weighted)
+                          motion_weighted)
 from ..results import Failure
 from .search_types import (ArrayLike, Backend, EdgeCheck, SearchResult, VerifyCallback, _compiled, _node_ids,
                            _scipy_matrix, _weights_array, _weights_list, min_edge_cost, path_cost)
