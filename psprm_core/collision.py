@@ -25,9 +25,9 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
-from .kernels import fastpath
 from .errors import InputError
 from .geometry import obb_overlap
+from .kernels import fastpath
 from .robot import RobotModel, load_acm
 
 log = logging.getLogger(__name__)

@@ -16,8 +16,8 @@ import math
 
 import torch
 
-from .kernels import fastpath
 from .geometry import wrap_angle
+from .kernels import fastpath
 from .robot import RobotModel
 
 

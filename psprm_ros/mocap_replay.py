@@ -25,8 +25,8 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
-from .interfaces import conversions as cv
 from .heap import freeze_long_lived
+from .interfaces import conversions as cv
 from .interfaces.recordings import Recording, load_recording
 
 

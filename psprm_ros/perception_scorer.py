@@ -16,8 +16,8 @@ from typing import Optional
 
 import numpy as np
 
-from .interfaces import conversions as cv
 from . import core
+from .interfaces import conversions as cv
 
 P = core.Param
 SCORER_PARAMS = {

@@ -25,8 +25,8 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
-from .interfaces import conversions as cv
 from . import core
+from .interfaces import conversions as cv
 
 P = core.Param
 MONITOR_PARAMS = {
@@ -169,8 +169,8 @@ class ReplanMonitor:
 
         from psprm_core.collision import CollisionChecker
 
-        from .robots.adapters import load_adapter
         from .interfaces.frames import declare_frame_params
+        from .robots.adapters import load_adapter
         from .robots.robot_state import RobotStateTracker, offset_from_params
 
         node, p = self.node, dict(self.p)

@@ -30,8 +30,8 @@ from typing import Optional
 
 import numpy as np
 
-from .interfaces import conversions as cv
 from . import core
+from .interfaces import conversions as cv
 from .server import LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples, live_replan
 
 __all__ = ["RoadmapServer", "SERVER_PARAMS", "main"]

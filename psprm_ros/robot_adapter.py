@@ -35,9 +35,9 @@ import numpy as np
 from psprm_core.errors import InputError
 from psprm_core.tracking import CheckedPath, displacement
 
-from .robots import adapters as ad
-from .interfaces import conversions as cv
 from . import core
+from .interfaces import conversions as cv
+from .robots import adapters as ad
 from .robots.base_follower import BaseFollower, BaseReference, Gains, Limits
 
 P = core.Param

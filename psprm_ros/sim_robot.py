@@ -26,10 +26,10 @@ from typing import Optional
 
 import numpy as np
 
-from .interfaces import conversions as cv
 from . import core
-from .robots.adapters import AdapterConfig, ControllerConfig, load_adapter
+from .interfaces import conversions as cv
 from .interfaces.frames import compose_pose, invert_pose
+from .robots.adapters import AdapterConfig, ControllerConfig, load_adapter
 
 SIM_PARAMS = {
     "adapter": "",  # adapter config name or path ("" = the robot's name)

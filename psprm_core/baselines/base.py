@@ -38,9 +38,9 @@ from typing import Optional, Protocol, Sequence, Type, TypeVar, runtime_checkabl
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..collision import CollisionChecker
 from ..errors import ConfigError
+from ..kernels import fastpath
 from ..motion import DiffDriveMotion
 from ..planning.constraints import ProjectionSettings, VisibilityConstraint
 from ..planning.constraints import camera_joint_mask

@@ -55,8 +55,8 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..errors import InputError
+from ..kernels import fastpath
 
 log = logging.getLogger(__name__)
 

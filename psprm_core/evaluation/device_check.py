@@ -36,16 +36,16 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynam
         seed: int = 0) -> dict:
     import torch
 
-    from ..kernels import fastpath
-    from .benchmarks import rotation_angle_error
     from ..collision import CollisionChecker
+    from ..kernels import fastpath
     from ..paths import resolve_named
     from ..perception.scoring import NeuralScorer
     from ..perception.surrogate import load_surrogate
     from ..planning.factory import default_checkpoint
-    from .reference import PybulletWorld, sample_uniform
     from ..robot import RobotModel
     from ..scene import load_scene
+    from .benchmarks import rotation_angle_error
+    from .reference import PybulletWorld, sample_uniform
 
     dev = torch.device(device)
     scene = load_scene(resolve_named("scene", scene_name))
@@ -109,10 +109,10 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
     are compared by cost, not node by node)."""
     import torch
 
-    from ..problems import random_problems
     from ..collision import CollisionChecker
     from ..planning.factory import make_planner, problem_configurations
     from ..planning.replanner import Replanner, ReplanSettings
+    from ..problems import random_problems
 
     def build(dev, ctx):
         with ctx():

@@ -23,11 +23,11 @@ def body_fk_comparison(robot_name: str, scene_name: str, n: int = 10000, seed: i
     configuration at a time, on ``min(fk_check, n)`` of them), and of the collision checker's torch path on either
     FK; the largest body position / rotation differences from pybullet (float64, on those configurations) and the
     number of configurations whose collision flags differ between the two checkers."""
-    from ..kernels import fastpath
     from ..collision import CollisionChecker
-    from ..robot.kinematics_pk import PKBodyKinematics
+    from ..kernels import fastpath
     from ..paths import resolve_named
     from ..robot import RobotModel
+    from ..robot.kinematics_pk import PKBodyKinematics
     from ..scene import load_scene
     from .reference import PybulletWorld, sample_uniform
 

@@ -442,8 +442,8 @@ def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
     single-target neural scorer (``NeuralScorer``: ``model``, ``target_pose``, ``class_name``, ``occ``, ``tau``) for
     :func:`check_score_knots` of cameras in ``dtype``, or None when the compiled scoring does not apply (another
     scorer, a model off the CPU or not float32)."""
-    from ._fast_packs import OcclusionPack, ScorerPack
     from ..geometry import EPS_DIR as _EPS_DIR
+    from ._fast_packs import OcclusionPack, ScorerPack
 
     model = getattr(scorer, "model", None)
     if getattr(scorer, "name", None) != "neural" or model is None or getattr(model, "device", None) is None or \

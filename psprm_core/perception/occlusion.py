@@ -46,11 +46,11 @@ from typing import Iterable, Optional, Sequence, Union
 import numpy as np
 import torch
 
-from ..kernels import fastpath
+from ..errors import InputError
 from ..geometry import EPS_DIR as _EPS_DIR
 from ..geometry import quat_to_matrix
+from ..kernels import fastpath
 from ..scene import Box, Scene, Target
-from ..errors import InputError
 
 log = logging.getLogger(__name__)
 

@@ -35,8 +35,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from ..kernels import fastpath
 from ..errors import InputError, OutOfRangeError, UnknownNameError
+from ..kernels import fastpath
 
 log = logging.getLogger(__name__)
 

@@ -24,11 +24,11 @@ from typing import ClassVar
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..camera import CameraIntrinsics
-from ..geometry import wrap_angle
-from ..robot import RobotModel
 from ..errors import InputError
+from ..geometry import wrap_angle
+from ..kernels import fastpath
+from ..robot import RobotModel
 
 
 def camera_joint_mask(robot: RobotModel) -> np.ndarray:

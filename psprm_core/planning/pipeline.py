@@ -9,25 +9,25 @@ import numpy as np
 
 from ..errors import InputError
 from .backend import backend_for
+from .query import Query
+from .query.recovery import Recovery
+from .query.selection import RouteSelection
+from .query.shortcut import Shortcut
+from .query.trajectory import Trajectory
+from .results import Failure, PlanResult
 from .roadmap.builder import Builder
 from .roadmap.dynamics import Dynamics
 from .roadmap.edges import Edges
-from .search.heuristics import Heuristics
 from .roadmap.knots import KnotStore
 from .roadmap.neighbours import Neighbours
 from .roadmap.persistence import Persistence
-from .query import Query
-from .query.recovery import Recovery
 from .roadmap.roadmap_state import RoadmapState
 from .roadmap.sampling import Sampling
 from .roadmap.scoring import Scoring
-from .query.selection import RouteSelection
-from .query.shortcut import Shortcut
-from .results import Failure, PlanResult
+from .roadmap.verification import Verification
+from .search.heuristics import Heuristics
 from .settings import query_options
 from .state import PlannerContext, QueryContext, one_thread
-from .query.trajectory import Trajectory
-from .roadmap.verification import Verification
 
 
 class Pipeline:

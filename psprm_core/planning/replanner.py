@@ -43,8 +43,8 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..errors import InputError, PsprmError
+from ..kernels import fastpath
 from ..prediction import PredictionSettings, TargetPredictor, quat_yaw
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .execution import commit_time, progress_time, splice

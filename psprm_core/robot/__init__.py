@@ -23,14 +23,14 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..errors import ConfigError, InputError, RobotModelError, UnknownNameError
 from ..geometry import axis_angle_matrix_torch
+from ..kernels import fastpath
 from .config import (BASE_JOINTS, BaseConfig, CollisionConfig, PlanningJoint, RobotConfig,
                      _example_robot_data_root, _generate_mobile_arm, _resolve_source, check_description,
                      description_urdf, image_roll, load_robot_config, urdf_path_for)
-from .urdf import Urdf, parse_urdf
 from ..yamlio import load_yaml
+from .urdf import Urdf, parse_urdf
 
 
 # ------------------------------------------------------------------------------------------------------------------

@@ -188,8 +188,8 @@ class ClosedLoop:
     def start(self, say=None) -> "ClosedLoop":
         import rclpy
 
-        from .probe import Probe
         from ..spinning import NodeSpinner
+        from .probe import Probe
 
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
         suite = ["bash", str(ROOT / "scripts" / SUITE_SCRIPTS[self.suite]), self.params_file]
@@ -317,11 +317,11 @@ def main(args=None) -> int:
 
     from psprm_core.errors import PsprmError
 
-    from .demo_config import default_recording, demo_config
     from ..heap import freeze_long_lived
-    from ..mocap_replay import Replayer
-    from .probe import InProcessSuite
     from ..interfaces.recordings import load_recording
+    from ..mocap_replay import Replayer
+    from .demo_config import default_recording, demo_config
+    from .probe import InProcessSuite
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -10,8 +10,8 @@ import time
 from typing import Callable, Optional
 
 
-from ..interfaces import conversions as cv
 from .. import core
+from ..interfaces import conversions as cv
 
 
 _claimed: list = []  # open lock files: a claimed domain stays ours until this process ends

@@ -37,10 +37,10 @@ from typing import Optional
 
 import numpy as np
 
-from ..interfaces import conversions as cv
 from ..heap import freeze_long_lived
-from .probe import claim_domain_id
+from ..interfaces import conversions as cv
 from .demo import GOAL_REASONS, SUITE_SCRIPTS, ClosedLoop, Record, ROOT, _params_frames, _scene_with, at_goal, rss_mb
+from .probe import claim_domain_id
 
 
 WALK_MPS = 0.5  # the person's walking speed into the path and back

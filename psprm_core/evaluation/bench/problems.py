@@ -52,9 +52,9 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
     PsprmError
         ``placements`` < 1, or a target of a group with fewer placements.
     """
-    from ...problems import random_problems
     from ...collision import CollisionChecker
     from ...errors import PsprmError
+    from ...problems import random_problems
 
     if placements < 1:
         raise PsprmError(f"placements must be at least 1, got {placements}")
@@ -103,11 +103,11 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
         Unknown problem (the known names are listed), or a start or goal in collision.
     """
     from ...baselines.base import aim_camera
-    from ...problems import aim_joints
     from ...collision import CollisionChecker
     from ...errors import PsprmError
     from ...planning.constraints import VisibilityConstraint
     from ...planning.factory import problem_configurations
+    from ...problems import aim_joints
 
     try:
         prob = scene.problem(name)

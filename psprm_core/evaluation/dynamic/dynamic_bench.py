@@ -32,9 +32,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..simulation import DEFAULT_LATENCY_S, MODES, REPLANNING_MODES
 from .episodes import json_safe
 from .hindsight import SEARCHES, VARIANTS, parse_searches, parse_variants
-from ..simulation import DEFAULT_LATENCY_S, MODES, REPLANNING_MODES
 
 log = logging.getLogger(__name__)
 
@@ -164,9 +164,9 @@ def run_episode_modes(scenario, episode: int, cfg: dict, cache=None) -> dict:
     from ...executors import WorkerCache
     from ...planning.factory import make_planner
     from ...planning.replanner import ReplanSettings
-    from .episodes import FrameJudge
     from ..scenarios import World, draw_variation
     from ..simulation import run_episode
+    from .episodes import FrameJudge
 
     own = cache is None
     cache = WorkerCache() if own else cache

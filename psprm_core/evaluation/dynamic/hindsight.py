@@ -26,8 +26,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ...errors import PsprmError
-from .episodes import FrameJudge, count_collisions, detection_metrics, execute_fixed, judge_record
 from ..scenarios import World, goal_configurations
+from .episodes import FrameJudge, count_collisions, detection_metrics, execute_fixed, judge_record
 
 log = logging.getLogger(__name__)
 

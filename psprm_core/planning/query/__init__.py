@@ -10,18 +10,18 @@ import numpy as np
 import torch
 
 from ...errors import InputError
-from ..search.graph_search import astar, edge_perception, lazy_astar, min_edge_cost
 from ..results import Failure, PlanResult
+from ..search.graph_search import astar, edge_perception, lazy_astar, min_edge_cost
 from ..state import NP_DTYPE, PlannerContext, QueryContext, ReadsQuerySettings
 
 if TYPE_CHECKING:
     from ..roadmap.edges import Edges
-    from ..search.heuristics import Heuristics
     from ..roadmap.roadmap_state import RoadmapState
     from ..roadmap.scoring import Scoring
+    from ..roadmap.verification import Verification
+    from ..search.heuristics import Heuristics
     from .shortcut import Shortcut
     from .trajectory import Trajectory
-    from ..roadmap.verification import Verification
 
 
 COMPACT_EVERY = 64  # queries between removals of retired query nodes/edges (each removal rebuilds the adjacency)

@@ -10,15 +10,15 @@ from typing import TYPE_CHECKING, Optional, Sequence
 import numpy as np
 import torch
 
-from ..roadmap.knots import no_knots
 from ..results import EscapeResult, Failure, PlanResult
+from ..roadmap.knots import no_knots
 from ..state import NP_DTYPE, PlannerContext, large_batches
 
 if TYPE_CHECKING:
     from ..roadmap.builder import Builder
     from ..roadmap.edges import Edges
-    from . import Query
     from ..roadmap.roadmap_state import RoadmapState
+    from . import Query
 
 log = logging.getLogger(__name__)
 

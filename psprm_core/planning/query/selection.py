@@ -24,9 +24,9 @@ from ..results import PlanResult
 from ..state import PlannerContext, QueryContext, ReadsQuerySettings
 
 if TYPE_CHECKING:
-    from . import Query
     from ..roadmap.roadmap_state import RoadmapState
     from ..roadmap.scoring import Scoring
+    from . import Query
 
 
 #: Weight factor of the edges of the routes found before in an ``alt`` search.

@@ -16,14 +16,14 @@ from ..search.graph_search import edge_perception
 from ..state import PlannerContext, large_batches
 
 if TYPE_CHECKING:
-    from .edges import Edges
+    from ..query.trajectory import Trajectory
     from ..search.heuristics import Heuristics
+    from .edges import Edges
     from .knots import KnotStore
     from .neighbours import Neighbours
     from .roadmap_state import RoadmapState
     from .sampling import Sampling
     from .scoring import Scoring
-    from ..query.trajectory import Trajectory
 
 log = logging.getLogger(__name__)
 

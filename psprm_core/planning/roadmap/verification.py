@@ -10,8 +10,8 @@ import torch
 
 from ...kernels import fastpath
 from ..search.graph_search import EdgeCheck, edge_perception
-from .edges import SMALL_BATCH
 from ..state import NP_DTYPE, PlannerContext, QueryContext
+from .edges import SMALL_BATCH
 
 if TYPE_CHECKING:
     from .edges import Edges

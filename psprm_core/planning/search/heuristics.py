@@ -9,9 +9,9 @@ import numpy as np
 import torch
 
 from ...kernels import fastpath
+from ..state import PlannerContext, QueryContext, ReadsQuerySettings
 from . import search_kernels
 from .graph_search import motion_heuristic
-from ..state import PlannerContext, QueryContext, ReadsQuerySettings
 
 if TYPE_CHECKING:
     from ..roadmap.roadmap_state import RoadmapState

@@ -15,9 +15,9 @@ from typing import Any, Iterable
 
 import numpy as np
 
+from ..objectives import _CMIN_SAFETY
 from . import search_kernels
 from .graph import Roadmap
-from ..objectives import _CMIN_SAFETY
 from .search_types import ArrayLike, _compiled, _node_ids, _scipy_matrix, _weights_array, min_edge_cost
 
 _HOP_CACHE_SIZE = 16

@@ -8,10 +8,10 @@ from typing import Any, Callable, Iterable, Mapping, Sequence, Union
 import numpy as np
 
 from ...errors import InputError
-from . import search_kernels
-from .graph import Roadmap
 from ..objectives import ArrayLike
 from ..results import Failure
+from . import search_kernels
+from .graph import Roadmap
 
 Backend = str  # "auto" (compiled when numba is available) or "python"
 
