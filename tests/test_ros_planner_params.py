@@ -241,7 +241,11 @@ def test_a_bare_setting_name_is_named_on_the_log_with_its_dotted_path():
                         autostart=False) as s:
         obs = s.probe.node
         heard = []
-        obs.create_subscription(Log, "/rosout", lambda m: heard.append((m.name, m.level, m.msg)), 100)
+        # /rosout is published transient-local (depth 1000, 10 s lifespan): a subscriber of the same durability gets
+        # lines logged before its discovery finished, so a slow match on a loaded machine loses nothing
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        qos = QoSProfile(depth=1000, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+        obs.create_subscription(Log, "/rosout", lambda m: heard.append((m.name, m.level, m.msg)), qos)
         assert _transition(obs, Transition.TRANSITION_CONFIGURE)
         for _ in range(50):
             if any("scoring.alpha" in m for _, _, m in heard):
