@@ -304,10 +304,11 @@ def test_the_stop_guard_stops_at_once_for_a_pose_inside_the_next_second(make_loo
 
 
 def test_a_plan_for_a_braking_base_starts_where_it_comes_to_rest(make_loop, world_models):
-    """Robot states of a base that drove straight at 0.3 m/s and brakes (no trajectory under way, as after a stop):
-    the plan starts where the test's own uniform-deceleration kinematics bring it to rest, within 1 cm."""
+    """Robot states of a base that drove straight at 0.3 m/s and brakes (no trajectory under way, as after a stop),
+    then no more states (so no wait for the rest, ``settle_timeout_s`` 0): the plan starts where the test's own
+    uniform-deceleration kinematics bring it to rest, within 1 cm."""
     robot, start, goals = world_models
-    loop, rec = make_loop()
+    loop, rec = make_loop(settle_timeout_s=0.0)
     a = float(robot.config.base.linear_acceleration)
     v0, t_brake, t_end, dt = 0.3, 0.2, 0.38, 0.02
     heading = np.array([np.cos(start[2]), np.sin(start[2])])
@@ -339,9 +340,9 @@ def test_a_braking_base_whose_states_arrive_irregularly_rests_where_its_measured
     irregularly (5 and 35 ms apart in turn, as on a busy machine), each with the velocity the robot measured
     (odometry): the plan starts where the test's own uniform-deceleration kinematics bring the base to rest, within
     5 mm. The estimate from receipt times, which the loop falls back to without a measured velocity, is 1.6 cm
-    off on these states."""
+    off on these states (no wait for the rest: ``settle_timeout_s`` 0)."""
     robot, start, goals = world_models
-    loop, rec = make_loop()
+    loop, rec = make_loop(settle_timeout_s=0.0)
     a = float(robot.config.base.linear_acceleration)
     v0, dt, n = 0.3, 0.02, 8
     heading = np.array([np.cos(start[2]), np.sin(start[2])])
@@ -360,6 +361,54 @@ def test_a_braking_base_whose_states_arrive_irregularly_rests_where_its_measured
     s = _first_trajectory(loop, rec, q, goals, base_velocity=np.array([v_last, 0.0]))
     err = float(np.hypot(*(s.positions[0, :2] - rest)))
     assert err < 0.005, (s.positions[0, :2], rest, err)
+
+
+def test_a_base_braking_slower_than_its_config_says_gets_a_plan_from_where_it_rests(make_loop, world, world_models):
+    """A base brakes from 0.3 m/s at a third of the deceleration its robot config gives (a driver's own braking
+    ramp), with nothing under way and a goal arriving as braking begins; states at 50 Hz until 0.5 s after it
+    rests. The trajectory handed over starts within 1 cm of where the test's own kinematics bring the base to rest,
+    and not before the base is within 1 cm of it. Planned at once from the rest the config predicts (with
+    ``settle_timeout_s`` 0), it starts 17 cm off: the adapter would refuse it and stop the robot again."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    a = float(robot.config.base.linear_acceleration) / 3.0
+    v0, dt = 0.3, 0.02
+    t_rest = v0 / a
+    heading = np.array([np.cos(start[2]), np.sin(start[2])])
+    rest = start.copy()
+    rest[:2] += v0 ** 2 / (2 * a) * heading
+    assert not world.colliding(np.stack([start + f * (rest - start) for f in np.linspace(0, 1, 11)])).any()
+
+    def at(t: float) -> np.ndarray:
+        tb = min(t, t_rest)
+        q = start.copy()
+        q[:2] += (v0 * tb - 0.5 * a * tb * tb) * heading
+        return q
+
+    sent: list = []
+
+    def brake():  # the robot's states at 50 Hz, each with its measured velocity
+        for k in range(int((t_rest + 0.5) / dt) + 1):
+            time.sleep(max(0.0, t_run + k * dt - time.monotonic()))
+            t = time.monotonic() - t_run
+            loop.robot_state(at(t), np.array([max(0.0, v0 - a * t), 0.0]))
+            sent.append((time.perf_counter(), t))
+
+    t0 = time.perf_counter()
+    t_run = time.monotonic()
+    loop.robot_state(at(0.0), np.array([v0, 0.0]))
+    th = threading.Thread(target=brake, daemon=True)
+    th.start()
+    loop.goals(goals)
+    ev = rec.wait(t0, ("trajectory", "stop"), 60.0)
+    th.join()
+    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
+    err = float(np.hypot(*(ev[2].positions[0, :2] - rest[:2])))
+    assert err < 0.01, f"the trajectory starts {err:.3f} m from where the base rests"
+    t_robot = max(t for tp, t in sent if tp <= ev[0])  # the robot's time at the newest state sent before it
+    left = float(np.hypot(*(rest[:2] - at(t_robot)[:2])))
+    assert left < 0.01, f"handed over while the base had {left:.3f} m left to brake"
+    assert not rec.since(t0, ("stop",)), "the robot was stopped"
 
 
 def test_a_robot_resting_at_the_end_of_its_trajectory_takes_the_next_goal(make_loop, world, world_models):

@@ -51,7 +51,14 @@ LOOP_PARAMS = {
                                   "tolerance, which would refuse it and stop the robot): a replan from the newest "
                                   "state follows at once while the robot keeps what it executes (0 = off)",
                            live=True, lo=0.0),
+    "settle_timeout_s": P(1.5, "a plan from a base that moves with nothing under way for it (braking from a stop, "
+                               "the adapter's included) waits until the base rests, so that it starts where the "
+                               "robot stands and the adapter takes it; at most this long, then it starts from "
+                               "where the base is predicted to rest (s; 0 = plan at once from that prediction)",
+                          live=True, lo=0.0),
 }
+#: a base whose braking takes it at most this far from where it is counts as at rest (m)
+SETTLED_M = 0.002
 #: plans withdrawn in a row for a stale start before one is handed to the robot anyway (the adapter decides)
 MAX_STALE_STARTS = 2
 

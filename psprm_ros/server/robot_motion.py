@@ -93,6 +93,14 @@ class RobotMotion:
             vel = self._states_velocity(lim)
         return q if vel is None else braking_configurations(q, vel, lim)[-1]
 
+    def rest_distance(self, q: np.ndarray) -> float:
+        """How far (m, the largest displacement of a point of the robot's collision boxes) a braking base still goes
+        from ``q`` before it rests (:meth:`rest_point`); 0 for a fixed base or a base at rest."""
+        if not self.robot.mobile:
+            return 0.0
+        rest = self.rest_point(q)
+        return 0.0 if rest is q else float(displacement(self.robot, q, np.asarray(rest, float)[None])[0])
+
     def _states_velocity(self, lim: Limits) -> Optional[tuple]:
         """(v, omega) from the newest robot states' receipt times, brought forward to the newest state at the
         braking deceleration (:meth:`rest_point`); None without two states a span apart, or at rest."""

@@ -16,7 +16,7 @@ from psprm_core.errors import PsprmError
 
 from .. import core
 from .checks import FinalCheck, StopGuard, remaining
-from .params import MAX_STALE_STARTS, SPLICE_DELIVERY_S, finite_or_none as _f, live_replan
+from .params import MAX_STALE_STARTS, SETTLED_M, SPLICE_DELIVERY_S, finite_or_none as _f, live_replan
 
 
 class PlanningWorker:
@@ -47,6 +47,9 @@ class PlanningWorker:
         self.build_info: dict = {}
         self._stale_run = 0  # plans withdrawn in a row for a stale start
         self._replan_stale = False  # the next cycle replans: a plan was withdrawn for a stale start
+        self._deferred: list = []  # the reasons of a plan that waits for the braking base to rest
+        self._settle_t0: Optional[float] = None  # when that wait began (monotonic)
+        self._along: Optional[float] = None  # the robot's time along the trajectory under way, at its newest state
 
     @property
     def safety_scene(self):
@@ -150,13 +153,13 @@ class PlanningWorker:
         if self.rp is None:
             answer(reqs, False, "roadmap not ready")
             return
-        reasons: list = []
+        reasons, self._deferred = self._deferred, []
         t0 = time.perf_counter()
         moved, boxes_changed = self._apply_bodies(pend)
         try:
             if pend["robot"] is not None:
                 q_now = pend["robot"]
-                along = self._time_along(q_now)
+                along = self._along = self._time_along(q_now)
                 # a base that moves with no trajectory under way brakes from a stop: plan from where it will rest
                 q_plan = q_now if along is not None else self.motion.rest_point(q_now)
                 self.rp.set_robot_state(q_plan, along)
@@ -206,6 +209,12 @@ class PlanningWorker:
             if self._unsafe(self._remaining(self.current["positions"])):
                 reasons.append("current trajectory in collision with a moved obstacle")
         t2 = time.perf_counter()
+        if reasons and self._settling():
+            # a plan from a base still braking would start where it is predicted to rest, and the adapter refuses a
+            # start that prediction missed: wait (the loop wakes every 0.1 s at most) and plan from where it rests
+            self._deferred = reasons
+            answer(reqs, True, "planning once the braking base rests", kinds={"plan"})
+            return
         if reasons:
             pend["timing"] = {"apply_ms": _f((t1 - t0) * 1e3), "triggers_ms": _f((t2 - t1) * 1e3)}
             ok, msg = self._plan(reasons, pend)
@@ -247,6 +256,22 @@ class PlanningWorker:
         return False
 
     # ------------------------------------------------------------------------------------------------ planning
+    def _settling(self) -> bool:
+        """Whether a plan waits for the base to rest: the robot follows nothing the loop handed out (a stop, the
+        adapter's stop after a refusal, no trajectory) and its newest state still moves more than
+        :data:`~.params.SETTLED_M` braking; for at most ``settle_timeout_s`` from the first such cycle."""
+        q = self.motion.newest()
+        limit = self.p["settle_timeout_s"]
+        if (limit <= 0 or not self.robot.mobile or q is None or self._along is not None
+                or self.motion.rest_distance(np.asarray(q, float)) <= SETTLED_M):
+            self._settle_t0 = None
+            return False
+        now = time.monotonic()
+        if self._settle_t0 is None:
+            self._settle_t0 = now
+            self.outputs.status("the base is braking with nothing under way: planning once it rests")
+        return now - self._settle_t0 <= limit
+
     def _time_along(self, q: np.ndarray) -> Optional[float]:
         """Where the robot is along the trajectory under way (:meth:`~.robot_motion.RobotMotion.time_along`), or
         None."""
