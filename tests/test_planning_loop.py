@@ -496,6 +496,47 @@ def test_a_plan_from_a_state_the_robot_left_while_planning_is_replaced_by_one_fr
     assert not rec.since(t0, ("stop",)), "the robot was stopped"
 
 
+def test_a_plan_from_a_head_pan_the_robot_left_while_planning_is_replaced(make_loop, world, world_models):
+    """The head is panned 0.3 rad while a plan from where it pointed is being made (the base stays): no trajectory
+    whose head pan starts more than the adapter's 0.25 rad from the last state the test sent is handed over, and no
+    stop. Without the joint check (``start_joint_tolerance`` 0) the plan goes out 0.3 rad off: the head's collision
+    boxes move less than the 3.5 cm start tolerance."""
+    robot, start, goals = world_models
+    loop, rec = make_loop()
+    j = robot.joint_names.index("joint_head_pan")
+    turned = start.copy()
+    turned[j] += 0.3 if start[j] + 0.3 <= robot.upper[j] else -0.3
+    assert not world.colliding(np.stack([start, turned])).any()  # precondition: a free turn
+    _first_trajectory(loop, rec, start, goals)
+    ok, _ = loop.request("stop", 30.0)  # stopped at the start: the next plan starts from its state, not spliced
+    assert ok
+    orig = loop.rp.replan
+    turned_at: list = []
+
+    def turned_while_planning(*a, **k):  # states at 50 Hz: the head turns over 0.5 s, then rests for 0.3 s
+        res = orig(*a, **k)
+        if not turned_at:
+            turned_at.append(time.perf_counter())
+            for i in range(41):
+                loop.robot_state(start + min(i / 25.0, 1.0) * (turned - start))
+                time.sleep(0.02)
+        return res
+
+    loop.rp.replan = turned_while_planning
+    try:
+        t0 = time.perf_counter()
+        loop.robot_state(start)
+        loop.request("plan", 60.0)
+        ev = rec.wait(t0, ("trajectory", "stop"), 30.0)
+    finally:
+        loop.rp.replan = orig
+    assert turned_at, "precondition: a replan ran"
+    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
+    err = abs(float(ev[2].positions[0, j] - turned[j]))
+    assert err < 0.25, f"the trajectory's head pan starts {err:.3f} rad from the robot's newest state"
+    assert not rec.since(t0, ("stop",)), "the robot was stopped"
+
+
 def test_the_stop_guard_stops_for_a_body_stepping_onto_a_robot_standing_off_its_trajectory(make_loop, world,
                                                                                           world_models):
     """The robot stands 0.3 m beside the start of its trajectory (pushed, or lagging a turn on the spot): a body

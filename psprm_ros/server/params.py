@@ -51,6 +51,10 @@ LOOP_PARAMS = {
                                   "tolerance, which would refuse it and stop the robot): a replan from the newest "
                                   "state follows at once while the robot keeps what it executes (0 = off)",
                            live=True, lo=0.0),
+    "start_joint_tolerance": P(0.1, "... and when a joint other than the base's lies further than this from the "
+                                    "trajectory's sample nearest the robot (rad or m; below the adapter's "
+                                    "controllers' start tolerances, 0.25 in the shipped configs; 0 = off)",
+                               live=True, lo=0.0),
     "settle_timeout_s": P(1.5, "a plan from a base that moves with nothing under way for it (braking from a stop, "
                                "the adapter's included) waits until the base rests, so that it starts where the "
                                "robot stands and the adapter takes it; at most this long, then it starts from "

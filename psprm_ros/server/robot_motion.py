@@ -118,22 +118,35 @@ class RobotMotion:
         return (float(np.sign(v) * max(0.0, abs(v) - 0.5 * dt * lim.linear_acceleration)),
                 float(np.sign(w) * max(0.0, abs(w) - 0.5 * dt * lim.angular_acceleration)))
 
-    def stale_start(self, times: np.ndarray, positions: np.ndarray, tol: float, window_s: float = 2.0) -> str:
+    def stale_start(self, times: np.ndarray, positions: np.ndarray, tol: float, joint_tol: float = 0.0,
+                    window_s: float = 2.0) -> str:
         """Why a plan from the robot's state no longer starts where the robot is ("" = it does, or no state came):
         the robot's newest state, and where it comes to rest braking from it, against the published samples'
         configurations (``times``, ``positions``) within ``window_s`` of their start
-        (:meth:`psprm_core.tracking.CheckedPath.deviation`, the measure the adapter refuses by); ``tol`` <= 0: off."""
+        (:meth:`psprm_core.tracking.CheckedPath.deviation`, the measure the adapter refuses by), and each joint
+        other than the base's against the sample nearest the newest state (the adapter's controllers compare their
+        joints there, each with its own start tolerance); ``tol`` / ``joint_tol`` <= 0: that check off."""
         q = self.newest()
-        if tol <= 0 or q is None:
+        if q is None:
             return ""
         q = np.asarray(q, float)
-        probe = [q] + ([self.rest_point(q)] if self.robot.mobile else [])
         checked = CheckedPath(self.robot, times, positions)
-        d = max(checked.deviation(x, 0.0, window_s)[0] for x in probe)
-        if d <= tol:
-            return ""
-        return (f"the robot moved while planning: braking from its newest state it comes {d:.3f} m from the "
-                f"trajectory's start (start tolerance {tol:g} m)")
+        d, tau = checked.deviation(q, 0.0, window_s)
+        if tol > 0:
+            if self.robot.mobile:
+                d = max(d, checked.deviation(self.rest_point(q), 0.0, window_s)[0])
+            if d > tol:
+                return (f"the robot moved while planning: braking from its newest state it comes {d:.3f} m from "
+                        f"the trajectory's start (start tolerance {tol:g} m)")
+        if joint_tol > 0:
+            k0 = 3 if self.robot.mobile else 0
+            i = min(int(np.searchsorted(np.asarray(times, float), tau)), len(times) - 1)
+            err = np.abs(np.asarray(positions, float)[i, k0:] - q[k0:])
+            j = int(np.argmax(err)) if len(err) else 0
+            if len(err) and err[j] > joint_tol:
+                return (f"the robot moved while planning: its {self.robot.joint_names[k0 + j]} lies {err[j]:.3f} "
+                        f"from the trajectory's (joint start tolerance {joint_tol:g})")
+        return ""
 
     def forget_progress(self) -> None:
         """A new trajectory went out: the next progress estimate starts afresh."""

@@ -317,7 +317,8 @@ class PlanningWorker:
             late = (info["spliced"] and not self.executing.commits_to_the_end(res)
                     and time.perf_counter() - t0 + SPLICE_DELIVERY_S > res.committed_s)
             stale = ("" if unsafe or late or info["spliced"] or stale_run >= MAX_STALE_STARTS
-                     else self.motion.stale_start(samples.times, samples.positions, self.p["start_tolerance_m"]))
+                     else self.motion.stale_start(samples.times, samples.positions, self.p["start_tolerance_m"],
+                                                   self.p["start_joint_tolerance"]))
             if unsafe or late or stale:
                 # not handed to the robot: the replanner goes back to the trajectory the robot executes, so that the
                 # next replan commits along that one
