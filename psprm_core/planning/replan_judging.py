@@ -85,8 +85,8 @@ class PlanJudging:
         """Time-integrated predicted perception of ``traj`` from its time ``t0`` to its end: the mean score of
         configurations every 50 ms (at most ``predict_samples``, evenly in time), each of ``score_bins`` stretches
         scored against the targets' predicted pose mixture (:meth:`~psprm_core.prediction.TargetPredictor.mixture`)
-        at the time the robot will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp). Without prediction, the
-        targets' latest poses."""
+        at the time the robot will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp).
+        Without prediction, the targets' latest poses."""
         T = float(traj.duration)
         t0 = min(max(0.0, float(t0)), T)
         n = int(max(2, min(self.settings.predict_samples, (T - t0) / 0.05 + 1)))
