@@ -4,15 +4,10 @@ and the differential-drive arcs between waypoints (:func:`arc_segments`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 
 from ..errors import InputError
-
-if TYPE_CHECKING:
-    from .trajopt import TrajOptPlanner
 
 
 def _wrap(a):
@@ -38,13 +33,14 @@ def arc_segments(qa: np.ndarray, qb: np.ndarray, w_rot: float) -> dict:
 
 
 class TrajOptProblem:
-    """Residuals and Jacobian of one start/goal pair (see the module docstring).
+    """Residuals and Jacobian of one start/goal pair of ``planner`` (:class:`~.trajopt.TrajOptPlanner`: its robot,
+    settings, checker and view terms).
 
     The variables are the free waypoints' values of the optimised joints ``cols`` (n_free, nc), flattened; the other
     joints stay at the start's values (the start and goal agree on them).
     """
 
-    def __init__(self, planner: TrajOptPlanner, start: np.ndarray, goal: np.ndarray, dt: float, cols: np.ndarray):
+    def __init__(self, planner, start: np.ndarray, goal: np.ndarray, dt: float, cols: np.ndarray):
         self.p = planner
         r = planner.robot
         s = planner.settings

@@ -7,14 +7,11 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Optional
+from typing import Optional
 
 import numpy as np
 
 from ..interfaces import conversions as cv
-
-if TYPE_CHECKING:
-    from .demo import Record
 
 
 def at_goal(scene, q) -> str:
@@ -89,8 +86,9 @@ def _scene_with(scene, poses: dict):
     return s
 
 
-def bodies_at(record: Record, t: float) -> dict:
-    """The latest replayed pose (scene frame) of each body at time ``t`` (perf_counter)."""
+def bodies_at(record, t: float) -> dict:
+    """The latest replayed pose (scene frame) of each body at time ``t`` (perf_counter) in ``record`` (the demo's
+    :class:`~.demo.Record`)."""
     out = {}
     with record.lock:
         for tt, b, p, q in record.poses:
