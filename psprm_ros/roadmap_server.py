@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from . import core
+from . import core, planner_setup
 from .interfaces import conversions as cv
 from .server import LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples, live_replan
 
@@ -58,15 +58,15 @@ PLANNER_DESCRIPTIONS = {"variant": "PS-PRM variant (neural-psprm-line, psprm-lin
 
 
 def planner_params() -> dict:
-    return {k: P(v, PLANNER_DESCRIPTIONS.get(k, ""), rebuild=True) for k, v in core.PLANNER_PARAMS.items()}
+    return {k: P(v, PLANNER_DESCRIPTIONS.get(k, ""), rebuild=True) for k, v in planner_setup.PLANNER_PARAMS.items()}
 
 
 def planner_setting_params(defaults: dict) -> dict:
-    """The planner settings the server declares (:func:`~psprm_ros.core.server_setting_specs`), by dotted path, made
-    from their specs (:func:`~psprm_ros.core.setting_param`) with ``defaults`` (dotted path -> value:
-    :func:`~psprm_ros.core.server_setting_values`); the live ones are applied to the running planner, the others are
-    read-only."""
-    return {spec.name: core.setting_param(spec, defaults[spec.name]) for spec in core.server_setting_specs()}
+    """The planner settings the server declares (:func:`~psprm_ros.planner_setup.server_setting_specs`), by dotted
+    path, made from their specs (:func:`~psprm_ros.core.setting_param`) with ``defaults`` (dotted path -> value:
+    :func:`~psprm_ros.planner_setup.server_setting_values`); the live ones are applied to the running planner, the
+    others are read-only."""
+    return {spec.name: core.setting_param(spec, defaults[spec.name]) for spec in planner_setup.server_setting_specs()}
 
 
 def replan_params(settings_name: str) -> dict:
@@ -108,7 +108,7 @@ class RoadmapServer:
         settings = self._planner_setting_params(refusals)
         self.p.update(core.declare_params(node, settings, refusals))
         self.spec_params = {**common, **replan, **settings}
-        self.spec = core.PlannerSpec(**{k: self.p[k] for k in core.PLANNER_PARAMS},
+        self.spec = planner_setup.PlannerSpec(**{k: self.p[k] for k in planner_setup.PLANNER_PARAMS},
                                      settings={k: self.p[k] for k in settings})
         if refusals:
             node.refuse_configure("; ".join(filter(None, [node.configure_refusal,
@@ -170,11 +170,11 @@ class RoadmapServer:
         from psprm_core.planning.psprm import PSPRMSettings
 
         try:
-            settings = core.planner_file_settings(self.p["planner_settings"], self.robot.name)
+            settings = planner_setup.planner_file_settings(self.p["planner_settings"], self.robot.name)
         except ConfigError as exc:
             refusals.append(f"planner_settings: {exc}")
             settings = PSPRMSettings()
-        return planner_setting_params(core.server_setting_values(settings))
+        return planner_setting_params(planner_setup.server_setting_values(settings))
 
     # ------------------------------------------------------------------------------------------------ the loop's state
     # read by the launchers, benchmarks and tests (probe, latency_bench, the node tests)

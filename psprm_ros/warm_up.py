@@ -25,16 +25,16 @@ def main(args=None) -> int:
     import torch
 
     torch.set_num_threads(2)
-    from . import core
+    from . import core, planner_setup
 
     t0 = time.perf_counter()
     scene, robot = core.load_scene_and_robot(a.scene)
     targets = core.scene_targets(scene, [])
-    spec = core.PlannerSpec(settings={"roadmap.n_nodes": a.nodes}, roadmap_file="none",
+    spec = planner_setup.PlannerSpec(settings={"roadmap.n_nodes": a.nodes}, roadmap_file="none",
                             replan_settings=a.replan_settings)
-    planner = core.make_planner_for(scene, robot, targets, spec)
-    info = core.build_or_load(planner, scene, spec)
-    rp = core.make_replanner(planner, a.replan_settings)
+    planner = planner_setup.make_planner_for(scene, robot, targets, spec)
+    info = planner_setup.build_or_load(planner, scene, spec)
+    rp = planner_setup.make_replanner(planner, a.replan_settings)
     rp.set_robot_state(core.start_configuration(robot, scene))
     if scene.goals:
         rp.set_goals(core.goal_region_configurations(robot, scene, [g.name for g in scene.goals]))

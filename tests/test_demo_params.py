@@ -28,7 +28,7 @@ if str(HERE) not in sys.path:
 
 from psprm_core.errors import InputError  # noqa: E402
 
-from psprm_ros.harness.demo import adapter_stops, goal_switches, rest_arrival, strict_json  # noqa: E402
+from psprm_ros.harness.demo_analysis import adapter_stops, goal_switches, rest_arrival, strict_json  # noqa: E402
 from psprm_ros.harness.demo_config import (POSE_GOAL_THETA_TOLERANCE_RAD, POSE_GOAL_XY_TOLERANCE_M,  # noqa: E402
                                            default_recording, demo_config)
 from psprm_ros.interfaces.recordings import load_recording  # noqa: E402

@@ -18,7 +18,8 @@ import pytest
 import torch
 
 from psprm_core.errors import ConfigError
-from psprm_core.evaluation.scenarios import World, draw_variation, load_scenario
+from psprm_core.evaluation.scenario_world import World
+from psprm_core.evaluation.scenarios import draw_variation, load_scenario
 from psprm_core.evaluation.simulation import run_episode
 from psprm_core.geometry import yaw_to_quat
 from psprm_core.paths import config_dir, resolve_named

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core.kernels import fastpath
+from psprm_core.kernels import edges, fastpath
 from psprm_core.evaluation.reference import sample_uniform
 from psprm_core.problems import random_problems
 from psprm_core.collision import CollisionChecker
@@ -501,14 +501,14 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     kn, ki = planner.edge_knots(qa, qb)
     seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.edges.n_interp)
     assert torch.equal(kn, planner.pipeline.edges.track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
-    args = fastpath.neural_args(scorer, dtype)
+    args = edges.neural_args(scorer, dtype)
     # a query's start and goal scores: one compiled call, the scorer's values
     assert torch.equal(planner.score_configs(qa[:fastpath.MLP_MAX_ROWS]),
                        scorer.score(robot.camera_poses(qa[:fastpath.MLP_MAX_ROWS])).to(dtype))
     n_free = n_zero = 0
     for s0 in range(0, len(qa), 3):  # batches of three edges, as a lazy search verifies its path
         k, i = kn[s0:s0 + 3], ki[s0:s0 + 3]
-        free, cams, raw = fastpath.check_score_knots(planner.motion, planner.checker, robot, args, k, i,
+        free, cams, raw = edges.check_score_knots(planner.motion, planner.checker, robot, args, k, i,
                                                      np.ones(len(k), bool), np.ones(len(k), bool),
                                                      planner.settings.edges.edge_resolution, 200)
         assert np.array_equal(free, planner.pipeline.edges.knots_valid(k, dense=True).numpy())

@@ -197,7 +197,7 @@ def test_stretch_head_camera_sees_the_home_tv_upright(load_robot):
 def test_detection_map_default_target_grid_and_roll():
     """``psprm perf viewmap`` on a coarse grid: the scene's first target by default, obstacle cells left out, and a
     sideways image (extra roll 90 deg) never scores above the upright one at the same points."""
-    from psprm_core.evaluation.benchmarks import detection_map
+    from psprm_core.evaluation.viewmap import detection_map
 
     try:
         up = detection_map("home", None, spacing=2.0)
@@ -217,7 +217,7 @@ def test_detection_map_of_two_targets_counts_both_and_either():
     """Two nurses' faces aimed at together (their midpoint): the points south of the medication cart see both, the
     ones behind the nurses neither; all-detected is never more frequent than any-detected."""
     from psprm_core.errors import PsprmError
-    from psprm_core.evaluation.benchmarks import detection_map
+    from psprm_core.evaluation.viewmap import detection_map
 
     try:
         res = detection_map("nursing", "nurse_1_face,nurse_2_face", spacing=2.0)
@@ -238,7 +238,7 @@ def test_detection_map_at_a_target_placement():
     """``viewmap --placement``: the plant moved from the north-west corner to the south-east one is no longer seen
     from the west wall (6.6 m away) but is from beside its new corner."""
     from psprm_core.errors import PsprmError
-    from psprm_core.evaluation.benchmarks import detection_map
+    from psprm_core.evaluation.viewmap import detection_map
 
     try:
         own = detection_map("home", "potted_plant", spacing=2.0)

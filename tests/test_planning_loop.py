@@ -30,7 +30,7 @@ from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.planning.factory import problem_configurations  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
 from psprm_ros.interfaces import conversions as cv  # noqa: E402
-from psprm_ros import core  # noqa: E402
+from psprm_ros import planner_setup  # noqa: E402
 from psprm_ros.server import Outputs, PlanningLoop, TrajectorySamples  # noqa: E402
 
 SCENE = "dynamic_person"
@@ -144,7 +144,7 @@ def make_loop(world_models, roadmap_file):
 
     def make(**params):
         rec = Record()
-        spec = core.PlannerSpec(settings={"roadmap.n_nodes": 400, "seed": 0}, roadmap_file=roadmap_file)
+        spec = planner_setup.PlannerSpec(settings={"roadmap.n_nodes": 400, "seed": 0}, roadmap_file=roadmap_file)
         loop = PlanningLoop(load_scene(resolve_named("scene", SCENE)), robot, ["person_face"], spec, rec,
                             obstacles=["person_body"], q0=start, params={**PARAMS, **params})
         made.append(loop)

@@ -222,7 +222,7 @@ def test_a_bad_value_at_start_up_is_a_refused_configure_not_a_crash(bad, word):
 
 
 def test_live_settings_resolve_an_unset_alpha_to_the_variant_default():
-    from psprm_ros.core import resolve_live_settings
+    from psprm_ros.planner_setup import resolve_live_settings
 
     s = PSPRMSettings().changed({"scoring.objective": "eq2", "scoring.alpha": 0.3})
     assert resolve_live_settings(s, {"scoring.alpha": 0.6}, "psprm-line").scoring.alpha == 0.6

@@ -220,7 +220,7 @@ def _tail(proc) -> str:
 def test_soak_tells_who_closed_the_gap_at_a_collision():
     """The soak's closing speeds, from positions made here: a robot driving at 0.3 m/s into a standing person, and a
     person walking at 0.5 m/s into a standing robot."""
-    from psprm_ros.harness.soak import _closing_speeds
+    from psprm_ros.harness.soak_report import _closing_speeds
 
     ts = np.arange(0.0, 1.0, 0.02)
     robot = [(t, np.array([0.3 * t, 0.0, 0.0])) for t in ts]  # drives +x
@@ -240,7 +240,7 @@ def test_soak_reports_how_far_off_its_trajectory_a_colliding_robot_was(load_robo
     from psprm_core.collision import CollisionChecker
     from psprm_core.scene import Box
     from psprm_ros.interfaces import conversions as cv
-    from psprm_ros.harness.soak import _followed
+    from psprm_ros.harness.soak_report import _followed
 
     robot = load_robot("stretch2")
     names = list(robot.joint_names)
@@ -286,7 +286,7 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
     from psprm_core.collision import CollisionChecker
     from psprm_core.scene import Box
     from psprm_ros.interfaces import conversions as cv
-    from psprm_ros.harness.soak import executed_trajectories, tracking_report
+    from psprm_ros.harness.soak_report import executed_trajectories, tracking_report
 
     robot = load_robot("stretch2")
     names = list(robot.joint_names)

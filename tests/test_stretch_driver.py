@@ -17,7 +17,7 @@ import pytest
 from psprm_core.tracking import CheckedPath
 from psprm_ros.robots import adapters as ad
 from psprm_ros.robots import stretch as st
-from psprm_ros.sim_robot import SimModel
+from psprm_ros.robots.sim_model import SimModel
 from psprm_ros.robots.sim_stretch import (DRIVER_ERROR, INVALID_GOAL, StretchDriver, pose_diff)
 
 DT = 0.02

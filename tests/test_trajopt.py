@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core.baselines.trajopt import TrajOptPlanner, TrajOptSettings, _Problem, arc_segments, view_angles
+from psprm_core.baselines.trajopt import TrajOptPlanner, TrajOptSettings, view_angles
+from psprm_core.baselines.trajopt_problem import TrajOptProblem, arc_segments
 from psprm_core.errors import ConfigError
 from psprm_core.paths import resolve_named
 from psprm_core.scene import load_scene
@@ -86,7 +87,7 @@ def test_residual_jacobian_matches_finite_differences(planner):
     p.settings = dataclasses.replace(saved, n_waypoints=8)
     try:
         cols = p.optimised_joints(start, goal)
-        prob = _Problem(p, start, goal, 0.05, cols)
+        prob = TrajOptProblem(p, start, goal, 0.05, cols)
         prob.set_penalty_scale([2.0, 3.0, 4.0, 5.0])
         x = p.initial_path(start, goal)[1:, cols].reshape(-1)
         with torch.no_grad():

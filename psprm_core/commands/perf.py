@@ -315,7 +315,7 @@ def _compare(args) -> int:
 
 
 def _viewmap(args) -> int:
-    from ..evaluation.benchmarks import detection_map
+    from ..evaluation.viewmap import detection_map
 
     res = detection_map(args.scene, args.target, spacing=args.spacing, extra_roll_deg=args.extra_roll_deg,
                         placement=args.placement)

@@ -98,12 +98,12 @@ def retest_statistics(original, retest, thresholds, predictions: Optional[dict] 
     -------
     dict
         ``n``, ``positive_rate`` and ``zero_fraction`` of the original labels; ``retest``: Spearman, RMSE, MAE and F1
-        of the perturbed labels against the originals (:func:`~psprm_core.perception.training.perception_metrics`
+        of the perturbed labels against the originals (:func:`~psprm_core.perception.metrics.perception_metrics`
         with the retest as the prediction), the share of views whose "detected" flag flips, and the ceilings of the
         module docstring (``ceiling_spearman`` = sqrt(retest Spearman), ``noise_rmse`` = retest RMSE / sqrt 2);
         one entry per predictor with its Spearman, RMSE, MAE and F1 against the originals.
     """
-    from ..perception.training import perception_metrics
+    from ..perception.metrics import perception_metrics
 
     y = np.asarray(original, float).ravel()
     r = np.asarray(retest, float).ravel()

@@ -44,12 +44,13 @@ from ..errors import PsprmError
 from ..planning.execution import SplicedTrajectory
 from .dynamic.episodes import (FrameJudge, count_collisions, count_self_collisions, detection_metrics, execute_fixed,
                                frame_every, frames_of, json_safe, judge_record, speed_ratio, wrap_heading)
-from .scenarios import (Keyframe, MotionVariation, PersonMotion, PoseKeyframe, Scenario, World, at_goal,
-                        draw_variation, goal_configurations, load_scenario, person_pose)
+from .scenario_world import World, at_goal, goal_configurations
+from .scenarios import (Keyframe, MotionVariation, PersonMotion, PoseKeyframe, Scenario, draw_variation,
+                        load_scenario, person_pose)
 
 __all__ = ["MODES", "REPLANNING_MODES", "DEFAULT_LATENCY_S", "run_episode", "mode_settings", "judge_frames",
            "summarize", "plot_episodes", "simulate", "json_safe",
-           # re-exported from .scenarios
+           # re-exported from .scenarios and .scenario_world
            "Keyframe", "MotionVariation", "PersonMotion", "PoseKeyframe", "Scenario", "World", "draw_variation",
            "goal_configurations", "load_scenario", "person_pose"]
 

@@ -21,6 +21,7 @@ import numpy as np
 from ..camera import CameraIntrinsics
 from ..scene import Scene
 from .detectors import Detection, Detector, default_detector_name, make_detector
+from .metrics import DEFAULT_THRESHOLD
 from .render import SceneRenderer
 
 log = logging.getLogger(__name__)
@@ -34,9 +35,6 @@ DETECTION_THRESHOLDS: Dict[str, float] = {
     "centernet:potted plant": 0.10,  # floor value; plants look alike from every side (TPR 0.90)
     "centernet-tiled": 0.10,  # 8 cm cup at 0.6-1.5 m: floor value (TPR 0.45, FPR 0)
 }
-
-#: Used for detectors missing from :data:`DETECTION_THRESHOLDS` (the paper's YOLO threshold).
-DEFAULT_THRESHOLD = 0.75
 
 #: A *confident* detection, per detector (optionally per ``"detector:class"``): the median confidence of the
 #: detector's positive calibration views (unoccluded, 0-40 deg off-axis, at the case's four distances; pooled like

@@ -20,7 +20,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..kernels import fastpath
+from ..kernels import edges, fastpath
 
 
 def backend_for(ctx) -> "TorchBackend":
@@ -144,7 +144,7 @@ class CompiledBackend(TorchBackend):
         c = self.ctx
         E, n = qa.shape[0], c.settings.edges.n_interp
         if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: one call
-            return fastpath.query_knots(c.motion, c.constraint, qa, qb, n, track, c.settings.projection, c.lo, c.hi,
+            return edges.query_knots(c.motion, c.constraint, qa, qb, n, track, c.settings.projection, c.lo, c.hi,
                                         c.track_cols, c.settings.edges.track_iters)
         if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # bulk: compiled, in row chunks
             knots, interior_idx = fastpath.edge_knot_seeds(c.motion, qa, qb, n)
@@ -191,4 +191,4 @@ class CompiledBackend(TorchBackend):
         if not (small and (fastpath.enabled() if isinstance(q, np.ndarray) else fastpath.applies(q))):
             return None
         args = scorer_args(self.ctx.dtype if isinstance(q, np.ndarray) else q.dtype)
-        return None if args is None else fastpath.neural_config_scores(self.ctx.robot, args, q)
+        return None if args is None else edges.neural_config_scores(self.ctx.robot, args, q)

@@ -15,17 +15,9 @@ Only the work an update makes necessary is done:
 * **goal moved / several goals**: start and goals are reconnected and the goal with the best composite (Eq. 2) cost
   wins.
 
-Triggers (:meth:`Replanner.needs_replan`): the remaining path collides with the latest obstacle poses; the predicted
-mean perception score along the remaining path is below ``score_min`` or has dropped by more than ``score_drop``
-since the plan; the target or an obstacle moved beyond its threshold; the goal changed. Every returned path is
-checked densely against the latest obstacle poses before it is handed out.
-
-A replan that only the view triggered (:data:`VIEW_TRIGGERS`) replaces the current plan only when it is better for
-the robot: it sees more along its path (``keep_score_margin``, normalised as c_p in Eq. 1) or it is shorter
-(``keep_length_margin`` of the remaining path's motion cost), or it leads to another goal (which the goal hysteresis
-allowed). Otherwise the robot keeps driving its trajectory (:attr:`PlanResult.kept`): a new trajectory starts from
-rest, and a person turning away every few seconds would otherwise restart the robot every second towards views
-that are gone before it gets there.
+When to replan, what a plan is predicted to see and whether a new plan replaces the current one:
+:mod:`.replan_judging`. Settings: :mod:`.replan_settings`. Every returned path is checked densely against the latest
+obstacle poses before it is handed out.
 """
 
 from __future__ import annotations
@@ -36,8 +28,6 @@ import logging
 import math
 import time
 from collections import deque
-from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
@@ -45,105 +35,17 @@ import torch
 
 from ..errors import InputError, PsprmError
 from ..kernels import fastpath
-from ..prediction import PredictionSettings, TargetPredictor, quat_yaw
-from ..yamlio import Fields, dataclass_kwargs, load_yaml
-from .execution import commit_time, progress_time, splice
+from ..prediction import TargetPredictor
+from .execution import commit_time, splice
 from .psprm import PSPRM, PlanResult
+from .replan_judging import PlanJudging
+from .replan_settings import ReplanSettings
 from .results import Failure
-from .settings import field_specs, setting
 
 log = logging.getLogger(__name__)
 
 
-HEURISTICS = ("exact", "hop", "planner")
-#: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
-VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
 HISTORY = 1000  # replans kept in Replanner.history (a long-running node must not keep them all)
-
-
-def _wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
-@dataclass(frozen=True)
-class ReplanSettings:
-    """Replanning triggers and repair (``config/planners/replan.yaml``). Each field carries its metadata
-    (:func:`~.settings.setting`: description, range or choices; ``live``: a running server changes it through its
-    parameter of the field's name), listed by :meth:`specs`."""
-
-    target_move_m: float = setting(0.05, "target translation that counts as a move (m; re-score, replan)", live=True)
-    target_turn_rad: float = setting(0.15, "target rotation that counts as a move (rad)", live=True)
-    obstacle_move_m: float = setting(0.03, "obstacle translation that counts as a move (m; re-check, replan)",
-                                     live=True)
-    obstacle_turn_rad: float = setting(0.1, "obstacle rotation that counts as a move (rad)", live=True)
-    focus_move_m: float = setting(0.25, "the visibility focus follows a target that moved further than this (m)")
-    replan_on_move: bool = setting(False, "a target/obstacle move alone triggers a replan (else it triggers the "
-                                          "score and collision checks, and those decide)", live=True)
-    score_min: float = setting(0.1, "replan when the predicted normalised score along the remaining path falls below "
-                                    "this (and, for a plan made below it, whenever the target moved)", live=True)
-    score_drop: float = setting(0.15, "... or drops by more than this since the plan (scores normalised as in "
-                                      "Eq. 1)", live=True)
-    goal_switch_margin: float = setting(0.2, "goal hysteresis: switch to another goal only when it is cheaper by "
-                                             "this fraction of the current plan's cost", live=True)
-    final_approach_m: float = setting(1.0, "no score-triggered replan within this base path length of the goal (m); "
-                                           "a collision or a new goal still replans", live=True)
-    goal_commit_s: float = setting(10.0, "keep a chosen goal this long (s) unless no path reaches it (0: off)",
-                                   live=True)
-    goal_commit_growth: float = setting(2.0, "each goal switch multiplies the next commitment by this (1: constant); "
-                                             "a new goal set starts again at goal_commit_s", range=(1.0, None),
-                                        live=True)
-    keep_unless_better: bool = setting(True, "a replan the view alone triggered replaces the trajectory only when it "
-                                             "sees more or is shorter (else the robot keeps driving it)", live=True)
-    keep_score_margin: float = setting(0.05, "normalised mean score along the path a new plan must add to replace "
-                                             "the current", live=True)
-    keep_length_margin: float = setting(0.1, "fraction of the remaining path's motion cost a new plan must save to "
-                                             "replace the current", live=True)
-    min_interval_s: float = setting(1.0, "at most one score/move-triggered replan per interval (s)", live=True)
-    score_samples: int = setting(200, "configurations of the remaining path scored for the score trigger",
-                                 range=(1, None))
-    repair_rounds: int = setting(2, "roadmap repair attempts when no goal is reachable")
-    repair_nodes: int = setting(150, "nodes sampled per repair round")
-    repair_radius_m: float = setting(1.5, "repair nodes around the moved obstacles and the start within this (m)")
-    repair_budget_nodes: int = setting(1500, "at most this many nodes added by repair over the replanner's life")
-    heuristic: str = setting("exact", "A* heuristic of the replans: exact (cost-to-go from one compiled Dijkstra over "
-                                      "the current weights) | hop (Eq. 3) | planner (the planner's query.heuristic)",
-                             choices=HEURISTICS)
-    smooth_timing: bool = setting(True, "replanned trajectories pass the knots of a base phase without stopping "
-                                        "(about a third shorter to execute, about +25 ms per replan)")
-    shortcut: bool = setting(False, "perception-preserving shortcuts of replanned paths (query.shortcut; tens of ms "
-                                    "per replan)")
-    route_selection: bool = setting(False, "the planner's route selection (query.route_searches) in replans (each "
-                                           "extra search adds a search's time)")
-    commit: bool = setting(True, "a robot in motion replans from its committed state: the trajectory under way is "
-                                 "kept to its first rest instant after planning and delivery, the new plan is spliced "
-                                 "on there", live=True)
-    commit_horizon_s: float = setting(0.3, "planning and delivery time when the caller gives none (s)")
-    predict_lead_s: float = setting(1.5, "the roadmap is scored against the target pose extrapolated this far ahead "
-                                         "(s)")
-    score_bins: int = setting(4, "a path's predicted score: its duration split into this many stretches, each scored "
-                                 "against the targets' predicted poses at its middle", range=(1, None))
-    predict_samples: int = setting(48, "... at this many configurations of the path, evenly in time",
-                                   range=(1, None))
-    predicted_routes: bool = setting(False, "a replan also searches the roadmap scored against each other heading of "
-                                           "the targets' predicted mixture and keeps the route of the best predicted "
-                                           "objective (a re-scoring and a search per heading)", live=True)
-    predicted_route_turn_rad: float = setting(0.5, "... the headings that differ by more than this (rad) from the "
-                                                   "extrapolated one and from each other", range=(0.0, None),
-                                              live=True)
-    prediction: PredictionSettings = field(default_factory=PredictionSettings)
-
-    def __post_init__(self):
-        for spec in self.specs():
-            spec.check(getattr(self, spec.name), "replan settings")
-
-    @staticmethod
-    def specs() -> tuple:
-        """Every field but ``prediction`` as a :class:`~.settings.SettingSpec` (named by the field's name)."""
-        return field_specs(ReplanSettings)
-
-    @classmethod
-    def from_yaml(cls, path: str | Path) -> "ReplanSettings":
-        return cls(**dataclass_kwargs(cls, Fields(load_yaml(path), str(path))))
 
 
 def _rotation_angle(qa: np.ndarray, qb: np.ndarray) -> float:
@@ -175,7 +77,7 @@ def _snapshot(value):
     return copy.copy(value) if isinstance(value, (set, dict, list, np.ndarray)) else value
 
 
-class Replanner:
+class Replanner(PlanJudging):
     """Keeps a PS-PRM plan valid while the world changes.
 
     Parameters
@@ -361,205 +263,6 @@ class Replanner:
             return None
         return self.result.dense[self._progress:]
 
-    def remaining_path_collides(self) -> bool:
-        """The remaining path collides with the obstacle poses the planner holds (not with their padding). Cached per
-        (plan, progress, planner scene): an update and the trigger check that follows it in the same cycle pay for one
-        check."""
-        rem = self.remaining()
-        if rem is None or len(rem) == 0:
-            return False
-        c = self._collides_cache
-        if c is not None and c[0] is self.result and c[1] == self._progress and c[2] is self.planner.scene:
-            return c[3]
-        # the obstacles as they are (a path that starts inside the collision padding, moving out of it, is sound)
-        hit = bool(self.planner.checker.check_unpadded(torch.as_tensor(rem, dtype=torch.float32)).any())
-        self._collides_cache = (self.result, self._progress, self.planner.scene, hit)
-        return hit
-
-    def path_score(self, normalized: bool = False) -> float:
-        """Predicted mean perception score along the remaining path (``normalized``: divided by the roadmap's
-        99th-percentile node score and clipped to [0, 1], as c_p in Eq. 1), each stretch of it judged against the
-        targets' poses predicted for the time the robot passes there (:meth:`predicted_score`). Cached per (plan,
-        progress, time along it, planner scene): the trigger evaluation and the keep decision of the replan that
-        follows it in the same cycle score the path once."""
-        rem = self.remaining()
-        if rem is None or len(rem) == 0:
-            return float("nan")
-        self._sync_scene()
-        key = (self.result, self._progress, self.planner.scene, normalized, self._t_along)
-        c = self._score_cache
-        if c is not None and all(a is b for a, b in zip(c[0][:3], key[:3])) and c[0][3:] == key[3:]:
-            return c[1]
-        traj = self.result.trajectory
-        if traj is not None:
-            out = self.predicted_score(traj, self._time_along(), normalized=normalized)
-        else:
-            step = max(1, len(rem) // max(1, self.settings.score_samples))
-            sc = self.planner.score_configs(torch.as_tensor(rem[::step], dtype=torch.float32))
-            out = float((self.planner.normalized_scores(sc) if normalized else sc).mean())
-        self._score_cache = (key, out)
-        return out
-
-    def _time_along(self) -> float:
-        """The robot's time along the current trajectory: the caller's (:meth:`set_robot_state`), else estimated
-        from its progress along the dense path."""
-        traj = self.result.trajectory
-        if self._t_along is not None:
-            return min(self._t_along, float(traj.duration))
-        c = self._along_cache
-        if c is not None and c[0] is self.result and c[1] == self._progress:
-            return c[2]
-        n = len(self.result.dense) if self.result.dense is not None else 0
-        guess = float(traj.duration) * (self._progress / max(1, n - 1))
-        t = guess if self.q is None else progress_time(traj, self.q, guess, window_s=float(traj.duration),
-                                                       scale=self.robot.velocity,
-                                                       angle_cols=[2] if self.robot.mobile else [])
-        self._along_cache = (self.result, self._progress, t)
-        return t
-
-    def predicted_score(self, traj, t0: float = 0.0, lead_s: float = 0.0, normalized: bool = True) -> float:
-        """Time-integrated predicted perception of ``traj`` from its time ``t0`` to its end: the mean score of
-        configurations every 50 ms (at most ``predict_samples``, evenly in time), each stretch of ``score_bins`` scored against the
-        targets' predicted pose mixture (:meth:`~psprm_core.prediction.TargetPredictor.mixture`) at the time the robot
-        will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp). Without prediction, the
-        targets' latest poses."""
-        T = float(traj.duration)
-        t0 = min(max(0.0, float(t0)), T)
-        n = int(max(2, min(self.settings.predict_samples, (T - t0) / 0.05 + 1)))
-        ts = np.linspace(t0, T, n)
-        Q = traj.evaluate(ts)[0]
-        now = self._stamp if self._stamp is not None else 0.0
-        sc = self._score_timed(Q, now + lead_s + (ts - t0))
-        return float((self.planner.normalized_scores(sc) if normalized else sc).mean())
-
-    def _predicting(self) -> bool:
-        return self.settings.prediction.enabled and self._stamp is not None and \
-            any(pr.ready for pr in self.predictors.values())
-
-    def _score_timed(self, Q: np.ndarray, stamps: np.ndarray) -> torch.Tensor:
-        """Scores (K,) of configurations ``Q`` (K, dof), each against the targets' predicted mixture at its stamp
-        (expected score over the mixture), the mixture taken at the middle of each of ``score_bins`` stretches of
-        consecutive configurations. Each distinct set of predicted poses is scored once, on the configurations of
-        the stretches that use it (a standing person's history components are the same in every stretch), in
-        batches the compiled scorer takes."""
-        p = self.planner
-        self._sync_scene()
-        Qt = torch.as_tensor(np.asarray(Q), dtype=torch.float32)
-        if not self._predicting():
-            return p.score_configs(Qt).double()
-        groups: dict = {}  # pose key -> [scene, [(rows, weight), ...]]
-        for idx in np.array_split(np.arange(len(Q)), min(self.settings.score_bins, len(Q))):
-            if len(idx):
-                for w, key, scene in self._mixture_scenes(float(np.mean(stamps[idx]))):
-                    groups.setdefault(key, [scene, []])[1].append((idx, w))
-        out = torch.zeros(len(Q), dtype=torch.float64)
-        restore = p.scene
-        try:
-            for scene, parts in groups.values():
-                rows = np.concatenate([idx for idx, _ in parts])
-                p.set_scorer_scene(scene)
-                sc = torch.cat([p.score_configs(Qt[rows[i:i + fastpath.MLP_MAX_ROWS]]).double()
-                                for i in range(0, len(rows), fastpath.MLP_MAX_ROWS)])
-                k = 0
-                for idx, w in parts:
-                    out[idx] += w * sc[k:k + len(idx)]
-                    k += len(idx)
-        finally:
-            p.set_scene(restore)  # the scorer back on the planning scene (the checker never left it)
-        return out
-
-    def _mixture_scenes(self, t: float) -> list:
-        """[(weight, key, scene)]: the scene with every predicted target at its k-th mixture component at time ``t``
-        (the components of all targets taken together by index; the weights of the target with the most); ``key``
-        identifies the poses (3 cm, 0.02 rad)."""
-        mixes = {n: pr.mixture(t) for n, pr in self.predictors.items() if pr.ready}
-        if not mixes:
-            return [(1.0, (), self.scene)]
-        k_max = max(len(m) for m in mixes.values())
-        weights = next(m for m in mixes.values() if len(m) == k_max)
-        out = []
-        for k in range(k_max):
-            scene, key = self.scene, []
-            for name, m in mixes.items():
-                _, pos, quat = m[min(k, len(m) - 1)]
-                scene = scene.with_target_pose(name, pos, quat)
-                key.append((name, *np.round(np.asarray(pos) / 0.03).astype(int).tolist(),
-                            int(round(quat_yaw(quat) / 0.02))))
-            out.append((weights[k][0], tuple(key), scene))
-        return out
-
-    def _remaining_base_length(self) -> float:
-        """Length (m) of the base's path still ahead (inf for a robot without a mobile base)."""
-        rem = self.remaining()
-        if rem is None or not self.robot.mobile:
-            return math.inf
-        return float(np.linalg.norm(np.diff(rem[:, :2], axis=0), axis=1).sum()) if len(rem) > 1 else 0.0
-
-    def needs_replan(self, now: Optional[float] = None) -> list:
-        """Reasons to replan now ([] = keep the current plan). ``now``: the caller's clock (default: monotonic);
-        apart from a collision or a goal change, at most one replan per ``min_interval_s``."""
-        if self.goals is None:
-            return []
-        now = time.monotonic() if now is None else now
-        since = now - self._last_plan_time
-        if self._last_failed and since < self.settings.min_interval_s:
-            return []  # a failed replan is retried at most once per interval
-        if self.result is None:
-            return ["no_plan"]
-        reasons = []
-        if "collision" in self._pending or self.remaining_path_collides():
-            reasons.append("collision")
-        if "goal_changed" in self._pending:
-            reasons.append("goal_changed")
-        if not reasons and since < self.settings.min_interval_s:
-            return []
-        if self.settings.replan_on_move:
-            reasons += [r for r in ("target_moved", "obstacle_moved") if r in self._pending]
-        if not reasons and (self._pending & {"target_moved", "obstacle_moved"} or self._score_stale) \
-                and self._remaining_base_length() >= self.settings.final_approach_m:
-            # (scored only when it decides: with a reason already, the replan happens anyway)
-            sc = self.path_score(normalized=True)
-            if sc < self.settings.score_min <= self._plan_score:  # fell below
-                reasons.append("score_low")
-            elif self._plan_score - sc > self.settings.score_drop:
-                reasons.append("score_drop")
-            elif (self._plan_score < self.settings.score_min and sc < self.settings.score_min
-                  and "target_moved" in self._pending):
-                # a plan made while nothing could be seen: look again once the target has moved (another route may
-                # see it now), at most once per min_interval_s
-                reasons.append("score_low_retry")
-        return reasons
-
-    # ---- planning ----------------------------------------------------------------------------------------------------
-    def planning_scene(self):
-        """The scene the roadmap is scored with: the latest poses, every target that is not a collision box moved to
-        its pose extrapolated ``predict_lead_s`` ahead (the mixture's first component; with prediction off, the
-        latest pose). Collision boxes always stay where they were measured."""
-        key = (self.scene, self._stamp)
-        if self._planning_scene is not None and self._planning_scene[0][0] is key[0] and \
-                self._planning_scene[0][1] == key[1]:
-            return self._planning_scene[1]
-        scene = self.scene
-        if self._predicting():
-            t = self._stamp + self.settings.predict_lead_s
-            for name, pr in self.predictors.items():
-                if pr.ready and not scene.target(name).obstacle:
-                    _, pos, quat = pr.mixture(t)[0]
-                    scene = scene.with_target_pose(name, pos, quat)
-        self._planning_scene = (key, scene)
-        return scene
-
-    def _sync_scene(self) -> None:
-        """Push the planning scene (:meth:`planning_scene`) to the planner (scorer occluders, collision boxes,
-        focus)."""
-        p = self.planner
-        scene = self.planning_scene()
-        if p.scene is not scene:
-            p.set_scene(scene)
-            focus = np.mean([self.scene.target(t).center for t in self.targets], axis=0)
-            if np.linalg.norm(focus - p.constraint.target.numpy()) > self.settings.focus_move_m:
-                p.set_focus(focus)
-
     def replan(self, now: Optional[float] = None, triggers: Sequence[str] = (),
                horizon_s: Optional[float] = None) -> PlanResult:
         """Plan to the best goal under the latest poses (never a colliding path).
@@ -573,7 +276,7 @@ class Replanner:
         it is.
 
         ``now``: the caller's clock for the replanning interval (default: monotonic). ``triggers``: why the caller
-        replans (the reasons of :meth:`needs_replan`); when they are all :data:`VIEW_TRIGGERS` and
+        replans (the reasons of :meth:`needs_replan`); when they are all :data:`~.replan_judging.VIEW_TRIGGERS` and
         ``keep_unless_better`` is on, a new plan no better than the current one is not adopted (the result has
         ``kept`` set, no trajectory, and the new plan as ``declined``; the module's docstring). Runs with torch's
         intra-op parallelism off, like a query (:func:`~psprm_core.kernels.fastpath.one_thread`): its re-scoring batches
@@ -758,149 +461,6 @@ class Replanner:
         self._adopted_over = None
         self.withdrawn += 1
         return True
-
-    def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Optional[tuple]:
-        """(why, the current plan's predicted score) when the new plan ``res`` (from the committed state, or from
-        the robot's state) should not replace the current one (the module's docstring), else None. Both are judged
-        from the same instant on, against the targets' predicted poses (:meth:`predicted_score`): the current plan
-        from the commit instant (or the robot's progress), the new one from its start."""
-        s = self.settings
-        if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) \
-                or "goal_changed" in self._pending:
-            return None
-        cur = self.result
-        if cur is None or cur.dense is None or res.dense is None or self._goal_cfg is None or res.trajectory is None:
-            return None
-        if not 0 <= res.goal_index < len(self.goals):
-            return None
-        if self.remaining_path_collides():
-            return None
-        if commit is not None:
-            t_c, lead = commit["t_commit"], commit["t_commit"] - commit["t_from"]
-            if t_c >= float(cur.trajectory.duration) - 1e-6:
-                return None
-            rem = cur.trajectory.evaluate(np.linspace(t_c, float(cur.trajectory.duration), 200))[0]
-        elif cur.trajectory is not None:
-            t_c, lead = self._time_along(), 0.0
-            rem = self.remaining()
-        else:
-            return None
-        if rem is None or len(rem) < 2:
-            return None
-        current = self.predicted_score(cur.trajectory, t_c)
-        plan_score = self.predicted_score(res.trajectory, 0.0, lead_s=lead)
-        motion = self.planner.motion
-        rem_len, new_len = (float(motion.distance(q[:-1], q[1:]).sum()) if len(q) > 1 else 0.0
-                            for q in (torch.as_tensor(np.asarray(d), dtype=torch.float64) for d in (rem, res.dense)))
-        self._new_plan_score = plan_score
-        if plan_score > current + s.keep_score_margin or new_len < (1.0 - s.keep_length_margin) * rem_len:
-            return None
-        return (f"kept the current plan: the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} against "
-                f"the remaining path's {current:.3f} along {rem_len:.2f}", current)
-
-    def _predicted_routes(self, res: PlanResult, start: np.ndarray, commit: Optional[dict]) -> PlanResult:
-        """The route of the best predicted objective among ``res`` (the search over the roadmap scored against the
-        targets' extrapolated poses) and one search per other heading of their predicted mixture
-        (:meth:`_mixture_scenes` halfway along ``res``): each heading that differs by more than
-        ``predicted_route_turn_rad`` from the extrapolated one and from the headings searched before re-scores the
-        roadmap, and the goals are searched again from ``start``. A person turned away while the plan is made is
-        predicted to look back where they looked before; a route that sees those views is a candidate beside the one
-        that sees the extrapolated view (not for a collision: that replan must be quick). A route of another heading
-        must be predicted to see more than the extrapolated one (P, the perception predicted along the route's
-        timing, :meth:`predicted_score`, by ``keep_score_margin``); among those and the extrapolated one the
-        motion-weighted objective over the whole route (:func:`~.objectives.motion_weighted`),
-        L ((1 - alpha) + alpha (1 - P)), decides. The roadmap's scores stay on the last heading until the next replan
-        re-scores every node and edge."""
-        s = self.settings
-        if not (s.predicted_routes and self._predicting()):
-            return res
-        lead = 0.0 if commit is None else commit["t_commit"] - commit["t_from"]
-        t_mid = self._stamp + lead + 0.5 * float(res.trajectory.duration)
-        base = self.planning_scene()
-        heads = [self._target_yaws(base)]
-        alts = []
-        for _, _, scene in self._mixture_scenes(t_mid):
-            yaws = self._target_yaws(scene)
-            if all(max(abs(_wrap_angle(yaws[n] - h[n])) for n in yaws) > s.predicted_route_turn_rad for h in heads):
-                heads.append(yaws)
-                alts.append(scene)
-        if not alts:
-            return res
-        p = self.planner
-        judged = [(self._route_objective(res, lead), res)]
-        try:
-            for scene in alts:
-                p.set_scorer_scene(scene)
-                p.rescore()
-                cand = self._plan_goals(self._last_plan_time, start)
-                if cand.success and cand.trajectory is not None:
-                    judged.append((self._route_objective(cand, lead), cand))
-        finally:
-            p.set_scene(base)
-            self._rescore_all = True
-        # another heading's route replaces the extrapolated one only when it is predicted to see more (by the keep
-        # margin): the mixture blurs every route's perception, and judged by the objective alone the shortest would win
-        seen = judged[0][0][1] + s.keep_score_margin
-        best = min((i for i in range(len(judged)) if i == 0 or judged[i][0][1] > seen), key=lambda i: judged[i][0][0])
-        names = ["extrapolated"] + [f"predicted heading {i}" for i in range(1, len(judged))]
-        out = judged[best][1]
-        out.route = names[best]
-        out.route_candidates = {n: (j[1], j[2]) for n, (j, _) in zip(names, judged)}
-        return out
-
-    def _target_yaws(self, scene) -> dict:
-        """Heading (rad) of every predicted target of ``scene``."""
-        return {n: quat_yaw(scene.target(n).quat) for n, pr in self.predictors.items() if pr.ready}
-
-    def _route_objective(self, res: PlanResult, lead: float) -> tuple:
-        """(L ((1 - alpha) + alpha (1 - P)), P, L) of a planned route: P its predicted perception from the time its
-        start is reached (``lead`` s from now), L its motion length (:meth:`_predicted_routes`)."""
-        P = self.predicted_score(res.trajectory, 0.0, lead_s=lead)
-        d = torch.as_tensor(np.asarray(res.dense), dtype=torch.float64)
-        L = float(self.planner.motion.distance(d[:-1], d[1:]).sum()) if len(d) > 1 else 0.0
-        a = float(self.planner.settings.scoring.alpha)
-        return L * ((1.0 - a) + a * (1.0 - P)), P, L
-
-    def _committed_goal(self, now: float) -> Optional[np.ndarray]:
-        """Mask (G,) of the current plan's goal while it is committed (``goal_commit_s`` times
-        ``goal_commit_growth`` to the power of the switches so far), else None."""
-        window = self.settings.goal_commit_s * self.settings.goal_commit_growth ** self._switches
-        if (self.settings.goal_commit_s <= 0 or self.result is None or self.goals is None or len(self.goals) < 2
-                or now - self._goal_since >= window):
-            return None
-        return self._current_goal_mask()
-
-    def _current_goal_mask(self) -> Optional[np.ndarray]:
-        """Mask (G,) of the candidate goals equal to the current plan's goal; None if none is."""
-        cur = self._goal_cfg
-        if cur is None or self.goals is None or cur.shape != self.goals.shape[1:]:
-            return None
-        same = np.abs(self.goals - cur).max(1) < 1e-6
-        return same if same.any() else None
-
-    def _plan_goals(self, now: float, start: np.ndarray) -> PlanResult:
-        """One search from ``start`` over the candidate goals: only the committed goal while its commitment lasts
-        (all of them if no path reaches it), otherwise all with the switching margin (:meth:`_goal_costs`)."""
-        p = self.planner
-        keep = self._committed_goal(now)
-        if keep is not None:
-            res = p.plan(start, self.goals[keep], options=self.plan_options)
-            if res.success:
-                res.goal_index = int(np.nonzero(keep)[0][res.goal_index]) if res.goal_index >= 0 else -1
-                return res
-        return p.plan(start, self.goals, goal_costs=self._goal_costs(), options=self.plan_options)
-
-    def _goal_costs(self) -> Optional[np.ndarray]:
-        """Goal hysteresis as terminal costs (one search): with several candidate goals, every goal but the current
-        plan's costs ``goal_switch_margin`` x the current plan's cost (Eq. 2 units) extra, so the robot switches goals
-        only when another one is cheaper by more than that margin (a person turning back and forth must not make it
-        oscillate between goals). None when there is nothing to keep."""
-        if self.result is None or self.goals is None or len(self.goals) < 2 or self.settings.goal_switch_margin <= 0:
-            return None
-        same = self._current_goal_mask()
-        if same is None or not np.isfinite(self.result.cost):
-            return None
-        return np.where(same, 0.0, self.settings.goal_switch_margin * max(self.result.cost, 0.0))
 
     def step(self) -> Optional[PlanResult]:
         """Replan when a trigger fires; returns the replan's result (``kept`` when the current plan stays) or None

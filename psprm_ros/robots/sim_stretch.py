@@ -89,7 +89,7 @@ class Goal:
 
 
 class StretchDriver:
-    """The driver's rules over a :class:`psprm_ros.sim_robot.SimModel` (its robot, joint positions ``q``, base
+    """The driver's rules over a :class:`psprm_ros.robots.sim_model.SimModel` (its robot, joint positions ``q``, base
     velocity and twist input)."""
 
     def __init__(self, sim, mode: str = "position", wheel_separation_m: float = 0.3153):

@@ -25,7 +25,7 @@ from typing import Callable, Optional, Sequence
 
 import numpy as np
 
-from .. import core
+from .. import core, planner_setup
 from ..heap import release_free_heap
 from .diagnostics import loop_diagnostics
 from .executing import Executing
@@ -47,7 +47,7 @@ class PlanningLoop:
     here; :meth:`close` ends them.
     """
 
-    def __init__(self, scene, robot, targets: Sequence[str], spec: core.PlannerSpec, outputs: Outputs, *,
+    def __init__(self, scene, robot, targets: Sequence[str], spec: planner_setup.PlannerSpec, outputs: Outputs, *,
                  obstacles: Sequence[str] = (), q0: Optional[np.ndarray] = None,
                  goals: Optional[np.ndarray] = None, params: Optional[dict] = None,
                  clock: Callable[[], float] = time.time):
@@ -168,7 +168,8 @@ class PlanningLoop:
         if name in live_replan() and rp is not None:
             dataclasses.replace(rp.settings, **{name: value})  # ReplanSettings refuses bad values
         if name in self.spec.settings and planner is not None:
-            core.resolve_live_settings(planner.settings, {name: value}, self.spec.variant).validate("ROS parameter")
+            planner_setup.resolve_live_settings(planner.settings, {name: value},
+                                                self.spec.variant).validate("ROS parameter")
         self.inputs.live(name, value)
         self.inputs.wake.set()
 

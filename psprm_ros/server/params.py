@@ -1,5 +1,5 @@
 """The planning loop's parameters, its constants and the live replan settings a running server changes (the planner's
-settings are declared from their specs by the roadmap server, :func:`psprm_ros.core.server_setting_specs`)."""
+settings are declared from their specs by the roadmap server, :func:`psprm_ros.planner_setup.server_setting_specs`)."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from psprm_core.errors import PsprmError
 
-from .. import core
+from .. import planner_setup
 from .checks import FinalCheck, StopGuard, remaining
 from .params import MAX_STALE_STARTS, SETTLED_M, SPLICE_DELIVERY_S, finite_or_none as _f, live_replan
 
@@ -26,7 +26,7 @@ class PlanningWorker:
     measured motion, what the robot executes, the views, the side thread, the counters, the live parameters and the
     outputs) are used, never replaced; ``is_active`` tells whether the node is active."""
 
-    def __init__(self, loop, scene, targets: Sequence[str], spec: core.PlannerSpec, obstacles: Sequence[str],
+    def __init__(self, loop, scene, targets: Sequence[str], spec: planner_setup.PlannerSpec, obstacles: Sequence[str],
                  q0: np.ndarray, goals: Optional[np.ndarray], is_active: Callable[[], bool]):
         self.scene, self.spec, self.targets, self.obstacles = scene, spec, list(targets), list(obstacles)
         self.robot, self.p, self.outputs, self.clock = loop.robot, loop.p, loop.outputs, loop.clock
@@ -100,7 +100,7 @@ class PlanningWorker:
         if planner_changes and "scoring.alpha" in self.spec.settings and self.p.get("scoring.alpha") is None:
             planner_changes["scoring.alpha"] = None  # unset: the variant's default for the objective now in use
         if planner_changes and self.planner is not None:
-            self.planner.update_settings(core.resolve_live_settings(self.planner.settings, planner_changes,
+            self.planner.update_settings(planner_setup.resolve_live_settings(self.planner.settings, planner_changes,
                                                                     self.spec.variant))
         if live:
             self.outputs.status(f"parameters applied: {', '.join(f'{k}={v}' for k, v in sorted(live.items()))}")
@@ -109,17 +109,17 @@ class PlanningWorker:
         scene = self.safety_scene
         # the planner settings as their parameters have them now (live changes included)
         settings = {k: self.p.get(k, v) for k, v in self.spec.settings.items()}
-        spec = core.PlannerSpec(**{**vars(self.spec), "settings": settings,
+        spec = planner_setup.PlannerSpec(**{**vars(self.spec), "settings": settings,
                                    **({} if initial else {"roadmap_file": "none"})})
-        planner = core.make_planner_for(scene, self.robot, self.targets, spec)
+        planner = planner_setup.make_planner_for(scene, self.robot, self.targets, spec)
         self.outputs.status(f"{'building' if initial else 'rebuilding'} the {spec.variant} roadmap "
                             f"({planner.settings.roadmap.n_nodes} nodes) for scene '{scene.name}'")
         self.outputs.state("building" if initial else "rebuilding")
-        info = core.build_or_load(planner, scene, spec, template=self.q, force_build=not initial)
+        info = planner_setup.build_or_load(planner, scene, spec, template=self.q, force_build=not initial)
         if info["source"] == "failed":
             raise RuntimeError(info.get("reason", "roadmap build failed"))
         self.planner, self.build_info = planner, info
-        self.rp = core.make_replanner(planner, self.spec.replan_settings)
+        self.rp = planner_setup.make_replanner(planner, self.spec.replan_settings)
         # the live replan settings as their parameters have them (the file's values until changed)
         self.rp.update_settings(**{k: self.p[k] for k in live_replan() if k in self.p})
         # re-apply the scene state the new replanner has not seen (targets/obstacles moved since the YAML)

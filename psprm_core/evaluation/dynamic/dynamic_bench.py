@@ -164,7 +164,8 @@ def run_episode_modes(scenario, episode: int, cfg: dict, cache=None) -> dict:
     from ...executors import WorkerCache
     from ...planning.factory import make_planner
     from ...planning.replanner import ReplanSettings
-    from ..scenarios import World, draw_variation
+    from ..scenario_world import World
+    from ..scenarios import draw_variation
     from ..simulation import run_episode
     from .episodes import FrameJudge
 
@@ -302,7 +303,7 @@ def run_dynbench(cfg: DynBenchConfig, progress: bool = True, on_start=None) -> d
     from ...executors import Executor, Task, one_torch_thread
     from ...paths import resolve_named
     from ...scene import load_scene
-    from ..scenarios import World
+    from ..scenario_world import World
 
     cfg.validate()
     scenarios = load_scenarios(cfg)

@@ -11,7 +11,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..scenarios import World, at_goal
+from ..scenario_world import World, at_goal
 
 
 def wrap_heading(q: np.ndarray, robot) -> np.ndarray:
@@ -32,7 +32,7 @@ def execute_fixed(traj, scenario, world: World, robot, t_end: Optional[float] = 
                   start: Optional[np.ndarray] = None) -> dict:
     """A trajectory executed unchanged from t = 0 on the control clock (``control_dt``) until it ends (or
     ``duration_s``): the record of a static plan or a hindsight route. Reached: its last configuration at one of
-    the goals valid at that time (:func:`~.scenarios.at_goal`) with the trajectory finished. Without a trajectory
+    the goals valid at that time (:func:`~..scenario_world.at_goal`) with the trajectory finished. Without a trajectory
     (no plan) the robot stays at ``start``."""
     dt = scenario.control_dt
     T = float(traj.duration) if traj is not None else 0.0

@@ -26,7 +26,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ...errors import PsprmError
-from ..scenarios import World, goal_configurations
+from ..scenario_world import World, goal_configurations
 from .episodes import FrameJudge, count_collisions, detection_metrics, execute_fixed, judge_record
 
 log = logging.getLogger(__name__)

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 import torch
 
-from ...kernels import fastpath
+from ...kernels import edges, fastpath
 from ..search.graph import Roadmap
 from ..search.graph_search import edge_perception
 from ..state import PlannerContext, large_batches
@@ -165,18 +165,18 @@ class Builder:
         c.checker.check(q)
         c.checker.check_detailed(q)
         c.checker.robot_aabb(q)  # the env_hits kernel of obstacle moves
-        args = fastpath.neural_args(c.scorer, c.dtype)
+        args = edges.neural_args(c.scorer, c.dtype)
         if score or args is not None:  # a neural scorer is the surrogate (one compiled call), not a rendered view
             self.scoring.score_configs(q)
         kn, ki = self.edges.edge_knots(q, qb)  # a query's connection edges (one compiled call)
         seeds = fastpath.edge_knot_seeds(c.motion, q, qb, c.settings.edges.n_interp)[0]
         self.edges.track_knots(seeds)  # step by step
         if args is not None:  # the lazy verification's compiled calls
-            fastpath.check_score_knots(c.motion, c.checker, c.robot, args, kn, ki, np.ones(2, bool),
+            edges.check_score_knots(c.motion, c.checker, c.robot, args, kn, ki, np.ones(2, bool),
                                        np.ones(2, bool), c.settings.edges.edge_resolution, 200)
             # a two-edge knot store of its own: edge 1's knots computed into it, both checked and scored
             one = np.ones(1, bool)
-            fastpath.verify_edges(c.motion, c.constraint, c.checker, args, kn.numpy().copy(),
+            edges.verify_edges(c.motion, c.constraint, c.checker, args, kn.numpy().copy(),
                                   ki.numpy().copy(), np.arange(2), np.array([False, True]),
                                   q.double().numpy()[1:], qb.double().numpy()[1:], one, c.settings.edges.n_interp, True,
                                   c.settings.projection, c.lo, c.hi, c.track_cols,

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 import torch
 
-from ...kernels import fastpath
+from ...kernels import edges
 from ..search.graph_search import edge_perception, edge_weight
 from ..settings import ScoringSettings
 from ..state import PlannerContext, QueryContext, ReadsQuerySettings
@@ -32,12 +32,12 @@ class Scoring(ReadsQuerySettings):
         self.edges = edges
 
     def neural_args(self, dtype: torch.dtype) -> Optional[tuple]:
-        """:func:`fastpath.neural_args` of the scorer, kept for the rest of a query (:meth:`~.query.Query.plan_once`
+        """:func:`edges.neural_args` of the scorer, kept for the rest of a query (:meth:`~.query.Query.plan_once`
         clears them: the scorer does not change during a query, but may between queries)."""
         if self.qc.scorer_args is None:
-            return fastpath.neural_args(self.ctx.scorer, dtype)
+            return edges.neural_args(self.ctx.scorer, dtype)
         if dtype not in self.qc.scorer_args:
-            self.qc.scorer_args[dtype] = fastpath.neural_args(self.ctx.scorer, dtype)
+            self.qc.scorer_args[dtype] = edges.neural_args(self.ctx.scorer, dtype)
         return self.qc.scorer_args[dtype]
 
     def query_scores(self, Q: np.ndarray) -> np.ndarray:

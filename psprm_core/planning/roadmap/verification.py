@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 import numpy as np
 import torch
 
-from ...kernels import fastpath
+from ...kernels import edges, fastpath
 from ..search.graph_search import EdgeCheck, edge_perception
 from ..state import NP_DTYPE, PlannerContext, QueryContext
 from .edges import SMALL_BATCH
@@ -79,7 +79,7 @@ class Verification:
     def verify_compiled(self, todo: np.ndarray) -> Optional[EdgeCheck]:
         """:meth:`verify_edges` of a search's few edges in one compiled call: the knots of the query's connection
         edges not computed yet, then the dense collision check, Eq. 1 camera poses and surrogate scores with occlusion
-        (:func:`~psprm_core.kernels.fastpath.verify_edges`), with the same results; None when it does not apply (another
+        (:func:`~psprm_core.kernels.edges.verify_edges`), with the same results; None when it does not apply (another
         scorer, a GPU, a large batch, the untracked fallback)."""
         g = self.rm.graph
         store = self.knots
@@ -110,7 +110,7 @@ class Verification:
         flip = g.edge_u[cid] != ua[rows]
         do_check, do_score = chk[todo] < 0.5, ver[todo] < 0.5
         c, s = self.ctx, self.ctx.settings
-        ok, cams, raw = fastpath.verify_edges(
+        ok, cams, raw = edges.verify_edges(
             c.motion, c.constraint, c.checker, args, store.data.numpy(), store.interior.numpy(), todo, compute,
             np.ascontiguousarray(qa[rows]), np.ascontiguousarray(qb[rows]), flip, s.edges.n_interp, True, s.projection,
             c.lo, c.hi, c.track_cols, s.edges.track_iters, do_check, do_score, s.edges.edge_resolution, 200)
