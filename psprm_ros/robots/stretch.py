@@ -20,7 +20,7 @@ phase changes and inside each phase at least ``min_interval_s`` apart, stretchin
 time (the path stays the same; the robot only takes longer over it). :func:`executed` gives the configurations the
 driver produces from those waypoints (cubic Hermite segments), which the adapter compares with the planned
 trajectory before it sends anything: what the driver executes must stay within the path tolerance of what was
-checked.
+checked (:func:`checked_goal`: a controller's goal and that check).
 
 No ROS import at module level.
 """
@@ -34,6 +34,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.tracking import CheckedPath
 
 BASE_JOINT = "position"  # the driver's multi-DOF base joint in trajectory mode
 DRIVER_MIN_INTERVAL_S = 0.8  # Stretch Body refuses waypoints this close (or closer) in time
@@ -291,8 +292,6 @@ def deviation_check(robot, goal: TrajectoryModeGoal, planning_names: Sequence[st
     ``goal`` (base starting at ``start_base``, sampled every ``step_s``), from every planned configuration within
     ``window_s`` of the same instant (``checked``: a :class:`psprm_core.tracking.CheckedPath` of the planned
     trajectory on the goal's clock, built here when not given)."""
-    from psprm_core.tracking import CheckedPath
-
     ts, planned = planned_on_goal_clock(goal, times, positions, step_s)
     if checked is None:
         checked = CheckedPath(robot, ts, planned)
@@ -301,3 +300,28 @@ def deviation_check(robot, goal: TrajectoryModeGoal, planning_names: Sequence[st
     X[:, :3] = B
     X[:, controller_columns(planning_names, ctrl_joints)] = J
     return float(checked.deviations(X, ts, window_s).max())
+
+
+def checked_goal(robot, ctrl, planning_names: Sequence[str], times, positions, velocities, measured: np.ndarray,
+                 base, window_s: float) -> tuple:
+    """The trajectory-mode goal of a planned trajectory (``times`` from 0) and its check: (goal, ts, planned, checked,
+    why). Its first waypoint is where the joints are (``measured``: the driver starts a joint only from where it
+    is); ``ts`` / ``planned`` the planned trajectory on the goal's clock and ``checked`` its
+    :class:`~psprm_core.tracking.CheckedPath` (for the path tolerance). ``why`` is the refusal: a goal the driver
+    cannot take, or waypoints that would take the robot more than ``base.max_goal_deviation_m`` (an adapter
+    :class:`~psprm_ros.robots.adapters.BaseConfig`) from the planned trajectory; "" when it may be sent."""
+    t, P = np.asarray(times, float), np.asarray(positions, float)
+    try:
+        goal = goal_for_controller(ctrl, planning_names, t, P, velocities, base.min_waypoint_interval_s)
+    except InputError as exc:
+        return None, None, None, None, str(exc)
+    goal.positions[0] = np.asarray(measured, float)[controller_columns(planning_names, ctrl.joints)]
+    # one CheckedPath of the planned trajectory on the goal's clock: for the goal's check and the path tolerance
+    ts, Pg = planned_on_goal_clock(goal, t, P)
+    checked = CheckedPath(robot, ts, Pg)
+    dev = deviation_check(robot, goal, planning_names, ctrl.joints, t, P, P[0, :3], step_s=0.1, window_s=window_s,
+                          checked=checked)
+    if dev > base.max_goal_deviation_m:
+        return goal, ts, Pg, checked, (f"the driver's waypoints would take the robot {dev:.3f} m from the planned "
+                                       f"trajectory (max_goal_deviation_m {base.max_goal_deviation_m:g})")
+    return goal, ts, Pg, checked, ""
