@@ -454,6 +454,37 @@ def test_a_robot_resting_at_the_end_of_its_trajectory_takes_the_next_goal(make_l
         th.join(2.0)
 
 
+def _plan_while_the_robot_moves(loop, rec, start: np.ndarray, end: np.ndarray, move_s: float, rest_s: float):
+    """Request a plan from ``start`` (the robot stopped there) while, during the replan, the robot moves to ``end``
+    over ``move_s`` and rests ``rest_s`` (states at 50 Hz, sent from inside the wrapped replan: fault injection of a
+    slow query). Returns (the first trajectory or stop after the request, its time; None if none came)."""
+    orig = loop.rp.replan
+    moved: list = []
+    n_move, n = max(1, int(round(move_s / 0.02))), int(round((move_s + rest_s) / 0.02)) + 1
+
+    def moving_while_planning(*a, **k):
+        res = orig(*a, **k)
+        if not moved:
+            moved.append(time.perf_counter())
+            for i in range(n):
+                loop.robot_state(start + min(i / n_move, 1.0) * (end - start))
+                time.sleep(0.02)
+        return res
+
+    loop.rp.replan = moving_while_planning
+    try:
+        t0 = time.perf_counter()
+        loop.robot_state(start)
+        loop.request("plan", 60.0)
+        ev = rec.wait(t0, ("trajectory", "stop"), 30.0)
+    finally:
+        loop.rp.replan = orig
+    assert moved, "precondition: a replan ran"
+    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
+    assert not rec.since(t0, ("stop",)), "the robot was stopped"
+    return ev
+
+
 def test_a_plan_from_a_state_the_robot_left_while_planning_is_replaced_by_one_from_its_newest_state(
         make_loop, world, world_models):
     """The robot is pushed 0.2 m along its heading while a plan from where it stood is being made (as a slow query
@@ -468,32 +499,9 @@ def test_a_plan_from_a_state_the_robot_left_while_planning_is_replaced_by_one_fr
     _first_trajectory(loop, rec, start, goals)
     ok, _ = loop.request("stop", 30.0)  # stopped at the start: the next plan starts from its state, not spliced
     assert ok
-    orig = loop.rp.replan
-    pushed: list = []
-
-    def pushed_while_planning(*a, **k):  # states at 50 Hz: pushed 0.2 m over 1 s, then at rest for 0.4 s
-        res = orig(*a, **k)
-        if not pushed:
-            pushed.append(time.perf_counter())
-            for i in range(71):
-                loop.robot_state(start + min(i / 50.0, 1.0) * (moved - start))
-                time.sleep(0.02)
-        return res
-
-    loop.rp.replan = pushed_while_planning
-    try:
-        t0 = time.perf_counter()
-        loop.robot_state(start)
-        loop.request("plan", 60.0)
-        ev = rec.wait(t0, ("trajectory", "stop"), 30.0)
-    finally:
-        loop.rp.replan = orig
-    assert pushed, "precondition: a replan ran"
-    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
-    s2 = ev[2]
-    d = float(np.hypot(*(s2.positions[0, :2] - moved[:2])))
+    ev = _plan_while_the_robot_moves(loop, rec, start, moved, 1.0, 0.4)  # pushed 0.2 m over 1 s, at rest 0.4 s
+    d = float(np.hypot(*(ev[2].positions[0, :2] - moved[:2])))
     assert d < 0.01, f"the trajectory handed to the robot starts {d:.3f} m from the robot's newest state"
-    assert not rec.since(t0, ("stop",)), "the robot was stopped"
 
 
 def test_a_plan_from_a_head_pan_the_robot_left_while_planning_is_replaced(make_loop, world, world_models):
@@ -510,31 +518,9 @@ def test_a_plan_from_a_head_pan_the_robot_left_while_planning_is_replaced(make_l
     _first_trajectory(loop, rec, start, goals)
     ok, _ = loop.request("stop", 30.0)  # stopped at the start: the next plan starts from its state, not spliced
     assert ok
-    orig = loop.rp.replan
-    turned_at: list = []
-
-    def turned_while_planning(*a, **k):  # states at 50 Hz: the head turns over 0.5 s, then rests for 0.3 s
-        res = orig(*a, **k)
-        if not turned_at:
-            turned_at.append(time.perf_counter())
-            for i in range(41):
-                loop.robot_state(start + min(i / 25.0, 1.0) * (turned - start))
-                time.sleep(0.02)
-        return res
-
-    loop.rp.replan = turned_while_planning
-    try:
-        t0 = time.perf_counter()
-        loop.robot_state(start)
-        loop.request("plan", 60.0)
-        ev = rec.wait(t0, ("trajectory", "stop"), 30.0)
-    finally:
-        loop.rp.replan = orig
-    assert turned_at, "precondition: a replan ran"
-    assert ev is not None and ev[1] == "trajectory", f"no trajectory: {rec.since(t0)}"
+    ev = _plan_while_the_robot_moves(loop, rec, start, turned, 0.5, 0.3)  # the head turns over 0.5 s, rests 0.3 s
     err = abs(float(ev[2].positions[0, j] - turned[j]))
     assert err < 0.25, f"the trajectory's head pan starts {err:.3f} rad from the robot's newest state"
-    assert not rec.since(t0, ("stop",)), "the robot was stopped"
 
 
 def test_the_stop_guard_stops_for_a_body_stepping_onto_a_robot_standing_off_its_trajectory(make_loop, world,
