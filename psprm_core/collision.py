@@ -28,6 +28,7 @@ import torch
 from .errors import InputError
 from .geometry import obb_overlap
 from .kernels import fastpath
+from .kernels.compute import Compute, Computing
 from .robot import RobotModel, load_acm
 
 log = logging.getLogger(__name__)
@@ -93,7 +94,7 @@ def point_box_sqdist(points: torch.Tensor, box_center: torch.Tensor, box_rot: to
     return (d * d).sum(-1)
 
 
-class CollisionChecker:
+class CollisionChecker(Computing):
     """Batched validity checker for one robot in one scene.
 
     Parameters
@@ -112,6 +113,9 @@ class CollisionChecker:
         The body poses of the torch path, in the format of :meth:`RobotModel.body_poses`: the robot model itself
         (default) or e.g. :class:`~psprm_core.robot.kinematics_pk.PKBodyKinematics`. The compiled small-batch CPU path
         (:mod:`~psprm_core.kernels.fastpath`) runs the robot model's own FK either way.
+    compute : Compute, optional
+        Which kernels serve its checks (default: the robot model's on the robot's device, else the device's
+        default; :mod:`~psprm_core.kernels.compute`).
     padding : float
         Clearance (m) kept from every obstacle box: the environment checks run against the boxes grown by this much
         on every face (:meth:`BoxTensors.padded`); :attr:`true_boxes` keeps the boxes as given, for
@@ -121,7 +125,7 @@ class CollisionChecker:
 
     def __init__(self, robot: RobotModel, boxes: Iterable = (), allowed_pairs: Optional[set] = None,
                  workspace: Optional[np.ndarray] = None, device="cpu", dtype=torch.float32, chunk: int = 16384,
-                 kinematics=None, padding: float = 0.0):
+                 kinematics=None, padding: float = 0.0, compute: Optional[Compute] = None):
         if not (np.isfinite(padding) and padding >= 0):
             raise InputError(f"collision padding must be a finite distance >= 0 m, got {padding}")
         self.padding = float(padding)
@@ -131,6 +135,8 @@ class CollisionChecker:
         self.device = torch.device(device)
         self.dtype = dtype
         self.chunk = chunk
+        self._compute = compute if compute is not None else (robot.compute if robot.compute.device == self.device
+                                                             else None)
         em = robot.elements
         t = lambda a: torch.as_tensor(np.asarray(a), device=self.device, dtype=dtype)  # noqa: E731
         ti = lambda a: torch.as_tensor(np.asarray(a, dtype=np.int64), device=self.device)  # noqa: E731

@@ -18,14 +18,17 @@ import torch
 
 from .geometry import wrap_angle
 from .kernels import fastpath
+from .kernels.compute import Compute, Computing
 from .robot import RobotModel
 
 
-class DiffDriveMotion:
-    """Metric, interpolation and motion validation for one robot (fixed-base robots interpolate linearly)."""
+class DiffDriveMotion(Computing):
+    """Metric, interpolation and motion validation for one robot (fixed-base robots interpolate linearly); its
+    batched methods follow ``compute`` (default: the robot model's)."""
 
-    def __init__(self, robot: RobotModel):
+    def __init__(self, robot: RobotModel, compute: Compute | None = None):
         self.robot = robot
+        self._compute = robot.compute if compute is None else compute
         self.mobile = robot.mobile
         self.w_rot = robot.config.base.rotation_weight
         self.continuous = torch.as_tensor(robot.continuous)
@@ -53,7 +56,7 @@ class DiffDriveMotion:
         r2 = wrap_angle(qb[:, 2] - phi)
         return phi, r1, d, r2
 
-    @fastpath.twin(fastpath.motion_distance, when=lambda m, qa, qb: fastpath.motion_applies(qa, qb))
+    @fastpath.twin(fastpath.motion_distance, when=fastpath.distance_applies)
     def distance(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
         """Motion cost between configurations (E, dof) and (E, dof) -> (E,) (see module docstring)."""
         qa, qb = torch.broadcast_tensors(qa, qb)

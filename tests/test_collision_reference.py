@@ -56,7 +56,7 @@ def test_no_collision_missed_within_a_millimetre_of_pybullet_contact(robot_name,
     finds free to one it finds colliding (home scene), bisected 16 times by pybullet, both final ends kept (within
     a fraction of a millimetre, in configuration space, of pybullet's contact). Every configuration pybullet finds
     colliding is flagged by the checker, on the compiled path and on the torch path alike."""
-    from psprm_core.kernels import fastpath
+    from psprm_core.kernels.compute import Compute, bulk
 
     robot = load_robot(robot_name)
     scene = load_scene(resolve_named("scene", "home"))
@@ -82,10 +82,9 @@ def test_no_collision_missed_within_a_millimetre_of_pybullet_contact(robot_name,
     assert exact[n:].mean() > 0.9 and (~exact[:n]).mean() > 0.9
     checker = CollisionChecker(robot, boxes)
     q32 = torch.as_tensor(near, dtype=torch.float32)
-    with fastpath.bulk():
+    with bulk():
         fast = checker.check(q32).numpy()
-    with fastpath.disabled():
-        slow = checker.check(q32).numpy()
+    slow = checker.using(Compute.make("cpu", kernels="torch")).check(q32).numpy()
     for name, flags in (("compiled", fast), ("torch", slow)):
         missed = np.nonzero(exact & ~flags)[0]
         assert len(missed) == 0, f"{name}: {len(missed)} of {n} pybullet contacts missed, e.g. {missed[:5]}"

@@ -15,7 +15,8 @@ def test_torch_path_passes_the_device_check_judged_by_pybullet():
     from psprm_core.evaluation.device_check import run
 
     out = run("cpu", torch_path=True, configs=600, nodes=300, queries=4, replans=2)
-    assert out["torch_path"] and out["missed_collisions"] == 0
+    assert out["torch_path"] and out["kernels"] == "torch" and out["missed_collisions"] == 0
+    assert out["backend"] == {"cpu_reference": "CompiledBackend", "device": "TorchBackend"}
     assert out["fk_max_position_error_m"] < 1e-3 and out["fk_max_rotation_error_rad"] < 1e-3
     assert out["queries_solved"] == out["queries"] == 4 and out["replans_solved"] == 2
     assert out["path_collisions_pybullet"] == 0 and out["path_goal_error_max"] < 1e-3

@@ -4,6 +4,7 @@ and off, and without numba (or for large batches, gradients) every call takes th
 
 from __future__ import annotations
 
+import threading
 from unittest import mock
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import torch
 
 from psprm_core.kernels import edges, fastpath
+from psprm_core.kernels.compute import Compute, bulk, bulk_workers
 from psprm_core.evaluation.reference import sample_uniform
 from psprm_core.problems import random_problems
 from psprm_core.collision import CollisionChecker
@@ -25,6 +27,7 @@ from psprm_core.planning.roadmap.verification import Verification
 from psprm_core.scene import load_scene
 
 ROBOT_SCENES = {"stretch2": "home", "fetchlike": "nursing", "ur5_mobile": "blind_spot_alley"}
+TORCH = Compute.make("cpu", kernels="torch")  # the reference: torch operators at every batch size
 
 
 def _configs(robot, scene, n: int, seed: int) -> np.ndarray:
@@ -49,8 +52,7 @@ def test_camera_poses_match_torch(name, dtype, load_robot):
     robot, scene = _robot_scene(name, load_robot)
     q = torch.as_tensor(_configs(robot, scene, 300, 0), dtype=dtype)
     fast = robot.camera_poses(q)
-    with fastpath.disabled():
-        ref = robot.camera_poses(q)
+    ref = robot.using(TORCH).camera_poses(q)
     assert fast.dtype == ref.dtype == dtype and fast.shape == ref.shape
     assert (fast - ref).abs().max() < (1e-12 if dtype == torch.float64 else 1e-5)
 
@@ -72,8 +74,7 @@ def test_projection_matches_torch(name, kind, load_robot):
         for iters in (3, 20):
             ps = ProjectionSettings(max_iters=iters)
             qf, okf = c.project(q, ps, lo, hi, joints=cols)
-            with fastpath.disabled():
-                qr, okr = c.project(q, ps, lo, hi, joints=cols)
+            qr, okr = c.using(TORCH).project(q, ps, lo, hi, joints=cols)
             assert okf.dtype == torch.bool and torch.equal(okf, okr)
             assert int(okr.sum()) > 0
             unconverged += int((~okr).sum())
@@ -89,8 +90,7 @@ def test_collision_flags_match_torch(name, dtype, load_robot):
     q = torch.as_tensor(_configs(robot, scene, 600, 2), dtype=dtype)
     q[5, 0] = float("nan")
     fast, bad = checker.check_detailed(q), checker.check(q)
-    with fastpath.disabled():
-        ref, ref_bad = checker.check_detailed(q), checker.check(q)
+    ref, ref_bad = checker.using(TORCH).check_detailed(q), checker.using(TORCH).check(q)
     for k in ("limits", "environment", "self"):
         assert fast[k].dtype == torch.bool and torch.equal(fast[k], ref[k]), k
         assert 0 < int(ref[k].sum()) < len(q), k  # each kind of collision occurs, and free rows too
@@ -98,8 +98,7 @@ def test_collision_flags_match_torch(name, dtype, load_robot):
     # a moved obstacle set is picked up (the compiled path caches the boxes by their tensors)
     checker.set_boxes([])
     free = checker.check_detailed(q)
-    with fastpath.disabled():
-        free_ref = checker.check_detailed(q)
+    free_ref = checker.using(TORCH).check_detailed(q)
     assert not free["environment"].any() and torch.equal(free["self"], free_ref["self"])
 
 
@@ -107,8 +106,7 @@ def _near_contact(checker, q: torch.Tensor, kind: str, n_pairs: int, rng, steps:
     """Configurations on both sides of the torch checker's ``kind`` boundary: ``n_pairs`` segments from a free
     configuration (no flag at all) to one flagged ``kind`` (within the limits), bisected ``steps`` times with the
     torch path's flag, both final ends kept. Returns (configurations (2 n_pairs, dof), the final gaps (n_pairs,))."""
-    with fastpath.disabled():
-        det = checker.check_detailed(q)
+    det = checker.using(TORCH).check_detailed(q)
     free = ~(det["limits"] | det["environment"] | det["self"])
     hit = det[kind] & ~det["limits"]
     fi, hi = torch.nonzero(free).flatten().numpy(), torch.nonzero(hit).flatten().numpy()
@@ -117,8 +115,7 @@ def _near_contact(checker, q: torch.Tensor, kind: str, n_pairs: int, rng, steps:
     hi_q = q[rng.choice(hi, n_pairs)].clone()
     for _ in range(steps):
         mid = 0.5 * (lo_q + hi_q)
-        with fastpath.disabled():
-            m = checker.check_detailed(mid)[kind]
+        m = checker.using(TORCH).check_detailed(mid)[kind]
         hi_q[m], lo_q[~m] = mid[m], mid[~m]
     return torch.cat([lo_q, hi_q]), (hi_q - lo_q).norm(dim=1)
 
@@ -148,10 +145,9 @@ def test_collision_flags_match_torch_near_contact(name, load_robot):
     assert float(torch.cat([env_gap, self_gap]).max()) < 1e-3  # precondition: within 1 mm of the boundary
     q = torch.cat([uniform, near])
     assert len(q) == NEAR_CONTACT_N
-    with fastpath.bulk():
+    with bulk():
         fast = checker.check_detailed(q)
-    with fastpath.disabled():
-        ref = checker.check_detailed(q)
+    ref = checker.using(TORCH).check_detailed(q)
     for k in ("limits", "environment", "self"):
         bad = torch.nonzero(fast[k] != ref[k]).flatten().tolist()
         assert not bad, f"{k}: compiled and torch disagree on {len(bad)} configurations, e.g. {bad[:5]}"
@@ -180,31 +176,31 @@ def test_env_hits_and_robot_bounds_match_torch(name, load_robot):
     for subset in (boxes[::2], boxes[1:4], []):
         bt = BoxTensors.from_boxes(subset)
         hit, aabb = checker.env_hits(q, bt, return_aabb=True)
-        with fastpath.disabled():
-            ref, ref_aabb = checker.env_hits(q, bt, return_aabb=True)
+        ref, ref_aabb = checker.using(TORCH).env_hits(q, bt, return_aabb=True)
         assert hit.dtype == torch.bool and torch.equal(hit, ref)
         assert torch.equal(checker.env_hits(q, subset), ref)
         assert aabb.shape == (len(q), 6) and (aabb - ref_aabb).abs().max() < 1e-4
         if len(subset) >= 3:
             assert 0 < int(ref.sum()) < len(q)
-    with fastpath.disabled():
-        ref_bounds = checker.robot_aabb(q)
+    ref_bounds = checker.using(TORCH).robot_aabb(q)
     assert (checker.robot_aabb(q) - ref_bounds).abs().max() < 1e-4
 
 
 def test_fast_path_only_for_small_cpu_batches_without_gradients(load_robot):
     robot = load_robot("stretch2")
+    cp = robot.compute
+    assert cp.compiled and cp.device.type == "cpu"  # the default on a CPU with numba
     q = torch.zeros(4, robot.dof)
-    assert fastpath.applies(q)
-    assert not fastpath.applies(torch.zeros(fastpath.MAX_BATCH + 1, robot.dof))
-    assert not fastpath.applies(torch.zeros(0, robot.dof))
-    assert not fastpath.applies(q.clone().requires_grad_())
-    with fastpath.disabled():
-        assert not fastpath.applies(q)
-    with mock.patch.object(fastpath, "available", lambda: False):  # numba 'missing'
-        assert not fastpath.applies(q)
-        with mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
-            T = robot.camera_poses(q)
+    assert cp.takes(q)
+    assert not cp.takes(torch.zeros(cp.max_batch + 1, robot.dof))
+    assert not cp.takes(torch.zeros(0, robot.dof))
+    assert not cp.takes(q.clone().requires_grad_())
+    assert not TORCH.takes(q)
+    small = Compute.make("cpu", max_batch=3)  # the batch policy is the Compute's
+    assert small.takes(q[:3]) and not small.takes(q)
+    with mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
+        T = robot.using(TORCH).camera_poses(q)
+        robot.using(small).camera_poses(q)  # 4 rows > 3: the torch path
     assert torch.allclose(T, robot.camera_poses(q), atol=1e-6)
     # autograd still flows through the torch path
     qg = torch.zeros(3, robot.dof, dtype=torch.float64, requires_grad=True)
@@ -213,14 +209,15 @@ def test_fast_path_only_for_small_cpu_batches_without_gradients(load_robot):
 
 
 def test_bulk_mode_splits_large_batches_over_threads_with_the_same_results(load_robot):
-    """Inside ``fastpath.bulk`` (the roadmap build) batches beyond MAX_BATCH take the kernels too, split into row
+    """Inside ``bulk`` (the roadmap build) batches beyond ``max_batch`` take the kernels too, split into row
     chunks run on worker threads; the results are the torch path's (collision flags identical, projection and camera
     poses within float rounding), in row order."""
     robot, scene = _robot_scene("stretch2", load_robot)
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    n = 3 * fastpath.BULK_CHUNK + 17  # several chunks and a ragged last one
+    cp = checker.compute
+    n = 3 * cp.bulk_chunk + 17  # several chunks and a ragged last one
     q = torch.as_tensor(_configs(robot, scene, n, 7), dtype=torch.float32)
-    assert not fastpath.applies(q)
+    assert not cp.takes(q)
     calls = []
     real = fastpath.kernels()
 
@@ -231,21 +228,25 @@ def test_bulk_mode_splits_large_batches_over_threads_with_the_same_results(load_
 
     target = scene.target(scene.target_names[0]).center
     con = VisibilityConstraint(robot, "line", target)
-    with fastpath.disabled():
-        ref_bad, ref_T = checker.check(q), robot.camera_poses(q)
-        ref_q, ref_ok = con.project(q.double(), ProjectionSettings(max_iters=5))
-    with fastpath.bulk(workers=2), mock.patch.object(fastpath, "kernels", lambda: Spy()):
-        assert fastpath.applies(q)
+    ref_bad, ref_T = checker.using(TORCH).check(q), robot.using(TORCH).camera_poses(q)
+    ref_q, ref_ok = con.using(TORCH).project(q.double(), ProjectionSettings(max_iters=5))
+    with bulk(workers=2), mock.patch.object(fastpath, "kernels", lambda: Spy()):
+        assert cp.takes(q)
         bad, T = checker.check(q), robot.camera_poses(q)
         pq, ok = con.project(q.double(), ProjectionSettings(max_iters=5))
-    assert not fastpath.applies(q)  # back to small batches only
+    assert not cp.takes(q)  # back to small batches only
     chunks = [r for name, r in calls if name == "check"]
     assert len(chunks) > 1 and sum(chunks) == n
     assert torch.equal(bad, ref_bad) and 0 < int(bad.sum()) < n
     assert (T - ref_T).abs().max() < 1e-5
     assert torch.equal(ok, ref_ok) and (pq - ref_q).abs().max() < 1e-6
-    with fastpath.disabled(), fastpath.bulk(workers=2):
-        assert not fastpath.applies(q)
+    with bulk(workers=2):
+        assert not TORCH.takes(q)
+        seen = []  # the bulk policy holds for the thread that entered it, not for others
+        t = threading.Thread(target=lambda: seen.append((bulk_workers(), cp.takes(q))))
+        t.start()
+        t.join()
+        assert seen == [(0, False)] and bulk_workers() == 2
 
 
 def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
@@ -260,16 +261,16 @@ def test_planner_same_paths_with_fast_path_on_and_off(load_robot, tmp_path):
     focus = scene.target(target).center
     a = PSPRM(robot, scene, scorer, focus, settings)
     assert a.build()["success"]
-    b = PSPRM(robot, scene, scorer, focus, settings)
+    b = PSPRM(robot, scene, scorer, focus, settings, compute=TORCH)
     b.load(a.save(tmp_path / "roadmap.npz"))
+    assert a.ctx.backend.compiled and not b.ctx.backend.compiled
     probs = random_problems(robot, scene, a.checker, 8, np.random.default_rng(4), robot.default_configuration(),
                             focus, aimed_only=True, aim_restarts=4)
     assert len(probs) >= 6
     solved = 0
     for start, goal in probs:
         ra = a.plan(start, goal, timing=False)
-        with fastpath.disabled():
-            rb = b.plan(start, goal, timing=False)
+        rb = b.plan(start, goal, timing=False)
         assert ra.success == rb.success
         if ra.success:
             solved += 1
@@ -293,8 +294,7 @@ def test_occlusion_scores_match_torch(scene_name):
         for dtype in (torch.float64, torch.float32):
             cams = torch.as_tensor(pos, dtype=dtype)
             fast = occ.score(cams)
-            with fastpath.disabled():
-                ref = occ.score(cams)
+            ref = occ.using(TORCH).score(cams)
             assert fast.dtype == dtype and torch.equal(fast, ref)
             assert 0 < int((ref > 0).sum()) < len(ref)  # some rays blocked, some not
 
@@ -316,18 +316,16 @@ def test_surrogate_scores_match_torch(load_robot):
     target = torch.as_tensor(np.eye(4))
     target[:3, 3] = torch.tensor([2.0, 1.0, 0.9])
     for cls in ("cup", "tv", 1):
-        for rows in (3, fastpath.MLP_MAX_ROWS, 200):  # the compiled MLP, and torch's GEMM above MLP_MAX_ROWS
+        for rows in (3, m.compute.mlp_max_rows, 200):  # the compiled MLP, and torch's GEMM above mlp_max_rows
             fast = m.predict(cams[:rows], target, cls)
-            with fastpath.disabled():
-                ref = m.predict(cams[:rows], target, cls)
+            ref = m.using(TORCH).predict(cams[:rows], target, cls)
             assert fast.dtype == ref.dtype and fast.shape == (rows,)
             assert (fast - ref).abs().max() < 1e-5
         assert ref.std() > 0.05
     with torch.no_grad():
         m.net[-1].bias += 1.0
     fast = m.predict(cams, target, "cup")
-    with fastpath.disabled():
-        ref = m.predict(cams, target, "cup")
+    ref = m.using(TORCH).predict(cams, target, "cup")
     assert (fast - ref).abs().max() < 1e-5
 
 
@@ -346,19 +344,21 @@ def test_motion_metric_interpolation_and_pieces_match_torch(name, load_robot):
     s = torch.as_tensor(np.random.default_rng(9).uniform(0, 1, 400))
     s[:20] = 1.0
     s[20:40] = 0.0
-    with fastpath.disabled():
-        ref_d, ref_i = m.distance(qa, qb), m.interpolate(qa, qb, s)
+    ref_d, ref_i = m.using(TORCH).distance(qa, qb), m.using(TORCH).interpolate(qa, qb, s)
     assert (m.distance(qa, qb) - ref_d).abs().max() < 1e-12
     assert (m.interpolate(qa, qb, s) - ref_i).abs().max() < 1e-12
     assert (m.distance(qa.float(), qb.float()) - ref_d).abs().max() < 1e-4  # float32 inputs, float32 result
     # only the motion, robot and settings are needed by the edges' pieces
-    ctx = PlannerContext(robot=robot, scene=None, scorer=None, settings=PSPRMSettings(), device=torch.device("cpu"),
-                         dtype=torch.float64, motion=m, checker=None, constraint=None, track_cols=np.zeros(0, int))
-    edges = Pipeline(ctx).edges
+    def stage_edges(compute):
+        ctx = PlannerContext(robot=robot, scene=None, scorer=None, settings=PSPRMSettings(),
+                             device=torch.device("cpu"), dtype=torch.float64, motion=m.using(compute), checker=None,
+                             constraint=None, track_cols=np.zeros(0, int), compute=compute)
+        return Pipeline(ctx).edges
+
+    edges, ref_edges = stage_edges(m.compute), stage_edges(TORCH)
     for include_start in (True, False):
         seg, pts = edges.pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
-        with fastpath.disabled():
-            rseg, rpts = edges.pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
+        rseg, rpts = ref_edges.pieces(qa[:100], qb[:100], max_steps=200, include_start=include_start)
         assert torch.equal(seg, rseg) and len(seg) > 1000
         assert (pts - rpts).abs().max() < 1e-12
 
@@ -376,8 +376,8 @@ def test_edge_knots_and_nearest_nodes_match_torch(name, load_robot):
     qb[:5, :2] = qa[:5, :2]  # turns in place: a drive corner at s = 0 or 1
     qb[5:8, 2] = qa[5:8, 2]
     kn, ki = planner.edge_knots(qa, qb)
-    with fastpath.disabled():
-        rkn, rki = planner.edge_knots(qa, qb)
+    reference = PSPRM(robot, scene, planner.scorer, target, PSPRMSettings(), dtype=torch.float64, compute=TORCH)
+    rkn, rki = reference.edge_knots(qa, qb)
     assert kn.shape == rkn.shape and torch.equal(ki, rki)
     assert (kn - rkn).abs().max() < 1e-6
     rm = torch.as_tensor(_configs(robot, scene, 3000, 12), dtype=torch.float64)
@@ -402,11 +402,11 @@ def test_warm_up_loads_the_query_kernels(load_robot):
     for name in ("astar", "bfs_hops", "hops_decrease", "hop_columns", "query_hops"):  # the roadmap searches' kernels too
         assert getattr(S, name).signatures, name
     assert K.env_hits.signatures  # obstacle moves' re-checks
-    with mock.patch.object(fastpath, "available", lambda: False):
-        assert planner.warm_up() > 0  # the search kernels still load
-        with mock.patch.object(search_kernels, "available", lambda: False), \
-                mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
-            planner.warm_up()  # nothing compiled without numba
+    torch_only = PSPRM(robot, scene, planner.scorer, scene.target(target).center, PSPRMSettings(), compute=TORCH)
+    with mock.patch.object(fastpath, "kernels", side_effect=AssertionError("compiled path used")):
+        assert torch_only.warm_up() > 0  # the search kernels still load
+        with mock.patch.object(search_kernels, "available", lambda: False):
+            torch_only.warm_up()  # nothing compiled without numba
     # the first plan's trajectory timing (TOPP-RA) is loaded too: a three-knot drive is timed, within the limits
     with mock.patch.object(planner.pipeline.trajectory, "timed", wraps=planner.pipeline.trajectory.timed) as timed:
         planner.warm_up()
@@ -428,8 +428,7 @@ def test_constant_inputs_follow_in_place_changes(load_robot):
     assert checker.check_detailed(q)["limits"].all() and not before.all()
     other = copy.deepcopy(checker)
     other.upper[-1] = 10.0
-    with fastpath.disabled():
-        ref = other.check_detailed(q)["limits"]
+    ref = other.using(TORCH).check_detailed(q)["limits"]
     assert torch.equal(other.check_detailed(q)["limits"], ref)
 
 
@@ -503,8 +502,8 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     assert torch.equal(kn, planner.pipeline.edges.track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
     args = edges.neural_args(scorer, dtype)
     # a query's start and goal scores: one compiled call, the scorer's values
-    assert torch.equal(planner.score_configs(qa[:fastpath.MLP_MAX_ROWS]),
-                       scorer.score(robot.camera_poses(qa[:fastpath.MLP_MAX_ROWS])).to(dtype))
+    rows = planner.compute.mlp_max_rows
+    assert torch.equal(planner.score_configs(qa[:rows]), scorer.score(robot.camera_poses(qa[:rows])).to(dtype))
     n_free = n_zero = 0
     for s0 in range(0, len(qa), 3):  # batches of three edges, as a lazy search verifies its path
         k, i = kn[s0:s0 + 3], ki[s0:s0 + 3]

@@ -6,10 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core.kernels import fastpath
+from psprm_core.kernels.compute import Compute
 from psprm_core.evaluation.benchmarks import rotation_angle_error
 from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
 from psprm_core.robot.kinematics_pk import PKCameraKinematics
+
+TORCH = Compute.make("cpu", kernels="torch")  # torch operators at every batch size
 
 ROBOTS = ["stretch2", "fetchlike", "ur5_mobile"]
 WORKSPACE = np.array([[-3.0, -3.0], [3.0, 3.0]])
@@ -61,8 +63,7 @@ def test_pytorch_kinematics_jacobian_matches_finite_differences_and_the_analytic
     assert W.shape == (len(qs), robot.dof, 6)
     for q, w in zip(qs, W.numpy()):
         assert np.abs(w - _twists_by_finite_differences(kin, q)).max() < 1e-5
-    with fastpath.disabled():
-        T0, W0 = robot.camera_jacobian(torch.as_tensor(qs))
+    T0, W0 = robot.using(TORCH).camera_jacobian(torch.as_tensor(qs))
     assert np.abs(W.numpy() - W0.numpy()).max() < 1e-6
     assert np.abs(T.numpy() - T0.numpy()).max() < 1e-6
 
@@ -84,14 +85,14 @@ def test_projection_with_pytorch_kinematics_matches_the_native_one(load_robot):
     target = np.array([2.0, 1.0, 1.1])
     q = torch.as_tensor(_configs(robot, 64, seed=3), dtype=torch.float64)
     q[:, :2] = torch.as_tensor(np.random.default_rng(4).uniform(-1.0, 1.0, (64, 2)))
+    robot = robot.using(TORCH)  # the torch iteration on both
     native = VisibilityConstraint(robot, "line", target)
     pkc = VisibilityConstraint(robot, "line", target, kinematics=PKCameraKinematics(robot))
-    with fastpath.disabled():
-        qn, okn = native.project(q, ProjectionSettings())
-        qp, okp = pkc.project(q, ProjectionSettings())
-        assert okp.float().mean() > 0.5 and torch.equal(okn, okp)
-        assert (qn - qp).abs().max() < 1e-4  # iterations stop at |h| < tolerance: FK differences of 1e-7 stay small
-        assert native.error(qp[okp]).max() < ProjectionSettings().tolerance
+    qn, okn = native.project(q, ProjectionSettings())
+    qp, okp = pkc.project(q, ProjectionSettings())
+    assert okp.float().mean() > 0.5 and torch.equal(okn, okp)
+    assert (qn - qp).abs().max() < 1e-4  # iterations stop at |h| < tolerance: FK differences of 1e-7 stay small
+    assert native.error(qp[okp]).max() < ProjectionSettings().tolerance
 
 
 def test_planner_built_with_pytorch_kinematics_plans_collision_free(load_robot):
@@ -109,9 +110,8 @@ def test_planner_built_with_pytorch_kinematics_plans_collision_free(load_robot):
     assert isinstance(p.constraint.kin, PKCameraKinematics)
     p.build()
     ids = p.graph.valid_node_ids()[:200]
-    with fastpath.disabled():
-        err = p.constraint.__class__(robot, "line", p.constraint.target.numpy()).error(
-            torch.as_tensor(p.graph.configs[ids], dtype=torch.float64))
+    err = p.constraint.__class__(robot.using(TORCH), "line", p.constraint.target.numpy()).error(
+        torch.as_tensor(p.graph.configs[ids], dtype=torch.float64))
     assert err.max() < 5 * p.settings.projection.tolerance
     start, goals = problem_configurations(robot, scene, scene.problems[0])
     res = p.plan(start, goals)

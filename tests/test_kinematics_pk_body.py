@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from psprm_core.kernels import fastpath
+from psprm_core.kernels.compute import Compute
 from psprm_core.collision import CollisionChecker
 from psprm_core.errors import InputError
 from psprm_core.evaluation.benchmarks import rotation_angle_error
@@ -18,6 +18,8 @@ from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
 from psprm_core.robot.kinematics_pk import PKBodyKinematics
 from psprm_core.paths import resolve_named
 from psprm_core.scene import load_scene
+
+TORCH = Compute.make("cpu", kernels="torch")  # torch operators at every batch size
 
 ROBOTS = ["stretch2", "fetchlike", "ur5_mobile"]
 WORKSPACE = np.array([[-3.0, 3.0], [-3.0, 3.0]])
@@ -105,12 +107,12 @@ def test_checker_on_pytorch_kinematics_flags_what_the_native_checker_flags(name,
     qs = _configs(robot, 3000, seed=11, base_box=scene.workspace)
     q = torch.as_tensor(qs)
     counting = CountingKinematics(PKBodyKinematics(robot))
-    pkc = CollisionChecker(robot, boxes, workspace=scene.workspace, dtype=torch.float64, kinematics=counting)
-    native = CollisionChecker(robot, boxes, workspace=scene.workspace, dtype=torch.float64)
-    with fastpath.disabled():
-        fp, fn = pkc.check_detailed(q), native.check_detailed(q)
-        flags, flags_native = pkc.check(q), native.check(q)
-        box_pk, box_native = pkc.robot_aabb(q), native.robot_aabb(q)
+    pkc = CollisionChecker(robot, boxes, workspace=scene.workspace, dtype=torch.float64, kinematics=counting,
+                           compute=TORCH)
+    native = CollisionChecker(robot, boxes, workspace=scene.workspace, dtype=torch.float64, compute=TORCH)
+    fp, fn = pkc.check_detailed(q), native.check_detailed(q)
+    flags, flags_native = pkc.check(q), native.check(q)
+    box_pk, box_native = pkc.robot_aabb(q), native.robot_aabb(q)
     assert counting.rows >= 3 * len(qs)  # the torch path ran on pytorch-kinematics' poses
     for k in ("limits", "environment", "self"):
         assert torch.equal(fp[k], fn[k]), k
@@ -134,16 +136,15 @@ def test_planner_built_with_pytorch_kinematics_checks_collisions_with_it(load_ro
 
     scene = load_scene(resolve_named("scene", "home"))
     robot = load_robot("stretch2")
-    p = make_planner("neural-psprm-line", scene, [scene.problems[0].target], robot=robot,
+    p = make_planner("neural-psprm-line", scene, [scene.problems[0].target], robot=robot, compute=TORCH,
                      options={"roadmap.n_nodes": 300, "seed": 0, "visibility.kinematics": "pytorch_kinematics",
                               "roadmap.biased_share": 0.0})
     assert isinstance(p.checker.kin, PKBodyKinematics)
     counting = CountingKinematics(p.checker.kin)
     p.checker.kin = counting
     start, goals = problem_configurations(robot, scene, scene.problems[0])
-    with fastpath.disabled():
-        p.build()
-        res = p.plan(start, goals)
+    p.build()
+    res = p.plan(start, goals)
     assert counting.rows > 300
     assert res.success and len(res.dense) > 10
     assert np.abs(res.dense[0] - start).max() < 1e-6

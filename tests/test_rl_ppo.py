@@ -170,10 +170,16 @@ def test_tiny_training_saves_reloads_and_rolls_out(planner, tmp_path, monkeypatc
 def test_compiled_step_matches_the_torch_path(planner, env):
     """The step's compiled work (motion points, collision check, motion cost, geometric score with occlusion) gives
     the values of the torch path (PlanningContext.densify, CollisionChecker, DiffDriveMotion, GeometricScorer)."""
-    from psprm_core.kernels import fastpath
+    from psprm_core.baselines.base import PlanningContext
+    from psprm_core.kernels.compute import Compute
+    from psprm_core.baselines.rl_env import ActivePerceptionEnv
 
-    if not fastpath.available():
-        pytest.skip("numba not importable")
+    assert env.ctx.motion.compute.compiled and env.ctx.checker.compute.compiled  # precondition: numba here
+    torch_robot = planner.robot.using(Compute.make("cpu", kernels="torch"))
+    ref = ActivePerceptionEnv(planner.scene, planner.targets, settings=planner.settings,
+                              context=PlanningContext(planner.scene, planner.targets, robot=torch_robot,
+                                                      resolution=planner.settings.resolution))
+    assert not (ref.ctx.motion.compute.compiled or ref.ctx.checker.compute.compiled or ref.scorer.occ.compute.compiled)
     rng = np.random.default_rng(5)
     seen = {"valid": 0, "rejected": 0, "scored": 0}
     for i in range(120):
@@ -183,9 +189,7 @@ def test_compiled_step_matches_the_torch_path(planner, env):
         qn = env.propose(q, rng.uniform(-1.0, 1.0, env.action_space.shape))
         fast = (env.motion_points(q, qn), env.motion_valid(q, qn), env.step_cost(q, qn), env.score(qn))
         env._cam_key = None
-        with fastpath.disabled():
-            slow = (env.motion_points(q, qn), env.motion_valid(q, qn), env.step_cost(q, qn), env.score(qn))
-        env._cam_key = None
+        slow = (ref.motion_points(q, qn), ref.motion_valid(q, qn), ref.step_cost(q, qn), ref.score(qn))
         assert fast[0].shape == slow[0].shape and np.allclose(fast[0], slow[0], atol=1e-9)
         assert fast[1] == slow[1]
         assert fast[2] == pytest.approx(slow[2], abs=1e-9) and fast[3] == pytest.approx(slow[3], abs=1e-6)

@@ -391,7 +391,7 @@ class PlanningContext:
             return W.copy()
         res = self.resolution if resolution is None else resolution
         m = self.motion
-        if fastpath.enabled():  # the compiled metric and interpolation on arrays (the same values)
+        if m.compute.compiled:  # the compiled metric and interpolation on arrays (the same values)
             K = fastpath.kernels()
             a, b = np.ascontiguousarray(W[:-1]), np.ascontiguousarray(W[1:])
             n = np.clip(np.ceil(K.distance(a, b, float(m.w_rot), bool(m.mobile)) / res).astype(np.int64), 1,

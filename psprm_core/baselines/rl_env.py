@@ -57,6 +57,7 @@ import torch
 
 from ..errors import InputError
 from ..kernels import fastpath
+from ..kernels.compute import bulk
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +102,8 @@ class ActivePerceptionEnv(gym.Env):
         if not r.mobile:
             raise InputError(f"the RL baseline needs a differential-drive robot ('{r.name}' has a fixed base)")
         self.targets = list(targets)
-        self.scorer = make_scorer("geometric", scene, self.targets, r.config.intrinsics)
+        # the score's occlusion check follows the robot model's Compute, as the context's checker and metric do
+        self.scorer = make_scorer("geometric", scene, self.targets, r.config.intrinsics).using(r.compute)
         self.focus = self.ctx.focus
         self.w_rot = r.config.base.rotation_weight
         self.act_cols = self.ctx.aim_cols  # non-base camera joints, driven by actions
@@ -161,7 +163,7 @@ class ActivePerceptionEnv(gym.Env):
             q[:, 0] = np.repeat(X.ravel(), len(heads))
             q[:, 1] = np.repeat(Y.ravel(), len(heads))
             q[:, 2] = np.tile(heads, X.size)
-            with fastpath.bulk(1):
+            with bulk(1):
                 free = self.ctx.valid(q).reshape(X.shape + (len(heads),)).any(-1)
             nx, ny = X.shape
             idx = np.arange(nx * ny).reshape(nx, ny)
@@ -318,7 +320,7 @@ class ActivePerceptionEnv(gym.Env):
 
     def step_cost(self, qa: np.ndarray, qb: np.ndarray) -> float:
         """Differential-drive motion cost of one step (:class:`~psprm_core.motion.DiffDriveMotion`)."""
-        if fastpath.enabled():
+        if self.ctx.motion.compute.compiled:
             return float(fastpath.kernels().distance(qa[None], qb[None], self.w_rot, True)[0])
         t = torch.as_tensor(np.vstack([qa, qb]), dtype=torch.float64)
         return float(self.ctx.motion.distance(t[:1], t[1:])[0])

@@ -23,7 +23,6 @@ check fails. Asked for CUDA where there is none, it says so (``"checked": false`
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 import time
@@ -37,7 +36,7 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynam
     import torch
 
     from ..collision import CollisionChecker
-    from ..kernels import fastpath
+    from ..kernels.compute import Compute
     from ..paths import resolve_named
     from ..perception.scoring import NeuralScorer
     from ..perception.surrogate import load_surrogate
@@ -48,49 +47,48 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynam
     from .reference import PybulletWorld, sample_uniform
 
     dev = torch.device(device)
+    compute = Compute.make(dev, kernels="torch" if torch_path else "auto")  # the device under test
+    reference = Compute.make("cpu", kernels="torch")  # float64 reference scores: the torch code on the CPU
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
     boxes = scene.collision_boxes()
     rng = np.random.default_rng(seed)
     qs = sample_uniform(robot, configs, rng, base_box=scene.workspace)
-    out: dict = {"device": str(dev), "torch_path": bool(torch_path or dev.type != "cpu"), "scene": scene.name,
+    out: dict = {"device": str(dev), "torch_path": not compute.compiled, "kernels": compute.kernels, "scene": scene.name,
                  "robot": robot.name, "torch": torch.__version__}
     if dev.type == "cuda":
         out["device_name"] = torch.cuda.get_device_name(dev)
-    def guard():
-        return fastpath.disabled() if torch_path else contextlib.nullcontext()
-
     world = PybulletWorld(robot, boxes)
     try:
-        with guard():
-            q = torch.as_tensor(qs, dtype=torch.float32, device=dev)
-            m = min(500, configs)
-            cam = robot.camera_poses(q[:m]).double().cpu().numpy()
-            ref_cam = np.stack([world.camera_pose(x) for x in qs[:m]])
-            out["fk_max_position_error_m"] = float(np.abs(cam[:, :3, 3] - ref_cam[:, :3, 3]).max())
-            out["fk_max_rotation_error_rad"] = float(rotation_angle_error(cam[:, :3, :3], ref_cam[:, :3, :3]).max())
+        q = torch.as_tensor(qs, dtype=torch.float32, device=dev)
+        m = min(500, configs)
+        cam = robot.using(compute).camera_poses(q[:m]).double().cpu().numpy()
+        ref_cam = np.stack([world.camera_pose(x) for x in qs[:m]])
+        out["fk_max_position_error_m"] = float(np.abs(cam[:, :3, 3] - ref_cam[:, :3, 3]).max())
+        out["fk_max_rotation_error_rad"] = float(rotation_angle_error(cam[:, :3, :3], ref_cam[:, :3, :3]).max())
 
-            checker = CollisionChecker(robot, boxes, workspace=None, device=dev)
-            t0 = time.perf_counter()
-            flags = checker.check(q)
-            if dev.type == "cuda":
-                torch.cuda.synchronize(dev)
-            out["collision_s"] = time.perf_counter() - t0
-            flags = flags.cpu().numpy()
-            ref = world.in_collision(qs)
-            out["missed_collisions"] = int(np.sum(ref & ~flags))
-            out["false_positive_rate"] = float(np.sum(flags & ~ref) / max(1, np.sum(~ref)))
+        checker = CollisionChecker(robot, boxes, workspace=None, device=dev, compute=compute)
+        t0 = time.perf_counter()
+        flags = checker.check(q)
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        out["collision_s"] = time.perf_counter() - t0
+        flags = flags.cpu().numpy()
+        ref = world.in_collision(qs)
+        out["missed_collisions"] = int(np.sum(ref & ~flags))
+        out["false_positive_rate"] = float(np.sum(flags & ~ref) / max(1, np.sum(~ref)))
 
-            model = load_surrogate(default_checkpoint())
-            scorer = NeuralScorer(model, scene, target)
-            free = torch.as_tensor(qs[~ref][:m], dtype=torch.float32)
-            s_dev = scorer.score(robot.camera_poses(free.to(dev))).double().cpu().numpy()
-        with fastpath.disabled():
-            s_ref = scorer.score(robot.camera_poses(free.double())).double().cpu().numpy()
+        model = load_surrogate(default_checkpoint())
+        scorer = NeuralScorer(model, scene, target)
+        free = torch.as_tensor(qs[~ref][:m], dtype=torch.float32)
+        dut = scorer.using(compute)
+        s_dev = dut.score(robot.using(compute).camera_poses(free.to(dev))).double().cpu().numpy()
+        s_ref = scorer.using(reference).score(robot.using(reference).camera_poses(free.double()))
+        s_ref = s_ref.double().cpu().numpy()
         out["score_max_abs_difference"] = float(np.abs(s_dev - s_ref).max())
         out["score_views"] = int(len(s_ref))
 
-        out.update(_planning(device, guard, scene, robot, target, nodes, queries, replans, seed, world))
+        out.update(_planning(compute, scene, robot, target, nodes, queries, replans, seed, world))
     finally:
         world.close()
     out["ok"] = bool(out["missed_collisions"] == 0 and out["fk_max_position_error_m"] < 1e-3
@@ -101,7 +99,7 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynam
     return out
 
 
-def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed, world) -> dict:
+def _planning(compute, scene, robot, target, nodes, queries, replans, seed, world) -> dict:
     """The same PS-PRM (settings, seed) built on the CPU with its compiled kernels and on ``device``; both answer
     the same random queries and replan after the same target turns. Judged: every device path collision-free under
     pybullet and ending at a goal; the device's node scores against the CPU planner's scores of the same
@@ -110,25 +108,26 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
     import torch
 
     from ..collision import CollisionChecker
+    from ..kernels.compute import Compute
     from ..planning.factory import make_planner, problem_configurations
     from ..planning.replanner import Replanner, ReplanSettings
     from ..problems import random_problems
 
-    def build(dev, ctx):
-        with ctx():
-            p = make_planner("neural-psprm-line", scene, [target], robot=robot, device=str(dev),
-                             options={"roadmap.n_nodes": nodes, "seed": seed})
-            t0 = time.perf_counter()
-            p.build()
-            return p, time.perf_counter() - t0
+    def build(cp):
+        p = make_planner("neural-psprm-line", scene, [target], robot=robot, device=str(cp.device),
+                         options={"roadmap.n_nodes": nodes, "seed": seed}, compute=cp)
+        t0 = time.perf_counter()
+        p.build()
+        return p, time.perf_counter() - t0
 
-    ref, ref_build = build("cpu", contextlib.nullcontext)
-    dut, dut_build = build(device, guard)
+    ref, ref_build = build(Compute.make("cpu"))
+    dut, dut_build = build(compute)
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     probs = random_problems(robot, scene, checker, queries, np.random.default_rng(seed + 1),
                             robot.default_configuration(), scene.target(target).center, aimed_only=True,
                             aim_restarts=8)
-    out = {"queries": len(probs), "queries_solved": 0, "path_collisions_pybullet": 0, "path_goal_error_max": 0.0,
+    out = {"backend": {"cpu_reference": type(ref.ctx.backend).__name__, "device": type(dut.ctx.backend).__name__},
+           "queries": len(probs), "queries_solved": 0, "path_collisions_pybullet": 0, "path_goal_error_max": 0.0,
            "build_s": {"cpu_reference": ref_build, "device": dut_build}}
     q_ms = {"cpu_reference": [], "device": []}
     cost_diff = []
@@ -144,19 +143,17 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
 
     for a, b in probs:
         r_ref = ref.plan(a, b, timing=False)
-        with guard():
-            t0 = time.perf_counter()
-            r_dut = dut.plan(a, b, timing=False)
-            q_ms["device"].append((time.perf_counter() - t0) * 1e3)
+        t0 = time.perf_counter()
+        r_dut = dut.plan(a, b, timing=False)
+        q_ms["device"].append((time.perf_counter() - t0) * 1e3)
         q_ms["cpu_reference"].append(r_ref.query_ms)
         if r_dut.success:
             out["queries_solved"] += 1
             judge(r_dut, b)
             if r_ref.success:
                 cost_diff.append(abs(r_dut.path_length - r_ref.path_length) / max(r_ref.path_length, 1e-9))
-    with guard():
-        nq = torch.as_tensor(dut.graph.configs[:500], dtype=torch.float32)
-        s_dut = dut.score_configs(nq.to(dut.device)).double().cpu().numpy()
+    nq = torch.as_tensor(dut.graph.configs[:500], dtype=torch.float32)
+    s_dut = dut.score_configs(nq.to(dut.device)).double().cpu().numpy()
     s_ref = ref.score_configs(nq).double().cpu().numpy()
     out["node_score_max_abs_difference"] = float(np.abs(s_dut - s_ref).max())
     out["query_ms_median"] = {k: float(np.median(v)) for k, v in q_ms.items()}
@@ -170,21 +167,20 @@ def _planning(device, guard, scene, robot, target, nodes, queries, replans, seed
     yaws = rng.uniform(-1.0, 1.0, replans)
     r_ms = {"cpu_reference": [], "device": []}
     out.update(replans=replans, replans_solved=0)
-    for name, planner, ctx in (("cpu_reference", ref, contextlib.nullcontext), ("device", dut, guard)):
-        with ctx():
-            rp = Replanner(planner, ReplanSettings(), targets=[target])
-            rp.set_robot_state(start)
-            rp.set_goals(goals)
-            rp.replan()
-            for yaw in yaws:
-                quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-                t0 = time.perf_counter()
-                rp.update_target(target, tgt.center, quat)
-                res = rp.replan()
-                r_ms[name].append((time.perf_counter() - t0) * 1e3)
-                if name == "device" and res.success:
-                    out["replans_solved"] += 1
-                    judge(res, goals)
+    for name, planner in (("cpu_reference", ref), ("device", dut)):
+        rp = Replanner(planner, ReplanSettings(), targets=[target])
+        rp.set_robot_state(start)
+        rp.set_goals(goals)
+        rp.replan()
+        for yaw in yaws:
+            quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+            t0 = time.perf_counter()
+            rp.update_target(target, tgt.center, quat)
+            res = rp.replan()
+            r_ms[name].append((time.perf_counter() - t0) * 1e3)
+            if name == "device" and res.success:
+                out["replans_solved"] += 1
+                judge(res, goals)
     out["replan_ms_median"] = {k: float(np.median(v)) for k, v in r_ms.items()}
     return out
 

@@ -24,7 +24,7 @@ def body_fk_comparison(robot_name: str, scene_name: str, n: int = 10000, seed: i
     FK; the largest body position / rotation differences from pybullet (float64, on those configurations) and the
     number of configurations whose collision flags differ between the two checkers."""
     from ..collision import CollisionChecker
-    from ..kernels import fastpath
+    from ..kernels.compute import Compute
     from ..paths import resolve_named
     from ..robot import RobotModel
     from ..robot.kinematics_pk import PKBodyKinematics
@@ -40,12 +40,12 @@ def body_fk_comparison(robot_name: str, scene_name: str, n: int = 10000, seed: i
     pk32 = PKBodyKinematics(robot, dtype=torch.float32)
     t_native = best_time(lambda: robot.body_poses(q32))
     t_pk = best_time(lambda: pk32.body_poses(q32))
-    native = CollisionChecker(robot, boxes, workspace=None)
-    with_pk = CollisionChecker(robot, boxes, workspace=None, kinematics=pk32)
-    with fastpath.disabled():  # the torch path at any batch size
-        t_col_native = best_time(lambda: native.check(q32))
-        t_col_pk = best_time(lambda: with_pk.check(q32))
-        flags_native, flags_pk = native.check(q32).numpy(), with_pk.check(q32).numpy()
+    torch_only = Compute.make("cpu", kernels="torch")  # the torch path at any batch size
+    native = CollisionChecker(robot, boxes, workspace=None, compute=torch_only)
+    with_pk = CollisionChecker(robot, boxes, workspace=None, kinematics=pk32, compute=torch_only)
+    t_col_native = best_time(lambda: native.check(q32))
+    t_col_pk = best_time(lambda: with_pk.check(q32))
+    flags_native, flags_pk = native.check(q32).numpy(), with_pk.check(q32).numpy()
     world = PybulletWorld(robot, boxes)
     try:
         t0 = time.perf_counter()

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from .fastpath import MLP_MAX_ROWS, as_f64, as_i64, const_f64, kernels, solver_pack
+from .fastpath import as_f64, as_i64, const_f64, kernels, solver_pack
 
 
 def _edge_opts(motion, n_interp: int, track: bool, r32: bool, resolution: float = 0.0, max_steps: int = 0,
@@ -65,30 +65,31 @@ def check_score_knots(motion, checker, robot, scorer_args: tuple, knots: torch.T
     (E,) of their knots (E, M, dof) and dense pieces (where ``do_check``), and for the free ones (where
     ``do_score``) the camera poses (E, N + 2, 4, 4) of their Eq. 1 points and the raw scores (E, N + 2) of the
     neural scorer (``scorer_args`` from :func:`neural_args`; the MLP in chunks of whole edges within
-    :data:`MLP_MAX_ROWS` views). Free flags are True for rows not checked."""
+    ``mlp_max_rows`` views of the motion's Compute). Free flags are True for rows not checked."""
     n = interior.shape[1]
     free, cams, raw = kernels().check_score_knots(
         as_f64(knots), as_i64(interior),
         (np.ascontiguousarray(do_check, dtype=np.bool_), np.ascontiguousarray(do_score, dtype=np.bool_)),
-        _edge_opts(motion, n, False, knots.dtype == torch.float32, resolution, max_steps, _mlp_rows(n + 2)),
+        _edge_opts(motion, n, False, knots.dtype == torch.float32, resolution, max_steps,
+                   _mlp_rows(n + 2, motion.compute.mlp_max_rows)),
         robot.kernel_pack, checker.kernel_pack(), scorer_args)
     return free, torch.from_numpy(cams).to(knots.dtype), torch.from_numpy(raw)
 
 
-def _mlp_rows(n_eq1: int) -> int:
-    """Views per compiled MLP call when scoring edges: whole edges of ``n_eq1`` Eq. 1 points, within
-    :data:`MLP_MAX_ROWS` (the rows the compiled scorer takes per call)."""
-    return max(1, MLP_MAX_ROWS // n_eq1) * n_eq1
+def _mlp_rows(n_eq1: int, max_rows: int) -> int:
+    """Views per compiled MLP call when scoring edges: whole edges of ``n_eq1`` Eq. 1 points, within ``max_rows``
+    (the rows the compiled scorer takes per call, :attr:`Compute.mlp_max_rows`)."""
+    return max(1, max_rows // n_eq1) * n_eq1
 
 
 def neural_config_scores(robot, scorer_args: tuple, q: torch.Tensor | np.ndarray) -> torch.Tensor | np.ndarray:
     """Raw neural scores (B,) of configurations q (B, dof), in one compiled call
     (``scorer.score(robot.camera_poses(q))`` of a single-target neural scorer, ``scorer_args`` from
-    :func:`neural_args`), in the dtype of ``q`` (a tensor, or a numpy array for numpy input); at most
-    :data:`MLP_MAX_ROWS` rows (the compiled MLP's, as the step-by-step path)."""
+    :func:`neural_args`), in the dtype of ``q`` (a tensor, or a numpy array for numpy input); at most the robot's
+    ``compute.mlp_max_rows`` rows (the compiled MLP's, as the step-by-step path)."""
     is_np = isinstance(q, np.ndarray)
     f32 = q.dtype == np.float32 if is_np else q.dtype == torch.float32
-    _, sc = kernels().neural_scores(as_f64(q), bool(f32), MLP_MAX_ROWS, robot.kernel_pack, scorer_args)
+    _, sc = kernels().neural_scores(as_f64(q), bool(f32), robot.compute.mlp_max_rows, robot.kernel_pack, scorer_args)
     return sc.astype(q.dtype, copy=False) if is_np else torch.from_numpy(sc).to(q.dtype)
 
 
@@ -106,7 +107,7 @@ def verify_edges(motion, constraint, checker, scorer_args: tuple, store_k: np.nd
     free, cams, raw = kernels().verify_edges(
         (store_k, store_i), ids, (compute, qa, qb, flip), (do_check, do_score),
         _edge_opts(motion, n_interp, track and len(cols), dtype == torch.float32, resolution, max_steps,
-                   _mlp_rows(n_interp + 2)),
+                   _mlp_rows(n_interp + 2, motion.compute.mlp_max_rows)),
         checker.robot.kernel_pack, checker.kernel_pack(), constraint.kernel_pack(dtype),
         solver_pack(settings, lo, hi, cols, max_iters), scorer_args)
     return free, cams.astype(store_k.dtype, copy=False), raw

@@ -21,17 +21,19 @@ built (and kept) by that object's class: ``RobotModel.kernel_pack``, ``Collision
 the options of the fused calls of a query's edges.
 
 The domain methods name their twin with the :func:`twin` decorator, the one place a call is routed; the methods
-themselves hold only the torch code. The twins serve CPU tensors outside autograd (:func:`applies`): batches of at most
-:data:`MAX_BATCH` rows (the metric up to :data:`MOTION_MAX_BATCH`) everywhere, and batches of any size inside
-:func:`bulk`, which the planner's large-batch methods enter (build, re-scoring, invalidation near moved obstacles,
-repair growth): their rows are split into chunks run on a small thread pool (the kernels release the GIL). At that size
-the kernels are 3-8x faster than torch's batched operators on 2 cores (collision checks, projection, knot tracking, ray
-casting), mostly because torch materialises (rows x spheres x boxes) intermediates where a kernel stops a row at its
-first hit; camera FK alone is about as fast in torch, and the surrogate's GEMMs stay in torch. CUDA tensors keep the
-torch path. Nothing is compiled at import: numba compiles a kernel on its first call (cached on disk with
-``cache=True``); ``PSPRM.warm_up`` loads them before the build. Without numba (:func:`available` false) every call takes
-the torch path. :func:`disabled` turns the fast paths off in a block (tests compare both). Queries run with torch's
-intra-op parallelism off (:func:`one_thread`).
+themselves hold only the torch code. Whether a call goes to its twin is decided by the object's
+:class:`~psprm_core.kernels.compute.Compute` (``obj.compute``), a value the object was built with: compiled kernels
+chosen, a CPU tensor outside autograd, at most ``max_batch`` rows (the metric up to ``motion_max_batch``), or any
+size inside :func:`~psprm_core.kernels.compute.bulk`, which the planner's large-batch methods enter (build,
+re-scoring, invalidation near moved obstacles, repair growth): their rows are split into chunks run on a small thread
+pool (the kernels release the GIL). At that size the kernels are 3-8x faster than torch's batched operators on 2
+cores (collision checks, projection, knot tracking, ray casting), mostly because torch materialises (rows x spheres x
+boxes) intermediates where a kernel stops a row at its first hit; camera FK alone is about as fast in torch, and the
+surrogate's GEMMs stay in torch. CUDA tensors keep the torch path. Nothing is compiled at import: numba compiles a
+kernel on its first call (cached on disk with ``cache=True``); ``PSPRM.warm_up`` loads them before the build.
+Without numba (:func:`available` false) ``Compute.make`` chooses torch. An object built with a torch-only
+``Compute`` (``obj.using(compute.torch_only())``) runs the torch code at every size (tests compare both). Queries
+run with torch's intra-op parallelism off (:func:`one_thread`).
 """
 
 from __future__ import annotations
@@ -47,27 +49,9 @@ import torch
 
 log = logging.getLogger(__name__)
 
-MAX_BATCH = 1024  # rows up to which a CPU call uses the compiled kernels
-MLP_MAX_ROWS = 32  # views up to which the surrogate MLP runs compiled (torch's multi-threaded GEMM beyond)
-BULK_CHUNK = 2048  # rows per chunk of a bulk call (:func:`bulk`)
-_state = {"enabled": True, "bulk": 0}
+from .compute import Compute, bulk_workers, numba_importable
 
-
-@functools.lru_cache(maxsize=1)
-def numba_importable() -> bool:
-    """Whether numba can be imported (checked once, with one warning if not). Both the compiled small-batch paths
-    (:func:`available`) and the compiled roadmap searches (:mod:`psprm_core.planning.search.search_kernels`) need it."""
-    try:
-        import numba  # noqa: F401
-    except Exception as exc:  # pragma: no cover - numba is a pinned requirement
-        log.warning("numba unavailable (%s): small batches use the torch path, graph searches the Python loops", exc)
-        return False
-    return True
-
-
-def available() -> bool:
-    """Whether the compiled small-batch paths can run (otherwise every call takes the torch path)."""
-    return numba_importable()
+log = logging.getLogger(__name__)
 
 
 @functools.lru_cache(maxsize=1)
@@ -78,28 +62,9 @@ def kernels() -> Any:
     return _fast_numba
 
 
-@contextlib.contextmanager
-def disabled() -> Iterator[None]:
-    """Run a block with the fast paths off (the torch path everywhere)."""
-    old = _state["enabled"]
-    _state["enabled"] = False
-    try:
-        yield
-    finally:
-        _state["enabled"] = old
-
-
-@contextlib.contextmanager
-def bulk(workers: int | None = None) -> Iterator[None]:
-    """Run a block in which CPU batches of any size take the compiled kernels, their rows split into chunks of at
-    least :data:`BULK_CHUNK` over ``workers`` threads (default ``torch.get_num_threads()``). Has no effect inside
-    :func:`disabled` or without numba. The results are those of the small-batch path (row by row, float64)."""
-    old = _state["bulk"]
-    _state["bulk"] = max(1, int(torch.get_num_threads() if workers is None else workers))
-    try:
-        yield
-    finally:
-        _state["bulk"] = old
+def available() -> bool:
+    """Whether the compiled kernels can run here (numba importable); a :class:`Compute` chooses them per object."""
+    return numba_importable()
 
 
 @contextlib.contextmanager
@@ -122,34 +87,15 @@ def one_thread(device: torch.device | str = "cpu") -> Iterator[None]:
         torch.set_num_threads(n)
 
 
-def enabled() -> bool:
-    """Whether the compiled paths are on (numba importable, not switched off with :func:`disabled`)."""
-    return _state["enabled"] and available()
-
-
-def fits(rows: int, max_batch: int = MAX_BATCH) -> bool:
-    """Whether a call over ``rows`` rows is small enough for the compiled path (any size inside :func:`bulk`)."""
-    return 0 < rows and (rows <= max_batch or _state["bulk"] > 0)
-
-
-def applies(x: torch.Tensor, max_batch: int = MAX_BATCH, bulk: bool = True) -> bool:
-    """Whether a batch ``x`` (B, ...) takes the compiled path: a CPU tensor of 1..max_batch rows (any number inside
-    :func:`bulk`, unless ``bulk`` is false: callers whose torch path is faster on large batches) that needs no
-    gradient, fast paths enabled, numba available."""
-    return (_state["enabled"] and x.device.type == "cpu"
-            and (fits(x.shape[0], max_batch) if bulk else 0 < x.shape[0] <= max_batch)
-            and not (x.requires_grad and torch.is_grad_enabled()) and available())
-
-
 def twin(compiled: Callable, when: Callable | None = None) -> Callable:
     """Decorator of a domain method (robot FK, the projection, collision checks, ray casting, the motion metric): the
     one seam where a call goes to its compiled twin. The decorated body is the torch implementation (any device,
     any batch); ``compiled(obj, *args, **kw)`` runs instead when ``when(obj, *args, **kw)`` holds, by default when
-    the first argument is a batch :func:`applies` to. ``method.torch`` is the torch body alone and
+    the object's ``compute`` takes the first argument (:meth:`Compute.takes`). ``method.torch`` is the torch body alone and
     ``method.compiled`` the twin (the equivalence tests call both)."""
 
     def decorate(method: Callable) -> Callable:
-        test = when if when is not None else (lambda obj, x, *a, **k: applies(x))
+        test = when if when is not None else (lambda obj, x, *a, **k: obj.compute.takes(x))
 
         @functools.wraps(method)
         def dispatch(obj, *args, **kw):
@@ -164,25 +110,27 @@ def twin(compiled: Callable, when: Callable | None = None) -> Callable:
 
 
 def on_cpu_applies(obj, x: torch.Tensor, *args, **kw) -> bool:
-    """:func:`applies` for the methods of an object that keeps its tensors on ``obj.device``: only a CPU one."""
-    return obj.device.type == "cpu" and applies(x)
+    """:meth:`Compute.takes` for the methods of an object that keeps its tensors on ``obj.device``: only a CPU one."""
+    return obj.device.type == "cpu" and obj.compute.takes(x)
 
 
 @functools.lru_cache(maxsize=4)
-def _pool(workers: int) -> ThreadPoolExecutor:
-    """The worker threads of :func:`bulk` calls (created on first use, one pool per worker count)."""
+def pool(workers: int) -> ThreadPoolExecutor:
+    """The worker threads of bulk calls (:func:`~psprm_core.kernels.compute.bulk`; created on first use, one pool
+    per worker count)."""
     return ThreadPoolExecutor(workers, thread_name_prefix="psprm-fastpath")
 
 
-def _rows(kernel, n_row_args: int, *args):
+def _rows(compute: Compute, kernel, n_row_args: int, *args):
     """``kernel(*args)``, whose first ``n_row_args`` arguments are per-row arrays and whose results are per-row
-    arrays (or a tuple of them): inside :func:`bulk`, split into row chunks run on the worker threads."""
-    n, w = args[0].shape[0], _state["bulk"]
-    if w < 2 or n < 2 * BULK_CHUNK:
+    arrays (or a tuple of them): inside a bulk block, split into chunks of at least ``compute.bulk_chunk`` rows run
+    on the worker threads."""
+    n, w, chunk = args[0].shape[0], bulk_workers(), compute.bulk_chunk
+    if w < 2 or n < 2 * chunk:
         return kernel(*args)
-    step = max(BULK_CHUNK, -(-n // (4 * w)))
+    step = max(chunk, -(-n // (4 * w)))
     rest = args[n_row_args:]
-    parts = list(_pool(w).map(lambda i: kernel(*(a[i:i + step] for a in args[:n_row_args]), *rest),
+    parts = list(pool(w).map(lambda i: kernel(*(a[i:i + step] for a in args[:n_row_args]), *rest),
                               range(0, n, step)))
     if isinstance(parts[0], tuple):
         return tuple(np.concatenate(p) for p in zip(*parts))
@@ -220,12 +168,12 @@ def as_i64(x) -> np.ndarray:
 def camera_applies(robot, q: torch.Tensor, body_poses=None) -> bool:
     """When :meth:`RobotModel.camera_poses` runs compiled: configurations (B, dof) given (no body poses), a batch
     :func:`applies` to."""
-    return body_poses is None and q.dim() == 2 and q.shape[1] == robot.dof and applies(q)
+    return body_poses is None and q.dim() == 2 and q.shape[1] == robot.dof and robot.compute.takes(q)
 
 
 def camera_poses(robot, q: torch.Tensor, body_poses=None) -> torch.Tensor:
     """Camera optical-frame poses (B, 4, 4) of ``q`` (B, dof), as :meth:`RobotModel.camera_poses`."""
-    out = _rows(kernels().camera_poses, 1, as_f64(q), robot.kernel_pack)
+    out = _rows(robot.compute, kernels().camera_poses, 1, as_f64(q), robot.kernel_pack)
     return torch.from_numpy(out).to(q.dtype)
 
 
@@ -233,14 +181,14 @@ def camera_poses(robot, q: torch.Tensor, body_poses=None) -> torch.Tensor:
 def project_applies(constraint, q: torch.Tensor, *args) -> bool:
     """When the Gauss-Newton iteration of :meth:`VisibilityConstraint.project` runs compiled: the robot model's own
     kinematics (not e.g. pytorch-kinematics), a batch :func:`applies` to."""
-    return constraint.kin is constraint.robot and applies(q)
+    return constraint.kin is constraint.robot and constraint.compute.takes(q)
 
 
 def project(constraint, q: torch.Tensor, settings, lo: torch.Tensor, hi: torch.Tensor,
             cols: torch.Tensor | np.ndarray) -> tuple:
     """:meth:`VisibilityConstraint.project` of ``q`` (B, dof) over the joints ``cols``: (projected q, converged)."""
     cols = cols.cpu().numpy() if isinstance(cols, torch.Tensor) else np.asarray(cols)
-    qn, err = _rows(kernels().project, 1, as_f64(q), constraint.robot.kernel_pack, constraint.kernel_pack(q.dtype),
+    qn, err = _rows(constraint.compute, kernels().project, 1, as_f64(q), constraint.robot.kernel_pack, constraint.kernel_pack(q.dtype),
                     solver_pack(settings, lo, hi, cols, settings.max_iters))
     return torch.from_numpy(qn).to(q.dtype), torch.from_numpy(err < settings.tolerance)
 
@@ -287,7 +235,7 @@ def check(checker, q: torch.Tensor | np.ndarray, detailed: bool = False) -> np.n
         q64 = as_f64(q.astype(np.float32) if checker.dtype == torch.float32 else q)  # rounded as the checker's dtype
     else:
         q64 = as_f64(q.to(checker.dtype))
-    return _rows(kernels().check, 1, q64, bool(detailed), checker.robot.kernel_pack, checker.kernel_pack())
+    return _rows(checker.compute, kernels().check, 1, q64, bool(detailed), checker.robot.kernel_pack, checker.kernel_pack())
 
 
 def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
@@ -300,7 +248,7 @@ def env_hits(checker, q: torch.Tensor, boxes, want_aabb: bool) -> tuple:
         box = BoxPack(np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3)), np.zeros((0, 6)))
     else:
         box = boxes.kernel_pack()
-    return _rows(kernels().env_hits, 1, as_f64(q.to(checker.dtype)), bool(want_aabb), checker.robot.kernel_pack,
+    return _rows(checker.compute, kernels().env_hits, 1, as_f64(q.to(checker.dtype)), bool(want_aabb), checker.robot.kernel_pack,
                  checker.kernel_pack()._replace(boxes=box))
 
 
@@ -310,7 +258,7 @@ def occlusion_scores(occ, pos: torch.Tensor) -> torch.Tensor:
     pack = occ.kernel_pack()
     if len(pack.c) == 0 or pack.pts_local.shape[0] == 0:
         return torch.zeros(pos.shape[0], dtype=pos.dtype)
-    out = _rows(kernels().occlusion, 1, as_f64(pos), pack)
+    out = _rows(occ.compute, kernels().occlusion, 1, as_f64(pos), pack)
     return torch.from_numpy(out).to(pos.dtype)
 
 
@@ -321,7 +269,7 @@ def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
     (a query scores 2-14 views per call: 35-550 us, and no thread-pool hand-off that stalls on a busy machine),
     above that torch's GEMM (numpy's is 5x slower at this shape)."""
     layers, compiled = model.kernel_layers(cls)
-    if compiled is not None and feats.shape[0] <= MLP_MAX_ROWS:  # single-threaded, no per-layer dispatch
+    if compiled is not None and feats.shape[0] <= model.compute.mlp_max_rows:  # single-threaded, no per-layer dispatch
         return torch.from_numpy(kernels().mlp(feats.numpy().astype(np.float32), compiled))
     h = feats.to(layers[0][0].dtype)
     with torch.no_grad():
@@ -335,7 +283,7 @@ def surrogate_scores(model, feats: torch.Tensor, cls: int) -> torch.Tensor:
 def surrogate_applies(model, cam: torch.Tensor, target_pose, class_name, chunk_size=None) -> bool:
     """When :meth:`PerceptionSurrogate.predict` runs compiled: camera poses (B, 4, 4) of one target pose (4, 4) and
     one class, a model on the CPU, at most :data:`MAX_BATCH` rows (torch's GEMMs are faster beyond, even in bulk)."""
-    if not (cam.shape[-2:] == (4, 4) and model.device.type == "cpu" and applies(cam, bulk=False)
+    if not (cam.shape[-2:] == (4, 4) and model.device.type == "cpu" and model.compute.takes(cam, bulk_ok=False)
             and isinstance(target_pose, (torch.Tensor, np.ndarray)) and tuple(target_pose.shape) == (4, 4)):
         return False
     return _one_class(model, class_name) is not None
@@ -344,7 +292,8 @@ def surrogate_applies(model, cam: torch.Tensor, target_pose, class_name, chunk_s
 def surrogate_pose_scores(model, cam: torch.Tensor, target_pose, class_name, chunk_size=None) -> torch.Tensor:
     """:meth:`PerceptionSurrogate.predict` of camera poses (B, 4, 4), one target pose and one class: numpy features
     and the compiled MLP."""
-    return surrogate_scores(model, pose_features(cam, target_pose, model.derived), _one_class(model, class_name))
+    feats = pose_features(model.compute, cam, target_pose, model.derived)
+    return surrogate_scores(model, feats, _one_class(model, class_name))
 
 
 def _one_class(model, class_name) -> int | None:
@@ -357,36 +306,33 @@ def _one_class(model, class_name) -> int | None:
     return None
 
 
-def pose_features(cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
+def pose_features(compute: Compute, cam: torch.Tensor, target_pose, derived: bool) -> torch.Tensor:
     """The surrogate's pose features (B, 9 or 14) of camera poses (B, 4, 4) and one target pose (4, 4)
     (:func:`~psprm_core.perception.surrogate.relative_pose_features` and ``derived_features``), compiled."""
-    return torch.from_numpy(_rows(kernels().pose_features, 1, as_f64(cam), as_f64(target_pose), bool(derived)))
+    return torch.from_numpy(_rows(compute, kernels().pose_features, 1, as_f64(cam), as_f64(target_pose), bool(derived)))
 
 
 # ---------------------------------------------------------------------------------------------- motion
-MOTION_MAX_BATCH = 1 << 16  # the metric is cheaper compiled at any size (a query ranks every roadmap node with it)
-
-
-def motion_applies(qa: torch.Tensor, qb: torch.Tensor) -> bool:
-    """Whether a pair of batches (E, dof) takes the compiled motion kernels (same shape, see :func:`applies`)."""
-    return qa.dim() == 2 and qa.shape == qb.shape and qa.dtype == qb.dtype and qb.device.type == "cpu" and \
-        not (qb.requires_grad and torch.is_grad_enabled()) and applies(qa, MOTION_MAX_BATCH)
+def distance_applies(motion, qa: torch.Tensor, qb: torch.Tensor) -> bool:
+    """When :meth:`DiffDriveMotion.distance` runs compiled: a pair of same-shape batches (:meth:`Compute.pair_takes`;
+    the metric is cheaper compiled at any size, a query ranks every roadmap node with it)."""
+    return motion.compute.pair_takes(qa, qb)
 
 
 def interpolate_applies(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> bool:
-    """When :meth:`DiffDriveMotion.interpolate` runs compiled: one fraction per pair (:func:`motion_applies`)."""
-    return motion_applies(qa, qb) and s.shape == qa.shape[:1] and applies(s.unsqueeze(-1))
+    """When :meth:`DiffDriveMotion.interpolate` runs compiled: one fraction per pair (:meth:`Compute.pair_takes`)."""
+    return motion.compute.pair_takes(qa, qb) and s.shape == qa.shape[:1] and motion.compute.takes(s.unsqueeze(-1))
 
 
 def motion_distance(motion, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
     """:meth:`DiffDriveMotion.distance` of same-shape CPU batches."""
-    out = _rows(kernels().distance, 2, as_f64(qa), as_f64(qb), float(motion.w_rot), bool(motion.mobile))
+    out = _rows(motion.compute, kernels().distance, 2, as_f64(qa), as_f64(qb), float(motion.w_rot), bool(motion.mobile))
     return torch.from_numpy(out).to(qa.dtype)
 
 
 def motion_interpolate(motion, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
     """:meth:`DiffDriveMotion.interpolate` of same-shape CPU batches."""
-    out = _rows(kernels().interpolate, 3, as_f64(qa), as_f64(qb), as_f64(s).reshape(-1), float(motion.w_rot),
+    out = _rows(motion.compute, kernels().interpolate, 3, as_f64(qa), as_f64(qb), as_f64(s).reshape(-1), float(motion.w_rot),
                 bool(motion.mobile))
     return torch.from_numpy(out).to(qa.dtype)
 
@@ -410,6 +356,6 @@ def nearest(motion, qq: torch.Tensor, rm: torch.Tensor | np.ndarray, k: int) -> 
 def edge_knot_seeds(motion, qa: torch.Tensor, qb: torch.Tensor, n_interp: int) -> tuple:
     """Knots (E, M, dof) of the local motions qa -> qb before the camera joints re-aim, and the positions (E, N) of
     the Eq. 1 samples among them (the first half of ``PSPRM.edge_knots``)."""
-    kn, ki = _rows(kernels().edge_knot_seeds, 2, as_f64(qa), as_f64(qb), int(n_interp), float(motion.w_rot),
+    kn, ki = _rows(motion.compute, kernels().edge_knot_seeds, 2, as_f64(qa), as_f64(qb), int(n_interp), float(motion.w_rot),
                    bool(motion.mobile))
     return torch.from_numpy(kn).to(qa.dtype), torch.from_numpy(ki)

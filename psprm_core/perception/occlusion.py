@@ -50,6 +50,7 @@ from ..errors import InputError
 from ..geometry import EPS_DIR as _EPS_DIR
 from ..geometry import quat_to_matrix
 from ..kernels import fastpath
+from ..kernels.compute import Computing
 from ..scene import Box, Scene, Target
 
 log = logging.getLogger(__name__)
@@ -362,7 +363,7 @@ def zero_occluded(scores: torch.Tensor, occ_scores: torch.Tensor, tau: float = D
 # ------------------------------------------------------------------------------------------------------------------
 # Convenience wrapper
 # ------------------------------------------------------------------------------------------------------------------
-class OcclusionChecker:
+class OcclusionChecker(Computing):
     """Occluders and target sample points for one target; scores batches of camera poses (Alg. 2, lines 5-7).
 
     Parameters

@@ -13,6 +13,7 @@ planner obtains camera poses from batched FK.
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from typing import Sequence
@@ -45,6 +46,25 @@ class Scorer:
     def set_scene(self, scene: Scene) -> None:
         """Update target/obstacle poses (default: rebuild nothing)."""
         self.scene = scene
+
+    _compute = None  # the Compute given to :meth:`using` (None: each part keeps its own)
+
+    def using(self, compute) -> "Scorer":
+        """A copy of this scorer whose batched parts (the surrogate, the occlusion checker, the scorers it combines)
+        compute with ``compute`` (:class:`~psprm_core.kernels.compute.Compute`); this scorer unchanged."""
+        out = copy.copy(self)
+        out._compute = compute
+        for name in ("model", "occ"):
+            part = getattr(self, name, None)
+            if hasattr(part, "using"):
+                setattr(out, name, part.using(compute))
+        if isinstance(getattr(self, "scorers", None), list):
+            out.scorers = [s.using(compute) for s in self.scorers]
+        return out
+
+    def _computing(self, part):
+        """``part`` (an occlusion checker built by :meth:`set_scene`) following the scorer's Compute, if given."""
+        return part if part is None or self._compute is None else part.using(self._compute)
 
 
 def _target_pose(scene: Scene, name: str) -> np.ndarray:
@@ -82,7 +102,7 @@ class GeometricScorer(Scorer):
         t = scene.target(self.target_name)
         self.center = torch.as_tensor(t.center, dtype=torch.float64)
         self.facing = torch.as_tensor(t.facing, dtype=torch.float64)
-        self.occ = OcclusionChecker.from_scene(scene, self.target_name) if self.occlusion else None
+        self.occ = self._computing(OcclusionChecker.from_scene(scene, self.target_name) if self.occlusion else None)
 
     def score(self, cameras: torch.Tensor) -> torch.Tensor:
         dt = cameras.dtype
@@ -153,7 +173,8 @@ class NeuralScorer(Scorer):
         self.class_name = t.detector_class
         self.model.class_index(self.class_name)  # raises a clear error for classes the model was not trained on
         self.target_pose = torch.as_tensor(_target_pose(scene, self.target_name))
-        self.occ = OcclusionChecker.from_scene(scene, self.target_name, tau=self.tau) if self.occlusion else None
+        self.occ = self._computing(OcclusionChecker.from_scene(scene, self.target_name, tau=self.tau)
+                                   if self.occlusion else None)
 
     def score(self, cameras: torch.Tensor) -> torch.Tensor:
         s = self.model.predict(cameras, self.target_pose.to(cameras.device, cameras.dtype), self.class_name)

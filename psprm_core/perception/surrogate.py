@@ -37,6 +37,7 @@ from torch import nn
 
 from ..errors import InputError, OutOfRangeError, UnknownNameError
 from ..kernels import fastpath
+from ..kernels.compute import Computing
 
 log = logging.getLogger(__name__)
 
@@ -153,7 +154,7 @@ def _plain(x: Any) -> Any:
     return repr(x)
 
 
-class PerceptionSurrogate(nn.Module):
+class PerceptionSurrogate(Computing, nn.Module):
     """MLP perception score surrogate (paper: 5 hidden layers x 256, ReLU, sigmoid output).
 
     Parameters

@@ -1,11 +1,12 @@
-"""Where the planner's batched stage operations run: one object per planner, chosen from its device.
+"""Where the planner's batched stage operations run: one object per planner, chosen from its
+:class:`~psprm_core.kernels.compute.Compute`.
 
-- :class:`TorchBackend`: every operation in torch on the planner's device and dtype (a GPU, or a CPU without
-  numba): the reference;
-- :class:`CompiledBackend` (a CPU with numba): the compiled kernels of :mod:`psprm_core.kernels.fastpath` for the batch
-  sizes they serve (a query's few edges in one fused call, the metric at any size, bulk rows inside
-  :func:`fastpath.bulk`), the torch code otherwise. The kernels give the torch results (``tests/test_fastpath.py``);
-  :func:`fastpath.disabled` turns them off at run time, which sends every call back to the torch code.
+- :class:`TorchBackend`: every operation in torch on the planner's device and dtype (a GPU, a CPU without numba, or a
+  ``Compute`` with ``kernels="torch"``): the reference;
+- :class:`CompiledBackend` (``kernels="numba"``): the compiled kernels of :mod:`psprm_core.kernels.fastpath` for the
+  batch sizes the ``Compute`` lets them serve (a query's few edges in one fused call, the metric at any size, bulk
+  rows inside :func:`~psprm_core.kernels.compute.bulk`), the torch code otherwise. The kernels give the torch results
+  (``tests/test_fastpath.py``).
 
 The stages call these verbs and never test the device themselves. The domain objects the planner shares with the
 baselines (robot FK, collision checker, motion metric, visibility constraint) choose their own compiled paths in the
@@ -24,8 +25,9 @@ from ..kernels import edges, fastpath
 
 
 def backend_for(ctx) -> "TorchBackend":
-    """The backend of a planner's :class:`~.state.PlannerContext` (compiled on a CPU with numba, else torch)."""
-    if ctx.device.type == "cpu" and fastpath.available():
+    """The backend of a planner's :class:`~.state.PlannerContext`: compiled when its ``Compute`` chose the numba
+    kernels, else torch."""
+    if ctx.compute.compiled:
         return CompiledBackend(ctx)
     return TorchBackend(ctx)
 
@@ -131,28 +133,25 @@ class TorchBackend:
 class CompiledBackend(TorchBackend):
     """The compiled CPU kernels for the batches they serve; the torch code otherwise."""
 
-    @property
-    def compiled(self) -> bool:
-        """Whether the kernels can run (numba importable)."""
-        return fastpath.available()
+    compiled = True
 
     @property
     def fused(self) -> bool:
-        return fastpath.enabled()
+        return True
 
     def edge_knots(self, qa: torch.Tensor, qb: torch.Tensor, track: bool) -> tuple:
-        c = self.ctx
+        c, cp = self.ctx, self.ctx.compute
         E, n = qa.shape[0], c.settings.edges.n_interp
-        if fastpath.motion_applies(qa, qb) and E * (n + 4) <= fastpath.MAX_BATCH:  # a query's few edges: one call
+        if cp.pair_takes(qa, qb) and E * (n + 4) <= cp.max_batch:  # a query's few edges: one call
             return edges.query_knots(c.motion, c.constraint, qa, qb, n, track, c.settings.projection, c.lo, c.hi,
                                         c.track_cols, c.settings.edges.track_iters)
-        if fastpath.motion_applies(qa, qb) and fastpath.fits(E * (n + 4)):  # bulk: compiled, in row chunks
+        if cp.pair_takes(qa, qb) and cp.fits(E * (n + 4)):  # bulk: compiled, in row chunks
             knots, interior_idx = fastpath.edge_knot_seeds(c.motion, qa, qb, n)
             return (self.track_knots(knots) if track else knots), interior_idx
         return super().edge_knots(qa, qb, track)
 
     def motion_distance(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
-        if fastpath.enabled() and len(qa) <= fastpath.MOTION_MAX_BATCH:
+        if len(qa) <= self.ctx.compute.motion_max_batch:
             m = self.ctx.motion  # the compiled metric of DiffDriveMotion.distance, without the tensor round trip
             d = fastpath.kernels().distance(qa.astype(np.float64), qb.astype(np.float64), float(m.w_rot),
                                             bool(m.mobile))
@@ -160,13 +159,11 @@ class CompiledBackend(TorchBackend):
         return super().motion_distance(qa, qb)
 
     def pieces(self, a: torch.Tensor, b: torch.Tensor, max_steps: int, include_start: bool) -> tuple:
-        if fastpath.motion_applies(a, b):  # one compiled pass (same lengths, same points)
+        if self.ctx.compute.pair_takes(a, b):  # one compiled pass (same lengths, same points)
             return fastpath.pieces(self.ctx.motion, a, b, self.ctx.settings.edges.edge_resolution, max_steps, include_start)
         return super().pieces(a, b, max_steps, include_start)
 
     def dense_path(self, W: np.ndarray) -> tuple:
-        if not fastpath.enabled():
-            return super().dense_path(W)
         if len(W) < 2:
             return W, 0.0
         m, K = self.ctx.motion, fastpath.kernels()
@@ -175,20 +172,20 @@ class CompiledBackend(TorchBackend):
         return np.concatenate([pts, W[-1:]]), float(K.distance(W[:-1], W[1:], float(m.w_rot), bool(m.mobile)).sum())
 
     def nearest(self, qq: torch.Tensor, pool: torch.Tensor, k: int, pool_f64: Optional[Callable] = None):
-        if fastpath.motion_applies(qq, qq) and k > 0:
+        if self.ctx.compute.pair_takes(qq, qq) and k > 0:
             # one compiled pass that skips far nodes early
             return fastpath.nearest(self.ctx.motion, qq, pool if pool_f64 is None else pool_f64(), k)
         return super().nearest(qq, pool, k)
 
     def check_detailed(self, Q: np.ndarray) -> dict:
-        if fastpath.enabled() and len(Q) <= fastpath.MAX_BATCH:
+        if len(Q) <= self.ctx.compute.max_batch:
             f = fastpath.check(self.ctx.checker, Q, detailed=True)  # CollisionChecker.check_detailed, compiled
             return {"limits": f[:, 0], "environment": f[:, 1], "self": f[:, 2]}
         return super().check_detailed(Q)
 
     def few_scores(self, q, scorer_args: Callable) -> Optional[torch.Tensor]:
-        small = len(q) <= fastpath.MLP_MAX_ROWS
-        if not (small and (fastpath.enabled() if isinstance(q, np.ndarray) else fastpath.applies(q))):
+        cp = self.ctx.compute
+        if not (len(q) <= cp.mlp_max_rows and (isinstance(q, np.ndarray) or cp.takes(q))):
             return None
         args = scorer_args(self.ctx.dtype if isinstance(q, np.ndarray) else q.dtype)
         return None if args is None else edges.neural_config_scores(self.ctx.robot, args, q)

@@ -28,6 +28,7 @@ from ..camera import CameraIntrinsics
 from ..errors import InputError
 from ..geometry import wrap_angle
 from ..kernels import fastpath
+from ..kernels.compute import Compute, Computing
 from ..robot import RobotModel
 
 
@@ -56,7 +57,7 @@ class ProjectionSettings:
     max_step: float = 0.5  # max norm of one Newton step in configuration units
 
 
-class VisibilityConstraint:
+class VisibilityConstraint(Computing):
     """h_M(q) for one robot, camera model and target point; batched and device-following.
 
     Parameters
@@ -73,14 +74,17 @@ class VisibilityConstraint:
         Where the camera pose and its Jacobian come from: the robot model (default; small CPU batches then run the
         compiled iteration) or e.g. :class:`~psprm_core.robot.kinematics_pk.PKCameraKinematics` (always the torch
         iteration).
+    compute : Compute, optional
+        Which kernels serve the projection (default: the robot model's).
     """
 
     def __init__(self, robot: RobotModel, kind: str, target, margin: float = 0.0, min_distance: float | None = None,
-                 kinematics=None):
+                 kinematics=None, compute: Compute | None = None):
         if kind not in ("line", "frustum"):
             raise InputError(f"unknown visibility model '{kind}' (line or frustum)")
         self.robot = robot
         self.kin = robot if kinematics is None else kinematics
+        self._compute = robot.compute if compute is None else compute
         self.kind = kind
         self.intr: CameraIntrinsics = robot.config.intrinsics
         self.target = torch.as_tensor(target, dtype=torch.float64).reshape(3)

@@ -8,6 +8,7 @@ from typing import Any, Mapping, Optional, Sequence
 import numpy as np
 
 from ..errors import ConfigError, PsprmError
+from ..kernels.compute import Compute
 from ..paths import config_dir, project_root
 from ..robot import RobotModel
 from ..scene import Scene
@@ -71,12 +72,13 @@ def make_scorer(kind: str, scene: Scene, targets: Sequence[str], intrinsics, che
 def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Optional[RobotModel] = None,
                  settings: Optional[PSPRMSettings] = None, checkpoint: Optional[Path] = None,
                  multi_mode: str = "mean", device: str = "cpu", preset: str = "psprm",
-                 options: Optional[Mapping[str, Any]] = None) -> PSPRM:
+                 options: Optional[Mapping[str, Any]] = None, compute: Optional[Compute] = None) -> PSPRM:
     """A PS-PRM planner for ``variant`` (one of :data:`VARIANTS`), focused on the target(s)' centroid/midpoint.
     ``settings`` None: the preset ``preset`` (:func:`load_preset`) for the robot. ``options``: settings changed
     from those, by dotted path (``{"roadmap.n_nodes": 300, "scoring.alpha": 0.5}``; a None value keeps the
     setting; a field's bare name is refused with its dotted path). ``scoring.alpha`` left unset (by ``settings`` and
-    ``options``) is the variant's :func:`default_alpha` for the objective."""
+    ``options``) is the variant's :func:`default_alpha` for the objective. ``compute``: where and how the batches
+    run (:class:`~psprm_core.kernels.compute.Compute`; default the device's)."""
     if variant not in VARIANTS:
         raise PsprmError(f"unknown planner '{variant}' (choose from {', '.join(sorted(VARIANTS))})")
     constraint, kind = VARIANTS[variant]
@@ -91,7 +93,7 @@ def make_planner(variant: str, scene: Scene, targets: Sequence[str], robot: Opti
         "roadmap.biased_share": settings.roadmap.biased_share if kind != "oracle" else 0.0})
     scorer = make_scorer(kind, scene, targets, robot.config.intrinsics, checkpoint, multi_mode)
     focus = np.mean([scene.target(t).center for t in targets], axis=0)
-    planner = PSPRM(robot, scene, scorer, focus, settings, device=device)
+    planner = PSPRM(robot, scene, scorer, focus, settings, device=device, compute=compute)
     planner.targets = list(targets)
     return planner
 

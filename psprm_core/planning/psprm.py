@@ -30,6 +30,7 @@ import torch
 
 from ..collision import CollisionChecker
 from ..errors import ConfigError
+from ..kernels.compute import Compute, compute_for
 from ..motion import DiffDriveMotion
 from ..robot import RobotModel
 from ..scene import Scene
@@ -59,13 +60,25 @@ class PSPRM:
     checker : the collision checker to use (default: one for ``robot`` and the scene's boxes, whose torch path runs
         the body FK of :class:`~psprm_core.robot.kinematics_pk.PKBodyKinematics` under ``kinematics:
         pytorch_kinematics``).
+    compute : :class:`~psprm_core.kernels.compute.Compute`, optional
+        Which kernels serve the planner's batches (default: ``Compute.make(device, dtype)``, compiled on a CPU with
+        numba). Given, the robot model and the scorer are used through copies that follow it
+        (:meth:`~psprm_core.kernels.compute.Computing.using`); a checker given keeps its own.
     """
 
     def __init__(self, robot: RobotModel, scene: Scene, scorer, focus, settings: PSPRMSettings = PSPRMSettings(),
-                 device="cpu", checker: Optional[CollisionChecker] = None, dtype: torch.dtype = torch.float32):
+                 device="cpu", checker: Optional[CollisionChecker] = None, dtype: torch.dtype = torch.float32,
+                 compute: Optional[Compute] = None):
         settings = settings.resolved()
         settings.validate()
         device = torch.device(device)
+        if compute is None:
+            compute = compute_for(device, dtype)
+        else:
+            if compute.device != device:
+                raise ConfigError("compute", "device", f"{compute.device}, but the planner's device is {device}")
+            robot = robot.using(compute)
+            scorer = scorer.using(compute) if hasattr(scorer, "using") else scorer
         kin = body_kin = None
         if settings.visibility.kinematics == "pytorch_kinematics":
             from ..robot.kinematics_pk import PKBodyKinematics, PKCameraKinematics
@@ -74,16 +87,18 @@ class PSPRM:
             body_kin = None if checker is not None else PKBodyKinematics(robot, device=device, dtype=dtype)
         pad = settings.edges.collision_padding
         checker = checker or CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace, device=device,
-                                              dtype=dtype, kinematics=body_kin, padding=pad)
+                                              dtype=dtype, kinematics=body_kin, padding=pad, compute=compute)
         if checker.padding != pad:
             raise ConfigError("settings", "edges.collision_padding",
                               f"{pad} m, but the collision checker given keeps {checker.padding} m")
         constraint = VisibilityConstraint(robot, settings.visibility.constraint, focus, margin=settings.visibility.frustum_margin,
-                                          min_distance=settings.visibility.min_view_distance, kinematics=kin)
+                                          min_distance=settings.visibility.min_view_distance, kinematics=kin,
+                                          compute=compute)
         mask = camera_joint_mask(robot)
         mask[: robot.base_dof] = False
         ctx = PlannerContext(robot=robot, scene=scene, scorer=scorer, settings=settings, device=device, dtype=dtype,
-                             motion=DiffDriveMotion(robot), checker=checker, constraint=constraint,
+                             motion=DiffDriveMotion(robot, compute), checker=checker, constraint=constraint,
+                             compute=compute,
                              track_cols=np.nonzero(mask)[0])  # joints that re-aim the camera along an edge
         lo = ctx.t(np.where(np.isfinite(robot.lower), robot.lower, -1e9))
         hi = ctx.t(np.where(np.isfinite(robot.upper), robot.upper, 1e9))
@@ -99,6 +114,7 @@ class PSPRM:
     scorer = property(lambda self: self.ctx.scorer)
     settings = property(lambda self: self.ctx.settings, doc="The planner's settings (change them with reweight).")
     device = property(lambda self: self.ctx.device)
+    compute = property(lambda self: self.ctx.compute, doc="Where and how the planner's batches run.")
     dtype = property(lambda self: self.ctx.dtype)
     motion = property(lambda self: self.ctx.motion)
     checker = property(lambda self: self.ctx.checker)

@@ -22,7 +22,6 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..prediction import quat_yaw
 from .execution import progress_time
 from .psprm import PlanResult
@@ -122,8 +121,8 @@ class PlanJudging:
             for scene, parts in groups.values():
                 rows = np.concatenate([idx for idx, _ in parts])
                 p.set_scorer_scene(scene)
-                sc = torch.cat([p.score_configs(Qt[rows[i:i + fastpath.MLP_MAX_ROWS]]).double()
-                                for i in range(0, len(rows), fastpath.MLP_MAX_ROWS)])
+                step = p.compute.mlp_max_rows
+                sc = torch.cat([p.score_configs(Qt[rows[i:i + step]]).double() for i in range(0, len(rows), step)])
                 k = 0
                 for idx, w in parts:
                     out[idx] += w * sc[k:k + len(idx)]

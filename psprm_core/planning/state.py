@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from ..kernels import fastpath
+from ..kernels.compute import Compute, bulk
 
 if TYPE_CHECKING:  # the types of the context's fields (the modules import this one)
     from ..collision import CollisionChecker
@@ -43,7 +44,8 @@ class PlannerContext:
     """Robot, scene, scorer and settings of a planner, with the device and dtype of its batched work.
 
     ``track_cols``: the non-base joints that re-aim the camera along an edge; ``lo``/``hi``: joint limits as tensors
-    (the base's x, y within the scene's workspace); ``backend``: the :mod:`.backend` chosen for the device."""
+    (the base's x, y within the scene's workspace); ``compute``: the planner's
+    :class:`~psprm_core.kernels.compute.Compute`; ``backend``: the :mod:`.backend` it chooses."""
 
     robot: RobotModel
     scene: Scene
@@ -57,6 +59,7 @@ class PlannerContext:
     track_cols: np.ndarray
     lo: Optional[torch.Tensor] = None
     hi: Optional[torch.Tensor] = None
+    compute: Optional[Compute] = None  # device, kernels and batch policy of the planner's batches
     backend: Optional[TorchBackend] = None  # where the stages' batched operations run (:mod:`.backend`), set by the
     # pipeline
 
@@ -118,11 +121,11 @@ def one_thread(method: Callable) -> Callable:
 def large_batches(method: Callable) -> Callable:
     """Run a planner method whose batches can be large (build, re-scoring, invalidation near moved obstacles, repair
     growth) with the compiled kernels for any batch size, rows split over torch's thread count
-    (:func:`fastpath.bulk`; inside a query that is one thread)."""
+    (:func:`~psprm_core.kernels.compute.bulk`; inside a query that is one thread)."""
 
     @functools.wraps(method)
     def run(self, *args, **kwargs):
-        with fastpath.bulk():
+        with bulk():
             return method(self, *args, **kwargs)
 
     return run

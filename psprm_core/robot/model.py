@@ -16,6 +16,7 @@ import torch
 from ..errors import ConfigError, InputError, RobotModelError, UnknownNameError
 from ..geometry import axis_angle_matrix_torch
 from ..kernels import fastpath
+from ..kernels.compute import Computing
 from ..yamlio import load_yaml
 from .bodies import ElementModel, SphereModel, _geom_local_box, _grid_spheres
 from .config import BASE_JOINTS, RobotConfig, description_urdf, image_roll, load_robot_config, urdf_path_for
@@ -45,7 +46,7 @@ def load_acm(robot: RobotModel) -> set:
     return {frozenset(p) for p in data.get("allowed_pairs", [])}
 
 
-class RobotModel:
+class RobotModel(Computing):
     """Kinematic + collision model of one robot. Build with :meth:`load`; cheap to query, heavy to build.
 
     Attributes

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import torch
 
-from ...kernels import fastpath
+from ...kernels.compute import bulk
 from ..state import PlannerContext, QueryContext, ReadsQuerySettings
 
 if TYPE_CHECKING:
@@ -100,7 +100,7 @@ class Shortcut(ReadsQuerySettings):
         new = [k for k in dict.fromkeys(keys) if k not in checked]
         if new:
             a, b = np.asarray([k[0] for k in new]), np.asarray([k[1] for k in new])
-            with fastpath.bulk():  # a few hundred edges' knots and dense pieces: the compiled kernels at any size
+            with bulk():  # a few hundred edges' knots and dense pieces: the compiled kernels at any size
                 kn, ki = self.edges.edge_knots(self.ctx.t(g.configs[a]), self.ctx.t(g.configs[b]))
                 M = kn.shape[1]
                 on = self.ctx.constraint.error(kn[:, 1:-1].reshape(-1, kn.shape[-1])).reshape(len(new), M - 2)

@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from ...kernels import edges, fastpath
+from ...kernels.compute import bulk
 from ..search.graph import Roadmap
 from ..search.graph_search import edge_perception
 from ..state import PlannerContext, large_batches
@@ -54,7 +55,7 @@ class Builder:
         ``warm_up_s`` and is not part of ``build_s``."""
         self.rm.template = self.ctx.robot.default_configuration() if template is None else np.asarray(template, float)
         warm = self.warm_up(score=False)
-        with fastpath.bulk():
+        with bulk():
             stats = self.build_roadmap(self.rm.template)
         stats["warm_up_s"] = warm
         return stats

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Callable, Optional
 import numpy as np
 import torch
 
-from ...kernels import edges, fastpath
+from ...kernels import edges
 from ..search.graph_search import EdgeCheck, edge_perception
 from ..state import NP_DTYPE, PlannerContext, QueryContext
 from .edges import SMALL_BATCH
@@ -84,7 +84,7 @@ class Verification:
         g = self.rm.graph
         store = self.knots
         if (self.qc.untracked or len(todo) > SMALL_BATCH or not self.ctx.backend.fused or store.data is None
-                or store.data.shape[1] <= 2 or not fastpath.applies(store.data[:1])):
+                or store.data.shape[1] <= 2 or not self.ctx.compute.takes(store.data[:1])):
             return None
         args = self.scoring.neural_args(self.ctx.dtype)
         if args is None:
