@@ -49,11 +49,11 @@ class Param:
 
 
 def setting_param(spec, default: Any = dataclasses.MISSING, source: str = "ROS parameter") -> Param:
-    """The node parameter of a setting (a :class:`~psprm_core.planning.settings.SettingSpec`: a planner setting by
-    its dotted path, a replanner setting by its name): description, range, choices, type and ``live`` from the spec,
-    a setting that is not live needs a rebuild; ``default`` (the spec's default unless given) None declares it typed
-    but unset. A tuple setting (``query.route_searches``) is a string parameter in its text form. Its ``check``
-    refuses what the spec refuses, with the :class:`~psprm_core.errors.ConfigError` naming the setting."""
+    """The node parameter of a setting (a :class:`~psprm_core.planning.settings_groups.SettingSpec`: a planner setting
+    by its dotted path, a replanner setting by its name): description, range, choices, type and ``live`` from the spec,
+    a setting that is not live needs a rebuild; ``default`` (the spec's default unless given) None declares it typed but
+    unset. A tuple setting (``query.route_searches``) is a string parameter in its text form. Its ``check`` refuses what
+    the spec refuses, with the :class:`~psprm_core.errors.ConfigError` naming the setting."""
     default = spec.default if default is dataclasses.MISSING else default
     kind = spec.type
     if kind is tuple:

@@ -39,7 +39,7 @@ PLANNER_PARAMS = {f.name: f.default for f in dataclasses.fields(PlannerSpec) if 
 
 def server_setting_specs() -> tuple:
     """The planner settings the roadmap server declares as parameters (their
-    :class:`~psprm_core.planning.settings.SettingSpec`): every live one, and :data:`SERVER_BUILD_SETTINGS`."""
+    :class:`~psprm_core.planning.settings_groups.SettingSpec`): every live one, and :data:`SERVER_BUILD_SETTINGS`."""
     from psprm_core.planning.settings import parameter_specs
 
     return tuple(s for s in parameter_specs() if s.live or s.name in SERVER_BUILD_SETTINGS)

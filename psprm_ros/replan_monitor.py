@@ -26,7 +26,8 @@ import numpy as np
 from psprm_core.errors import InputError
 
 from . import core
-from .interfaces import conversions as cv
+from .monitor.inputs import InputGate
+from .monitor.triggers import Triggers
 
 P = core.Param
 MONITOR_PARAMS = {
@@ -76,13 +77,15 @@ MONITOR_PARAMS = {
 }
 
 
-class ReplanMonitor:
+class ReplanMonitor(InputGate, Triggers):
     """The monitor as a lifecycle node. Construction declares the parameters and makes ``~/status``, the
     ``/diagnostics`` publisher, the plan/stop service clients and the 1 Hz summary; configure reads the parameters,
     loads the scene and robot model, and makes the input subscriptions, the forwarding publishers and the watchdog
     and diagnostics timers; activate/deactivate gate forwarding; cleanup destroys what configure made and drops the
     models, so a configure after it follows changed parameters. Until configure, the scene, robot model, tracker and
-    frame table are None (``robot``: see :attr:`robot`)."""
+    frame table are None (``robot``: see :attr:`robot`). The input callbacks are its base class
+    :class:`~psprm_ros.monitor.inputs.InputGate`, the server-output callbacks, watchdog and requests its base class
+    :class:`~psprm_ros.monitor.triggers.Triggers`."""
 
     def __init__(self, node_name: str = "replan_monitor", **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
@@ -331,300 +334,8 @@ class ReplanMonitor:
 
         self.pub_status.publish(String(data="summary: " + json.dumps(self.summary())))
 
-    # ------------------------------------------------------------------------------------------------ inputs
-    def _now(self) -> float:
-        return self.node.get_clock().now().nanoseconds * 1e-9
-
-    def _pose_cb(self, kind: str, name: str):
-        from .interfaces.frames import validated_pose_in
-
-        def cb(msg):
-            if self.frames is None:  # released by a cleanup while this message was on its way
-                return
-            try:
-                p, q = validated_pose_in(msg, self.frames, self._now(), self.p["max_pose_age_s"], f"{kind} {name}")
-            except Exception as exc:
-                with self._lock:
-                    self.counts["refused"] += 1
-                self.warn_limited(f"{kind} {name} {_kind_of(exc)}", f"ignored {exc}")
-                return
-            if not self.active:
-                return
-            now = time.monotonic()
-            with self._lock:
-                self.last_seen[(kind, name)] = now
-                if not self._should_forward((kind, name), now, p, q):
-                    return
-                self._last_fwd[(kind, name)] = (now, p, q)
-                self.counts["forwarded"] += 1
-                if kind == "obstacle":
-                    self.scene = self.scene.with_obstacle_pose(name, p, q)
-                else:
-                    self.scene = self.scene.with_target_pose(name, p, q)
-            out = cv.pose_stamped(p, q, self.frame, msg.header.stamp)
-            self.relay[(kind, name)].publish(out)
-        return cb
-
-    def _should_forward(self, key, now: float, p: np.ndarray, q: np.ndarray) -> bool:
-        last = self._last_fwd.get(key)
-        if last is None:
-            return True
-        t, lp, lq = last
-        dm, dr = self.p["relay_deadband_m"], self.p["relay_deadband_rad"]
-        if dm <= 0 and dr <= 0:
-            return True
-        if np.linalg.norm(p - lp) > dm or 2.0 * np.arccos(min(1.0, abs(float(np.dot(q, lq))))) > dr:
-            return True
-        hz = self.p["relay_keepalive_hz"]
-        return hz > 0 and now - t >= 1.0 / hz
-
-    def _base_cb(self, msg) -> None:
-        if self.tracker is None:  # released by a cleanup while this message was on its way
-            return
-        try:
-            with self._lock:
-                self.tracker.update_pose(msg, time.monotonic(), self._now(), self.p["max_pose_age_s"])
-        except Exception as exc:
-            self.warn_limited(f"base {_kind_of(exc)}", f"ignored {exc}")
-
-    def _odom_cb(self, msg) -> None:
-        if self.tracker is None:  # released by a cleanup while this message was on its way
-            return
-        try:
-            with self._lock:
-                self.tracker.update_odometry(msg, time.monotonic(), self._now(), self.p["max_pose_age_s"])
-        except Exception as exc:
-            self.warn_limited(f"odom {_kind_of(exc)}", f"ignored {exc}")
-            return
-
-    def _tf_cb(self, msg, static: bool) -> None:
-        if self.tracker is None:  # released by a cleanup while this message was on its way
-            return
-        with self._lock:
-            if self.tracker.tf is not None:
-                dropped = self.tracker.update_tf(msg, static, time.monotonic())
-            else:  # tf for the input frames only
-                dropped = [str(d) for d in self.frames.tf.update(msg, static, time.monotonic())]
-        for text in dropped:
-            self.warn_limited(f"tf {text}", f"ignored {text}")
-
-    def _joints_cb(self, msg) -> None:
-        if self.tracker is None:  # released by a cleanup while this message was on its way
-            return
-        try:
-            with self._lock:
-                self.tracker.update_joints(msg, time.monotonic())
-        except Exception as exc:
-            self.warn_limited(f"joints {_kind_of(exc)}", f"ignored {exc}")
-            return
-        self._forward_robot_state(msg.header.stamp)
-
-    def _forward_robot_state(self, stamp=None) -> None:
-        """Forward the measured configuration when joints and base pose are fresh; otherwise report why not
-        (nothing is planned then)."""
-        with self._lock:
-            if self.tracker is None:
-                return
-            q, why = self.tracker.state(time.monotonic())
-            vel = None  # the base's measured velocity (odometry, tf) goes with its pose: the server's braking model
-            if q is not None and self.tracker.robot.mobile and self.tracker.base_velocity_measured:
-                vel = cv.base_world_rates(q, self.tracker.base_velocity, len(q))
-            was = self.robot_state_problem
-            self.robot_state_problem = "" if q is not None else why
-            if q is not None:
-                self.q = q
-                self.counts["robot_states"] += 1
-        if q is None:
-            self.warn_limited("robot state", f"not forwarding the robot state: {why}")
-            return
-        if was:
-            self.status("robot state live (joints and base pose)")
-        if not self.active:
-            return
-        now = time.monotonic()
-        hz = self.p["robot_state_rate_hz"]
-        if hz > 0 and now - self._robot_fwd_t < 1.0 / hz:
-            return
-        self._robot_fwd_t = now
-        self.pub_robot.publish(cv.planning_joint_state(q, self.names, stamp or self.node.get_clock().now().to_msg(),
-                                                       velocity=vel))
-        self._check_deviation(q)
-
-    def _goal_cb(self, msg) -> None:
-        try:
-            from .interfaces.frames import validated_pose_in
-
-            p, q = validated_pose_in(msg, self.frames, None, 0.0, "goal")
-            if not self._robot.mobile:
-                raise cv.InputError("goal poses need a mobile base; use goal regions")
-            vals = {"base_x": p[0], "base_y": p[1], "base_theta": cv.yaw_of(q)}
-            G = self._robot.configuration(vals)[None]
-            self._send_goals(G, f"goal ({p[0]:.2f}, {p[1]:.2f}, yaw {vals['base_theta']:.2f})")
-        except Exception as exc:
-            self.status(f"ignored {exc}", "warning")
-
-    def _regions_cb(self, msg) -> None:
-        try:
-            names = [n.strip() for n in msg.data.split(",") if n.strip()]
-            if not names:
-                raise cv.InputError("goal regions: empty")
-            try:
-                G = core.goal_region_configurations(self._robot, self.scene, names)
-            except KeyError as exc:
-                raise cv.InputError(f"goal regions: {exc}") from None
-            self._send_goals(G, f"goal regions {', '.join(names)}")
-        except Exception as exc:
-            self.status(f"ignored {exc}", "warning")
-
-    def _send_goals(self, G: np.ndarray, what: str) -> None:
-        import torch
-
-        ws = self.scene.workspace
-        if self._robot.mobile and not ((G[:, 0] >= ws[0, 0]) & (G[:, 0] <= ws[0, 1]) & (G[:, 1] >= ws[1, 0]) &
-                                       (G[:, 1] <= ws[1, 1])).any():
-            raise cv.InputError(f"{what}: outside the workspace {ws.tolist()}")
-        with self._lock:
-            self.checker.set_boxes(self.scene.collision_boxes())
-            bad = self.checker.check(torch.as_tensor(G, dtype=torch.float32)).numpy()
-        if bad.all():
-            raise cv.InputError(f"{what}: in collision; keeping the current plan")
-        G = G[~bad]
-        self.pub_goals.publish(cv.configs_to_joint_trajectory(G, self.names, self.frame,
-                                                              self.node.get_clock().now().to_msg()))
-        self.status(f"forwarded {what} ({len(G)} candidate(s))")
-
-    # ------------------------------------------------------------------------------------------------ server outputs
-    def _info_cb(self, msg) -> None:
-        try:
-            info = json.loads(msg.data)
-        except ValueError:
-            return
-        with self._lock:
-            if info.get("stop"):
-                self.counts["stops"] += 1
-            elif info.get("kept"):
-                self.counts["kept"] += 1
-            elif info.get("success"):
-                self.counts["plans"] += 1
-                self.plan_score = info.get("mean_score")
-                self.path_score = None
-                self.last_plan_t = time.monotonic()
-                if info.get("latency_ms") is not None:
-                    self.latencies.append(float(info["latency_ms"]))
-                    del self.latencies[:-200]  # the status reports the latest 200
-            else:
-                self.counts["failed"] += 1
-
-    def _score_cb(self, msg) -> None:
-        with self._lock:
-            self.path_score = float(msg.data)
-
-    def _traj_cb(self, msg) -> None:
-        try:
-            P = cv.joint_trajectory_positions(msg, self.names)
-            t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
-        except Exception as exc:
-            self.status(f"ignored trajectory: {exc}", "warning")
-            return
-        with self._lock:
-            self.traj = {"P": P, "t": t, "t0": time.monotonic()} if len(P) > 1 else None
-
-    # ------------------------------------------------------------------------------------------------ triggers
-    def _check_deviation(self, q: np.ndarray) -> None:
-        with self._lock:
-            tr, robot = self.traj, self._robot
-        if tr is None or robot is None or not robot.mobile:
-            return
-        # off the path, not behind its schedule: the nearest point of the base's path within 3 s of the time the
-        # trajectory's clock says (a replan spliced onto the trajectory under way starts where the robot was when
-        # planning began, behind the receipt time; the robot running late is no reason to replan)
-        el = min(time.monotonic() - tr["t0"], tr["t"][-1])
-        near = (tr["t"] >= el - 3.0) & (tr["t"] <= el + 3.0)
-        if not near.any():
-            near = np.ones(len(tr["t"]), dtype=bool)
-        dev = float(np.linalg.norm(tr["P"][near][:, :2] - q[:2], axis=1).min())
-        if dev > self.p["deviation_tolerance"]:
-            self._request("plan", f"robot {dev:.2f} m off the trajectory")
-
-    def _check(self) -> None:
-        now = time.monotonic()
-        late = self._grace.step(now)
-        with self._lock:
-            seen = dict(self.last_seen)
-            plan_score, path_score = self.plan_score, self.path_score
-        newly = [key for key, t in seen.items()
-                 if now - t > self.p["stale_timeout_s"] and f"{key[0]} {key[1]}" not in self.stale]
-        if not newly:
-            self._grace.clear()
-        elif self._grace.forgive(late):
-            # this check runs late (the process stalled): the poses that arrived meanwhile may still wait in the
-            # queue; a body silent again at the next check is stale
-            newly = []
-        self.stale.update(f"{k[0]} {k[1]}" for k in newly)
-        for key, t in seen.items():
-            label = f"{key[0]} {key[1]}"
-            if now - t > self.p["stale_timeout_s"]:
-                continue
-            if label in self.stale:
-                self.stale.discard(label)
-                self.status(f"{label} is live again")
-                if key[0] == "obstacle" and self.p["stop_on_stale_obstacle"]:
-                    self._request("plan", f"{label} live again", force=True)
-        for kind, name in newly:
-            if kind == "obstacle" and self.p["stop_on_stale_obstacle"]:
-                self.status(f"obstacle {name} stale (no pose for {self.p['stale_timeout_s']:.1f} s): stopping",
-                            "warning")
-                self._request("stop", f"obstacle {name} stale", force=True)
-            else:
-                self.status(f"{kind} {name} stale (no pose for {self.p['stale_timeout_s']:.1f} s): "
-                            "keeping the last plan", "warning")
-        settled = now - self.last_plan_t > self.p["min_request_interval_s"]  # the scorer has seen the new path
-        if settled and plan_score and path_score is not None and \
-                path_score < self.p["min_path_score_ratio"] * plan_score:
-            self._request("plan", f"predicted path score {path_score:.3f} < "
-                                  f"{self.p['min_path_score_ratio']:.2f} x {plan_score:.3f}")
-        if self.p["replan_period_s"] > 0 and now - self.last_plan_t > self.p["replan_period_s"]:
-            self._request("plan", "periodic replan")
-
-    def _request(self, kind: str, why: str, force: bool = False) -> None:
-        from std_srvs.srv import Trigger
-
-        now = time.monotonic()
-        if not force and now - self.last_request_t < self.p["min_request_interval_s"]:
-            return
-        cli = self.cli_plan if kind == "plan" else self.cli_stop
-        if not cli.service_is_ready():
-            self.status(f"cannot request {kind} ({why}): server not available", "warning")
-            return
-        self.last_request_t = now
-        with self._lock:
-            self.counts["requests"] += 1
-            if kind == "plan":
-                self.path_score = None
-                self.last_plan_t = now
-        self.status(f"requesting {kind}: {why}")
-        fut = cli.call_async(Trigger.Request())
-        fut.add_done_callback(lambda f: self._done(kind, f))
-
-    def _done(self, kind, fut) -> None:
-        try:
-            r = fut.result()
-            if not r.success:
-                self.status(f"{kind} request failed: {r.message}", "warning")
-        except Exception as exc:
-            self.status(f"{kind} request error: {exc}", "warning")
-
     def destroy(self) -> None:
         self.node.destroy_node()
-
-
-def _kind_of(exc) -> str:
-    """A short key of an input error for rate-limited warnings (frame / non-finite / stale / other)."""
-    t = str(exc)
-    for k in ("frame", "non-finite", "stale", "quaternion"):
-        if k in t:
-            return k
-    return type(exc).__name__
 
 
 def main(args=None) -> int:

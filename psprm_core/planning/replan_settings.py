@@ -8,7 +8,7 @@ from pathlib import Path
 
 from ..prediction import PredictionSettings
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
-from .settings import field_specs, setting
+from .settings_groups import field_specs, setting
 
 HEURISTICS = ("exact", "hop", "planner")
 
@@ -16,7 +16,7 @@ HEURISTICS = ("exact", "hop", "planner")
 @dataclass(frozen=True)
 class ReplanSettings:
     """Replanning triggers and repair (``config/planners/replan.yaml``). Each field carries its metadata
-    (:func:`~.settings.setting`: description, range or choices; ``live``: a running server changes it through its
+    (:func:`~.settings_groups.setting`: description, range or choices; ``live``: a running server changes it through its
     parameter of the field's name), listed by :meth:`specs`."""
 
     target_move_m: float = setting(0.05, "target translation that counts as a move (m; re-score, replan)", live=True)

@@ -70,8 +70,8 @@ MAX_STALE_STARTS = 2
 @functools.lru_cache(maxsize=None)
 def live_replan() -> dict:
     """The replanner's settings a running server changes live, by name: the ``live`` fields of
-    :class:`~psprm_core.planning.replanner.ReplanSettings` as their :class:`~psprm_core.planning.settings.SettingSpec`
-    (their defaults come from the replan settings file)."""
+    :class:`~psprm_core.planning.replanner.ReplanSettings` as their
+    :class:`~psprm_core.planning.settings_groups.SettingSpec` (their defaults come from the replan settings file)."""
     from psprm_core.planning.replanner import ReplanSettings
 
     return {spec.name: spec for spec in ReplanSettings.specs() if spec.live}

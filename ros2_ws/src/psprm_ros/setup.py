@@ -19,7 +19,8 @@ harness = ["latency_bench", "soak", "demo"]  # clients that drive the suite (psp
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name] + [f"{package_name}.{sub}" for sub in ("harness", "interfaces", "robots", "server")],
+    packages=[package_name] + [f"{package_name}.{sub}"
+                               for sub in ("harness", "interfaces", "monitor", "robots", "server")],
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
