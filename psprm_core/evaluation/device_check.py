@@ -378,7 +378,9 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str | None =
 
 def _cpu_collision_judge(robot, scene):
     """Collision flags (B,) of configurations (B, dof) by the project's collision checker on the CPU in float64 with
-    the compiled kernels off, against the scene's boxes as they are (no workspace bounds, as pybullet's check)."""
+    the compiled kernels off: environment (the scene's boxes as they are, no workspace bounds) or self-collision, as
+    pybullet's check. Joint limits are not judged (as pybullet does not): a knot the device clamped to a limit in
+    float32 lies a rounding step past it in float64."""
     import torch
 
     from ..collision import CollisionChecker
@@ -388,7 +390,8 @@ def _cpu_collision_judge(robot, scene):
 
     def judge(qs: np.ndarray) -> np.ndarray:
         with fastpath.disabled():
-            return checker.check(torch.as_tensor(np.asarray(qs), dtype=torch.float64)).cpu().numpy()
+            det = checker.check_detailed(torch.as_tensor(np.asarray(qs), dtype=torch.float64))
+        return (det["environment"] | det["self"]).cpu().numpy()
 
     return judge
 
