@@ -91,7 +91,7 @@ def test_carried_references_pass_without_pybullet_and_fail_when_perturbed(tmp_pa
 def test_shipped_references_are_those_of_the_packaged_robot_scene_and_surrogate():
     """The carried file still describes this repository: its configurations are the seeded samples, its planning URDF
     is the packaged robot's (collision meshes as their boxes) and gives the same collision model, and its float64
-    scores are the surrogate's now. A failure here means: record them again (the command in docs/benchmarks.md)."""
+    scores are what the shipped surrogate gives. A failure here means: record them again (the command in docs/benchmarks.md)."""
     import tempfile
 
     import torch

@@ -62,6 +62,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError, PsprmError
+
 #: the shipped references (``--references`` without a value takes this file); regenerate with ``--record``
 DEFAULT_REFERENCES = Path(__file__).resolve().parents[1] / "data" / "device_check" / "references.npz"
 #: layout of the references file
@@ -119,7 +121,7 @@ class References:
         with np.load(Path(path), allow_pickle=False) as z:
             header = json.loads(str(z["header"]))
             if header.get("format") != FORMAT:
-                raise ValueError(f"{path}: references format {header.get('format')}, this check reads {FORMAT}: "
+                raise InputError(f"{path}: references format {header.get('format')}, this check reads {FORMAT}: "
                                  "record them again (--record)")
             return cls(header=header, **{f.name: z[f.name] for f in fields(cls) if f.name != "header"})
 
@@ -128,7 +130,7 @@ class References:
         h = self.header
         for name, n in (("configs", configs), ("queries", queries), ("replans", replans)):
             if n is not None and not 1 <= n <= h[name]:
-                raise ValueError(f"--{name} {n}: the references hold {h[name]}")
+                raise InputError(f"--{name} {n}: the references hold {h[name]}")
         n = h["configs"] if configs is None else configs
         q = h["queries"] if queries is None else queries
         r = h["replans"] if replans is None else replans
@@ -363,7 +365,7 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str | None =
     given = {"scene": scene_name, "target": target, "nodes": nodes, "seed": seed}
     other = {k: v for k, v in given.items() if v is not None and v != h[k]}
     if other:
-        raise ValueError(f"{references} holds references of {', '.join(f'{k}={h[k]!r}' for k in other)}: record "
+        raise InputError(f"{references} holds references of {', '.join(f'{k}={h[k]!r}' for k in other)}: record "
                          f"others with --record for {', '.join(f'{k}={v!r}' for k, v in other.items())}")
     refs = refs.prefix(configs, queries, replans)
     scene = load_scene(resolve_named("scene", h["scene"]))
@@ -577,9 +579,12 @@ def main(argv=None) -> int:
         print(json.dumps({"device": a.device, "checked": False, "ok": True,
                           "note": f"CUDA is not available to this torch build ({torch.__version__}): nothing checked"}))
         return 0
-    with stdout_to_stderr():  # stdout carries the JSON object only
-        out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed,
-                  a.references)
+    try:
+        with stdout_to_stderr():  # stdout carries the JSON object only
+            out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed,
+                      a.references)
+    except (PsprmError, OSError) as exc:  # a references file that is missing, of another layout or too small
+        ap.error(str(exc))
     out["checked"] = True
     print_json(out)
     return 0 if out["ok"] else 1
