@@ -5,7 +5,8 @@
 # Prints one JSON line (CPU and device timings side by side); exit 0 = every check passed, or no CUDA here (it says
 # so: "checked": false), 1 = a check failed.
 # The project's environment carries a CPU build of torch; on a CUDA machine install the CUDA build of the same torch
-# version into .venv first (the requirements pin the version, the build is the machine's choice).
+# version into .venv first (the requirements pin the version, the build is the machine's choice). A CUDA machine
+# without this environment runs scripts/check_device_bare.sh instead (references carried in the repository).
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 [ -x "$root/.venv/bin/python" ] || bash "$root/scripts/setup_env.sh"

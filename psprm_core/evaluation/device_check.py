@@ -1,7 +1,9 @@
 """Check the tensor pipeline on a device (``cuda``, ``cuda:1``, ``cpu``) against independent references.
 
-    python -m psprm_core.evaluation.device_check --device cuda  # on a CUDA machine (scripts/check_device.sh)
+    python -m psprm_core.evaluation.device_check --device cuda  # full environment (scripts/check_device.sh)
     python -m psprm_core.evaluation.device_check --device cpu --torch-path  # here: the same torch code, CPU kernels off
+    python -m psprm_core.evaluation.device_check --record psprm_core/data/device_check/references.npz
+    python -m psprm_core.evaluation.device_check --device cuda --references psprm_core/data/device_check/references.npz
 
 On a CPU the planner runs small batches through compiled numba kernels (:mod:`psprm_core.kernels.fastpath`); on any
 other device, and on the CPU with ``--torch-path``, every call takes the torch operators the paper's GPU pipeline uses.
@@ -12,176 +14,524 @@ Each stage is judged by something the device code does not compute:
   and the device calls free is a missed collision: must be 0);
 * neural scoring: the surrogate with ray-cast occlusion on the device against the same model on the CPU in float64
   with the compiled paths off (the same code on another device and in another precision);
-* planning: the same PS-PRM built on the CPU (compiled kernels) and on the device, the same random queries and
-  replans after target turns on both: every device path collision-free under pybullet and ending at a goal, node
-  scores against the CPU planner's, path lengths, build, query and replan times side by side.
+* planning: the same PS-PRM (settings, seed) built on the CPU with its compiled kernels and on the device; both
+  answer the same random queries and replan after the same target turns (replans time their trajectories by
+  stopping at every knot, the analytic profile, on both sides). Judged: every device path collision-free and ending at
+  a goal; the device planner's scores of the CPU roadmap's nodes against the CPU planner's scores of them; path
+  lengths, build, query and replan times side by side (roadmaps built in another precision may differ, so paths are
+  compared by length, not node by node).
 
-Prints one JSON object with the figures (timings of the CPU and the device side by side) and ``ok``; exits 1 if a
-check fails. Asked for CUDA where there is none, it says so (``"checked": false``) and exits 0.
+The references come from one of two places:
+
+* computed in this process (no ``--references``): pybullet and the CPU planner run here, and device paths are judged
+  by pybullet's exact check. This needs the project's full environment.
+* carried in a file (``--references FILE``, written by ``--record FILE`` in the full environment): the
+  configurations, pybullet's camera poses and collision flags of them, the float64 CPU scores, the CPU planner's
+  node scores, queries, path lengths and timings, and the robot model's planning description (its URDF with each
+  collision mesh replaced by the mesh's bounding box, which is all the robot model takes from a mesh; the record
+  step verifies that the model built from it equals the packaged one). The check then evaluates the recorded
+  configurations and queries (a prefix of them with ``--configs``/``--queries``/``--replans``) and imports nothing
+  but torch, numpy, scipy, numba, pyyaml and this package: no pybullet, robot-description package, trimesh, toppra
+  or ROS. Device paths are judged by the project's own collision checker on the CPU in float64 with the compiled
+  kernels off (itself verified against pybullet by ``tests/test_collision_reference.py``; it is conservative, so a
+  path it finds free pybullet finds free too). The CPU timings are the recording machine's (the header names it).
+
+Tolerances (:data:`TOLERANCES`, printed with the figures): camera position 1e-3 m and rotation 1e-3 rad of pybullet's;
+0 missed collisions; neural scores and node scores within 0.02 of the CPU's (float32 against float64); every query
+and replan solved; 0 path collisions; path ends within 1e-3 of a goal (heading wrapped); with carried references the
+robot model built from them within 1e-9 m of the recorded sphere model.
+
+Prints one JSON object with the figures (timings of the CPU and the device side by side), ``failed`` (the names of
+the checks that failed) and ``ok``; exits 1 if a check fails. Asked for CUDA where there is none, it says so
+(``"checked": false``) and exits 0.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import sys
+import tempfile
 import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError, PsprmError
 
-def run(device: str = "cuda", torch_path: bool = False, scene_name: str = "dynamic_person",
-        target: str = "person_face", configs: int = 2000, nodes: int = 600, queries: int = 10, replans: int = 5,
-        seed: int = 0) -> dict:
+#: the shipped references (``--references`` without a value takes this file); regenerate with ``--record``
+DEFAULT_REFERENCES = Path(__file__).resolve().parents[1] / "data" / "device_check" / "references.npz"
+#: layout of the references file
+FORMAT = 1
+#: limits of the checks (``ok`` needs every one)
+TOLERANCES = {"fk_position_m": 1e-3, "fk_rotation_rad": 1e-3, "missed_collisions": 0, "score_abs": 0.02,
+              "node_score_abs": 0.02, "path_collisions": 0, "path_goal_error": 1e-3, "robot_model_m": 1e-9}
+#: defaults of the sizes and problem
+DEFAULTS = {"scene": "dynamic_person", "target": "person_face", "configs": 2000, "nodes": 600, "queries": 10,
+            "replans": 5, "seed": 0}
+_FK_VIEWS = 500  # configurations whose camera poses and scores are compared
+_NODE_SCORES = 500  # roadmap nodes whose scores are compared
+
+
+@dataclass
+class References:
+    """What the device is judged against (see the module docstring); arrays as stored in the references file."""
+
+    header: dict
+    configs: np.ndarray  # (N, dof) float64: uniform over the joint limits and the scene's workspace
+    camera_poses: np.ndarray  # (M, 4, 4) pybullet's camera poses of configs[:M]
+    collision: np.ndarray  # (N,) bool: pybullet's exact check of configs
+    score_index: np.ndarray  # (K,) indices of the first free configs (of configs[:M]) scored
+    scores: np.ndarray  # (K,) their neural scores on the CPU in float64, compiled paths off
+    node_configs: np.ndarray  # (P, dof) the first nodes of the CPU planner's roadmap
+    node_scores: np.ndarray  # (P,) the CPU planner's scores of them
+    query_starts: np.ndarray  # (Q, dof)
+    query_goals: np.ndarray  # (sum G, dof) the goals of every query, query after query
+    query_goal_counts: np.ndarray  # (Q,) goals per query
+    query_success: np.ndarray  # (Q,) bool: the CPU planner's
+    query_path_length: np.ndarray  # (Q,) the CPU planner's path lengths (nan where it found none)
+    query_ms: np.ndarray  # (Q,) the CPU planner's query times
+    build_s: np.ndarray  # () the CPU planner's build time
+    replan_start: np.ndarray  # (dof,) the scene's first problem
+    replan_goals: np.ndarray  # (G, dof)
+    replan_yaws: np.ndarray  # (R,) target turns, in order
+    replan_success: np.ndarray  # (R,) bool: the CPU replanner's
+    replan_ms: np.ndarray  # (R,) the CPU replanner's times
+    robot_spheres: np.ndarray  # (S, 4) the packaged robot model's collision spheres (body-frame centre, radius)
+    robot_urdf: np.ndarray  # (bytes,) uint8: the robot's planning URDF (collision meshes as their boxes), UTF-8
+
+    def goals(self, i: int) -> np.ndarray:
+        c = np.concatenate([[0], np.cumsum(self.query_goal_counts)])
+        return self.query_goals[c[i]:c[i + 1]]
+
+    def save(self, path: Path) -> None:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        arrays = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "header"}
+        with open(path, "wb") as fh:  # a file object: numpy appends no ".npz" to the name
+            np.savez_compressed(fh, header=np.array(json.dumps(self.header, sort_keys=True)), **arrays)
+
+    @classmethod
+    def load(cls, path: Path) -> "References":
+        with np.load(Path(path), allow_pickle=False) as z:
+            header = json.loads(str(z["header"]))
+            if header.get("format") != FORMAT:
+                raise InputError(f"{path}: references format {header.get('format')}, this check reads {FORMAT}: "
+                                 "record them again (--record)")
+            return cls(header=header, **{f.name: z[f.name] for f in fields(cls) if f.name != "header"})
+
+    def prefix(self, configs: int | None, queries: int | None, replans: int | None) -> "References":
+        """The first ``configs`` configurations, ``queries`` queries and ``replans`` target turns (None: all)."""
+        h = self.header
+        for name, n in (("configs", configs), ("queries", queries), ("replans", replans)):
+            if n is not None and not 1 <= n <= h[name]:
+                raise InputError(f"--{name} {n}: the references hold {h[name]}")
+        n = h["configs"] if configs is None else configs
+        q = h["queries"] if queries is None else queries
+        r = h["replans"] if replans is None else replans
+        m = min(_FK_VIEWS, n)
+        keep = self.score_index < m  # the free ones of the first m configurations
+        g = int(np.sum(self.query_goal_counts[:q]))
+        out = References(**{f.name: getattr(self, f.name) for f in fields(self)})
+        out.header = dict(h, configs=n, queries=q, replans=r)
+        out.configs, out.collision, out.camera_poses = self.configs[:n], self.collision[:n], self.camera_poses[:m]
+        out.score_index, out.scores = self.score_index[keep], self.scores[keep]
+        out.query_starts, out.query_goal_counts = self.query_starts[:q], self.query_goal_counts[:q]
+        out.query_goals = self.query_goals[:g]
+        out.query_success, out.query_path_length = self.query_success[:q], self.query_path_length[:q]
+        out.query_ms = self.query_ms[:q]
+        out.replan_yaws, out.replan_success, out.replan_ms = self.replan_yaws[:r], self.replan_success[:r], \
+            self.replan_ms[:r]
+        return out
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The robot model's planning description
+# ----------------------------------------------------------------------------------------------------------------------
+def planning_urdf(robot) -> str:
+    """The robot's URDF with what the robot model takes from it only: links, joints and collision elements, each
+    collision mesh replaced by a box of the mesh's bounds (scaled) about the same frame. Visual, inertial, gazebo and
+    transmission elements are left out. Reads the meshes (trimesh): the record step's work."""
+    from ..robot.bodies import _geom_local_box
+
+    tree = ET.parse(robot.urdf.path)
+    root = tree.getroot()
+    for tag in ("gazebo", "transmission"):
+        for el in list(root.findall(tag)):
+            root.remove(el)
+    for link in root.findall("link"):
+        for tag in ("visual", "inertial"):
+            for el in list(link.findall(tag)):
+                link.remove(el)
+        geoms = iter(robot.urdf.links.get(link.get("name"), []))
+        for col in link.findall("collision"):
+            g = col.find("geometry")
+            if g is None or len(g) == 0:
+                continue
+            geom = next(geoms)
+            if g[0].tag != "mesh":
+                continue
+            lo, hi = _geom_local_box(geom)
+            centre = geom.origin[:3, :3] @ (0.5 * (lo + hi)) + geom.origin[:3, 3]
+            g.remove(g[0])
+            ET.SubElement(g, "box", size=" ".join(repr(float(v)) for v in hi - lo))
+            origin = col.find("origin")
+            if origin is None:
+                origin = ET.SubElement(col, "origin", rpy="0 0 0")
+            origin.set("xyz", " ".join(repr(float(v)) for v in centre))
+    return ET.tostring(root, encoding="unicode")
+
+
+def _sphere_table(robot) -> np.ndarray:
+    sm = robot.spheres
+    return np.concatenate([sm.centers, sm.radii[:, None]], axis=1)
+
+
+def _model_difference(a, b) -> float:
+    """Largest difference (m, and rotation entries) between two robot models' collision spheres and boxes."""
+    ea, eb = a.elements, b.elements
+    if _sphere_table(a).shape != _sphere_table(b).shape or ea.center.shape != eb.center.shape:
+        return float("inf")
+    return float(max(np.abs(_sphere_table(a) - _sphere_table(b)).max(), np.abs(ea.center - eb.center).max(),
+                     np.abs(ea.half - eb.half).max(), np.abs(ea.rotation - eb.rotation).max()))
+
+
+def carried_robot(refs: References, scene, folder: Path):
+    """The robot model of ``scene`` built from the references' planning URDF (written into ``folder``, which must
+    outlive the model: its hash reads the file), with nothing but this package's URDF reader."""
+    from ..robot import RobotModel
+    from ..robot.config import load_robot_config
+    from ..robot.urdf import parse_urdf
+
+    path = Path(folder) / f"{refs.header['robot']}_planning.urdf"
+    path.write_bytes(refs.robot_urdf.tobytes())
+    return RobotModel(load_robot_config(scene.robot), parse_urdf(path))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# References
+# ----------------------------------------------------------------------------------------------------------------------
+def _planner_options(nodes: int, seed: int) -> dict:
+    """Settings of both planners: trajectories timed by the analytic profile, stopping at every knot (the smooth
+    timing needs toppra, which a bare machine lacks; the build's warm-up times one trajectory)."""
+    return {"roadmap.n_nodes": nodes, "seed": seed, "query.smooth_timing": False}
+
+
+def _replan_settings():
+    from ..planning.replanner import ReplanSettings
+
+    return ReplanSettings(smooth_timing=False)  # as the planners: the same timing with or without toppra
+
+
+def compute_references(scene, robot, target: str, configs: int, nodes: int, queries: int, replans: int, seed: int,
+                       world) -> References:
+    """The references of the module docstring, computed here: ``world`` (a
+    :class:`~psprm_core.evaluation.reference.PybulletWorld` of ``robot`` and the scene's boxes) for FK and collision,
+    the CPU in float64 for the scores, the CPU planner (compiled kernels) for the planning figures."""
     import torch
 
     from ..collision import CollisionChecker
     from ..kernels.compute import Compute
-    from ..paths import resolve_named
     from ..perception.scoring import NeuralScorer
     from ..perception.surrogate import load_surrogate
-    from ..planning.factory import default_checkpoint
-    from ..robot import RobotModel
-    from ..scene import load_scene
-    from .benchmarks import rotation_angle_error
-    from .reference import PybulletWorld, sample_uniform
-
-    dev = torch.device(device)
-    compute = Compute.make(dev, kernels="torch" if torch_path else "auto")  # the device under test
-    reference = Compute.make("cpu", kernels="torch")  # float64 reference scores: the torch code on the CPU
-    scene = load_scene(resolve_named("scene", scene_name))
-    robot = RobotModel.load(scene.robot)
-    boxes = scene.collision_boxes()
-    rng = np.random.default_rng(seed)
-    qs = sample_uniform(robot, configs, rng, base_box=scene.workspace)
-    out: dict = {"device": str(dev), "torch_path": not compute.compiled, "kernels": compute.kernels, "scene": scene.name,
-                 "robot": robot.name, "torch": torch.__version__}
-    if dev.type == "cuda":
-        out["device_name"] = torch.cuda.get_device_name(dev)
-    world = PybulletWorld(robot, boxes)
-    try:
-        q = torch.as_tensor(qs, dtype=torch.float32, device=dev)
-        m = min(500, configs)
-        cam = robot.using(compute).camera_poses(q[:m]).double().cpu().numpy()
-        ref_cam = np.stack([world.camera_pose(x) for x in qs[:m]])
-        out["fk_max_position_error_m"] = float(np.abs(cam[:, :3, 3] - ref_cam[:, :3, 3]).max())
-        out["fk_max_rotation_error_rad"] = float(rotation_angle_error(cam[:, :3, :3], ref_cam[:, :3, :3]).max())
-
-        checker = CollisionChecker(robot, boxes, workspace=None, device=dev, compute=compute)
-        t0 = time.perf_counter()
-        flags = checker.check(q)
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        out["collision_s"] = time.perf_counter() - t0
-        flags = flags.cpu().numpy()
-        ref = world.in_collision(qs)
-        out["missed_collisions"] = int(np.sum(ref & ~flags))
-        out["false_positive_rate"] = float(np.sum(flags & ~ref) / max(1, np.sum(~ref)))
-
-        model = load_surrogate(default_checkpoint())
-        scorer = NeuralScorer(model, scene, target)
-        free = torch.as_tensor(qs[~ref][:m], dtype=torch.float32)
-        dut = scorer.using(compute)
-        s_dev = dut.score(robot.using(compute).camera_poses(free.to(dev))).double().cpu().numpy()
-        s_ref = scorer.using(reference).score(robot.using(reference).camera_poses(free.double()))
-        s_ref = s_ref.double().cpu().numpy()
-        out["score_max_abs_difference"] = float(np.abs(s_dev - s_ref).max())
-        out["score_views"] = int(len(s_ref))
-
-        out.update(_planning(compute, scene, robot, target, nodes, queries, replans, seed, world))
-    finally:
-        world.close()
-    out["ok"] = bool(out["missed_collisions"] == 0 and out["fk_max_position_error_m"] < 1e-3
-                     and out["fk_max_rotation_error_rad"] < 1e-3 and out["score_max_abs_difference"] < 0.02
-                     and out["node_score_max_abs_difference"] < 0.02
-                     and out["queries_solved"] == out["queries"] and out["replans_solved"] == out["replans"]
-                     and out["path_collisions_pybullet"] == 0 and out["path_goal_error_max"] < 1e-3)
-    return out
-
-
-def _planning(compute, scene, robot, target, nodes, queries, replans, seed, world) -> dict:
-    """The same PS-PRM (settings, seed) built on the CPU with its compiled kernels and on ``device``; both answer
-    the same random queries and replan after the same target turns. Judged: every device path collision-free under
-    pybullet and ending at a goal; the device's node scores against the CPU planner's scores of the same
-    configurations; path costs and timings side by side (roadmaps built in another precision may differ, so paths
-    are compared by cost, not node by node)."""
-    import torch
-
-    from ..collision import CollisionChecker
-    from ..kernels.compute import Compute
-    from ..planning.factory import make_planner, problem_configurations
-    from ..planning.replanner import Replanner, ReplanSettings
+    from ..planning.factory import default_checkpoint, make_planner, problem_configurations
+    from ..planning.replanner import Replanner
     from ..problems import random_problems
+    from .reference import sample_uniform
 
-    def build(cp):
-        p = make_planner("neural-psprm-line", scene, [target], robot=robot, device=str(cp.device),
-                         options={"roadmap.n_nodes": nodes, "seed": seed}, compute=cp)
-        t0 = time.perf_counter()
-        p.build()
-        return p, time.perf_counter() - t0
+    qs = sample_uniform(robot, configs, np.random.default_rng(seed), base_box=scene.workspace)
+    m = min(_FK_VIEWS, configs)
+    camera = np.stack([world.camera_pose(x) for x in qs[:m]])
+    flags = world.in_collision(qs)
+    score_index = np.flatnonzero(~flags[:m])
+    scorer = NeuralScorer(load_surrogate(default_checkpoint()), scene, target)
+    torch_only = Compute.make("cpu", kernels="torch")  # float64 reference scores: the torch code on the CPU
+    free = torch.as_tensor(qs[score_index], dtype=torch.float64)
+    scores = scorer.using(torch_only).score(robot.using(torch_only).camera_poses(free)).double().cpu().numpy()
 
-    ref, ref_build = build(Compute.make("cpu"))
-    dut, dut_build = build(compute)
+    p = make_planner("neural-psprm-line", scene, [target], robot=robot, device="cpu",
+                     options=_planner_options(nodes, seed))
+    t0 = time.perf_counter()
+    p.build()
+    build_s = time.perf_counter() - t0
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
     probs = random_problems(robot, scene, checker, queries, np.random.default_rng(seed + 1),
                             robot.default_configuration(), scene.target(target).center, aimed_only=True,
                             aim_restarts=8)
-    out = {"backend": {"cpu_reference": type(ref.ctx.backend).__name__, "device": type(dut.ctx.backend).__name__},
-           "queries": len(probs), "queries_solved": 0, "path_collisions_pybullet": 0, "path_goal_error_max": 0.0,
-           "build_s": {"cpu_reference": ref_build, "device": dut_build}}
-    q_ms = {"cpu_reference": [], "device": []}
+    success, length, q_ms = [], [], []
+    for a, b in probs:
+        t0 = time.perf_counter()
+        r = p.plan(a, b, timing=False)
+        q_ms.append((time.perf_counter() - t0) * 1e3)
+        success.append(bool(r.success))
+        length.append(float(r.path_length) if r.success else float("nan"))
+    node_configs = np.asarray(p.graph.configs[:_NODE_SCORES])
+    node_scores = p.score_configs(torch.as_tensor(node_configs, dtype=torch.float32)).double().cpu().numpy()
+
+    start, goals = problem_configurations(robot, scene, scene.problems[0])
+    yaws = np.random.default_rng(seed + 7).uniform(-1.0, 1.0, replans)
+    tgt = scene.target(target)
+    rp = Replanner(p, _replan_settings(), targets=[target])
+    rp.set_robot_state(start)
+    rp.set_goals(goals)
+    rp.replan()
+    r_ok, r_ms = [], []
+    for yaw in yaws:
+        t0 = time.perf_counter()
+        rp.update_target(target, tgt.center, np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)]))
+        r_ok.append(bool(rp.replan().success))
+        r_ms.append((time.perf_counter() - t0) * 1e3)
+
+    header = {"format": FORMAT, "scene": scene.name, "target": target, "robot": robot.name, "configs": configs,
+              "nodes": nodes, "queries": len(probs), "replans": replans, "seed": seed, "torch": torch.__version__,
+              "numpy": np.__version__, "python": platform.python_version(),
+              "cpu": {"machine": platform.machine(), "cores": os.cpu_count(), "torch_threads": torch.get_num_threads()}}
+    return References(
+        header=header, configs=qs, camera_poses=camera, collision=flags, score_index=score_index, scores=scores,
+        node_configs=node_configs, node_scores=node_scores,
+        query_starts=np.stack([np.asarray(a, float) for a, _ in probs]),
+        query_goals=np.concatenate([np.atleast_2d(np.asarray(b, float)) for _, b in probs]),
+        query_goal_counts=np.array([len(np.atleast_2d(b)) for _, b in probs]),
+        query_success=np.array(success), query_path_length=np.array(length), query_ms=np.array(q_ms),
+        build_s=np.array(build_s), replan_start=np.asarray(start, float), replan_goals=np.atleast_2d(goals),
+        replan_yaws=yaws, replan_success=np.array(r_ok), replan_ms=np.array(r_ms),
+        robot_spheres=_sphere_table(robot), robot_urdf=np.frombuffer(planning_urdf(robot).encode(), dtype=np.uint8))
+
+
+def record(path: Path, scene_name: str = DEFAULTS["scene"], target: str = DEFAULTS["target"],
+           configs: int = DEFAULTS["configs"], nodes: int = DEFAULTS["nodes"], queries: int = DEFAULTS["queries"],
+           replans: int = DEFAULTS["replans"], seed: int = DEFAULTS["seed"]) -> dict:
+    """Compute the references in this (full) environment and write them to ``path``; verifies first that the robot
+    model built from the carried planning URDF equals the packaged one. Returns the header and the file's size."""
+    from ..paths import resolve_named
+    from ..robot import RobotModel
+    from ..scene import load_scene
+    from .reference import PybulletWorld
+
+    scene = load_scene(resolve_named("scene", scene_name))
+    robot = RobotModel.load(scene.robot)
+    world = PybulletWorld(robot, scene.collision_boxes())
+    try:
+        refs = compute_references(scene, robot, target, configs, nodes, queries, replans, seed, world)
+    finally:
+        world.close()
+    with tempfile.TemporaryDirectory() as tmp:
+        diff = _model_difference(carried_robot(refs, scene, Path(tmp)), robot)
+    if not diff <= TOLERANCES["robot_model_m"]:
+        raise RuntimeError(f"the planning URDF's robot model differs from the packaged one by {diff}")
+    refs.header["robot_model_difference_m"] = diff
+    refs.save(path)
+    return {"recorded": str(path), "bytes": Path(path).stat().st_size, **refs.header}
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# The check
+# ----------------------------------------------------------------------------------------------------------------------
+def run(device: str = "cuda", torch_path: bool = False, scene_name: str | None = None, target: str | None = None,
+        configs: int | None = None, nodes: int | None = None, queries: int | None = None,
+        replans: int | None = None, seed: int | None = None, references: str | Path | None = None) -> dict:
+    """The check of the module docstring: references computed here (``references`` None; None sizes take
+    :data:`DEFAULTS`) or read from the file ``references`` (then the scene, target, nodes and seed are the file's,
+    and ``configs``, ``queries``, ``replans`` take a prefix of its own)."""
+    from ..paths import resolve_named
+    from ..scene import load_scene
+
+    if references is None:
+        from ..robot import RobotModel
+        from .reference import PybulletWorld
+
+        a = {k: DEFAULTS[k] if v is None else v for k, v in (("scene", scene_name), ("target", target),
+                                                               ("configs", configs), ("nodes", nodes),
+                                                               ("queries", queries), ("replans", replans),
+                                                               ("seed", seed))}
+        scene = load_scene(resolve_named("scene", a["scene"]))
+        robot = RobotModel.load(scene.robot)
+        world = PybulletWorld(robot, scene.collision_boxes())
+        try:
+            refs = compute_references(scene, robot, a["target"], a["configs"], a["nodes"], a["queries"],
+                                      a["replans"], a["seed"], world)
+            out = check(device, torch_path, scene, robot, refs, world.in_collision, "pybullet")
+        finally:
+            world.close()
+        return out
+
+    refs = References.load(references)
+    h = refs.header
+    given = {"scene": scene_name, "target": target, "nodes": nodes, "seed": seed}
+    other = {k: v for k, v in given.items() if v is not None and v != h[k]}
+    if other:
+        raise InputError(f"{references} holds references of {', '.join(f'{k}={h[k]!r}' for k in other)}: record "
+                         f"others with --record for {', '.join(f'{k}={v!r}' for k, v in other.items())}")
+    refs = refs.prefix(configs, queries, replans)
+    scene = load_scene(resolve_named("scene", h["scene"]))
+    with tempfile.TemporaryDirectory() as tmp:
+        robot = carried_robot(refs, scene, Path(tmp))
+        out = check(device, torch_path, scene, robot, refs, _cpu_collision_judge(robot, scene),
+                    "cpu collision checker, float64, compiled kernels off")
+    out["references"] = {"file": str(references), **{k: h[k] for k in ("torch", "python", "cpu", "configs",
+                                                                        "queries", "replans")}}
+    return out
+
+
+def _cpu_collision_judge(robot, scene):
+    """Collision flags (B,) of configurations (B, dof) by the project's collision checker on the CPU in float64 with
+    the compiled kernels off: environment (the scene's boxes as they are, no workspace bounds) or self-collision, as
+    pybullet's check. Joint limits are not judged (as pybullet does not): a knot the device clamped to a limit in
+    float32 lies a rounding step past it in float64."""
+    import torch
+
+    from ..collision import CollisionChecker
+    from ..kernels.compute import Compute
+
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=None, device="cpu", dtype=torch.float64,
+                               compute=Compute.make("cpu", torch.float64, kernels="torch"))
+
+    def judge(qs: np.ndarray) -> np.ndarray:
+        det = checker.check_detailed(torch.as_tensor(np.asarray(qs), dtype=torch.float64))
+        return (det["environment"] | det["self"]).cpu().numpy()
+
+    return judge
+
+
+def check(device: str, torch_path: bool, scene, robot, refs: References, path_judge, judge_name: str) -> dict:
+    """Evaluate the references' configurations, views and queries on ``device`` and compare (module docstring);
+    ``path_judge`` gives the collision flags of the device's paths."""
+    import torch
+
+    from ..collision import CollisionChecker
+    from ..kernels.compute import Compute
+    from ..perception.scoring import NeuralScorer
+    from ..perception.surrogate import load_surrogate
+    from ..planning.factory import default_checkpoint
+    from .benchmarks import rotation_angle_error
+
+    dev = torch.device(device)
+    compute = Compute.make(dev, kernels="torch" if torch_path else "auto")  # the device under test
+    robot = robot.using(compute)
+    h = refs.header
+    out: dict = {"device": str(dev), "torch_path": not compute.compiled, "kernels": compute.kernels, "scene": scene.name,
+                 "robot": robot.name, "torch": torch.__version__}
+    if dev.type == "cuda":
+        out["device_name"] = torch.cuda.get_device_name(dev)
+    out["robot_model_max_difference_m"] = (float(np.abs(_sphere_table(robot) - refs.robot_spheres).max())
+                                           if _sphere_table(robot).shape == refs.robot_spheres.shape else float("inf"))
+
+    q = torch.as_tensor(refs.configs, dtype=torch.float32, device=dev)
+    m = len(refs.camera_poses)
+    cam = robot.camera_poses(q[:m]).double().cpu().numpy()
+    ref_cam = refs.camera_poses
+    out["fk_max_position_error_m"] = float(np.abs(cam[:, :3, 3] - ref_cam[:, :3, 3]).max())
+    out["fk_max_rotation_error_rad"] = float(rotation_angle_error(cam[:, :3, :3], ref_cam[:, :3, :3]).max())
+
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=None, device=dev, compute=compute)
+    t0 = time.perf_counter()
+    flags = checker.check(q)
+    if dev.type == "cuda":
+        torch.cuda.synchronize(dev)
+    out["collision_s"] = time.perf_counter() - t0
+    flags = flags.cpu().numpy()
+    ref = refs.collision
+    out["configs"] = int(len(ref))
+    out["missed_collisions"] = int(np.sum(ref & ~flags))
+    out["false_positive_rate"] = float(np.sum(flags & ~ref) / max(1, np.sum(~ref)))
+
+    scorer = NeuralScorer(load_surrogate(default_checkpoint()), scene, h["target"]).using(compute)
+    free = torch.as_tensor(refs.configs[refs.score_index], dtype=torch.float32, device=dev)
+    s_dev = scorer.score(robot.camera_poses(free)).double().cpu().numpy()
+    out["score_max_abs_difference"] = float(np.abs(s_dev - refs.scores).max()) if len(s_dev) else 0.0
+    out["score_views"] = int(len(s_dev))
+
+    out.update(_planning(compute, scene, robot, refs, path_judge))
+    out["path_collision_judge"] = judge_name
+    t = TOLERANCES
+    checks = {"robot_model": out["robot_model_max_difference_m"] <= t["robot_model_m"],
+              "fk_position": out["fk_max_position_error_m"] < t["fk_position_m"],
+              "fk_rotation": out["fk_max_rotation_error_rad"] < t["fk_rotation_rad"],
+              "missed_collisions": out["missed_collisions"] <= t["missed_collisions"],
+              "scores": out["score_max_abs_difference"] < t["score_abs"],
+              "node_scores": out["node_score_max_abs_difference"] < t["node_score_abs"],
+              "queries_solved": out["queries_solved"] == out["queries"],
+              "replans_solved": out["replans_solved"] == out["replans"],
+              "path_collisions": out["path_collisions"] <= t["path_collisions"],
+              "path_goal_error": out["path_goal_error_max"] < t["path_goal_error"]}
+    out["tolerances"] = TOLERANCES
+    out["failed"] = [k for k, v in checks.items() if not v]
+    out["ok"] = not out["failed"]
+    return out
+
+
+def _planning(compute, scene, robot, refs: References, path_judge) -> dict:
+    """The PS-PRM of the references (settings, nodes, seed) built on ``device``; it answers the references' queries
+    and replans after their target turns, and scores the CPU roadmap's nodes. Judged: every device path free under
+    ``path_judge`` and ending at a goal, node scores against the CPU planner's; path lengths and timings beside the
+    CPU planner's."""
+    import torch
+
+    from ..planning.factory import make_planner
+    from ..planning.replanner import Replanner
+
+    h = refs.header
+    target = h["target"]
+    dut = make_planner("neural-psprm-line", scene, [target], robot=robot, device=str(compute.device),
+                       options=_planner_options(h["nodes"], h["seed"]), compute=compute)
+    t0 = time.perf_counter()
+    dut.build()
+    dut_build = time.perf_counter() - t0
+    nq = len(refs.query_starts)
+    out = {"backend": type(dut.ctx.backend).__name__, "queries": nq, "queries_solved": 0, "path_collisions": 0, "path_goal_error_max": 0.0,
+           "build_s": {"cpu_reference": float(refs.build_s), "device": dut_build}}
+    q_ms = []
     cost_diff = []
 
     def judge(res, goals):
         dense = np.asarray(res.dense)
-        out["path_collisions_pybullet"] += int(world.in_collision(dense).sum())
+        out["path_collisions"] += int(np.sum(path_judge(dense)))
         diff = np.atleast_2d(goals) - dense[-1]
         if robot.mobile:  # base heading: the same pose a turn apart
             diff[:, 2] = (diff[:, 2] + np.pi) % (2 * np.pi) - np.pi
         err = float(np.min(np.linalg.norm(diff, axis=1)))
         out["path_goal_error_max"] = max(out["path_goal_error_max"], err)
 
-    for a, b in probs:
-        r_ref = ref.plan(a, b, timing=False)
+    for i in range(nq):
+        a, b = refs.query_starts[i], refs.goals(i)
+        b = b[0] if len(b) == 1 else b
         t0 = time.perf_counter()
         r_dut = dut.plan(a, b, timing=False)
-        q_ms["device"].append((time.perf_counter() - t0) * 1e3)
-        q_ms["cpu_reference"].append(r_ref.query_ms)
+        q_ms.append((time.perf_counter() - t0) * 1e3)
         if r_dut.success:
             out["queries_solved"] += 1
             judge(r_dut, b)
-            if r_ref.success:
-                cost_diff.append(abs(r_dut.path_length - r_ref.path_length) / max(r_ref.path_length, 1e-9))
-    nq = torch.as_tensor(dut.graph.configs[:500], dtype=torch.float32)
-    s_dut = dut.score_configs(nq.to(dut.device)).double().cpu().numpy()
-    s_ref = ref.score_configs(nq).double().cpu().numpy()
-    out["node_score_max_abs_difference"] = float(np.abs(s_dut - s_ref).max())
-    out["query_ms_median"] = {k: float(np.median(v)) for k, v in q_ms.items()}
+            if refs.query_success[i]:
+                ref_len = float(refs.query_path_length[i])
+                cost_diff.append(abs(r_dut.path_length - ref_len) / max(ref_len, 1e-9))
+    nodes = torch.as_tensor(refs.node_configs, dtype=torch.float32)
+    s_dut = dut.score_configs(nodes.to(dut.device)).double().cpu().numpy()
+    out["node_score_max_abs_difference"] = float(np.abs(s_dut - refs.node_scores).max())
+    out["query_ms_median"] = {"cpu_reference": float(np.median(refs.query_ms)), "device": float(np.median(q_ms))}
     out["path_length_relative_difference_median"] = float(np.median(cost_diff)) if cost_diff else float("nan")
 
-    # replans after target turns, both planners from the scene's first problem
-    prob = scene.problems[0]
-    start, goals = problem_configurations(robot, scene, prob)
     tgt = scene.target(target)
-    rng = np.random.default_rng(seed + 7)
-    yaws = rng.uniform(-1.0, 1.0, replans)
-    r_ms = {"cpu_reference": [], "device": []}
-    out.update(replans=replans, replans_solved=0)
-    for name, planner in (("cpu_reference", ref), ("device", dut)):
-        rp = Replanner(planner, ReplanSettings(), targets=[target])
-        rp.set_robot_state(start)
-        rp.set_goals(goals)
-        rp.replan()
-        for yaw in yaws:
-            quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
-            t0 = time.perf_counter()
-            rp.update_target(target, tgt.center, quat)
-            res = rp.replan()
-            r_ms[name].append((time.perf_counter() - t0) * 1e3)
-            if name == "device" and res.success:
-                out["replans_solved"] += 1
-                judge(res, goals)
-    out["replan_ms_median"] = {k: float(np.median(v)) for k, v in r_ms.items()}
+    r_ms = []
+    out.update(replans=int(len(refs.replan_yaws)), replans_solved=0)
+    rp = Replanner(dut, _replan_settings(), targets=[target])
+    rp.set_robot_state(refs.replan_start)
+    rp.set_goals(refs.replan_goals)
+    rp.replan()
+    for yaw in refs.replan_yaws:
+        quat = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+        t0 = time.perf_counter()
+        rp.update_target(target, tgt.center, quat)
+        res = rp.replan()
+        r_ms.append((time.perf_counter() - t0) * 1e3)
+        if res.success:
+            out["replans_solved"] += 1
+            judge(res, refs.replan_goals)
+    out["replan_ms_median"] = {"cpu_reference": float(np.median(refs.replan_ms)) if len(refs.replan_ms) else None,
+                               "device": float(np.median(r_ms)) if r_ms else None}
     return out
 
 
@@ -190,25 +540,44 @@ def main(argv=None) -> int:
                                  description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda", help="torch device (default cuda)")
     ap.add_argument("--torch-path", action="store_true", help="CPU: compiled kernels off (the path a GPU runs)")
-    ap.add_argument("--scene", default="dynamic_person")
-    ap.add_argument("--target", default="person_face")
-    ap.add_argument("--configs", type=int, default=2000, help="configurations for FK and collision (default 2000)")
-    ap.add_argument("--nodes", type=int, default=600, help="roadmap nodes of the planning check (default 600)")
-    ap.add_argument("--queries", type=int, default=10, help="random queries on both planners (default 10)")
-    ap.add_argument("--replans", type=int, default=5, help="target turns replanned on both (default 5)")
-    ap.add_argument("--seed", type=int, default=0)
+    mode = ap.add_mutually_exclusive_group()
+    mode.add_argument("--references", nargs="?", const=str(DEFAULT_REFERENCES), metavar="FILE",
+                      help="judge against references carried in FILE (default "
+                           f"{DEFAULT_REFERENCES.relative_to(DEFAULT_REFERENCES.parents[3])}): no pybullet needed")
+    mode.add_argument("--record", metavar="FILE",
+                      help="compute the references here (full environment) and write them to FILE; checks nothing")
+    ap.add_argument("--scene", help=f"scene (default {DEFAULTS['scene']}; with --references: the file's)")
+    ap.add_argument("--target", help=f"target (default {DEFAULTS['target']}; with --references: the file's)")
+    ap.add_argument("--configs", type=int, help=f"configurations for FK and collision (default {DEFAULTS['configs']};"
+                                                " with --references: the first this many of the file's)")
+    ap.add_argument("--nodes", type=int, help=f"roadmap nodes of the planning check (default {DEFAULTS['nodes']};"
+                                              " with --references: the file's)")
+    ap.add_argument("--queries", type=int, help=f"random queries on both planners (default {DEFAULTS['queries']})")
+    ap.add_argument("--replans", type=int, help=f"target turns replanned on both (default {DEFAULTS['replans']})")
+    ap.add_argument("--seed", type=int, help=f"default {DEFAULTS['seed']}; with --references: the file's")
     a = ap.parse_args(argv)
     import torch
 
+    from ..commands.perf import print_json, stdout_to_stderr
+
+    if a.record:
+        sizes = {k: DEFAULTS[k] if getattr(a, k) is None else getattr(a, k) for k in DEFAULTS}
+        with stdout_to_stderr():  # stdout carries the JSON object only
+            out = record(Path(a.record), sizes["scene"], sizes["target"], sizes["configs"], sizes["nodes"],
+                         sizes["queries"], sizes["replans"], sizes["seed"])
+        print_json(out)
+        return 0
     dev = torch.device(a.device)
     if dev.type == "cuda" and not torch.cuda.is_available():
         print(json.dumps({"device": a.device, "checked": False, "ok": True,
                           "note": f"CUDA is not available to this torch build ({torch.__version__}): nothing checked"}))
         return 0
-    from ..commands.perf import print_json, stdout_to_stderr
-
-    with stdout_to_stderr():  # stdout carries the JSON object only
-        out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed)
+    try:
+        with stdout_to_stderr():  # stdout carries the JSON object only
+            out = run(a.device, a.torch_path, a.scene, a.target, a.configs, a.nodes, a.queries, a.replans, a.seed,
+                      a.references)
+    except (PsprmError, OSError) as exc:  # a references file that is missing, of another layout or too small
+        ap.error(str(exc))
     out["checked"] = True
     print_json(out)
     return 0 if out["ok"] else 1
