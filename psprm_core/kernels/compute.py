@@ -157,7 +157,13 @@ class Computing:
     def compute(self) -> Compute:
         """The :class:`Compute` this object's batched methods follow."""
         c = self._compute
-        return c if c is not None else compute_for(self.default_device())
+        if c is not None:
+            return c
+        dev = self.default_device()
+        c = self.__dict__.get("_default_compute")
+        if c is None or c.device != dev:  # kept per object; looked up again when its device changes
+            c = self.__dict__["_default_compute"] = compute_for(dev)
+        return c
 
     def default_device(self) -> torch.device:
         """The device of the default :class:`Compute` (the object's own device where it keeps tensors)."""
