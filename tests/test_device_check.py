@@ -97,8 +97,8 @@ def test_shipped_references_are_those_of_the_packaged_robot_scene_and_surrogate(
 
     import torch
 
-    from psprm_core.evaluation.device_check import (References, _model_difference, _sphere_table, carried_robot,
-                                                    planning_urdf)
+    from psprm_core.evaluation.device_check.references import (References, carried_robot, model_difference,
+                                                         planning_urdf, sphere_table)
     from psprm_core.evaluation.reference import sample_uniform
     from psprm_core.kernels.compute import Compute
     from psprm_core.paths import resolve_named
@@ -116,9 +116,9 @@ def test_shipped_references_are_those_of_the_packaged_robot_scene_and_surrogate(
     qs = sample_uniform(robot, h["configs"], np.random.default_rng(h["seed"]), base_box=scene.workspace)
     np.testing.assert_array_equal(refs.configs, qs)
     assert refs.robot_urdf.tobytes().decode() == planning_urdf(robot)
-    np.testing.assert_allclose(refs.robot_spheres, _sphere_table(robot), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(refs.robot_spheres, sphere_table(robot), rtol=0, atol=1e-12)
     with tempfile.TemporaryDirectory() as tmp:
-        assert _model_difference(carried_robot(refs, scene, Path(tmp)), robot) < 1e-9
+        assert model_difference(carried_robot(refs, scene, Path(tmp)), robot) < 1e-9
     scorer = NeuralScorer(load_surrogate(default_checkpoint()), scene, h["target"])
     torch_only = Compute.make("cpu", kernels="torch")
     free = torch.as_tensor(refs.configs[refs.score_index], dtype=torch.float64)
@@ -128,7 +128,7 @@ def test_shipped_references_are_those_of_the_packaged_robot_scene_and_surrogate(
 
 
 def test_record_writes_references_the_check_reads(tmp_path):
-    from psprm_core.evaluation.device_check import References, record
+    from psprm_core.evaluation.device_check.references import References, record
 
     path = tmp_path / "refs.npz"
     head = record(path, configs=40, nodes=120, queries=1, replans=1, seed=3)

@@ -166,3 +166,28 @@ def test_no_package_holds_more_than_fifteen_modules(tmp_path):
     for i in range(MAX_MODULES_PER_PACKAGE + 1):
         (planted / f"m{i}.py").write_text("")
     assert _oversized_packages(tmp_path) == {planted: MAX_MODULES_PER_PACKAGE + 1}
+
+
+MAX_MODULE_LINES = 500
+
+
+def _long_modules(*roots: Path) -> dict:
+    """Modules (path -> lines) of the packages under ``roots`` longer than :data:`MAX_MODULE_LINES`."""
+    out = {}
+    for root in roots:
+        for f in sorted(root.rglob("*.py")):
+            if "__pycache__" in f.parts:
+                continue
+            n = len(f.read_text(encoding="utf-8").splitlines())
+            if n > MAX_MODULE_LINES:
+                out[f] = n
+    return out
+
+
+def test_no_module_is_longer_than_five_hundred_lines(tmp_path):
+    """The layout: a module that grows past 500 lines is split along a seam of its own; a planted long one is
+    found."""
+    assert _long_modules(ROOT, ROOT.parent / "psprm_ros") == {}
+    planted = tmp_path / "long.py"
+    planted.write_text("x = 1\n" * (MAX_MODULE_LINES + 1))
+    assert _long_modules(tmp_path) == {planted: MAX_MODULE_LINES + 1}

@@ -47,8 +47,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..geometry import EPS_DIR as _EPS_DIR
-from ..geometry import quat_to_matrix
+from ..geometry import EPS_DIR as _EPS_DIR, quat_to_matrix
 from ..kernels import fastpath
 from ..kernels.compute import Computing
 from ..scene import Box, Scene, Target
