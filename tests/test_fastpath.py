@@ -594,3 +594,28 @@ def test_kernel_modules_record_the_sources_of_the_kernels_they_call():
         if got != h.hexdigest():
             wrong.append(f'{m}.py: CALLEES_SHA256 = "{h.hexdigest()}" (from {", ".join(closure)})')
     assert not wrong, "set\n" + "\n".join(wrong)
+
+
+def test_a_compute_is_checked_where_it_is_made(load_robot):
+    """``Compute.make`` refuses what cannot run (numba kernels off the CPU, an unknown kernels name, a batch limit
+    below 1, an unknown policy field) with a ConfigError naming the field; a planner refuses a Compute for another
+    device than its own; ``using`` takes only a Compute."""
+    from psprm_core.errors import ConfigError
+
+    for kw, field in ((dict(device="cuda", kernels="numba"), "kernels"), (dict(kernels="warp"), "kernels"),
+                      (dict(max_batch=0), "max_batch"), (dict(mlp_max_rows=-3), "mlp_max_rows")):
+        with pytest.raises(ConfigError) as e:
+            Compute.make(**kw)
+        assert e.value.field == field, kw
+    with pytest.raises(ConfigError, match="unknown batch policy"):
+        Compute.make(chunk=3)
+    assert Compute.make("cuda").kernels == "torch"  # auto: torch off the CPU, whether or not CUDA is here
+    robot, scene = _robot_scene("stretch2", load_robot)
+    target = scene.target_names[0]
+    scorer = GeometricScorer(scene, target, robot.config.intrinsics)
+    with pytest.raises(ConfigError, match="device"):
+        PSPRM(robot, scene, scorer, scene.target(target).center, PSPRMSettings(), compute=Compute.make("cuda"))
+    with pytest.raises(ConfigError, match="expected a Compute"):
+        robot.using("torch")
+    copy = robot.using(TORCH)  # the original keeps its own
+    assert copy.compute is TORCH and robot.compute.compiled and copy.camera_body == robot.camera_body
