@@ -507,9 +507,8 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     n_free = n_zero = 0
     for s0 in range(0, len(qa), 3):  # batches of three edges, as a lazy search verifies its path
         k, i = kn[s0:s0 + 3], ki[s0:s0 + 3]
-        free, cams, raw = edges.check_score_knots(planner.motion, planner.checker, robot, args, k, i,
-                                                     np.ones(len(k), bool), np.ones(len(k), bool),
-                                                     planner.settings.edges.edge_resolution, 200)
+        free, cams, raw = edges.check_score_knots(planner.pipeline.ctx.edge_kit(), args, k, i,
+                                                  np.ones(len(k), bool), np.ones(len(k), bool), 200)
         assert np.array_equal(free, planner.pipeline.edges.knots_valid(k, dense=True).numpy())
         if free.any():
             ref_cams = planner.pipeline.scoring.eq1_cameras(k[free], i[free])

@@ -143,8 +143,7 @@ class CompiledBackend(TorchBackend):
         c, cp = self.ctx, self.ctx.compute
         E, n = qa.shape[0], c.settings.edges.n_interp
         if cp.pair_takes(qa, qb) and E * (n + 4) <= cp.max_batch:  # a query's few edges: one call
-            return edges.query_knots(c.motion, c.constraint, qa, qb, n, track, c.settings.projection, c.lo, c.hi,
-                                        c.track_cols, c.settings.edges.track_iters)
+            return edges.query_knots(c.edge_kit(), qa, qb, track)
         if cp.pair_takes(qa, qb) and cp.fits(E * (n + 4)):  # bulk: compiled, in row chunks
             knots, interior_idx = fastpath.edge_knot_seeds(c.motion, qa, qb, n)
             return (self.track_knots(knots) if track else knots), interior_idx

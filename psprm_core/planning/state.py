@@ -25,6 +25,7 @@ import torch
 
 from ..kernels import fastpath
 from ..kernels.compute import Compute, bulk
+from ..kernels.edges import EdgeKit
 
 if TYPE_CHECKING:  # the types of the context's fields (the modules import this one)
     from ..collision import CollisionChecker
@@ -66,6 +67,13 @@ class PlannerContext:
     def t(self, a) -> torch.Tensor:
         """``a`` as a tensor in the planner's dtype on its device."""
         return torch.as_tensor(np.asarray(a), dtype=self.dtype, device=self.device)
+
+    def edge_kit(self) -> EdgeKit:
+        """What the fused edge calls compute with (:class:`~psprm_core.kernels.edges.EdgeKit`), from the planner's
+        objects and its current settings."""
+        s = self.settings
+        return EdgeKit(self.motion, self.robot, self.checker, self.constraint, s.projection, self.lo, self.hi,
+                       self.track_cols, int(s.edges.track_iters), int(s.edges.n_interp), float(s.edges.edge_resolution))
 
 
 @dataclass

@@ -173,16 +173,12 @@ class Builder:
         seeds = fastpath.edge_knot_seeds(c.motion, q, qb, c.settings.edges.n_interp)[0]
         self.edges.track_knots(seeds)  # step by step
         if args is not None:  # the lazy verification's compiled calls
-            edges.check_score_knots(c.motion, c.checker, c.robot, args, kn, ki, np.ones(2, bool),
-                                       np.ones(2, bool), c.settings.edges.edge_resolution, 200)
+            kit, both = c.edge_kit(), np.ones(2, bool)
+            edges.check_score_knots(kit, args, kn, ki, both, both, 200)
             # a two-edge knot store of its own: edge 1's knots computed into it, both checked and scored
-            one = np.ones(1, bool)
-            edges.verify_edges(c.motion, c.constraint, c.checker, args, kn.numpy().copy(),
-                                  ki.numpy().copy(), np.arange(2), np.array([False, True]),
-                                  q.double().numpy()[1:], qb.double().numpy()[1:], one, c.settings.edges.n_interp, True,
-                                  c.settings.projection, c.lo, c.hi, c.track_cols,
-                                  c.settings.edges.track_iters, np.ones(2, bool), np.ones(2, bool),
-                                  c.settings.edges.edge_resolution, 200)
+            batch = edges.EdgeBatch(np.arange(2), np.array([False, True]), q.double().numpy()[1:],
+                                    qb.double().numpy()[1:], np.ones(1, bool), both, both)
+            edges.verify_edges(kit, args, kn.numpy().copy(), ki.numpy().copy(), batch, 200)
         self.edges.pieces(q, qb, max_steps=200, include_start=False)
         c.motion.distance(q, qb)
         fastpath.nearest(c.motion, q, qb, 1)

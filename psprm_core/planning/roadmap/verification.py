@@ -109,11 +109,10 @@ class Verification:
         cid = todo[compute]
         flip = g.edge_u[cid] != ua[rows]
         do_check, do_score = chk[todo] < 0.5, ver[todo] < 0.5
-        c, s = self.ctx, self.ctx.settings
-        ok, cams, raw = edges.verify_edges(
-            c.motion, c.constraint, c.checker, args, store.data.numpy(), store.interior.numpy(), todo, compute,
-            np.ascontiguousarray(qa[rows]), np.ascontiguousarray(qb[rows]), flip, s.edges.n_interp, True, s.projection,
-            c.lo, c.hi, c.track_cols, s.edges.track_iters, do_check, do_score, s.edges.edge_resolution, 200)
+        batch = edges.EdgeBatch(todo, compute, np.ascontiguousarray(qa[rows]), np.ascontiguousarray(qb[rows]), flip,
+                                do_check, do_score)
+        ok, cams, raw = edges.verify_edges(self.ctx.edge_kit(), args, store.data.numpy(), store.interior.numpy(), batch,
+                                           200)
         if len(cid):
             store.written(cid)
             self.cache_query_knots(cid, rows, flip)
