@@ -377,3 +377,49 @@ def test_replayer_publishes_on_the_monitors_topics():
     finally:
         node.destroy_node()
         ctx.try_shutdown()
+
+
+def test_a_collision_detail_names_the_box_pybullet_finds_the_robot_in(load_robot):
+    """The main job's report of an executed configuration in collision (``_collision_detail``) names the kind and
+    the boxes; judged by pybullet with each of the scene's boxes alone, on configurations the test places: the base
+    driven into the person's body, and one clear of everything. The base speed is the test's finite difference."""
+    import torch
+
+    from psprm_core.collision import CollisionChecker
+    from psprm_core.evaluation.reference import PybulletWorld
+    from psprm_core.paths import resolve_named
+    from psprm_core.scene import load_scene
+    from psprm_ros.harness.demo_analysis import _collision_detail
+
+    robot = load_robot("stretch2")
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    boxes = scene.collision_boxes()
+    from psprm_core.planning.factory import problem_configurations
+
+    body = next(b for b in boxes if b.name == "person_body")
+    q_clear = np.asarray(problem_configurations(robot, scene, scene.problems[0])[0], float)  # the scene's start
+    q_in = q_clear.copy()
+    q_in[:2] = body.center[:2] + np.array([0.05, 0.0])  # the base centre inside the body's box
+    T = np.arange(6) * 0.02
+    Q = np.repeat(q_clear[None], 6, 0)
+    Q[:, 0] += 0.01 * np.arange(6)  # 0.5 m/s along x
+    Q[-1] = q_in
+    Q[-2, :2] = q_in[:2] - [0.01, 0.0]  # the last step: 0.01 m in 0.02 s
+    checker = CollisionChecker(robot, boxes, workspace=scene.workspace)
+    d_in = _collision_detail(checker, boxes, T, Q, 5, 0.0)
+    d_clear = _collision_detail(checker, boxes, T, Q, 3, 0.0)
+    ref = {}
+    for b in boxes:
+        world = PybulletWorld(robot, [b])
+        try:
+            ref[b.name] = world.in_collision(np.stack([q_in, q_clear]))
+        finally:
+            world.close()
+    assert ref["person_body"][0] and not any(v[1] for v in ref.values())
+    assert d_in["kinds"] == ["environment"]
+    assert set(d_in["boxes"]) == {n for n, v in ref.items() if v[0]}
+    assert d_clear["kinds"] == [] and d_clear["boxes"] == []
+    assert d_in["t"] == 0.1 and d_in["base"][:2] == [round(float(v), 3) for v in q_in[:2]]
+    assert abs(d_clear["base_speed_mps"] - 0.5) < 1e-6
+    # the checker holds the scene's boxes again afterwards
+    assert bool(checker.check(torch.as_tensor(q_in[None], dtype=torch.float32))[0])

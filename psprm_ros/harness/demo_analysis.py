@@ -86,6 +86,30 @@ def _scene_with(scene, poses: dict):
     return s
 
 
+def _collision_detail(checker, boxes, T: np.ndarray, Q: np.ndarray, i: int, t0: float) -> dict:
+    """What the executed configuration ``Q[i]`` collides with (``checker`` holds ``boxes``): the kinds (limits,
+    environment, self), the boxes it touches, the base pose and its speed there (t from the replay's start)."""
+    import torch
+
+    q = torch.as_tensor(Q[i:i + 1], dtype=torch.float32)
+    det = checker.check_detailed(q)
+    kinds = [k for k, v in det.items() if bool(v[0])]
+    hit = []
+    if "environment" in kinds:
+        for b in boxes:
+            checker.set_boxes([b])
+            if bool(checker.check_detailed(q)["environment"][0]):
+                hit.append(b.name)
+        checker.set_boxes(boxes)
+    j = max(0, i - 5)
+    dt = max(1e-6, float(T[i] - T[j])) if i > j else 1.0
+    speed = float(np.hypot(*(Q[i, :2] - Q[j, :2]))) / dt if i > j else 0.0
+    turn = float(abs(np.remainder(Q[i, 2] - Q[j, 2] + np.pi, 2 * np.pi) - np.pi)) / dt if i > j else 0.0
+    return {"t": round(float(T[i] - t0), 3), "kinds": kinds, "boxes": hit,
+            "base": [round(float(v), 3) for v in Q[i, :3]], "base_speed_mps": round(speed, 3),
+            "base_turn_radps": round(turn, 3), "configuration": [round(float(v), 4) for v in Q[i]]}
+
+
 def bodies_at(record, t: float) -> dict:
     """The latest replayed pose (scene frame) of each body at time ``t`` (perf_counter) in ``record`` (the demo's
     :class:`~.demo.Record`)."""
@@ -156,7 +180,7 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
     T = np.array([t for t, _ in ex])
     Q = np.array([q for _, q in ex]).reshape(-1, robot.dof)
     checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
-    collided, idx_bad = 0, []
+    collided, idx_bad, bad_details = 0, [], []
     with record.lock:
         poses = list(record.poses)
     k = 0
@@ -165,16 +189,23 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
         while k < len(poses) and poses[k][0] <= t:
             cur[poses[k][1]] = (poses[k][2], poses[k][3])
             k += 1
-        checker.set_boxes(_scene_with(scene, cur).collision_boxes())
+        boxes = _scene_with(scene, cur).collision_boxes()
+        checker.set_boxes(boxes)
         if bool(checker.check(torch.as_tensor(Q[i:i + 1], dtype=torch.float32))[0]):
             collided += 1
             idx_bad.append(i)
+            if len(bad_details) < 20:
+                bad_details.append(_collision_detail(checker, boxes, T, Q, i, t_replay))
     dist = float(np.sum(np.hypot(*np.diff(Q[:, :2], axis=0).T))) if len(Q) > 1 else 0.0
     if len(Q):
         say(f"[demo] executed motion: {len(Q)} configurations over {T[-1] - T[0]:.1f} s (reported at "
             f"{len(Q) / max(1e-9, T[-1] - T[0]):.0f} Hz), base drove {dist:.2f} m from ({Q[0, 0]:.2f}, {Q[0, 1]:.2f}) "
             f"to ({Q[-1, 0]:.2f}, {Q[-1, 1]:.2f}, yaw {Q[-1, 2]:.2f}); {collided} configurations in collision with "
             f"the replayed bodies ({', '.join(cfg.recorded_bodies)})")
+    for d in bad_details:
+        say(f"[demo]   in collision at t={d['t']:.2f} s: {', '.join(d['kinds'])}"
+            f"{' with ' + ', '.join(d['boxes']) if d['boxes'] else ''}; base at ({d['base'][0]:.2f}, {d['base'][1]:.2f}, "
+            f"yaw {d['base'][2]:.2f}) moving {d['base_speed_mps']:.2f} m/s, {d['base_turn_radps']:.2f} rad/s")
     # oracle along the executed motion
     ts = np.arange(T[0], T[-1] + 1e-9, a.oracle_every) if len(T) else np.zeros(0)
     Qs = np.array([Q[min(np.searchsorted(T, t), len(T) - 1)] for t in ts]).reshape(-1, robot.dof)
@@ -232,6 +263,7 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
            ((k, [r[k] for r in rows if r.get(k) is not None]) for k in ("server_ms", "replan_ms", "apply_ms",
                                                                         "msg_ms", "check_ms", "input_age_ms", "triggers_ms"))},
         "executed_configurations": int(len(Q)), "executed_collisions": int(collided),
+        "executed_collision_details": bad_details,
         "executed_distance_m": round(dist, 3),
         "final_base": [round(float(v), 3) for v in Q[-1, :3]] if len(Q) else None,
         # every target of the params file in every view: the share of (view, target) pairs detected (one target:
