@@ -461,7 +461,7 @@ def test_queries_run_with_one_intra_op_thread(load_robot):
         bad = q[0].copy()
         bad[0] = float("nan")
         assert not p.plan(bad, q[1]).success and torch.get_num_threads() == 2
-        with fastpath.one_thread("cpu"):
+        with Compute.make("cpu").one_thread():
             assert torch.get_num_threads() == 1
         assert torch.get_num_threads() == 2
     finally:

@@ -101,6 +101,26 @@ class Compute:
         return (qa.dim() == 2 and qa.shape == qb.shape and qa.dtype == qb.dtype and qb.device.type == "cpu"
                 and not (qb.requires_grad and torch.is_grad_enabled()) and self.takes(qa, self.motion_max_batch))
 
+    @contextlib.contextmanager
+    def one_thread(self) -> Iterator[None]:
+        """Run a block of small CPU batches (a query, a replan) with torch's intra-op parallelism off, restoring the
+        thread count after it (a CUDA device, or one thread already: nothing changes).
+
+        With 2 threads even a reduction over a few hundred numbers can open a parallel region; on a machine whose
+        other core is busy that region waits for its second thread to be scheduled, up to a scheduler time slice
+        (4-6 ms). With another process busy on the other core, the home query's median was 21 ms with 2 threads and
+        8.5 ms with one. The thread count is process-wide: torch work in other threads during the block runs
+        single-threaded too."""
+        n = torch.get_num_threads()
+        if n == 1 or self.device.type != "cpu":
+            yield
+            return
+        torch.set_num_threads(1)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(n)
+
 
 @functools.lru_cache(maxsize=1)
 def numba_importable() -> bool:

@@ -33,21 +33,18 @@ surrogate's GEMMs stay in torch. CUDA tensors keep the torch path. Nothing is co
 kernel on its first call (cached on disk with ``cache=True``); ``PSPRM.warm_up`` loads them before the build.
 Without numba (:func:`available` false) ``Compute.make`` chooses torch. An object built with a torch-only
 ``Compute`` (``obj.using(compute.torch_only())``) runs the torch code at every size (tests compare both). Queries
-run with torch's intra-op parallelism off (:func:`one_thread`).
+run with torch's intra-op parallelism off (:meth:`Compute.one_thread`).
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import logging
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Callable, Iterator
+from typing import Any, Callable
 
 import numpy as np
 import torch
-
-log = logging.getLogger(__name__)
 
 from .compute import Compute, bulk_workers, numba_importable
 
@@ -65,26 +62,6 @@ def kernels() -> Any:
 def available() -> bool:
     """Whether the compiled kernels can run here (numba importable); a :class:`Compute` chooses them per object."""
     return numba_importable()
-
-
-@contextlib.contextmanager
-def one_thread(device: torch.device | str = "cpu") -> Iterator[None]:
-    """Run a block of small CPU batches (a query) with torch's intra-op parallelism off, restoring the thread count
-    after it (CUDA devices, or one thread already: nothing changes).
-
-    With 2 threads even a reduction over a few hundred numbers can open a parallel region; on a machine whose other
-    core is busy that region waits for its second thread to be scheduled, up to a scheduler time slice (4-6 ms). With
-    another process busy on the other core, the home query's median was 21 ms with 2 threads and 8.5 ms with one.
-    The thread count is process-wide: torch work in other threads during the block runs single-threaded too."""
-    n = torch.get_num_threads()
-    if n == 1 or torch.device(device).type != "cpu":
-        yield
-        return
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 def twin(compiled: Callable, when: Callable | None = None) -> Callable:

@@ -23,7 +23,6 @@ from typing import TYPE_CHECKING, Callable, Optional
 import numpy as np
 import torch
 
-from ..kernels import fastpath
 from ..kernels.compute import Compute, bulk
 from ..kernels.edges import EdgeKit
 
@@ -116,11 +115,11 @@ class ReadsQuerySettings:
 
 def one_thread(method: Callable) -> Callable:
     """Run a planner method (a query: small batches) with torch's intra-op parallelism off
-    (:func:`fastpath.one_thread`)."""
+    (:meth:`~psprm_core.kernels.compute.Compute.one_thread` of the planner's Compute)."""
 
     @functools.wraps(method)
     def run(self, *args, **kwargs):
-        with fastpath.one_thread(self.ctx.device):
+        with self.ctx.compute.one_thread():
             return method(self, *args, **kwargs)
 
     return run
