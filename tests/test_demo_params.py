@@ -423,3 +423,34 @@ def test_a_collision_detail_names_the_box_pybullet_finds_the_robot_in(load_robot
     assert abs(d_clear["base_speed_mps"] - 0.5) < 1e-6
     # the checker holds the scene's boxes again afterwards
     assert bool(checker.check(torch.as_tensor(q_in[None], dtype=torch.float32))[0])
+
+
+def test_the_post_mortem_record_holds_what_the_test_gave_it(tmp_path, load_robot):
+    """``save_record`` (the soak's record, and the main job's when it misses its goal or collides) writes the
+    executed motion, each trajectory message's positions and times and the replayed poses; read back with numpy
+    against the values the test built the messages from."""
+    from builtin_interfaces.msg import Duration
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    from psprm_ros.harness.soak_report import save_record
+
+    robot = load_robot("stretch2")
+    names = list(robot.joint_names)
+    rng = np.random.default_rng(3)
+    ex = [(10.0 + 0.02 * i, rng.normal(size=len(names))) for i in range(5)]
+    P = rng.normal(size=(3, len(names)))
+    msg = JointTrajectory(joint_names=names[::-1])  # another joint order than the robot's
+    for k in range(3):
+        msg.points.append(JointTrajectoryPoint(positions=[float(v) for v in P[k][::-1]],
+                                               time_from_start=Duration(sec=k, nanosec=500_000_000)))
+    poses = [(10.01, "person_body", np.array([4.0, 3.2, 0.75]), np.array([0.0, 0.0, 0.1, 0.995])),
+             (10.03, "person_face", np.array([3.9, 3.2, 1.6]), np.array([0.0, 0.0, 0.0, 1.0]))]
+    path = tmp_path / "r.npz"
+    save_record(path, ex, [(10.05, msg)], names, poses=poses)
+    d = np.load(path)
+    assert np.allclose(d["executed_t"], [0.02 * i for i in range(5)])
+    assert np.allclose(d["executed_q"], np.array([q for _, q in ex]))
+    assert np.allclose(d["trajectory_t"], [0.05]) and list(d["trajectory_offsets"]) == [0, 3]
+    assert np.allclose(d["trajectory_q"], P) and np.allclose(d["trajectory_time_from_start"], [0.5, 1.5, 2.5])
+    assert np.allclose(d["pose_t"], [0.01, 0.03]) and list(d["pose_body"]) == ["person_body", "person_face"]
+    assert np.allclose(d["pose_p"][1], [3.9, 3.2, 1.6]) and np.allclose(d["pose_q"][0], [0.0, 0.0, 0.1, 0.995])

@@ -415,6 +415,15 @@ def main(args=None) -> int:
     if result:
         (out / "ros_demo.json").write_text(json.dumps(strict_json(result), indent=1, allow_nan=False))
         say(f"[demo] wrote {out / 'ros_demo.png'} and {out / 'ros_demo.json'}")
+        if not result.get("reached_goal") or result.get("executed_collisions"):
+            # what went wrong, for a post-mortem: the executed motion, the trajectories and the replayed poses
+            from .soak_report import save_record
+
+            with record.lock:
+                ex, poses = list(record.executed), list(record.poses)
+            save_record(out / "ros_demo_record.npz", ex, list(probe.trajectories), list(cfg.robot.joint_names),
+                        poses=poses)
+            say(f"[demo] wrote {out / 'ros_demo_record.npz'} (executed motion, trajectories, replayed poses)")
     return 0 if result.get("reached_goal") and result.get("executed_collisions") == 0 else 1
 
 

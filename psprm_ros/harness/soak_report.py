@@ -179,10 +179,11 @@ def _params_padding(params_file: str) -> float:
     return float((params.get("edges") or {}).get("collision_padding", 0.0))
 
 
-def save_record(path: Path, ex: list, trajs: list, names: list, commands: list = ()) -> None:
+def save_record(path: Path, ex: list, trajs: list, names: list, commands: list = (), poses: list = ()) -> None:
     """The soak's record for a replay: executed configurations (t, q), every trajectory received (t, times from its
-    start, positions in the robot's joint order) and the controller commands (t, number of points), times in seconds
-    from the first executed configuration."""
+    start, positions in the robot's joint order), the controller commands (t, number of points) and the bodies'
+    poses (t, body, position, quaternion: ``pose_t``, ``pose_body``, ``pose_p``, ``pose_q``), times in seconds from
+    the first executed configuration."""
     t_ref = ex[0][0] if ex else 0.0
     tt, off, P, T = [], [0], [], []
     for t, m in trajs:
@@ -200,7 +201,11 @@ def save_record(path: Path, ex: list, trajs: list, names: list, commands: list =
                         trajectory_q=np.vstack(P) if P else np.zeros((0, len(names))),
                         trajectory_time_from_start=np.concatenate(T) if T else np.zeros(0),
                         command_t=np.array([t - t_ref for t, _ in commands]),
-                        command_points=np.array([n for _, n in commands], int))
+                        command_points=np.array([n for _, n in commands], int),
+                        pose_t=np.array([t - t_ref for t, *_ in poses]),
+                        pose_body=np.array([str(b) for _, b, _, _ in poses]),
+                        pose_p=np.array([p for _, _, p, _ in poses], float).reshape(-1, 3),
+                        pose_q=np.array([q for _, _, _, q in poses], float).reshape(-1, 4))
 
 
 def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
