@@ -31,6 +31,7 @@ action clients and the Stretch driver's services.
 
 from __future__ import annotations
 
+import queue
 import threading
 import time
 from typing import Optional
@@ -120,6 +121,8 @@ class RobotAdapter:
         self.tf_tree = None  # base_pose_source tf: the links received, kept for the tracker made at configure
         self.follower: Optional[BaseFollower] = None
         self._lock = threading.RLock()
+        self._inbox: queue.Queue = queue.Queue()  # trajectories for the acceptance thread
+        self._acceptor: Optional[threading.Thread] = None
         self._last_replan_request = -1e9
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0, "spliced": 0,
                        "goals_deferred": 0, "twists": 0, "off_path_stops": 0, "goals_rejected": 0, "goals_failed": 0,
@@ -215,6 +218,8 @@ class RobotAdapter:
         return True
 
     def on_deactivate(self, state) -> bool:
+        self.active = False  # the acceptance thread takes nothing more
+        self._quiesce()
         self.stop("adapter deactivated")
         self.execution.restore_driver_mode()
         self.active = False
@@ -232,6 +237,9 @@ class RobotAdapter:
         return True
 
     def on_shutdown(self, state) -> bool:
+        was_active, self.active = self.active, False
+        if was_active:
+            self._quiesce()
         if self.cfg is not None:
             self.stop("shutting down")
             self.execution.restore_driver_mode()
@@ -317,7 +325,9 @@ class RobotAdapter:
         vals = {"lifecycle": core.lifecycle_state(self.node), **self.counts,
                 "max_tracking_error_m": float(ex.max_tracking_error[0]),
                 "max_tracking_error_rad": float(ex.max_tracking_error[1]),
-                "path_deviation_m": float(ex.path_deviation), "max_path_deviation_m": float(ex.max_path_deviation)}
+                "path_deviation_m": float(ex.path_deviation), "max_path_deviation_m": float(ex.max_path_deviation),
+                "accept_ms_max": round(float(ex.accept_ms_max), 1),
+                "control_gap_ms_max": round(float(ex.control_gap_ms_max), 1)}
         name = f"psprm: {self.node.get_fully_qualified_name()}"
         core.publish_diagnostics(self.pub_diag, self.node,
                                  [core.diagnostic_status(name, self.robot.name, level, msg, vals)])
@@ -374,13 +384,47 @@ class RobotAdapter:
             self.status(f"ignored {text}", "warning")
 
     def _traj_cb(self, msg) -> None:
+        """A trajectory goes to the acceptance thread, in arrival order: its check (tens of ms, more on a busy
+        machine) must not hold up the control steps, which run on this node's executor, while the base is following
+        the trajectory under way."""
         self.counts["trajectories"] += 1
         if not self.active or self.cfg is None:  # an inactive adapter drives nothing (activation asks for a new plan)
             return
-        try:
-            self.execute(msg)
-        except Exception as exc:  # never die on a message; a trajectory we cannot execute stops the robot
-            self.stop(f"cannot execute the trajectory: {exc}")
+        with self._lock:
+            if self._acceptor is None or not self._acceptor.is_alive():
+                self._acceptor = threading.Thread(target=self._accept_loop, name=f"{self.node.get_name()}-accept",
+                                                  daemon=True)
+                self._acceptor.start()
+        self._inbox.put(msg)
+
+    def _accept_loop(self) -> None:
+        """The acceptance thread: each trajectory in arrival order (a stop trajectory too, so that nothing accepted
+        before it runs after it); ends at None."""
+        while True:
+            msg = self._inbox.get()
+            try:
+                if msg is None:
+                    return
+                if self.active and self.cfg is not None:
+                    self.execute(msg)
+            except Exception as exc:  # never die on a message; a trajectory we cannot execute stops the robot
+                try:
+                    self.stop(f"cannot execute the trajectory: {exc}")
+                except Exception:
+                    pass
+            finally:
+                self._inbox.task_done()
+
+    def _quiesce(self, timeout: float = 2.0) -> None:
+        """Drop the trajectories not yet accepted and wait for the one being accepted (at most ``timeout``): what a
+        deactivation, a shutdown or the node's end stops must not start after the stop."""
+        while True:
+            try:
+                self._inbox.get_nowait()
+                self._inbox.task_done()
+            except queue.Empty:
+                break
+        self.execution.wait_accepted(timeout)
 
     def execute(self, msg) -> bool:
         """Check a planned trajectory against the measured state and send it to the controllers and the base
@@ -396,6 +440,10 @@ class RobotAdapter:
         return self.execution.execute(t, P, velocities)
 
     def destroy(self) -> None:
+        was_active, self.active = self.active, False
+        self._quiesce()
+        self._inbox.put(None)  # the acceptance thread ends
+        self.active = was_active
         try:
             if self.active:
                 self.stop("node destroyed")

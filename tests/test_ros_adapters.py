@@ -646,6 +646,51 @@ def test_a_replan_spliced_onto_the_trajectory_under_way_is_taken_without_a_stop(
     assert np.hypot(*(X[-1, :2] - q2[:2])) < 0.1  # it drove the new plan to its end
 
 
+def test_the_base_is_controlled_while_a_slow_acceptance_runs_and_brakes_where_the_trajectory_rests(load_robot):
+    """A splice reaches the adapter 1.0 s before the trajectory under way comes to rest at the end of a straight
+    stretch (where the splice turns), and its acceptance takes 0.5 s longer than it does here (a busy machine: the
+    test delays the adapter's real check by that much). The control steps run meanwhile: on the test's record of
+    cmd_vel, no gap over 0.2 s while the check runs; on /odom, the base brakes into the stretch's end and passes
+    the rest point the test planned by at most 3 cm along the drive (coasting on its last command through the
+    check, it would run about 15 cm past it at 0.3 m/s)."""
+    from psprm_core.planning.execution import commit_time, splice
+
+    name = "stretch2"
+    robot = load_robot(name)
+    with _adapter_on_sim(name, robot) as (s, cfg, rec, pub, sim_pid):
+        tr, start, now = _drive_a_straight_stretch(s, cfg, rec, pub, robot, 2.0)
+        t_from = now() - start
+        t_c = commit_time(tr, t_from, 0.5)
+        q_c = tr.evaluate([t_c])[0][0]
+        q1 = q_c.copy()
+        q1[2] += math.pi / 2
+        b = robot.config.base
+        new = time_parameterize(np.array([q_c, q1]), robot.velocity, robot.acceleration, dt=0.05,
+                                base_indices=(0, 1, 2), base_linear_limits=(b.linear_velocity, b.linear_acceleration),
+                                method="analytic")
+        acceptance = s.adapter.execution.acceptance
+        check = acceptance.decide
+        acceptance.decide = lambda *a, **k: (time.sleep(0.5), check(*a, **k))[1]  # the real check, 0.5 s late
+        try:
+            time.sleep(max(0.0, start + t_c - 1.0 - now()))
+            sp = splice(tr, now() - start, t_c, new, continuous=[2])
+            t_pub = now()
+            pub.publish(cv.trajectory_to_msg(sp, robot.joint_names, "map", s.probe.node.get_clock().now().to_msg(),
+                                             0.1))
+            _wait(lambda: False, (t_c - (t_pub - start)) + 2.0)
+        finally:
+            acceptance.decide = check
+        with rec.lock:
+            odom = list(rec.odom)
+            twists = list(rec.twists)
+    T = np.array([t for t, _ in twists if t_pub - 0.1 <= t <= t_pub + 0.7])
+    assert len(T) > 5 and np.diff(T).max() <= 0.2, {"largest_gap_s": float(np.diff(T).max()) if len(T) > 1 else None}
+    heading = np.array([math.cos(q_c[2]), math.sin(q_c[2])])
+    X = np.array([x for t, x in odom if t >= t_pub])
+    past = (X[:, :2] - q_c[:2]) @ heading  # along the drive, beyond the planned rest point
+    assert past.max() <= 0.03, {"past_rest_m": float(past.max())}
+
+
 def test_a_splice_beginning_before_the_point_where_the_adapter_joined_the_trajectory_is_taken(load_robot):
     """Two replans in a row, as goal spam makes them: the first splice reaches the adapter 0.4 s after the robot was
     at its start, so the adapter joins it 0.4 s in; the second is spliced onto the first from 0.1 s along it (the

@@ -17,6 +17,7 @@ The node is the ``port``: ``active``, ``now()``, ``measured()`` -> (q or None, w
 
 from __future__ import annotations
 
+import threading
 import time
 from typing import Callable, Optional
 
@@ -70,6 +71,11 @@ class Execution:
         self.runstopped = False
         self.replan_when_ready = ""
         self.last_switch_request = -1e9
+        # one trajectory is accepted at a time (the node's acceptance thread, or a held plan released by a control
+        # step); the control steps go on meanwhile
+        self._accepting = threading.Lock()
+        self.accept_ms_max = 0.0  # the longest acceptance of a trajectory (ms)
+        self.control_gap_ms_max = 0.0  # the longest interval between two control steps while following (ms)
 
     def configure(self, cfg: ad.AdapterConfig, links, follower: Optional[BaseFollower]) -> None:
         """Execute on ``links`` (the controllers of ``cfg``) and ``follower`` (None for a robot without a base)."""
@@ -164,7 +170,23 @@ class Execution:
     def execute(self, t: np.ndarray, P: np.ndarray, velocities: Callable[[], Optional[np.ndarray]]) -> bool:
         """Check a planned trajectory (times ``t``, positions ``P`` of the planning joints; ``velocities()`` gives
         its velocities or None, read once it gets that far) against the measured state and send it to the
-        controllers and the base."""
+        controllers and the base. One at a time; the control steps (:meth:`tick`) go on while it runs, so the base
+        keeps following the trajectory under way (which a splice continues) however long the check takes."""
+        t_start = time.perf_counter()
+        with self._accepting:
+            try:
+                return self._execute(t, P, velocities)
+            finally:
+                self.accept_ms_max = max(self.accept_ms_max, (time.perf_counter() - t_start) * 1e3)
+
+    def wait_accepted(self, timeout: float) -> bool:
+        """Wait (at most ``timeout`` s) until no trajectory is being accepted; False if one still is."""
+        if not self._accepting.acquire(timeout=timeout):
+            return False
+        self._accepting.release()
+        return True
+
+    def _execute(self, t: np.ndarray, P: np.ndarray, velocities: Callable[[], Optional[np.ndarray]]) -> bool:
         q, why = self.port.measured()
         if q is None:
             self.stop(f"trajectory not executed: {why}")
@@ -290,6 +312,8 @@ class Execution:
         t, P, velocities, since = self.held
         if self._braking() and now - since < REST_WAIT_S:
             return
+        if self._accepting.locked():  # a newer trajectory is being accepted: it decides, not this step
+            return
         self.held = None
         try:
             self.execute(t, P, velocities)
@@ -366,6 +390,8 @@ class Execution:
             return
         following = not self.follower.done
         dt, self.last_tick = (0.0 if self.last_tick is None else now - self.last_tick), now
+        if following and 0.0 < dt < 10.0:
+            self.control_gap_ms_max = max(self.control_gap_ms_max, dt * 1e3)
         if following and self.speed_scaling < 1.0 and 0.0 < dt < 1.0:
             # the path clock runs at the controllers' speed scaling: the base stays in step with a slowed arm
             with self._lock:
