@@ -11,7 +11,7 @@ core hid the fault (the two Python threads then ran one after the other).
 A node's callbacks therefore run one at a time, in arrival order; nodes run side by side (the GIL is released while
 an executor waits), so a long callback of one node (a lifecycle transition that builds the roadmap) never delays
 another node's messages. Work that takes long inside a node belongs on that node's own worker thread (the roadmap
-server's planner), not in a callback.
+server's planner, the robot adapter's trajectory checks), not in a callback.
 """
 
 from __future__ import annotations
