@@ -440,12 +440,11 @@ class RobotAdapter:
         return self.execution.execute(t, P, velocities)
 
     def destroy(self) -> None:
-        was_active, self.active = self.active, False
+        was_active, self.active = self.active, False  # the acceptance thread takes nothing more
         self._quiesce()
         self._inbox.put(None)  # the acceptance thread ends
-        self.active = was_active
         try:
-            if self.active:
+            if was_active:
                 self.stop("node destroyed")
                 self.wait_stop_delivered()
         except Exception:

@@ -278,8 +278,9 @@ class Replanner(PlanJudging):
         replans (the reasons of :meth:`needs_replan`); when they are all :data:`~.replan_judging.VIEW_TRIGGERS` and
         ``keep_unless_better`` is on, a new plan no better than the current one is not adopted (the result has
         ``kept`` set, no trajectory, and the new plan as ``declined``; the module's docstring). Runs with torch's
-        intra-op parallelism off, like a query (:meth:`~psprm_core.kernels.compute.Compute.one_thread`): its re-scoring batches
-        are a few thousand rows, where a second thread gains little and can wait a scheduler slice on a busy machine."""
+        intra-op parallelism off, like a query (:meth:`~psprm_core.kernels.compute.Compute.one_thread`): its
+        re-scoring batches are a few thousand rows, where a second thread gains little and can wait a scheduler slice
+        on a busy machine."""
         with self.planner.compute.one_thread():
             return self._replan(now, tuple(triggers), horizon_s)
 
