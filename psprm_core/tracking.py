@@ -20,29 +20,13 @@ executes stays within the clearance of what was checked.
 from __future__ import annotations
 
 import numpy as np
-import torch
 
 from .errors import InputError
 
-_CORNER_SIGNS = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)  # (8, 3)
-
-
 def element_corners(robot, Q) -> np.ndarray:
     """World positions (M, 8E, 3) of the corners of every collision box of ``robot`` at configurations ``Q``
-    (M, dof), by the robot model's forward kinematics."""
-    Q = np.asarray(Q, float).reshape(-1, robot.dof)
-    if not np.isfinite(Q).all():
-        raise InputError("configurations for the corner positions must be finite")
-    el = robot.elements
-    # (E, 8, 3): each box's corners in its body's frame
-    local = el.center[:, None, :] + np.einsum("eij,ekj->eki", el.rotation, _CORNER_SIGNS[None] * el.half[:, None, :])
-    with torch.no_grad():
-        R, t = robot.body_poses(torch.as_tensor(Q, dtype=torch.float64))
-    R, t = R.numpy(), t.numpy()
-    body = el.element_body
-    # (M, E, 8, 3): R_body (M, E, 3, 3) applied to the corners in the body frame, plus the body's position
-    world = np.einsum("meij,ekj->meki", R[:, body], local) + t[:, body][:, :, None, :]
-    return world.reshape(len(Q), -1, 3)
+    (M, dof), by the robot model's forward kinematics (:meth:`psprm_core.robot.model.RobotModel.element_corners`)."""
+    return robot.element_corners(Q)
 
 
 def displacement(robot, q, Q) -> np.ndarray:

@@ -58,6 +58,19 @@ def test_camera_poses_match_torch(name, dtype, load_robot):
 
 
 @pytest.mark.parametrize("name", sorted(ROBOT_SCENES))
+def test_element_corners_match_torch(name, load_robot):
+    """The corners of the collision boxes (the path tolerance's measure): the compiled kernel against torch's body
+    poses in float64, box by box and corner by corner."""
+    robot, scene = _robot_scene(name, load_robot)
+    q = _configs(robot, scene, 200, 3)
+    fast = robot.element_corners(q)
+    ref = robot.using(TORCH).element_corners(q)
+    assert fast.shape == ref.shape == (200, 8 * len(robot.elements.element_body), 3)
+    assert np.abs(fast - ref).max() < 1e-12
+    assert np.abs(robot.element_corners(q[:1]) - ref[:1]).max() < 1e-12
+
+
+@pytest.mark.parametrize("name", sorted(ROBOT_SCENES))
 @pytest.mark.parametrize("kind", ["line", "frustum"])
 def test_projection_matches_torch(name, kind, load_robot):
     """Same iterates in float64 (same steps, same stopping, same converged flags), with all camera joints and with

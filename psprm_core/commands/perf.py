@@ -216,6 +216,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     rm.add_argument("--threads", type=int, default=1)
     rm.add_argument("--json", action="store_true")
     rm.set_defaults(func=_json_only(_replan_motion))
+    tk = ps.add_parser("tracking", help="the path tolerance's measure (a splice check, a control step): compiled "
+                                        "corner kernel vs torch FK, same inputs")
+    tk.add_argument("--robot", default="stretch2")
+    tk.add_argument("--rounds", type=int, default=20)
+    tk.add_argument("--seed", type=int, default=0)
+    tk.add_argument("--threads", type=int, default=1)
+    tk.add_argument("--json", action="store_true", help="print one JSON object")
+    tk.set_defaults(func=_json_only(_tracking))
     dg = ps.add_parser("digest", help="fixed-seed plans and replans on every shipped scene, written to a file or "
                                       "compared with an earlier one (identical paths, costs within --tol)")
     dg.add_argument("--out", default=None, help="write the record here")
@@ -268,6 +276,13 @@ def _replan_motion(args) -> int:
 
     _print(motion_replan_benchmark(nodes=args.nodes, replans=args.replans, rounds=args.rounds, seed=args.seed,
                                    threads=args.threads), args.json)
+    return 0
+
+
+def _tracking(args) -> int:
+    from ..evaluation.benchmarks import tracking_benchmark
+
+    _print(tracking_benchmark(args.robot, rounds=args.rounds, seed=args.seed, threads=args.threads), args.json)
     return 0
 
 

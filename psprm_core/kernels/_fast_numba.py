@@ -11,8 +11,10 @@ The kernels live in modules by domain and are re-exported here: :mod:`~psprm_cor
 poses, collision checks; the ``jit`` decorator and the joint type codes), :mod:`~psprm_core.kernels._fast_projection`
 (projection onto the visibility manifold), :mod:`~psprm_core.kernels._fast_motion` (the motion metric, local motions,
 pieces, nearest nodes, edge knots), :mod:`~psprm_core.kernels._fast_scoring` (occlusion, pose features, the surrogate
-MLP) and
-:mod:`~psprm_core.kernels._fast_query` (the fused kernels of a query's edges). The kernels take their inputs grouped in
+MLP),
+:mod:`~psprm_core.kernels._fast_query` (the fused kernels of a query's edges) and
+:mod:`~psprm_core.kernels._fast_tracking` (the corners of the robot's collision boxes, for the path tolerance).
+The kernels take their inputs grouped in
 the named tuples of :mod:`~psprm_core.kernels._fast_packs` (one per object: robot, collision checker, visibility
 constraint, surrogate, occlusion checker, motion), each built by the object's class. numba's disk cache checks only the
 source file of the kernel it loads, so a module that imports from the others records their SHA-256 (``CALLEES_SHA256``,
@@ -25,7 +27,8 @@ from ._fast_motion import _base_plan, _distance, _wrap, distance, edge_knot_seed
 from ._fast_projection import _residual, _solve, project
 from ._fast_query import _round32, check_score_knots, neural_scores, query_knots, verify_edges
 from ._fast_scoring import _slab, mlp, occlusion, pose_features
+from ._fast_tracking import element_corners
 
 __all__ = ["ROOT", "REVOLUTE", "PRISMATIC", "jit", "camera_poses", "project", "check", "env_hits", "occlusion",
            "distance", "interpolate", "pieces", "nearest", "edge_knot_seeds", "pose_features", "mlp", "query_knots",
-           "neural_scores", "check_score_knots", "verify_edges"]
+           "neural_scores", "check_score_knots", "verify_edges", "element_corners"]

@@ -319,6 +319,33 @@ class RobotModel(Computing):
             ts = [x if x is not None else zt for x in ts]
         return torch.stack(Rs, 1), torch.stack(ts, 1)
 
+    @cached_property
+    def element_corners_local(self) -> np.ndarray:
+        """Corners (E, 8, 3) of every collision box (:attr:`elements`) in its body's frame, float64."""
+        el = self.elements
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+        return np.ascontiguousarray(el.center[:, None, :] + np.einsum("eij,ekj->eki", el.rotation,
+                                                                      signs[None] * el.half[:, None, :]))
+
+    def element_corners(self, Q) -> np.ndarray:
+        """World positions (M, 8E, 3), float64, of the corners of every collision box at configurations ``Q``
+        (M, dof): box e's corners are rows 8e .. 8e + 7 (:attr:`element_corners_local` moved by its body's pose,
+        :meth:`body_poses`). The compiled kernel when this model's :class:`~psprm_core.kernels.compute.Compute` chose
+        compiled kernels, else torch in float64 on the CPU; the path tolerance (:mod:`psprm_core.tracking`) asks
+        for a few to a few hundred configurations at a time, where torch's per-operator cost dominates."""
+        Q = np.ascontiguousarray(np.asarray(Q, dtype=np.float64).reshape(-1, self.dof))
+        if not np.isfinite(Q).all():
+            raise InputError("configurations for the corner positions must be finite")
+        local, body = self.element_corners_local, self.elements.element_body
+        if self.compute.compiled and len(Q) > 0:
+            return fastpath.kernels().element_corners(Q, self.kernel_pack, fastpath.as_i64(body), local)
+        with torch.no_grad():
+            R, t = self.body_poses(torch.as_tensor(Q, dtype=torch.float64))
+        R, t = R.numpy(), t.numpy()
+        # (M, E, 8, 3): each box's body rotation (M, E, 3, 3) applied to its corners, plus the body's position
+        world = np.einsum("meij,ekj->meki", R[:, body], local) + t[:, body][:, :, None, :]
+        return world.reshape(len(Q), -1, 3)
+
     def _poses(self, q: torch.Tensor, only: Optional[list] = None) -> tuple:
         """Lists of world rotations (B, 3, 3) and translations (B, 3) per body (None outside ``only``)."""
         if q.dim() != 2 or q.shape[1] != self.dof:
