@@ -204,6 +204,9 @@ class RobotAdapter:
         # the follower runs on its own callback group: a burst of state messages never delays a control step
         self._timer = self.node.create_timer(1.0 / b.rate_hz, self.execution.tick,
                                              callback_group=MutuallyExclusiveCallbackGroup())
+        # trajectories are checked on their own thread (see _traj_cb), which lives from configure to cleanup
+        self._acceptor = threading.Thread(target=self._accept_loop, name=f"{self.node.get_name()}-accept", daemon=True)
+        self._acceptor.start()
         self.status(f"configured: adapter {cfg.robot} ({len(cfg.controllers)} controllers: "
                     f"{', '.join(f'{c.name} [{c.interface}]' for c in cfg.controllers)}; base {b.mode} on {b.topic})")
         return True
@@ -226,6 +229,7 @@ class RobotAdapter:
         return True
 
     def on_cleanup(self, state) -> bool:
+        self._end_acceptor()
         with self._lock:
             if self.links is not None:
                 self.links.destroy()
@@ -390,11 +394,6 @@ class RobotAdapter:
         self.counts["trajectories"] += 1
         if not self.active or self.cfg is None:  # an inactive adapter drives nothing (activation asks for a new plan)
             return
-        with self._lock:
-            if self._acceptor is None or not self._acceptor.is_alive():
-                self._acceptor = threading.Thread(target=self._accept_loop, name=f"{self.node.get_name()}-accept",
-                                                  daemon=True)
-                self._acceptor.start()
         self._inbox.put(msg)
 
     def _accept_loop(self) -> None:
@@ -426,6 +425,14 @@ class RobotAdapter:
                 break
         self.execution.wait_accepted(timeout)
 
+    def _end_acceptor(self, timeout: float = 2.0) -> None:
+        """Drop the unchecked trajectories and end the acceptance thread (cleanup, the node's end)."""
+        self._quiesce(timeout)
+        if self._acceptor is not None and self._acceptor.is_alive():
+            self._inbox.put(None)
+            self._acceptor.join(timeout)
+        self._acceptor = None
+
     def execute(self, msg) -> bool:
         """Check a planned trajectory against the measured state and send it to the controllers and the base
         (:meth:`psprm_ros.robots.execution.Execution.execute`)."""
@@ -441,8 +448,7 @@ class RobotAdapter:
 
     def destroy(self) -> None:
         was_active, self.active = self.active, False  # the acceptance thread takes nothing more
-        self._quiesce()
-        self._inbox.put(None)  # the acceptance thread ends
+        self._end_acceptor()
         try:
             if was_active:
                 self.stop("node destroyed")
