@@ -113,6 +113,38 @@ def test_a_controller_joint_off_by_more_than_its_start_tolerance_is_refused_nami
                         f"(stretch_controller: tolerance {c.start_tolerance})"), v.reason
 
 
+def test_a_splice_is_taken_while_the_head_lags_the_trajectory_under_way_and_a_new_start_is_not(stretch):
+    """The head pans at 0.5 rad/s while the base drives; the measured head lags the trajectory under way by more than
+    the controller's start tolerance. A splice (repeating that trajectory) continues what the controller follows and
+    is taken; a trajectory from the commanded head angle that is no splice, and a splice whose head leaves the
+    trajectory under way, are refused for the head's start."""
+    robot, cfg, acc, q0 = stretch
+    pan = robot.joint_names.index("joint_head_pan")
+    c = next(c for c in cfg.controllers if "joint_head_pan" in c.joints)
+    lag = c.start_tolerance + 0.15
+    t1, P1 = drive(q0, 4.0)
+    P1[:, pan] = q0[pan] - 0.5 * t1  # the head pans on at 0.5 rad/s
+    tau = 1.0
+    q = np.array([np.interp(tau, t1, P1[:, j]) for j in range(robot.dof)])
+    q[pan] += lag  # the measured head lags the one commanded at the robot's time
+    under_way = UnderWay(CheckedPath(robot, t1, P1), (CheckedPath(robot, t1, P1), 0.0), tau, True)
+    t2 = t1[t1 <= 3.3]
+    P2 = np.stack([np.interp(t2 + 0.7, t1, P1[:, j]) for j in range(robot.dof)], 1)  # the splice, from 0.7 s on
+    v = acc.decide(t2, P2, None, q, (SPEED, 0.0), under_way, 0.1, WINDOW)
+    assert v.accepted and v.spliced and not v.reason, v.reason
+    # it starts at the robot's time on the trajectory under way: the head lags it as much as before
+    assert abs(v.positions[0, pan] - (q[pan] - lag)) < 0.05
+    assert abs(v.positions[0, pan] - q[pan]) > c.start_tolerance
+    # not a splice (nothing under way): the same start is refused for the head
+    w = acc.decide(t2, P2, None, q, (SPEED, 0.0), None, 0.1, WINDOW)
+    assert not w.accepted and "joint_head_pan" in w.reason and "from the measured joint_head_pan" in w.reason, w.reason
+    # a splice whose head is 0.3 rad beyond the trajectory under way at once: neither measured nor commanded is near
+    P3 = P2.copy()
+    P3[:, pan] -= 0.3
+    x = acc.decide(t2, P3, None, q, (SPEED, 0.0), under_way, 0.1, WINDOW)
+    assert not x.accepted and "joint_head_pan" in x.reason, x.reason
+
+
 def test_the_path_check_stops_a_robot_off_the_checked_path_and_the_rest_watch_waits_for_rest(stretch):
     robot, cfg, acc, q0 = stretch
     t, P = drive(q0, 3.0)

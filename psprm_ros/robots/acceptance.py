@@ -9,7 +9,8 @@ configuration and velocity of the base, and the trajectory under way (:class:`Un
   under way less where the splice began on it (:func:`psprm_ros.robots.commands.splice_progress`);
 * the robot's progress along a trajectory that is no splice (:func:`psprm_ros.robots.commands.progress_offset`):
   a replan starts from the robot's state when planning began, which the robot has passed by the time it executes;
-* the start checks: the first point within each controller's ``start_tolerance`` and the base's
+* the start checks: the first point within each controller's ``start_tolerance`` (for a splice: of the measured
+  joint or of the trajectory under way at the robot's time, which the splice continues) and the base's
   ``start_tolerance_m`` / ``_rad`` of the measured state; and the path tolerance: the robot, braking from where it
   is (:func:`psprm_ros.robots.commands.braking_configurations`), within ``path_tolerance_m`` of the trajectory's
   configurations near its start, or, for a splice, of the trajectory under way.
@@ -171,10 +172,18 @@ class TrajectoryAcceptance:
                 t, P, V = ad.trim_from(t - t[0], P, V, tau0)
                 if len(t) <= 1:
                     return Verdict(False, stop="the robot is already at the end of the new trajectory")
+        # a splice continues what the controllers follow: a joint that lags the trajectory under way (a head slewing
+        # at its velocity limit) lags the splice by as much, which the replacement does not change; the start
+        # tolerance then also admits a first point within it of the trajectory under way at the robot's time
+        commanded = None
+        if splice_d is not None and under_way.checked is not None:
+            cur = under_way.checked
+            commanded = ad.sample_at(cur.ts, cur.Q, [min(max(under_way.tau, 0.0), cur.duration)])[0]
         for c in cfg.controllers:
-            ok, joint, err = ad.check_start(c, self.names, P[0], q)
+            ok, joint, err = ad.check_start(c, self.names, P[0], q, commanded)
             if not ok:
-                return Verdict(False, reason=f"first point {err:.3f} from the measured {joint} ({c.name}: tolerance "
+                where = "measured" if commanded is None else "measured and the commanded"
+                return Verdict(False, reason=f"first point {err:.3f} from the {where} {joint} ({c.name}: tolerance "
                                              f"{c.start_tolerance})")
         if robot.mobile:
             ok, what, err = ad.check_base_start(cfg.base, P[0, :3], q[:3])

@@ -151,11 +151,15 @@ def hold_command(ctrl: ControllerConfig, names: Sequence[str], measured: np.ndar
                    np.zeros((1, len(idx))))
 
 
-def check_start(ctrl: ControllerConfig, names: Sequence[str], first: np.ndarray, measured: np.ndarray) -> tuple:
+def check_start(ctrl: ControllerConfig, names: Sequence[str], first: np.ndarray, measured: np.ndarray,
+                commanded: Optional[np.ndarray] = None) -> tuple:
     """(ok, joint, error): the largest |first point - measured| over the controller's joints against
-    ``start_tolerance``."""
+    ``start_tolerance``; with ``commanded`` (the configuration the controller follows now, for a trajectory that
+    continues it), each joint's error is the smaller of that and |first point - commanded|."""
     idx = columns(names, ctrl.joints)
     d = np.abs(np.asarray(first, float)[idx] - np.asarray(measured, float)[idx])
+    if commanded is not None:
+        d = np.minimum(d, np.abs(np.asarray(first, float)[idx] - np.asarray(commanded, float)[idx]))
     k = int(np.argmax(d))
     return bool(d[k] <= ctrl.start_tolerance), ctrl.joints[k], float(d[k])
 
