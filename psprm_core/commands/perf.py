@@ -280,7 +280,7 @@ def _replan_motion(args) -> int:
 
 
 def _tracking(args) -> int:
-    from ..evaluation.benchmarks import tracking_benchmark
+    from ..evaluation.tracking_bench import tracking_benchmark
 
     _print(tracking_benchmark(args.robot, rounds=args.rounds, seed=args.seed, threads=args.threads), args.json)
     return 0
