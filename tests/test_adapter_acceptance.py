@@ -113,6 +113,32 @@ def test_a_controller_joint_off_by_more_than_its_start_tolerance_is_refused_nami
                         f"(stretch_controller: tolerance {c.start_tolerance})"), v.reason
 
 
+def test_a_splice_starting_ahead_of_the_robot_is_joined_along_the_trajectory_under_way(stretch):
+    """The server's estimate of the robot's progress may lead the adapter's: a splice that begins 0.2 s (6 cm) ahead
+    of the robot on the trajectory under way. What is executed leads from the robot along the trajectory under way
+    to the splice's start and then follows the splice, and the path tolerance at the robot's first control step
+    holds (the splice alone starts 6 cm ahead of it)."""
+    robot, cfg, acc, q0 = stretch
+    t1, P1 = drive(q0, 4.0)
+    tau = 1.0
+    q = q0.copy()
+    q[0] = q0[0] + SPEED * tau
+    under_way = UnderWay(CheckedPath(robot, t1, P1), (CheckedPath(robot, t1, P1), 0.0), tau, True)
+    t2, P2 = drive(q0, 4.0, t_from=1.2)  # the splice: the trajectory under way from 1.2 s on
+    assert P2[0, 0] - q[0] == pytest.approx(0.06), "precondition: the splice starts 6 cm ahead of the robot"
+    assert path_check(CheckedPath(robot, t2, P2), q, 0.0, TOL, WINDOW)[1], "precondition: off the splice alone"
+    v = acc.decide(t2, P2, None, q, (SPEED, 0.0), under_way, TOL, WINDOW)
+    assert v.accepted and v.spliced and not v.reason, v.reason
+    assert abs(v.positions[0, 0] - q[0]) < SPLICE_TOL_M and np.abs(v.positions[0, 1:] - q[1:]).max() < 1e-9
+    # it reaches the splice's start 0.2 s later, on the trajectory under way, and then is the splice
+    k = int(np.argmin(np.abs(v.times - v.times[0] - 0.2)))
+    assert abs(v.times[k] - v.times[0] - 0.2) < 1e-6 and np.abs(v.positions[k] - P2[0]).max() < 1e-9
+    assert np.abs(v.positions[k:] - P2[:len(v.positions) - k]).max() < 1e-9
+    assert np.all(np.diff(v.times) > 0)
+    d, why = path_check(v.checked, q, 0.0, TOL, WINDOW)
+    assert not why and d < SPLICE_TOL_M, why
+
+
 def test_a_splice_is_taken_while_the_head_lags_the_trajectory_under_way_and_a_new_start_is_not(stretch):
     """The head pans at 0.5 rad/s while the base drives; the measured head lags the trajectory under way by more than
     the controller's start tolerance. A splice (repeating that trajectory) continues what the controller follows and

@@ -6,7 +6,8 @@ configuration and velocity of the base, and the trajectory under way (:class:`Un
 * a splice: the new trajectory continues the one under way (each of its configurations over its first
   ``SPLICE_CHECK_S`` within ``SPLICE_TOL_M``, whole robot, of the trajectory under way near the robot's time along
   it); the base then goes on from where it is, and the robot's time along the splice is its time along the trajectory
-  under way less where the splice began on it (:func:`psprm_ros.robots.commands.splice_progress`);
+  under way less where the splice began on it (:func:`psprm_ros.robots.commands.splice_progress`); a splice that
+  begins ahead of the robot is joined along the trajectory under way (:func:`psprm_ros.robots.commands.join_along`);
 * the robot's progress along a trajectory that is no splice (:func:`psprm_ros.robots.commands.progress_offset`):
   a replan starts from the robot's state when planning began, which the robot has passed by the time it executes;
 * the start checks: the first point within each controller's ``start_tolerance`` (for a splice: of the measured
@@ -154,6 +155,14 @@ class TrajectoryAcceptance:
         else:
             splice_d, not_splice, splice_tau = None, "", None
         base_lead = 0.0 if splice_d is not None else lead
+        if splice_tau is not None and splice_tau < 0:
+            # the splice begins ahead of the robot on the trajectory under way (the server's estimate of the robot's
+            # progress led this one): the robot goes on along the trajectory under way, which the server checked,
+            # to the splice's start, and the path tolerance measures it against that
+            ref_path, ref_offset = under_way.received
+            tau_r = under_way.tau + ref_offset
+            t, P, V = ad.join_along(ref_path, tau_r, tau_r - splice_tau, t, P, V)
+            splice_tau = 0.0
         received, tau0 = (np.asarray(t, float) - t[0], P.copy()), 0.0
         vel = None
         if robot.mobile:

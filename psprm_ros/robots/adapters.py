@@ -39,8 +39,8 @@ from psprm_core.errors import InputError, UnknownNameError
 # the commands of a controller, with the config they are made for (importable from here)
 from .commands import (BASE_JOINTS, Command, GoalGate, action_goal_fields, base_columns,  # noqa: F401
                        braking_configurations, check_base_start, check_start, columns, controller_command, fill_goal,
-                       hold_command, import_follow_joint_trajectory, progress_offset, sample_at, splice_progress,
-                       stretch_base_command, stretch_base_steps, to_joint_trajectory, trim_from)
+                       hold_command, import_follow_joint_trajectory, join_along, progress_offset, sample_at,
+                       splice_progress, stretch_base_command, stretch_base_steps, to_joint_trajectory, trim_from)
 
 INTERFACES = ("topic", "action")
 STAMP_MODES = ("zero", "lead")

@@ -4,9 +4,9 @@ config (:mod:`psprm_ros.robots.adapters`) is sent, and where the robot is along 
 :func:`controller_command` builds a controller's goal (:class:`Command`: its joints only, under the robot's names,
 times strictly increasing, the first point ``lead_time_s`` ahead); :func:`hold_command` the stop every JTC accepts;
 :func:`check_start` / :func:`check_base_start` the start checks against the measured state; :class:`GoalGate` at most
-one goal per ``min_goal_interval_s``. :func:`progress_offset`, :func:`splice_progress`, :func:`sample_at`,
-:func:`trim_from` and :func:`braking_configurations` place the robot along a trajectory (its progress, its time along
-a splice, what it passes while braking). :func:`to_joint_trajectory`, :func:`action_goal_fields` and
+one goal per ``min_goal_interval_s``. :func:`progress_offset`, :func:`splice_progress`, :func:`join_along`,
+:func:`sample_at`, :func:`trim_from` and :func:`braking_configurations` place the robot along a trajectory (its
+progress, its time along a splice, the way to a splice ahead of it, what it passes while braking). :func:`to_joint_trajectory`, :func:`action_goal_fields` and
 :func:`fill_goal` turn a command into ROS messages, importing the message packages inside;
 :func:`stretch_base_steps` / :func:`stretch_base_command` are Stretch's position-mode base goals.
 """
@@ -110,12 +110,13 @@ def splice_progress(executing, tau: float, times, positions, lookback_s: float, 
     beyond the splice's first configuration. That configuration is found on ``executing`` at its latest pass
     within ``lookback_s`` before ``tau`` (up to 1 s after it: the server's estimate of the robot's progress may lead
     this one), within ``tol`` (:meth:`~psprm_core.tracking.CheckedPath.latest_time_of`). None when it lies there
-    nowhere. A nearest-configuration search over the splice (:func:`progress_offset`) is ambiguous where the splice
+    nowhere; negative (minus the time from the robot to it on ``executing``) when the splice begins ahead of the
+    robot. A nearest-configuration search over the splice (:func:`progress_offset`) is ambiguous where the splice
     comes back on itself (a turn on the spot reversed after the commit instant): it may place the robot beyond the
     commit instant, on motion it has not made."""
     t = np.asarray(times, float)
     s0 = executing.latest_time_of(np.asarray(positions, float)[0], tau + 1.0, lookback_s + 1.0, tol)
-    return None if s0 is None else float(np.clip(tau - s0, 0.0, t[-1] - t[0]))
+    return None if s0 is None else float(min(tau - s0, t[-1] - t[0]))
 
 
 def sample_at(times, positions, taus) -> np.ndarray:
@@ -124,6 +125,26 @@ def sample_at(times, positions, taus) -> np.ndarray:
     t = t - t[0]
     P = np.asarray(positions, float)
     return np.stack([np.interp(taus, t, P[:, j]) for j in range(P.shape[1])], axis=1)
+
+
+def join_along(path, t_from: float, t_to: float, times, positions, velocities=None) -> tuple:
+    """(times, positions, velocities): the configurations of ``path`` (a :class:`psprm_core.tracking.CheckedPath`,
+    linear between its samples) from its time ``t_from`` to ``t_to``, then the trajectory ``times`` (from its
+    first, which lies on ``path`` at ``t_to``), ``positions`` and ``velocities`` (None, or finite differences along
+    the joined part); times from 0."""
+    t = np.asarray(times, float) - float(times[0])
+    P = np.asarray(positions, float)
+    inner = path.ts[(path.ts > t_from) & (path.ts < t_to)]
+    tj = np.concatenate([[t_from], inner])
+    Pj = np.stack([np.interp(tj, path.ts, path.Q[:, j]) for j in range(path.Q.shape[1])], 1)
+    gap = float(t_to - t_from)
+    T = np.concatenate([tj - t_from, t + gap])
+    X = np.concatenate([Pj, P])
+    V = None
+    if velocities is not None:
+        Vj = np.diff(np.vstack([Pj, P[:1]]), axis=0) / np.diff(np.concatenate([tj, [t_to]]))[:, None]
+        V = np.concatenate([Vj, np.asarray(velocities, float)])
+    return T, X, V
 
 
 def trim_from(t: np.ndarray, P: np.ndarray, V: Optional[np.ndarray], tau: float) -> tuple:
