@@ -139,6 +139,26 @@ def test_a_splice_starting_ahead_of_the_robot_is_joined_along_the_trajectory_und
     assert not why and d < SPLICE_TOL_M, why
 
 
+def test_a_splice_from_the_clock_of_a_robot_lagging_its_trajectory_is_joined_from_where_the_robot_is(stretch):
+    """A robot that lags its trajectory's clock (0.2 s, 6 cm, as a base turning on the spot slower than planned): a
+    splice that begins at the clock's configuration lies ahead of it. What is executed leads from the robot's
+    configuration along the trajectory under way to the splice, and the path tolerance holds at the robot."""
+    robot, cfg, acc, q0 = stretch
+    t1, P1 = drive(q0, 4.0)
+    tau = 1.0  # the clock
+    q = q0.copy()
+    q[0] = q0[0] + SPEED * 0.8  # where the robot is
+    under_way = UnderWay(CheckedPath(robot, t1, P1), (CheckedPath(robot, t1, P1), 0.0), tau, True)
+    t2, P2 = drive(q0, 4.0, t_from=1.0)
+    v = acc.decide(t2, P2, None, q, (SPEED, 0.0), under_way, TOL, WINDOW)
+    assert v.accepted and v.spliced and not v.reason, v.reason
+    assert np.abs(v.positions[0] - q).max() < SPLICE_TOL_M
+    k = int(np.argmin(np.abs(v.times - v.times[0] - 0.2)))
+    assert np.abs(v.positions[k] - P2[0]).max() < SPLICE_TOL_M
+    d, why = path_check(v.checked, q, 0.0, TOL, WINDOW)
+    assert not why and d < SPLICE_TOL_M, why
+
+
 def test_a_splice_is_taken_while_the_head_lags_the_trajectory_under_way_and_a_new_start_is_not(stretch):
     """The head pans at 0.5 rad/s while the base drives; the measured head lags the trajectory under way by more than
     the controller's start tolerance. A splice (repeating that trajectory) continues what the controller follows and

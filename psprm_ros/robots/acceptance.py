@@ -155,14 +155,18 @@ class TrajectoryAcceptance:
         else:
             splice_d, not_splice, splice_tau = None, "", None
         base_lead = 0.0 if splice_d is not None else lead
-        if splice_tau is not None and splice_tau < 0:
+        if splice_tau is not None:
             # the splice begins ahead of the robot on the trajectory under way (the server's estimate of the robot's
-            # progress led this one): the robot goes on along the trajectory under way, which the server checked,
-            # to the splice's start, and the path tolerance measures it against that
+            # progress led this one, or the robot lags its trajectory's clock, as in a turn on the spot): the robot
+            # goes on along the trajectory under way, which the server checked, from the configuration of it nearest
+            # the robot to the splice's start, and the path tolerance measures it against that
             ref_path, ref_offset = under_way.received
             tau_r = under_way.tau + ref_offset
-            t, P, V = ad.join_along(ref_path, tau_r, tau_r - splice_tau, t, P, V)
-            splice_tau = 0.0
+            s0 = tau_r - splice_tau
+            s_robot = ref_path.deviation(q, tau_r, path_window_s)[1]
+            if s0 > s_robot + 1e-6:
+                t, P, V = ad.join_along(ref_path, s_robot, s0, t, P, V)
+                splice_tau = 0.0
         received, tau0 = (np.asarray(t, float) - t[0], P.copy()), 0.0
         vel = None
         if robot.mobile:
