@@ -342,6 +342,53 @@ def test_soak_tracking_counts_the_trajectories_executed_and_how_far_off_the_robo
     assert abs(held["deviation_m"]["max"] - 0.03) < 1e-3 and held["deviation_m"]["over_padding"] == 0
 
 
+def test_soak_tracking_measures_a_joined_splice_against_the_trajectory_it_joins(load_robot):
+    """A drive along x at 0.2 m/s received at 9 s; at 12 s a splice that begins where that drive is at 12.3 s (6 cm
+    ahead of the robot) and goes on along it. The robot, on the first drive throughout, reaches the splice's start at
+    12.3 s: its configurations before that are measured against the drive it is on (three of them, nearer to it), not
+    6 cm off against the splice. A trajectory at 12 s that does not continue the drive gets no such allowance."""
+    from psprm_core.collision import CollisionChecker
+    from psprm_ros.interfaces import conversions as cv
+    from psprm_ros.harness.soak_report import tracking_report
+
+    robot = load_robot("stretch2")
+    names = list(robot.joint_names)
+    q0 = np.array([0.0, 0.0, 0.0, 0.5, 0.0, 3.0, -1.12, 0.17])
+
+    def msg_of(ts, path):
+        from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+        m = JointTrajectory()
+        m.joint_names = names
+        for t, p in zip(ts, path):
+            m.points.append(JointTrajectoryPoint(positions=[float(v) for v in p], time_from_start=cv.duration_msg(t)))
+        return m
+
+    def drive(t_from, t_to):  # the drive's configurations from its time t_from to t_to, times from 0
+        ts = np.arange(0.0, t_to - t_from + 1e-9, 0.1)
+        P = np.repeat(q0[None], len(ts), 0)
+        P[:, 0] = 0.2 * (ts + t_from)
+        return ts, P
+
+    a = msg_of(*drive(0.0, 10.0))
+    ex = []
+    for k in range(50):
+        t = 9.0 + 0.1 * k
+        q = q0.copy()
+        q[0] = 0.2 * (t - 9.0)
+        ex.append((t, q))
+    checker = CollisionChecker(robot, padding=0.05)
+    b = msg_of(*drive(3.3, 8.0))  # the drive from its 3.3 s on: where the robot is at 12.3 s
+    r = tracking_report(ex, [(9.0, a, np.inf), (12.0, b, np.inf)], robot, checker, [])
+    assert r["deviation_m"]["joined_configurations"] == 3
+    assert r["deviation_m"]["max"] < 0.01 and r["deviation_m"]["over_padding"] == 0
+    # against the splice alone the robot at 12.0 s is 6 cm off: the trajectory it was on is what makes the difference
+    ts_b, P_side = drive(3.3, 8.0)
+    P_side[:, 1] += 3.0  # 3 m to the side: no continuation of the drive
+    other = tracking_report(ex, [(9.0, a, np.inf), (12.0, msg_of(ts_b, P_side), np.inf)], robot, checker, [])
+    assert other["deviation_m"]["joined_configurations"] == 0 and other["deviation_m"]["over_padding"] > 0
+
+
 def test_soak_walk_yields_to_the_robot_then_walks_on():
     """The soak's person walks at 0.5 m/s, never steps within 1 m of the robot's base (closer to it) for up to 20 s
     of waiting, then walks on; judged from the positions stepped here."""

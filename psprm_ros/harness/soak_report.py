@@ -60,6 +60,8 @@ def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp
 
 
 TRACK_WINDOW_S = 3.0
+JOIN_S = 1.5  # how long after a splice arrives the robot may still be on the trajectory it joins it along
+SPLICE_LOOK_S, SPLICE_ON_M = 6.0, 0.01  # a splice's first configuration lies this near that trajectory, this far back
 
 
 def executed_trajectories(trajs: list, commands: list) -> list:
@@ -85,7 +87,10 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     t_hold), received before it; the motion after a hold at ``t_hold`` counts against where it stopped), the
     base's distance to that trajectory's base path (point to segment), and the deviation of the whole robot
     (:class:`psprm_core.tracking.CheckedPath`: how far a point of its collision boxes is from where it was in the
-    nearest of the trajectory's configurations within ``TRACK_WINDOW_S`` of the time since it was received);
+    nearest of the trajectory's configurations within ``TRACK_WINDOW_S`` of the time since it was received; over the
+    first ``JOIN_S`` of a splice, whose first configuration lies on the trajectory followed before it, the nearer of
+    the two: the adapter joins a splice that begins ahead of the robot along the trajectory under way, and
+    ``joined_configurations`` counts those nearer to that one by more than ``SPLICE_ON_M``);
     percentiles of both, and how often the deviation exceeded the padding, which is the clearance the plan kept.
     Then the executed configurations inside the collision padding of the static boxes
     (``checker`` pads them), split by whether the nearest point of the followed trajectory is inside it too (the plan
@@ -112,9 +117,11 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     base_off = np.full(len(Q), np.nan)
     nearest = np.full((len(Q), len(names)), np.nan)
     deviation = np.full(len(Q), np.nan)
+    prev, joined = None, 0  # the previous trajectory's CheckedPath; configurations nearer to it than to their own
     for j in np.unique(which[which >= 0]):
         P = paths[j]
         if len(P) < 2:  # a stop: the robot holds, nothing to follow
+            prev = None
             continue
         sel = np.nonzero(which == j)[0]
         m = trajs[j][1]
@@ -126,6 +133,22 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
             # after a hold the robot is no longer following: it is measured against where it was stopped
             t_hold = trajs[j][2] if len(trajs[j]) > 2 else np.inf
             deviation[sel] = path.deviations(Q[sel], np.minimum(ex_t[sel], t_hold) - t_tr[j], TRACK_WINDOW_S)
+            # a splice that begins ahead of the robot is joined along the trajectory under way: for its first
+            # JOIN_S the robot may still be on that one (also checked and published), measured against it there
+            early = sel[ex_t[sel] - t_tr[j] <= JOIN_S]
+            if len(early) and prev is not None:
+                path_p, j_p = prev
+                held = trajs[j_p][2] if len(trajs[j_p]) > 2 else np.inf
+                # it was still followed when this one came, and this one continues it (a splice: its first
+                # configuration lies on it)
+                if not np.isfinite(held) and path_p.path_distances(P[:1], [t_tr[j] - t_tr[j_p]], SPLICE_LOOK_S)[0] \
+                        <= SPLICE_ON_M:
+                    d_prev = path_p.deviations(Q[early], ex_t[early] - t_tr[j_p], TRACK_WINDOW_S)
+                    joined += int(np.sum(d_prev + SPLICE_ON_M < deviation[early]))
+                    deviation[early] = np.minimum(deviation[early], d_prev)
+            prev = (path, j)
+        else:
+            prev = None
         a, b = P[:-1, :2], P[1:, :2]  # base path segments
         d = b - a
         L2 = np.maximum((d * d).sum(1), 1e-12)
@@ -158,7 +181,8 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
         "deviation_m": {f"p{p}": round(float(np.nanpercentile(deviation[ok], p)), 3) for p in (50, 95, 99)}
         | {"max": round(float(np.nanmax(deviation[ok])), 3),
            "over_padding": int(np.sum(deviation[ok] > checker.padding)),
-           "trajectories_over_padding": int(len(np.unique(which[ok & (deviation > checker.padding)])))},
+           "trajectories_over_padding": int(len(np.unique(which[ok & (deviation > checker.padding)]))),
+           "joined_configurations": joined},
         "padding_m": float(checker.padding),
         "inside_static_padding": int((inside & ok).sum()),
         "inside_static_padding_plan_too": int((inside & near_inside).sum()),
