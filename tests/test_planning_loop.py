@@ -8,6 +8,7 @@ judge; its replanner is only wrapped to make a replan slow (fault injection).
 
 from __future__ import annotations
 
+import json
 import sys
 import threading
 import time
@@ -274,6 +275,51 @@ def test_a_late_splice_is_withdrawn_and_the_next_replan_starts_on_the_published_
         on = [time_on(s1, q) for q in s2.positions[s2.times <= 0.25]]
         assert len(on) >= 2 and max(x[0] for x in on) < 1e-3, on
         assert np.all(np.diff([x[1] for x in on]) >= 0), on
+    finally:
+        running.clear()
+        th.join(2.0)
+
+
+def test_a_plan_right_after_an_adopted_splice_is_spliced_too_without_a_new_robot_state(make_loop, world_models):
+    """A burst of goals: the robot drives its trajectory (its states at 20 Hz, then none for a moment), a replan is
+    published, and another one is made before the next state arrives. It too continues the trajectory the robot
+    follows (judged from the published samples: its first configurations lie on the previous trajectory), instead of
+    starting a moving robot from its state."""
+    robot, start, goals = world_models
+    loop, rec = make_loop(robot_state_timeout_s=5.0)
+    s1 = _first_trajectory(loop, rec, start, goals)
+    t_rx = rec.since(0.0, ("trajectory",))[0][0]
+    reporting, running = threading.Event(), threading.Event()
+    reporting.set()
+    running.set()
+
+    def follow():  # the robot drives the received samples; reports its state at 20 Hz while ``reporting``
+        while running.is_set():
+            if reporting.is_set():
+                loop.robot_state(at_time(s1, max(0.0, time.perf_counter() - t_rx - 0.15)))
+            time.sleep(0.05)
+
+    th = threading.Thread(target=follow, daemon=True)
+    th.start()
+    try:
+        assert s1.times[-1] > 8.0, "precondition: a trajectory long enough to replan along"
+        time.sleep(2.0)  # well under way
+        reporting.clear()
+        time.sleep(0.1)
+        t0 = time.perf_counter()
+        ok, message = loop.request("plan", 60.0)
+        ev = rec.wait(t0, ("trajectory", "stop"), 5.0)
+        assert ok and ev is not None and ev[1] == "trajectory", message
+        s2 = ev[2]
+        assert json.loads(message)["spliced"], "precondition: the first replan of the moving robot is spliced"
+        t1 = time.perf_counter()
+        ok, message = loop.request("plan", 60.0)  # no robot state since the first replan
+        ev = rec.wait(t1, ("trajectory", "stop"), 5.0)
+        assert ok and ev is not None and ev[1] == "trajectory", message
+        s3 = ev[2]
+        assert json.loads(message)["spliced"], f"planned from the robot's state: {message}"
+        on = [time_on(s2, q)[0] for q in s3.positions[s3.times <= 0.25]]
+        assert len(on) >= 2 and max(on) < 1e-3, on
     finally:
         running.clear()
         th.join(2.0)

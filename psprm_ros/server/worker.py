@@ -157,8 +157,11 @@ class PlanningWorker:
         t0 = time.perf_counter()
         moved, boxes_changed = self._apply_bodies(pend)
         try:
-            if pend["robot"] is not None:
-                q_now = pend["robot"]
+            # the newest state even when none came this cycle: an adopted plan drops the replanner's progress along
+            # the trajectory, and a cycle soon after (a burst of goals) would otherwise plan a moving robot from its
+            # state instead of splicing
+            q_now = pend["robot"] if pend["robot"] is not None else self.motion.newest()
+            if q_now is not None:
                 along = self._along = self._time_along(q_now)
                 # a base that moves with no trajectory under way brakes from a stop: plan from where it will rest
                 q_plan = q_now if along is not None else self.motion.rest_point(q_now)
