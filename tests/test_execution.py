@@ -214,3 +214,58 @@ def test_a_withdrawn_replan_leaves_the_trajectory_under_way_current(world, saved
     other = refused.trajectory.evaluate(ts + t2 - t_robot)[0]
     assert np.abs(other - old.evaluate(ts + t2)[0]).max() > 0.01
     assert same_config(res.trajectory.evaluate([res.trajectory.duration])[0][0], goals[1], tol=2e-3)
+
+
+class _ForthAndBack:
+    """A base driving 10 cm along y and back over 1 s (y = 0.1 sin(pi t)), drifting 3 mm along x meanwhile, the other
+    joints at ``q0``: it passes each y twice, the return pass 0.7 s after the outbound one (trajectory-like:
+    ``duration``, ``evaluate``)."""
+
+    duration = 1.0
+
+    def __init__(self, q0):
+        self.q0 = np.asarray(q0, float)
+
+    def evaluate(self, ts):
+        ts = np.clip(np.atleast_1d(np.asarray(ts, float)), 0.0, self.duration)
+        P = np.repeat(self.q0[None], len(ts), 0)
+        V = np.zeros_like(P)
+        P[:, 0] += 0.003 * ts
+        P[:, 1] += 0.1 * np.sin(np.pi * ts)
+        V[:, 0], V[:, 1] = 0.003, 0.1 * np.pi * np.cos(np.pi * ts)
+        return P, V, np.zeros_like(P)
+
+
+def test_progress_time_takes_the_pass_the_clock_points_to_on_a_trajectory_that_comes_back(world):
+    """The robot on the outbound pass at 0.16 s, 1.5 mm from it and 0.5 mm from the return pass at 0.84 s (the x
+    drift): the nearest configuration alone is the return pass; with ``tie`` the pass nearest the clock (0.1 s)."""
+    scene, robot = world
+    traj = _ForthAndBack(robot.default_configuration())
+    q = traj.evaluate([0.16])[0][0]
+    q[0] = traj.q0[0] + 0.002  # between the passes' x (0.00045 outbound, 0.00255 return)
+    kw = dict(window_s=1.5, scale=robot.velocity, angle_cols=[2])
+    assert abs(progress_time(traj, q, 0.1, **kw) - 0.84) < 0.03, "precondition: the return pass is the nearer"
+    assert abs(progress_time(traj, q, 0.1, tie=0.1, **kw) - 0.16) < 0.03
+    # a clock pointing past the return pass takes it
+    assert abs(progress_time(traj, q, 0.9, tie=0.1, **kw) - 0.84) < 0.03
+
+
+def test_the_servers_progress_estimate_takes_the_pass_the_clock_points_to(world):
+    """The roadmap server's estimate of the robot's time along the trajectory under way
+    (:meth:`psprm_ros.server.robot_motion.RobotMotion.time_along`) on the same forth-and-back motion: the robot 0.1 s
+    after the trajectory's start by the clock, measured on the outbound pass, is placed there (a splice from the
+    return pass would reverse a base still driving out)."""
+    import time
+
+    from psprm_ros.server.robot_motion import RobotMotion
+
+    scene, robot = world
+    traj = _ForthAndBack(robot.default_configuration())
+    q = traj.evaluate([0.16])[0][0]
+    q[0] = traj.q0[0] + 0.002
+    motion = RobotMotion(robot)
+    now = time.monotonic()
+    motion.add(traj.evaluate([0.0])[0][0], now - 0.15)
+    motion.add(q, now)
+    t = motion.time_along(traj, time.perf_counter() - 0.1, q, 0.04)
+    assert t is not None and abs(t - 0.16) < 0.05, t

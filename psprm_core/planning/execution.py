@@ -71,10 +71,13 @@ def commit_time(traj, t_from: float, horizon_s: float) -> float:
 
 
 def progress_time(traj, q: np.ndarray, t_guess: float, window_s: float = 2.0, scale: Optional[np.ndarray] = None,
-                  angle_cols: Sequence[int] = (), dt: float = 0.02) -> float:
+                  angle_cols: Sequence[int] = (), dt: float = 0.02, tie: float = 0.0) -> float:
     """The time along ``traj`` whose configuration is nearest the measured ``q``, searched within ``window_s`` of
     ``t_guess`` (the time the trajectory's clock says). Nearness: the largest joint difference divided by ``scale``
-    (e.g. the velocity limits, so that the distance reads as time); ``angle_cols`` are compared on the circle."""
+    (e.g. the velocity limits, so that the distance reads as time); ``angle_cols`` are compared on the circle. With
+    ``tie`` > 0, of the passes (local minima of the nearness) within ``tie`` of the nearest one, the one nearest
+    ``t_guess``: a trajectory that comes back on itself (forward and back within the window) passes ``q`` twice, and
+    the pass the clock points to is the robot's."""
     lo = max(0.0, t_guess - window_s)
     hi = min(float(traj.duration), t_guess + window_s)
     if hi <= lo:
@@ -87,7 +90,13 @@ def progress_time(traj, q: np.ndarray, t_guess: float, window_s: float = 2.0, sc
         d[:, c] = np.abs(np.remainder(d[:, c] + math.pi, 2 * math.pi) - math.pi)
     if scale is not None:
         d = d / np.maximum(np.asarray(scale, float), 1e-9)
-    return float(ts[int(np.argmin(d.max(1)))])
+    near = d.max(1)
+    if tie > 0 and len(near) > 2:
+        # the passes: local minima of the nearness; of those within ``tie`` of the nearest, the one nearest the clock
+        pad = np.concatenate([[np.inf], near, [np.inf]])
+        passes = np.nonzero((near <= pad[:-2]) & (near <= pad[2:]) & (near <= near.min() + tie))[0]
+        return float(ts[passes[int(np.argmin(np.abs(ts[passes] - t_guess)))]])
+    return float(ts[int(np.argmin(near))])
 
 
 class SplicedTrajectory:

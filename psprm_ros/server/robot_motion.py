@@ -21,6 +21,9 @@ from ..robots.base_follower import Limits
 REST_VELOCITY_SPAN_S = 0.1
 #: the robot states kept (s)
 KEEP_S = 0.3
+#: configurations of the trajectory under way within this much (s of motion at the velocity limits) of the nearest
+#: one are the same pass for the progress estimate: the one nearest the clock is taken (progress_time's ``tie``)
+PASS_TIE_S = 0.1
 #: a base slower than this on both axes (m/s, rad/s) brakes over a negligible distance: its rest point is where it is
 BRAKING_MIN_MPS, BRAKING_MIN_RADPS = 0.02, 0.05
 
@@ -168,7 +171,7 @@ class RobotMotion:
         else:
             guess = prev[1] + (now - prev[2])
         t = progress_time(traj, q, guess, window_s=1.5, scale=self.robot.velocity,
-                          angle_cols=[2] if self.robot.mobile else [])
+                          angle_cols=[2] if self.robot.mobile else [], tie=PASS_TIE_S)
         if prev is not None and prev[0] is traj:
             t = max(t, prev[1])  # the robot does not go back along its trajectory
         Pt, Vt, _ = (a[0] for a in traj.evaluate([t]))
