@@ -23,17 +23,12 @@ import numpy as np
 
 from .errors import InputError
 
-def element_corners(robot, Q) -> np.ndarray:
-    """World positions (M, 8E, 3) of the corners of every collision box of ``robot`` at configurations ``Q``
-    (M, dof), by the robot model's forward kinematics (:meth:`psprm_core.robot.model.RobotModel.element_corners`)."""
-    return robot.element_corners(Q)
-
 
 def displacement(robot, q, Q) -> np.ndarray:
     """The largest distance (M,) by which any point of the robot's collision boxes lies apart between configuration
     ``q`` (dof,) and each configuration of ``Q`` (M, dof)."""
-    a = element_corners(robot, np.asarray(q, float)[None])[0]
-    b = element_corners(robot, Q)
+    a = robot.element_corners(np.asarray(q, float)[None])[0]
+    b = robot.element_corners(Q)
     return np.linalg.norm(b - a[None], axis=2).max(axis=1)
 
 
@@ -63,8 +58,8 @@ class CheckedPath:
         b0, b1 = lo // self.block, (hi - 1) // self.block
         for b in range(b0, b1 + 1):
             if b not in self._blocks:
-                self._blocks[b] = element_corners(self.robot, self.Q[b * self.block:(b + 1) * self.block]
-                                                  ).astype(np.float32)
+                Qb = self.Q[b * self.block:(b + 1) * self.block]
+                self._blocks[b] = self.robot.element_corners(Qb).astype(np.float32)
         allc = np.concatenate([self._blocks[b] for b in range(b0, b1 + 1)])
         return allc[lo - b0 * self.block:hi - b0 * self.block]
 
@@ -78,7 +73,7 @@ class CheckedPath:
     def deviations(self, Q, taus, window_s: float = 2.0) -> np.ndarray:
         """:meth:`deviation` distances (N,) of configurations ``Q`` (N, dof) at times ``taus`` (N,), their forward
         kinematics in one batch."""
-        A = element_corners(self.robot, Q).astype(np.float32)
+        A = self.robot.element_corners(Q).astype(np.float32)
         lo, hi = self._windows(taus, window_s)
         return np.array([np.linalg.norm(self.corners(lo[i], hi[i]) - A[i][None], axis=2).max(axis=1).min()
                          for i in range(len(A))])
@@ -90,7 +85,7 @@ class CheckedPath:
         recognising a trajectory that continues this one, where the sample spacing (a few cm at speed) would hide a
         match."""
         Q = np.asarray(Q, float).reshape(-1, self.robot.dof)
-        A = element_corners(self.robot, Q).astype(np.float32)
+        A = self.robot.element_corners(Q).astype(np.float32)
         lo, hi = self._windows(taus, window_s)
         f = np.linspace(0.0, 1.0, int(refine) + 1)[:, None]
         out = np.empty(len(Q))
@@ -107,7 +102,7 @@ class CheckedPath:
         path's sampled configurations within ``window_s`` of time ``tau`` (clamped to the path), and the time of
         the nearest one."""
         (lo,), (hi,) = self._windows([tau], window_s)
-        a = element_corners(self.robot, np.asarray(q, float)[None])[0].astype(np.float32)
+        a = self.robot.element_corners(np.asarray(q, float)[None])[0].astype(np.float32)
         d = np.linalg.norm(self.corners(lo, hi) - a[None], axis=2).max(axis=1)
         k = int(np.argmin(d))
         return float(d[k]), float(self.ts[lo + k])
@@ -122,7 +117,7 @@ class CheckedPath:
         hi = int(np.searchsorted(self.ts, before, side="right"))
         lo, hi = min(lo, len(self.ts) - 1), max(min(hi, len(self.ts)), min(lo, len(self.ts) - 1) + 1)
         q = np.asarray(q, float)
-        a = element_corners(self.robot, q[None])[0].astype(np.float32)
+        a = self.robot.element_corners(q[None])[0].astype(np.float32)
         d = np.linalg.norm(self.corners(lo, hi) - a[None], axis=2).max(axis=1)
         near = np.nonzero(d <= 2.0 * tol)[0]
         if len(near) == 0:

@@ -478,4 +478,3 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     out["lazy_rescore_ms"] = lazy["total_ms"]
     out["speedup_lazy_vs_full_rescore"] = out["full_rescore_ms"] / max(lazy["total_ms"], 1e-9)
     return out
-

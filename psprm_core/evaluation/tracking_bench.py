@@ -8,6 +8,7 @@ import time
 import numpy as np
 import torch
 
+
 def tracking_benchmark(robot_name: str, rounds: int = 20, seed: int = 0, threads: int = 1) -> dict:
     """The path tolerance's measure (:mod:`psprm_core.tracking`) with the compiled corner kernel against torch's FK,
     the same inputs, alternating: per round a 10 s trajectory (the base driving at 0.3 m/s while the other joints

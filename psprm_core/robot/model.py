@@ -320,12 +320,13 @@ class RobotModel(Computing):
         return torch.stack(Rs, 1), torch.stack(ts, 1)
 
     @cached_property
-    def element_corners_local(self) -> np.ndarray:
-        """Corners (E, 8, 3) of every collision box (:attr:`elements`) in its body's frame, float64."""
+    def element_corners_local(self) -> tuple:
+        """(corners (E, 8, 3) of every collision box (:attr:`elements`) in its body's frame, float64; each box's
+        body (E,), int64): the constant inputs of :meth:`element_corners`."""
         el = self.elements
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
-        return np.ascontiguousarray(el.center[:, None, :] + np.einsum("eij,ekj->eki", el.rotation,
-                                                                      signs[None] * el.half[:, None, :]))
+        local = el.center[:, None, :] + np.einsum("eij,ekj->eki", el.rotation, signs[None] * el.half[:, None, :])
+        return np.ascontiguousarray(local), fastpath.as_i64(el.element_body)
 
     def element_corners(self, Q) -> np.ndarray:
         """World positions (M, 8E, 3), float64, of the corners of every collision box at configurations ``Q``
@@ -336,9 +337,9 @@ class RobotModel(Computing):
         Q = np.ascontiguousarray(np.asarray(Q, dtype=np.float64).reshape(-1, self.dof))
         if not np.isfinite(Q).all():
             raise InputError("configurations for the corner positions must be finite")
-        local, body = self.element_corners_local, self.elements.element_body
+        local, body = self.element_corners_local
         if self.compute.compiled and len(Q) > 0:
-            return fastpath.kernels().element_corners(Q, self.kernel_pack, fastpath.as_i64(body), local)
+            return fastpath.kernels().element_corners(Q, self.kernel_pack, body, local)
         with torch.no_grad():
             R, t = self.body_poses(torch.as_tensor(Q, dtype=torch.float64))
         R, t = R.numpy(), t.numpy()

@@ -12,6 +12,7 @@ from typing import Optional
 import numpy as np
 
 from ..interfaces import conversions as cv
+from ..robots.acceptance import SPLICE_LOOKBACK_S, SPLICE_TOL_M  # the adapter's splice rule
 from .demo_analysis import GOAL_REASONS, _scene_with
 
 
@@ -61,7 +62,6 @@ def _closing_speeds(t: float, q: np.ndarray, ex: list, ex_t: np.ndarray, body_tp
 
 TRACK_WINDOW_S = 3.0
 JOIN_S = 1.5  # how long after a splice arrives the robot may still be on the trajectory it joins it along
-SPLICE_LOOK_S, SPLICE_ON_M = 6.0, 0.01  # a splice's first configuration lies this near that trajectory, this far back
 
 
 def executed_trajectories(trajs: list, commands: list) -> list:
@@ -90,7 +90,7 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     nearest of the trajectory's configurations within ``TRACK_WINDOW_S`` of the time since it was received; over the
     first ``JOIN_S`` of a splice, whose first configuration lies on the trajectory followed before it, the nearer of
     the two: the adapter joins a splice that begins ahead of the robot along the trajectory under way, and
-    ``joined_configurations`` counts those nearer to that one by more than ``SPLICE_ON_M``);
+    ``joined_configurations`` counts those nearer to that one by more than the splice tolerance);
     percentiles of both, and how often the deviation exceeded the padding, which is the clearance the plan kept.
     Then the executed configurations inside the collision padding of the static boxes
     (``checker`` pads them), split by whether the nearest point of the followed trajectory is inside it too (the plan
@@ -117,7 +117,7 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     base_off = np.full(len(Q), np.nan)
     nearest = np.full((len(Q), len(names)), np.nan)
     deviation = np.full(len(Q), np.nan)
-    prev, joined = None, 0  # the previous trajectory's CheckedPath; configurations nearer to it than to their own
+    prev, joined = None, 0  # (CheckedPath, index) of the trajectory followed before; configurations nearer to it
     for j in np.unique(which[which >= 0]):
         P = paths[j]
         if len(P) < 2:  # a stop: the robot holds, nothing to follow
@@ -141,10 +141,10 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
                 held = trajs[j_p][2] if len(trajs[j_p]) > 2 else np.inf
                 # it was still followed when this one came, and this one continues it (a splice: its first
                 # configuration lies on it)
-                if not np.isfinite(held) and path_p.path_distances(P[:1], [t_tr[j] - t_tr[j_p]], SPLICE_LOOK_S)[0] \
-                        <= SPLICE_ON_M:
+                if not np.isfinite(held) and path_p.path_distances(P[:1], [t_tr[j] - t_tr[j_p]], SPLICE_LOOKBACK_S)[0] \
+                        <= SPLICE_TOL_M:
                     d_prev = path_p.deviations(Q[early], ex_t[early] - t_tr[j_p], TRACK_WINDOW_S)
-                    joined += int(np.sum(d_prev + SPLICE_ON_M < deviation[early]))
+                    joined += int(np.sum(d_prev + SPLICE_TOL_M < deviation[early]))
                     deviation[early] = np.minimum(deviation[early], d_prev)
             prev = (path, j)
         else:

@@ -6,8 +6,9 @@ times strictly increasing, the first point ``lead_time_s`` ahead); :func:`hold_c
 :func:`check_start` / :func:`check_base_start` the start checks against the measured state; :class:`GoalGate` at most
 one goal per ``min_goal_interval_s``. :func:`progress_offset`, :func:`splice_progress`, :func:`join_along`,
 :func:`sample_at`, :func:`trim_from` and :func:`braking_configurations` place the robot along a trajectory (its
-progress, its time along a splice, the way to a splice ahead of it, what it passes while braking). :func:`to_joint_trajectory`, :func:`action_goal_fields` and
-:func:`fill_goal` turn a command into ROS messages, importing the message packages inside;
+progress, its time along a splice, the way to a splice ahead of it, what it passes while braking).
+:func:`to_joint_trajectory`, :func:`action_goal_fields` and :func:`fill_goal` turn a command into ROS messages,
+importing the message packages inside;
 :func:`stretch_base_steps` / :func:`stretch_base_command` are Stretch's position-mode base goals.
 """
 
@@ -136,7 +137,7 @@ def join_along(path, t_from: float, t_to: float, times, positions, velocities=No
     P = np.asarray(positions, float)
     inner = path.ts[(path.ts > t_from) & (path.ts < t_to)]
     tj = np.concatenate([[t_from], inner])
-    Pj = np.stack([np.interp(tj, path.ts, path.Q[:, j]) for j in range(path.Q.shape[1])], 1)
+    Pj = sample_at(path.ts, path.Q, tj)
     gap = float(t_to - t_from)
     T = np.concatenate([tj - t_from, t + gap])
     X = np.concatenate([Pj, P])
