@@ -94,32 +94,34 @@ class RobotAdapter:
 
     def __init__(self, node_name: str = "robot_adapter", **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
         from diagnostic_msgs.msg import DiagnosticArray
-        from geometry_msgs.msg import PoseStamped
-        from nav_msgs.msg import Odometry
-        from sensor_msgs.msg import JointState
         from std_msgs.msg import String
-        from std_srvs.srv import Trigger
-        from trajectory_msgs.msg import JointTrajectory
 
         from .interfaces.frames import declare_frame_params
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
         self.spec = {**core.common_params(), **ADAPTER_PARAMS}
-        self.p = core.declare_params(node, self.spec)
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
-        self.frame = self.scene.frame
-        self.frames = declare_frame_params(node, self.frame)
-        self.names = list(self.robot.joint_names)
+        self.p = core.declare_reconfigurable_params(node, self.spec, self._apply_param)
+        try:
+            declare_frame_params(node, "")  # the parameters only: the frame table is made at configure
+        except Exception:  # a malformed transform: configure reports it
+            pass
         self.active = False
+        # made at configure, dropped at cleanup
+        self.scene = None
+        self._robot = None
+        self.frame: Optional[str] = None
+        self.frames = None
+        self.names: list = []
+        self.execution: Optional[Execution] = None
         self.cfg: Optional[ad.AdapterConfig] = None
         self.links: Optional[ControllerLinks] = None
         self.driver_link: Optional[DriverLink] = None
         self.tracker = None
         self.tf_tree = None  # base_pose_source tf: the links received, kept for the tracker made at configure
         self.follower: Optional[BaseFollower] = None
+        self._made = core.ConfigureScope(node)  # what configure makes, released by cleanup
         self._lock = threading.RLock()
         self._inbox: queue.Queue = queue.Queue()  # trajectories for the acceptance thread
         self._acceptor: Optional[threading.Thread] = None
@@ -127,46 +129,52 @@ class RobotAdapter:
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0, "spliced": 0,
                        "goals_deferred": 0, "twists": 0, "off_path_stops": 0, "goals_rejected": 0, "goals_failed": 0,
                        "runstops": 0, "mode_switches": 0, "held_until_rest": 0}
-        self.execution = Execution(self, self.robot, self.names, self.p, self.counts, self._lock)
         self.pub_status = node.create_publisher(String, "~/status", 10)
         self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
         self.cb = MutuallyExclusiveCallbackGroup()
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        node.create_subscription(JointTrajectory, self.p["trajectory_topic"], self._traj_cb, latched,
-                                 callback_group=self.cb)
-        node.create_subscription(JointState, self.p["joint_states_topic"], self._joints_cb, 10, callback_group=self.cb)
-        if self.robot.mobile and self.p["base_pose_source"] == "odom":
-            node.create_subscription(Odometry, self.p["odom_topic"], self._odom_cb, 10, callback_group=self.cb)
-        if self.robot.mobile and self.p["base_pose_source"] == "pose":
-            node.create_subscription(PoseStamped, self.p["robot_pose_topic"], self._pose_cb, qos_profile_sensor_data,
-                                     callback_group=self.cb)
-        if self.robot.mobile and self.p["base_pose_source"] == "tf":
-            from .interfaces.tf_tree import TfTree, subscribe_tf
-
-            self.tf_tree = TfTree()
-            subscribe_tf(node, self._tf_cb, self.cb)
-        self.cli_plan = node.create_client(Trigger, self.p["plan_service"],
-                                           callback_group=MutuallyExclusiveCallbackGroup())
-        self._timer = None
+        self.cli_plan = None
         node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
                           callback_group=MutuallyExclusiveCallbackGroup())
-        core.install_param_callback(node, self.spec, self.p, self._apply_param)
+
+    @property
+    def robot(self):
+        """The robot model configure built. Before configure (or after cleanup) the node holds none: asked then, the
+        packaged model of the robot the parameters name is loaded for the caller and not kept."""
+        if self._robot is not None:
+            return self._robot
+        return core.load_scene_and_robot(self.p["scene"], self.p["robot"])[1]
 
     @property
     def speed_scaling(self) -> float:
-        """The controllers' speed scaling (0..1), which the base's path clock follows."""
-        return self.execution.speed_scaling
+        """The controllers' speed scaling (0..1), which the base's path clock follows (1 while unconfigured)."""
+        return 1.0 if self.execution is None else self.execution.speed_scaling
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def on_configure(self, state) -> bool:
-        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        """Read the parameters, load the scene, robot model and adapter config, make the subscriptions, controller
+        links, the driver's services, the control timer and the acceptance thread. A bad parameter or a missing file
+        raises: the configure fails with the reason on ``~/status``, the node stays unconfigured with nothing made,
+        and can be configured again."""
+        return self._made.configure(self._configure, self._release)
 
+    def _configure(self) -> None:
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from geometry_msgs.msg import PoseStamped
+        from nav_msgs.msg import Odometry
+        from sensor_msgs.msg import JointState
+        from std_srvs.srv import Trigger
+        from trajectory_msgs.msg import JointTrajectory
+
+        from .interfaces.frames import declare_frame_params
         from .robots.robot_state import RobotStateTracker, offset_from_params
 
-        cfg = ad.load_adapter(self.p["adapter"] or self.robot.name, self.robot)
-        if self.p["interface"]:
-            cfg = cfg.with_interface(self.p["interface"])
+        node, p = self.node, self.p
+        scene, robot = core.load_configured_scene_and_robot(node, dict(p))
+        frames = declare_frame_params(node, scene.frame)
+        cfg = ad.load_adapter(p["adapter"] or robot.name, robot)
+        if p["interface"]:
+            cfg = cfg.with_interface(p["interface"])
         if cfg.base.mode == "stretch_translate_rotate":
             raise InputError("base.mode stretch_translate_rotate: its goals are built by "
                              "psprm_ros.robots.adapters.stretch_base_steps / stretch_base_command; this node drives "
@@ -177,39 +185,84 @@ class RobotAdapter:
             if fjt is None:
                 raise RuntimeError("control_msgs is not importable (it comes with the robot's ROS install: apt install "
                                    "ros-jazzy-control-msgs); or set the parameter interface:=topic")
-        self.cfg = cfg
-        self.tracker = RobotStateTracker(
-            self.robot, self.frames, self.p["base_pose_source"], cfg.name_map(),
-            offset_from_params(self.p["base_body_offset.xyz"], self.p["base_body_offset.quat"]),
-            self.p["state_timeout_s"],
-            template=core.start_configuration(self.robot, self.scene, self.p["start_problem"]),
-            base_frame=self.p["base_frame"], tf=self.tf_tree)
-        self.links = ControllerLinks(self.node, cfg, self.robot.mobile, fjt, self.cb, self._lock, self.counts,
+        src = p["base_pose_source"]
+        if robot.mobile and src == "pose" and not p["robot_pose_topic"]:
+            raise InputError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
+        tf_tree = None
+        if robot.mobile and src == "tf":
+            from .interfaces.tf_tree import TfTree
+
+            tf_tree = TfTree()
+        tracker = RobotStateTracker(
+            robot, frames, src, cfg.name_map(),
+            offset_from_params(p["base_body_offset.xyz"], p["base_body_offset.quat"]),
+            p["state_timeout_s"], template=core.start_configuration(robot, scene, p["start_problem"]),
+            base_frame=p["base_frame"], tf=tf_tree)
+        with self._lock:
+            self.scene, self._robot, self.frame, self.frames = scene, robot, scene.frame, frames
+            self.names = list(robot.joint_names)
+            self.tf_tree, self.tracker = tf_tree, tracker
+            self.execution = Execution(self, robot, self.names, p, self.counts, self._lock)
+        cb = self.cb
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._made.subscription(JointTrajectory, p["trajectory_topic"], self._traj_cb, latched, callback_group=cb)
+        self._made.subscription(JointState, p["joint_states_topic"], self._joints_cb, 10, callback_group=cb)
+        if robot.mobile and src == "odom":
+            self._made.subscription(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
+        if robot.mobile and src == "pose":
+            self._made.subscription(PoseStamped, p["robot_pose_topic"], self._pose_cb, qos_profile_sensor_data,
+                                    callback_group=cb)
+        if tf_tree is not None:
+            from .interfaces.tf_tree import subscribe_tf
+
+            self._made.own(subscribe_tf(node, self._tf_cb, cb))
+        self.cli_plan = node.create_client(Trigger, p["plan_service"], callback_group=MutuallyExclusiveCallbackGroup())
+        self.links = ControllerLinks(node, cfg, robot.mobile, fjt, cb, self._lock, self.counts,
                                      self.execution.controller_failed, self.status)
         b = cfg.base
         if cfg.driver.kind == "stretch":
-            self.driver_link = DriverLink(self.node, cfg.driver, self._mode_cb, self._runstop_cb, self.cb, self.status)
+            self.driver_link = DriverLink(node, cfg.driver, self._mode_cb, self._runstop_cb, cb, self.status)
         scaling = sorted({c.speed_scaling_topic for c in cfg.controllers if c.speed_scaling_topic})
         if len(scaling) > 1:
             raise InputError(f"controllers name different speed scaling topics {scaling}: one robot, one scaling")
         if scaling:
             from std_msgs.msg import Float64
 
-            self.node.create_subscription(Float64, scaling[0], self._scaling_cb, 10, callback_group=self.cb)
-        if self.robot.mobile:
+            self._made.subscription(Float64, scaling[0], self._scaling_cb, 10, callback_group=cb)
+        follower = None
+        if robot.mobile:
             # in trajectory mode the driver moves the base; the follower then only keeps the path's clock (t0, done)
-            self.follower = BaseFollower(Limits.for_robot(self.robot, b), Gains(b.k_x, b.k_y, b.k_theta),
-                                         b.goal_tolerance_m, b.goal_tolerance_rad, b.settle_s, b.preview_s)
-        self.execution.configure(cfg, self.links, self.follower)
+            follower = BaseFollower(Limits.for_robot(robot, b), Gains(b.k_x, b.k_y, b.k_theta),
+                                    b.goal_tolerance_m, b.goal_tolerance_rad, b.settle_s, b.preview_s)
+        self.execution.configure(cfg, self.links, follower)
+        self.cfg, self.follower = cfg, follower
         # the follower runs on its own callback group: a burst of state messages never delays a control step
-        self._timer = self.node.create_timer(1.0 / b.rate_hz, self.execution.tick,
-                                             callback_group=MutuallyExclusiveCallbackGroup())
+        self._made.timer(1.0 / b.rate_hz, self.execution.tick, callback_group=MutuallyExclusiveCallbackGroup())
         # trajectories are checked on their own thread (see _traj_cb), which lives from configure to cleanup
-        self._acceptor = threading.Thread(target=self._accept_loop, name=f"{self.node.get_name()}-accept", daemon=True)
+        self._acceptor = threading.Thread(target=self._accept_loop, name=f"{node.get_name()}-accept", daemon=True)
         self._acceptor.start()
-        self.status(f"configured: adapter {cfg.robot} ({len(cfg.controllers)} controllers: "
-                    f"{', '.join(f'{c.name} [{c.interface}]' for c in cfg.controllers)}; base {b.mode} on {b.topic})")
-        return True
+        self.status(f"configured: scene {scene.name}, robot {robot.name}; adapter {cfg.robot} ({len(cfg.controllers)} "
+                    f"controllers: {', '.join(f'{c.name} [{c.interface}]' for c in cfg.controllers)}; "
+                    f"base {b.mode} on {b.topic})")
+
+    def _release(self) -> None:
+        """End the acceptance thread; destroy the subscriptions, timers, controller links, driver services and the plan
+        client configure made; drop the models."""
+        self._end_acceptor()
+        self._made.release()
+        with self._lock:
+            if self.links is not None:
+                self.links.destroy()
+            if self.driver_link is not None:
+                self.driver_link.destroy()
+            if self.cli_plan is not None:
+                self.node.destroy_client(self.cli_plan)
+            if self.execution is not None:
+                self.execution.cleanup()
+            self.cfg = self.follower = self.links = self.driver_link = self.cli_plan = None
+            self.scene = self._robot = self.frame = self.frames = self.tracker = self.tf_tree = None
+            self.execution, self.names = None, []
 
     def on_activate(self, state) -> bool:
         self.active = True
@@ -229,15 +282,8 @@ class RobotAdapter:
         return True
 
     def on_cleanup(self, state) -> bool:
-        self._end_acceptor()
-        with self._lock:
-            if self.links is not None:
-                self.links.destroy()
-            if self._timer is not None:
-                self.node.destroy_timer(self._timer)
-            self._timer = None
-            self.cfg = self.follower = self.links = None
-            self.execution.cleanup()
+        self._release()
+        self.status("unconfigured: subscriptions, controller links and models released")
         return True
 
     def on_shutdown(self, state) -> bool:
@@ -291,7 +337,7 @@ class RobotAdapter:
             return True
         now = time.monotonic()
         interval = self.p["replan_request_interval_s"]
-        if now - self._last_replan_request < interval or not self.cli_plan.service_is_ready():
+        if now - self._last_replan_request < interval or self.cli_plan is None or not self.cli_plan.service_is_ready():
             return False
         self._last_replan_request = now
         fut = self.cli_plan.call_async(Trigger.Request())
@@ -318,9 +364,13 @@ class RobotAdapter:
 
     def _diagnostics(self) -> None:
         ex = self.execution
-        if self.cfg is None:
+        if self.cfg is None or ex is None:
             level, msg = core.DIAG_WARN, "not configured"
-        elif ex.last_state_problem:
+            vals = {"lifecycle": core.lifecycle_state(self.node), **self.counts}
+            core.publish_diagnostics(self.pub_diag, self.node, [core.diagnostic_status(
+                f"psprm: {self.node.get_fully_qualified_name()}", self.p["robot"] or self.p["scene"], level, msg, vals)])
+            return
+        if ex.last_state_problem:
             level, msg = core.DIAG_WARN, ex.last_state_problem
         elif ex.last_refusal:
             level, msg = core.DIAG_WARN, f"last refusal: {ex.last_refusal}"
@@ -334,14 +384,16 @@ class RobotAdapter:
                 "control_gap_ms_max": round(float(ex.control_gap_ms_max), 1)}
         name = f"psprm: {self.node.get_fully_qualified_name()}"
         core.publish_diagnostics(self.pub_diag, self.node,
-                                 [core.diagnostic_status(name, self.robot.name, level, msg, vals)])
+                                 [core.diagnostic_status(name, self._robot.name, level, msg, vals)])
 
     # ------------------------------------------------------------------------------------------------ inputs
     def _mode_cb(self, msg) -> None:
-        self.execution.on_mode(str(msg.data))
+        if self.execution is not None:
+            self.execution.on_mode(str(msg.data))
 
     def _runstop_cb(self, msg) -> None:
-        self.execution.on_runstop(bool(msg.data))
+        if self.execution is not None:
+            self.execution.on_runstop(bool(msg.data))
 
     def _scaling_cb(self, msg) -> None:
         """UR's speed scaling in percent: the scaled controllers run their trajectories at that rate."""
@@ -349,7 +401,8 @@ class RobotAdapter:
         if not np.isfinite(v) or v < 0.0:
             self.status(f"ignored speed scaling {v}", "warning")
             return
-        self.execution.speed_scaling = min(v / 100.0, 1.0)
+        if self.execution is not None:
+            self.execution.speed_scaling = min(v / 100.0, 1.0)
 
     def _joints_cb(self, msg) -> None:
         if self.tracker is None:
@@ -380,8 +433,7 @@ class RobotAdapter:
 
     def _tf_cb(self, msg, static: bool) -> None:
         with self._lock:
-            if self.tracker is None:  # not configured yet: the tree keeps the links (tf_static comes once)
-                self.tf_tree.update(msg, static, self._now())
+            if self.tracker is None:  # released by a cleanup
                 return
             dropped = self.tracker.update_tf(msg, static, self._now())
         for text in dropped:
@@ -423,7 +475,8 @@ class RobotAdapter:
                 self._inbox.task_done()
             except queue.Empty:
                 break
-        self.execution.wait_accepted(timeout)
+        if self.execution is not None:
+            self.execution.wait_accepted(timeout)
 
     def _end_acceptor(self, timeout: float = 2.0) -> None:
         """Drop the unchecked trajectories and end the acceptance thread (cleanup, the node's end)."""

@@ -424,9 +424,52 @@ def test_scorer_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         lone.close()
 
 
-@pytest.mark.parametrize("which", ["monitor", "scorer"])
+def test_adapter_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
+    """The adapter built: no subscription, nothing loaded. Configure: the trajectory, joint state and odometry
+    subscriptions and the controller's command topics appear; cleanup: they are gone; configure again with another
+    odometry topic and the base pose from mocap (refused while configured, taken while unconfigured): the
+    subscriptions follow."""
+    from lifecycle_msgs.msg import Transition
+
+    from psprm_ros.robot_adapter import RobotAdapter
+
+    loads = _Loads(monkeypatch)
+    lone = _Lone(RobotAdapter, "robot_adapter", {"scene": "dynamic_person", "interface": "topic"})
+    try:
+        _unconfigured_and_idle(lone, loads)
+        inputs = {"/psprm/trajectory", "/joint_states", "/odom"}
+        t0 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.status_after(t0, "configured: scene dynamic_person, robot stretch2"), lone.statuses[-3:]
+        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        assert lone.wait(lambda: "/stretch/cmd_vel" in lone.node_publishers()), lone.node_publishers()
+        assert loads.counts["scene"] >= 1 and loads.counts["robot"] >= 1
+        r = lone.set_params(odom_topic="odom_2")
+        assert not r[0].successful and "configure" in r[0].reason, r[0].reason
+        t0 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CLEANUP)
+        assert lone.state() == "unconfigured" and lone.status_after(t0, "unconfigured")
+        assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
+        assert lone.wait(lambda: "/stretch/cmd_vel" not in lone.node_publishers()), lone.node_publishers()
+        assert not lone.subscribers("/psprm/trajectory")
+        r = lone.set_params(base_pose_source="pose", robot_pose_topic="/mocap/stretch/pose")
+        assert all(x.successful for x in r), [x.reason for x in r]
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        want = {"/psprm/trajectory", "/joint_states", "/mocap/stretch/pose"}
+        assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
+        time.sleep(0.3)
+        assert "/odom" not in lone.node_subscriptions()
+        assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
+        assert lone.transition(Transition.TRANSITION_DEACTIVATE)
+        assert lone.transition(Transition.TRANSITION_CLEANUP)
+        assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
+    finally:
+        lone.close()
+
+
+@pytest.mark.parametrize("which", ["monitor", "scorer", "adapter"])
 def test_configure_with_a_bad_parameter_fails_and_the_node_lives_on(which):
-    """An unknown scene (monitor) or robot (scorer): the node is built, configure fails with the reason on
+    """An unknown scene (monitor), robot (scorer) or adapter config (adapter): the node is built, configure fails with the reason on
     ``~/status`` and subscribes to nothing; it stays unconfigured, takes the fixed parameter and then configures."""
     from lifecycle_msgs.msg import Transition
 
@@ -436,6 +479,12 @@ def test_configure_with_a_bad_parameter_fails_and_the_node_lives_on(which):
         name, bad, needle, fix = "replan_monitor", {"scene": "no_such_scene"}, "unknown scene 'no_such_scene'", \
             {"scene": "dynamic_person"}
         topic = "/mocap/person_face/pose"
+    elif which == "adapter":
+        from psprm_ros.robot_adapter import RobotAdapter as factory
+
+        name, bad, needle, fix = "robot_adapter", {"adapter": "no_such_adapter", "interface": "topic"}, \
+            "no_such_adapter", {"adapter": ""}
+        topic = "/psprm/trajectory"
     else:
         from psprm_ros.perception_scorer import PerceptionScorer as factory
 

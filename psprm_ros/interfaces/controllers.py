@@ -233,9 +233,10 @@ class DriverLink:
         from std_msgs.msg import Bool, String
         from std_srvs.srv import Trigger
 
-        self._status = status
-        node.create_subscription(String, d.mode_topic, on_mode, 10, callback_group=callback_group)
-        node.create_subscription(Bool, d.runstop_topic, on_runstop, 10, callback_group=callback_group)
+        self._status, self.node = status, node
+        self.subscriptions = [
+            node.create_subscription(String, d.mode_topic, on_mode, 10, callback_group=callback_group),
+            node.create_subscription(Bool, d.runstop_topic, on_runstop, 10, callback_group=callback_group)]
         grp = MutuallyExclusiveCallbackGroup()
         self.clients: dict = {}  # service name -> Trigger client
         for name in [d.switch_name(m) for m in ("navigation", "position", "trajectory")] + [d.stop_service]:
@@ -252,3 +253,11 @@ class DriverLink:
         fut = cl.call_async(Trigger.Request())
         fut.add_done_callback(retrieve)
         return fut
+
+    def destroy(self) -> None:
+        """Destroy the mode and runstop subscriptions and the service clients."""
+        for s in self.subscriptions:
+            self.node.destroy_subscription(s)
+        for cl in self.clients.values():
+            self.node.destroy_client(cl)
+        self.subscriptions, self.clients = [], {}
