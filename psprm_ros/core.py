@@ -440,6 +440,14 @@ def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, param
     return scene, robot
 
 
+def scene_robot_name(scene_name: str) -> str:
+    """The robot a scene file names (its ``robot`` field), read without loading the scene."""
+    from psprm_core.yamlio import Fields, load_yaml
+
+    path = resolve_scene(scene_name)
+    return Fields(load_yaml(path), str(path)).str("robot")
+
+
 def scene_targets(scene, targets) -> list:
     """The requested targets, or the targets named by the scene's problems (all targets when none is)."""
     if targets:

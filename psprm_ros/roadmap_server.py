@@ -25,6 +25,7 @@ safe one is kept, or a stop trajectory is published.
 from __future__ import annotations
 
 import json
+import threading
 import time
 from typing import Optional
 
@@ -81,14 +82,18 @@ def replan_params(settings_name: str) -> dict:
 
 class RoadmapServer:
     """The node (composition over inheritance keeps construction order explicit; ``.node`` is the rclpy Node,
-    ``.loop`` the :class:`PlanningLoop` that plans and decides)."""
+    ``.loop`` the :class:`PlanningLoop` that plans and decides, made at configure and closed at cleanup).
+
+    Construction declares the parameters (the planner settings' defaults from ``planner_settings`` for the robot the
+    parameters name), the publishers and the services; configure loads the scene and the robot model, makes the
+    planning loop and the input subscriptions and builds or loads the roadmap; cleanup closes the loop and destroys
+    the subscriptions and timers configure made."""
 
     def __init__(self, node_name: str = core.SERVER_NAME, **node_kwargs):
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
-        from geometry_msgs.msg import PoseArray, PoseStamped
-        from sensor_msgs.msg import JointState
-        from std_msgs.msg import Float32MultiArray, String
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+        from geometry_msgs.msg import PoseArray
+        from std_msgs.msg import String
         from std_srvs.srv import Trigger
         from trajectory_msgs.msg import JointTrajectory
         from visualization_msgs.msg import MarkerArray
@@ -104,24 +109,24 @@ class RoadmapServer:
         replan = replan_params(self.p["replan_settings"])
         self.p.update(core.declare_params(node, replan, refusals))
         torch.set_num_threads(max(1, self.p["torch_threads"]))
-        self.scene, self.robot = core.load_scene_and_robot(self.p["scene"], self.p["robot"], node=node, params=self.p)
+        self.robot_name = self._robot_name(refusals)
         settings = self._planner_setting_params(refusals)
         self.p.update(core.declare_params(node, settings, refusals))
         self.spec_params = {**common, **replan, **settings}
-        self.spec = planner_setup.PlannerSpec(**{k: self.p[k] for k in planner_setup.PLANNER_PARAMS},
-                                     settings={k: self.p[k] for k in settings})
+        self.setting_names = list(settings)
         if refusals:
             node.refuse_configure("; ".join(filter(None, [node.configure_refusal,
                                                           f"parameters refused: {'; '.join(refusals)}"])))
-        self.frame = self.scene.frame
-        self.targets = core.scene_targets(self.scene, self.p["targets"])
-        for o in self.p["dynamic_obstacles"]:
-            self.scene.obstacle(o)
-        self.names = list(self.robot.joint_names)
-        q0 = core.start_configuration(self.robot, self.scene, self.p["start_problem"])
-        goals: Optional[np.ndarray] = None
-        if self.p["goal_regions"]:
-            goals = core.goal_region_configurations(self.robot, self.scene, self.p["goal_regions"])
+        # made at configure, dropped at cleanup
+        self.loop: Optional[PlanningLoop] = None
+        self.spec: Optional[planner_setup.PlannerSpec] = None
+        self.scene = self.robot = None
+        self.frame: Optional[str] = None
+        self.targets: list = []
+        self.names: list = []
+        self._made = core.ConfigureScope(node)
+        self._unset = threading.Event()  # idle while unconfigured: never set
+        self.ready = threading.Event()  # set while a roadmap is built or loaded (the loop sets and clears it)
 
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_traj = node.create_publisher(JointTrajectory, core.TRAJECTORY_TOPIC, latched)
@@ -135,33 +140,85 @@ class RoadmapServer:
         self.pub_base_path = node.create_publisher(Path, core.BASE_PATH_TOPIC, latched)
         self.pub_diag = node.create_publisher(DiagnosticArray, core.DIAGNOSTICS_TOPIC, 10)
 
-        self.loop = PlanningLoop(self.scene, self.robot, self.targets, self.spec, _Publications(self),
-                                 obstacles=self.p["dynamic_obstacles"], q0=q0, goals=goals, params=self.p,
-                                 clock=self._now)
-
-        cb = MutuallyExclusiveCallbackGroup()
-        for t in self.targets:
-            node.create_subscription(PoseStamped, core.target_topic(t), self._pose_cb("target", t),
-                                     qos_profile_sensor_data, callback_group=cb)
-        for o in self.p["dynamic_obstacles"]:
-            node.create_subscription(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
-                                     qos_profile_sensor_data, callback_group=cb)
-        node.create_subscription(JointState, core.ROBOT_STATE_TOPIC, self._robot_cb, qos_profile_sensor_data,
-                                 callback_group=cb)
-        node.create_subscription(JointTrajectory, core.GOALS_TOPIC, self._goals_cb, latched, callback_group=cb)
-        node.create_subscription(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, self._scores_cb, 1, callback_group=cb)
         srv = ReentrantCallbackGroup()
         node.create_service(Trigger, "~/plan", self._srv("plan"), callback_group=srv)
         node.create_service(Trigger, "~/rebuild", self._srv("rebuild"), callback_group=srv)
         node.create_service(Trigger, "~/stop", self._srv("stop"), callback_group=srv)
-
-        core.install_param_callback(node, self.spec_params, self.p, self.loop.stage_param)
+        core.install_param_callback(node, self.spec_params, self.p, self._stage_param)
         node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
                           callback_group=MutuallyExclusiveCallbackGroup())
-        if self.p["heap_trim_period_s"] > 0:
-            node.create_timer(self.p["heap_trim_period_s"],
-                              lambda: self.loop.submit_side("heap trim", self.loop.trim_heap),
-                              callback_group=MutuallyExclusiveCallbackGroup())
+
+    def _robot_name(self, refusals: list) -> str:
+        """The robot the parameters name (``robot``, or the scene's robot, read from the scene file without loading
+        the scene); '' with a refusal when the scene cannot be read."""
+        from psprm_core.errors import PsprmError
+
+        if self.p["robot"]:
+            return str(self.p["robot"])
+        try:
+            return core.scene_robot_name(self.p["scene"])
+        except PsprmError as exc:
+            refusals.append(f"scene: {exc}")
+            return ""
+
+    def _configure(self) -> None:
+        from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
+        from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+        from geometry_msgs.msg import PoseStamped
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float32MultiArray
+        from trajectory_msgs.msg import JointTrajectory
+
+        node, p = self.node, self.p
+        scene, robot = core.load_configured_scene_and_robot(node, dict(p))
+        spec = planner_setup.PlannerSpec(**{k: p[k] for k in planner_setup.PLANNER_PARAMS},
+                                         settings={k: p[k] for k in self.setting_names})
+        targets = core.scene_targets(scene, p["targets"])
+        obstacles = list(p["dynamic_obstacles"])
+        for o in obstacles:
+            scene.obstacle(o)
+        q0 = core.start_configuration(robot, scene, p["start_problem"])
+        goals: Optional[np.ndarray] = None
+        if p["goal_regions"]:
+            goals = core.goal_region_configurations(robot, scene, p["goal_regions"])
+        self.scene, self.robot, self.frame, self.spec = scene, robot, scene.frame, spec
+        self.targets, self.names = targets, list(robot.joint_names)
+        self.loop = PlanningLoop(scene, robot, targets, spec, _Publications(self), obstacles=obstacles, q0=q0,
+                                 goals=goals, params=p, clock=self._now, ready=self.ready)
+
+        cb = MutuallyExclusiveCallbackGroup()
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        for t in targets:
+            self._made.subscription(PoseStamped, core.target_topic(t), self._pose_cb("target", t),
+                                    qos_profile_sensor_data, callback_group=cb)
+        for o in obstacles:
+            self._made.subscription(PoseStamped, core.obstacle_topic(o), self._pose_cb("obstacle", o),
+                                    qos_profile_sensor_data, callback_group=cb)
+        self._made.subscription(JointState, core.ROBOT_STATE_TOPIC, self._robot_cb, qos_profile_sensor_data,
+                                callback_group=cb)
+        self._made.subscription(JointTrajectory, core.GOALS_TOPIC, self._goals_cb, latched, callback_group=cb)
+        self._made.subscription(Float32MultiArray, core.ROADMAP_SCORES_TOPIC, self._scores_cb, 1, callback_group=cb)
+        if p["heap_trim_period_s"] > 0:
+            loop = self.loop
+            self._made.timer(p["heap_trim_period_s"], lambda: loop.submit_side("heap trim", loop.trim_heap),
+                             callback_group=MutuallyExclusiveCallbackGroup())
+
+    def _release(self) -> None:
+        """Close the planning loop (its roadmap and threads) and destroy what configure made."""
+        self._made.release()
+        loop, self.loop = self.loop, None
+        if loop is not None:
+            loop.transition("cleanup")
+            loop.close()
+        self.ready.clear()
+        self.scene = self.robot = self.frame = self.spec = None
+        self.targets, self.names = [], []
+
+    def _stage_param(self, name: str, value) -> None:
+        """A live parameter change: checked and applied by the planning loop when configured (the values dict the
+        loop reads is updated by the parameter callback either way)."""
+        if self.loop is not None:
+            self.loop.stage_param(name, value)
 
     def _planner_setting_params(self, refusals: list) -> dict:
         """The planner-setting parameters (:func:`planner_setting_params`) with the defaults of the settings file for
@@ -170,7 +227,7 @@ class RoadmapServer:
         from psprm_core.planning.psprm import PSPRMSettings
 
         try:
-            settings = planner_setup.planner_file_settings(self.p["planner_settings"], self.robot.name)
+            settings = planner_setup.planner_file_settings(self.p["planner_settings"], self.robot_name)
         except ConfigError as exc:
             refusals.append(f"planner_settings: {exc}")
             settings = PSPRMSettings()
@@ -178,53 +235,56 @@ class RoadmapServer:
 
     # ------------------------------------------------------------------------------------------------ the loop's state
     # read by the launchers, benchmarks and tests (probe, latency_bench, the node tests)
-    @property
-    def ready(self):
-        """Set while a roadmap is built or loaded (threading.Event)."""
-        return self.loop.ready
-
+    # (unconfigured: no roadmap, no replanner, no counts)
     @property
     def rp(self):
         """The core Replanner (None while unconfigured)."""
-        return self.loop.rp
+        return None if self.loop is None else self.loop.rp
 
     @property
     def planner(self):
-        return self.loop.planner
+        return None if self.loop is None else self.loop.planner
 
     @property
     def build_info(self) -> dict:
-        return self.loop.build_info
+        return {} if self.loop is None else self.loop.build_info
 
     @property
     def counts(self) -> dict:
-        return self.loop.counts
+        return {} if self.loop is None else self.loop.counts
 
     @property
     def last_latency_ms(self) -> Optional[float]:
-        return self.loop.last_latency_ms
+        return None if self.loop is None else self.loop.last_latency_ms
 
     @property
     def current(self) -> Optional[dict]:
-        return self.loop.current
+        return None if self.loop is None else self.loop.current
 
     @property
     def _idle(self):
         """Set while the planner waits for input (threading.Event)."""
-        return self.loop.idle
+        return self._unset if self.loop is None else self.loop.idle
 
     @property
     def _markers_dirty(self) -> bool:
-        return self.loop.markers_dirty
+        return False if self.loop is None else self.loop.markers_dirty
 
     @_markers_dirty.setter
     def _markers_dirty(self, value: bool) -> None:
-        self.loop.markers_dirty = bool(value)
+        if self.loop is not None:
+            self.loop.markers_dirty = bool(value)
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def on_configure(self, state) -> bool:
-        """Build or load the roadmap (blocks until it is ready)."""
-        return self.loop.transition("configure")
+        """Load the scene and robot model, make the planning loop and the subscriptions, then build or load the
+        roadmap (blocks until it is ready). A missing file or a failed build: the configure fails with the reason on
+        ``~/status``, the node stays unconfigured with nothing made and can be configured again."""
+        self._made.configure(self._configure, self._release)
+        if self.loop.transition("configure"):
+            return True
+        self._release()
+        return False
 
     def on_activate(self, state) -> bool:
         return self.loop.transition("activate")
@@ -234,10 +294,13 @@ class RoadmapServer:
         return self.loop.transition("deactivate")
 
     def on_cleanup(self, state) -> bool:
-        return self.loop.transition("cleanup")
+        """Drop the roadmap, end the planning loop and destroy the subscriptions and timers configure made."""
+        self._release()
+        self.status("unconfigured: roadmap, planning loop and subscriptions released")
+        return True
 
     def on_shutdown(self, state) -> bool:
-        return self.loop.transition("shutdown")
+        return True if self.loop is None else self.loop.transition("shutdown")
 
     def status(self, text: str, level: str = "info") -> None:
         core.report(self.log, self.pub_status, text, level)
@@ -253,7 +316,8 @@ class RoadmapServer:
 
     # ------------------------------------------------------------------------------------------------ callbacks
     def _pose_cb(self, kind: str, name: str):
-        put = self.loop.target_pose if kind == "target" else self.loop.obstacle_pose
+        loop = self.loop
+        put = loop.target_pose if kind == "target" else loop.obstacle_pose
 
         def cb(msg):
             t = time.perf_counter()
@@ -270,17 +334,23 @@ class RoadmapServer:
         return cb
 
     def _robot_cb(self, msg) -> None:
+        loop, robot = self.loop, self.robot
+        if loop is None or robot is None:  # released by a cleanup
+            return
         try:
-            q, found = cv.joint_state_to_planning(msg, self.robot)
+            q, found = cv.joint_state_to_planning(msg, robot)
             if set(found) != set(self.names):
                 missing = sorted(set(self.names) - set(found))
                 raise cv.InputError(f"robot state: missing planning joints {', '.join(missing)}")
         except Exception as exc:
             self.status(f"ignored {exc}", "warning")
             return
-        self.loop.robot_state(q, cv.base_velocity_of(msg, float(q[2])) if self.robot.mobile else None)
+        loop.robot_state(q, cv.base_velocity_of(msg, float(q[2])) if robot.mobile else None)
 
     def _goals_cb(self, msg) -> None:
+        loop = self.loop
+        if loop is None:
+            return
         try:
             cv.check_frame(msg.header.frame_id, self.frame, "goals")
             G = cv.joint_trajectory_positions(msg, self.names)
@@ -289,9 +359,12 @@ class RoadmapServer:
         except Exception as exc:
             self.status(f"ignored {exc}", "warning")
             return
-        self.loop.goals(G)
+        loop.goals(G)
 
     def _scores_cb(self, msg) -> None:
+        loop = self.loop
+        if loop is None:
+            return
         try:
             s = np.asarray(msg.data, float)
             if not np.isfinite(s).all():
@@ -299,23 +372,32 @@ class RoadmapServer:
         except Exception as exc:
             self.status(f"ignored {exc}", "warning")
             return
-        self.loop.scores(s)
+        loop.scores(s)
 
     def _srv(self, kind: str):
         def handler(request, response):
-            ok, message = self.loop.request(kind, self.p["service_timeout_s"])
+            loop = self.loop
+            if loop is None:
+                ok, message = False, "not configured"
+            else:
+                ok, message = loop.request(kind, self.p["service_timeout_s"])
             response.success, response.message = bool(ok), str(message)
             return response
         return handler
 
     # ------------------------------------------------------------------------------------------------ diagnostics
     def _diagnostics(self) -> None:
-        level, msg, vals = self.loop.diagnostics(core.lifecycle_state(self.node))
+        state, loop = core.lifecycle_state(self.node), self.loop
+        if loop is None:
+            level, msg, vals = core.DIAG_WARN, "not configured", {"lifecycle": state}
+        else:
+            level, msg, vals = loop.diagnostics(state)
         core.publish_diagnostics(self.pub_diag, self.node, [
-            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot.name, level, msg, vals)])
+            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot_name, level, msg, vals)])
 
     def destroy(self) -> None:
-        self.loop.close()
+        if self.loop is not None:
+            self.loop.close()
         self.node.destroy_node()
 
 

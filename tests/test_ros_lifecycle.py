@@ -424,6 +424,54 @@ def test_scorer_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         lone.close()
 
 
+def _planner_threads() -> int:
+    return sum(1 for t in threading.enumerate() if t.name == "psprm-planner" and t.is_alive())
+
+
+def test_server_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
+    """The server built: no input subscription, no scene or robot model loaded, no planner thread; a plan request is
+    answered "not configured". Configure: the target, obstacle, robot state and goal subscriptions appear and a
+    roadmap is ready; cleanup: the subscriptions and the planner thread are gone; configure again: back, and it
+    activates."""
+    from lifecycle_msgs.msg import Transition
+    from std_srvs.srv import Trigger
+
+    from psprm_ros.roadmap_server import RoadmapServer
+
+    loads = _Loads(monkeypatch)
+    threads0 = _planner_threads()
+    lone = _Lone(RoadmapServer, "roadmap_server", {"scene": "dynamic_person", "dynamic_obstacles": ["person_body"],
+                                                   "roadmap.n_nodes": 300, "seed": 0, "publish_markers": False})
+
+    def plan():
+        return lone.srv.call(Trigger, "/roadmap_server/plan", Trigger.Request())
+    try:
+        _unconfigured_and_idle(lone, loads)
+        assert _planner_threads() == threads0
+        r = plan()
+        assert not r.success and "not configured" in r.message, r.message
+        inputs = {"/psprm/state/targets/person_face", "/psprm/state/obstacles/person_body", "/psprm/state/robot",
+                  "/psprm/state/goals"}
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        assert loads.counts["scene"] >= 1 and loads.counts["robot"] >= 1
+        assert lone.owner.ready.is_set() and _planner_threads() == threads0 + 1
+        t0 = time.perf_counter()
+        assert lone.transition(Transition.TRANSITION_CLEANUP)
+        assert lone.state() == "unconfigured" and lone.status_after(t0, "unconfigured")
+        assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
+        assert lone.wait(lambda: _planner_threads() == threads0, 10)
+        assert not lone.owner.ready.is_set()
+        r = plan()
+        assert not r.success and "not configured" in r.message, r.message
+        assert lone.transition(Transition.TRANSITION_CONFIGURE)
+        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        assert lone.owner.ready.is_set()
+        assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
+    finally:
+        lone.close()
+
+
 def test_adapter_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
     """The adapter built: no subscription, nothing loaded. Configure: the trajectory, joint state and odometry
     subscriptions and the controller's command topics appear; cleanup: they are gone; configure again with another

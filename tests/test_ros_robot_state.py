@@ -21,6 +21,7 @@ pytest.importorskip("rclpy")
 
 from psprm_core.paths import resolve_named  # noqa: E402
 from psprm_core.scene import load_scene  # noqa: E402
+from psprm_ros.core import resolve_scene  # noqa: E402
 from psprm_ros.interfaces import conversions as cv  # noqa: E402
 from psprm_ros.harness.probe import InProcessSuite, claim_domain_id  # noqa: E402
 
@@ -201,13 +202,15 @@ def test_params_files_of_the_three_robots_configure_every_node(params_file, load
     path = ROOT / "config" / "ros" / params_file
     with InProcessSuite({"interface": "topic"}, domain_id=claim_domain_id(), params_file=str(path),
                         nodes=("server", "scorer", "monitor", "adapter", "sim"), autostart=False) as s:
-        robot = s.server.robot
+        robot = load_robot(s.server.robot_name)
         assert s.monitor.robot.name == s.adapter.robot.name == s.sim.robot.name == robot.name
         for owner in (s.monitor, s.adapter):
             assert autostart(owner), s.probe.statuses[-3:]
         assert s.adapter.cfg.robot == robot.name
-        for t in s.server.targets:
-            s.server.scene.target(t)
+        scene = load_scene(resolve_scene(s.server.p["scene"]))
+        assert scene.robot == robot.name or s.server.p["robot"] == robot.name
+        for t in s.server.p["targets"]:
+            scene.target(t)
         # the simulated robot reports, the adapter measures the robot from /joint_states + /odom
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline and s.adapter.measured()[0] is None:

@@ -221,6 +221,13 @@ class StatePublisher:
             self._thread.join(2.0)
 
 
+def scene_frame(scene_name: str) -> str:
+    """The frame a scene's poses are in (the nodes load the scene at configure; the probe needs its frame first)."""
+    from psprm_core.scene import load_scene
+
+    return load_scene(core.resolve_scene(scene_name)).frame
+
+
 class InProcessSuite:
     """The three nodes (or any subset) plus a :class:`Probe` in one rclpy context, each node on its own
     single-threaded executor (:class:`~psprm_ros.spinning.NodeSpinner`): ``with InProcessSuite(params) as s:
@@ -262,7 +269,7 @@ class InProcessSuite:
                 setattr(self, w, n)
                 self.nodes.append(n)
                 self.executor.add(n.node)
-            frame = self.server.frame if self.server else "map"
+            frame = scene_frame(self.server.p["scene"]) if self.server else "map"
             self.probe = Probe(frame=frame, context=self.context,
                                **({"namespace": self.namespace} if self.namespace else {}))
             self.executor.add(self.probe.node)

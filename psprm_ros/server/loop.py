@@ -43,14 +43,15 @@ class PlanningLoop:
     ``params`` is read live (a parameter change reaches the loop through the same dict, which the caller keeps
     updating); keys it lacks get their :func:`~.params.default_params` values. ``clock`` gives the time the input
     stamps are on (s; the node's clock). ``q0`` is the roadmap build's template and the configuration planned from
-    until a robot state arrives; ``goals`` (G, dof) the goals used until a goal input arrives. The threads start
-    here; :meth:`close` ends them.
+    until a robot state arrives; ``goals`` (G, dof) the goals used until a goal input arrives; ``ready`` the event
+    set while a roadmap is built or loaded (one of the caller's, so that it can be waited on before the loop exists).
+    The threads start here; :meth:`close` ends them.
     """
 
     def __init__(self, scene, robot, targets: Sequence[str], spec: planner_setup.PlannerSpec, outputs: Outputs, *,
                  obstacles: Sequence[str] = (), q0: Optional[np.ndarray] = None,
                  goals: Optional[np.ndarray] = None, params: Optional[dict] = None,
-                 clock: Callable[[], float] = time.time):
+                 clock: Callable[[], float] = time.time, ready: Optional[threading.Event] = None):
         self.robot, self.spec, self.outputs = robot, spec, outputs
         self.names = list(robot.joint_names)
         self.p = params if params is not None else {}
@@ -63,7 +64,8 @@ class PlanningLoop:
                        "stale_starts": 0, "guard_stops": 0, "spliced": 0}
         self.executing = Executing(robot, outputs, self.p, clock, self.counts)  # what the robot executes
         self._running = True
-        self.ready = threading.Event()  # set while a roadmap is built or loaded
+        self.ready = ready if ready is not None else threading.Event()  # set while a roadmap is built or loaded
+        self.ready.clear()
         self.active = False  # lifecycle: plan and publish only while active
         self.idle = threading.Event()  # set while the worker waits for input: side jobs (markers) run then
         self.idle.set()
