@@ -415,3 +415,31 @@ def test_soak_walk_yields_to_the_robot_then_walks_on():
     wait = T[(d >= 1.0 - 1e-3) & (d <= 1.0 + 1e-3)]
     assert wait.max() - wait.min() >= 19.5 and t_close >= 20.0 + 2.0
     assert st.walk is None and np.allclose(P[-1], 0.0)  # then home
+
+
+def test_soak_latency_phases_split_each_pose_triggered_plan_into_its_wait_and_the_servers_phases():
+    """The soak's latency attribution, from plan infos the test wrote: only published plans a pose triggered count
+    (not a goal's, a kept plan, a stop, a failure); each sample's wait is its total less the server's phases; the
+    slowest tenth is reported apart."""
+    from psprm_ros.harness.soak_report import latency_phases, latency_samples
+
+    def info(total_ms, wait_ms, replan_ms, **kw):
+        phases = {"input_age_ms": 5.0, "apply_ms": 1.0, "triggers_ms": 2.0, "replan_ms": replan_ms, "msg_ms": 3.0,
+                  "check_ms": 4.0}
+        assert abs(total_ms - wait_ms - sum(phases.values())) < 1e-9
+        return {"input_stamp": 100.0, "published_stamp": 100.0 + total_ms / 1e3, "success": True,
+                "reasons": ["view"], **phases, **kw}
+
+    rows = [info(115.0, 0.0, 100.0) for _ in range(18)] + [info(1015.0, 900.0, 100.0), info(2015.0, 1800.0, 200.0)]
+    rows += [info(5015.0, 0.0, 5000.0, reasons=["goal_received"]), info(9015.0, 0.0, 9000.0, kept=True),
+             info(9015.0, 0.0, 9000.0, stop=True), info(9015.0, 0.0, 9000.0, success=False),
+             {**info(115.0, 0.0, 100.0), "published_stamp": None}]
+    samples = latency_samples(rows)
+    assert len(samples) == 20
+    assert sorted(round(x["wait"], 6) for x in samples)[-2:] == [900.0, 1800.0]
+    ph = latency_phases(samples)
+    assert ph["all"]["samples"] == 20 and ph["all"]["total"] == 115.0 and ph["all"]["wait"] == 0.0
+    assert ph["slowest_tenth"]["samples"] == 2
+    assert ph["slowest_tenth"]["total"] == 1515.0 and ph["slowest_tenth"]["wait"] == 1350.0
+    assert ph["slowest_tenth"]["replan_ms"] == 150.0
+    assert latency_phases([]) == {}

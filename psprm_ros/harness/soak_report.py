@@ -191,6 +191,43 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     }
 
 
+#: the phases of a pose-triggered plan in the server's plan info (ms): the pose's age at the server's receipt, the
+#: cycle's application of the inputs and its triggers, the replan, the message and the final check
+PHASES = ("input_age_ms", "apply_ms", "triggers_ms", "replan_ms", "msg_ms", "check_ms")
+
+
+def latency_samples(infos: list) -> list:
+    """The pose -> trajectory latencies of the published plans a pose triggered (plan infos of the server, in order):
+    one dict each, ``total`` (the pose's stamp to the trajectory's publication, ms), the :data:`PHASES` and ``wait``,
+    what the phases leave of the total: the pose waiting for the worker to finish the cycle under way (a replan for
+    goal spam, a wait for a braking base)."""
+    out = []
+    for info in infos:
+        if not info.get("input_stamp") or not info.get("success") or info.get("stop") or info.get("kept_last") \
+                or info.get("kept") or any(r in GOAL_REASONS for r in info.get("reasons") or []):
+            continue
+        if not info.get("published_stamp"):
+            continue
+        x = {"total": (info["published_stamp"] - info["input_stamp"]) * 1e3}
+        for k in PHASES:
+            v = info.get(k)
+            x[k] = float(v) if isinstance(v, (int, float)) and np.isfinite(v) else 0.0
+        x["wait"] = x["total"] - sum(x[k] for k in PHASES)
+        out.append(x)
+    return out
+
+
+def latency_phases(samples: list) -> dict:
+    """Where the latency goes (:func:`latency_samples`): the median of each phase over all samples and over the
+    slowest tenth (at least one), in ms."""
+    if not samples:
+        return {}
+    slow = sorted(samples, key=lambda x: x["total"])[-max(1, len(samples) // 10):]
+    keys = ("total", "wait") + PHASES
+    return {group: {k: round(float(np.median([x[k] for x in xs])), 1) for k in keys} | {"samples": len(xs)}
+            for group, xs in (("all", samples), ("slowest_tenth", slow))}
+
+
 def _params_padding(params_file: str) -> float:
     """The roadmap server's ``edges.collision_padding`` in the params file, as a dotted key or nested (0 when it sets
     none)."""
@@ -242,14 +279,8 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         trajs = [(t, m) for t, m in probe.trajectories if t0 <= t <= t_end]
         infos = [(t, i) for t, i in probe.infos if t0 <= t <= t_end]
         statuses = [(t, n, s) for t, n, s in probe.statuses if t0 <= t <= t_end]
-    lat = []
-    for t, info in infos:
-        if info.get("input_stamp") and info.get("success") and not info.get("stop") and not info.get("kept_last") \
-                and not info.get("kept") \
-                and not any(r in GOAL_REASONS for r in info.get("reasons") or []):
-            if info.get("published_stamp"):  # the suite's: pose stamp to the trajectory's publication
-                lat.append((info["published_stamp"] - info["input_stamp"]) * 1e3)
-    lat = np.array(lat, float)
+    samples = latency_samples([i for _, i in infos])
+    lat = np.array([x["total"] for x in samples], float)
     with record.lock:
         ex = [(t, q) for t, q in record.executed if t0 <= t <= t_end]
         poses = list(record.poses)
@@ -327,6 +358,7 @@ def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, re
         "executed_collisions_by": by, "collision_events": events, "tracking": tracking,
         "latency_ms_p50": pct(50), "latency_ms_p90": pct(90), "latency_ms_p95": pct(95), "latency_ms_p99": pct(99),
         "latency_ms_max": round(float(lat.max()), 1) if len(lat) else None, "latency_samples": int(len(lat)),
+        "latency_phases_ms": latency_phases(samples),
         "suite": a.suite, "memory": growth, "restarts": len(exits) + left_active, "process_exits": exits,
         "error_statuses": len(errors),
         "first_errors": errors[:5], "stream": stream.counts, "goal_spam_messages": n_spam,
