@@ -324,6 +324,16 @@ def _unconfigured_and_idle(lone: _Lone, loads: _Loads) -> None:
     assert loads.total() == 0, loads.counts
 
 
+def _configured(lone: _Lone, status: str, inputs: set) -> None:
+    """(b) configure: the status says so and the node subscribes to ``inputs``."""
+    from lifecycle_msgs.msg import Transition
+
+    t0 = time.perf_counter()
+    assert lone.transition(Transition.TRANSITION_CONFIGURE)
+    assert lone.status_after(t0, status), lone.statuses[-3:]
+    assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+
+
 def test_monitor_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
     """The monitor built: no subscription, nothing loaded. Configure: the mocap, robot state and goal subscriptions
     appear; cleanup: they are gone; configure again after changing the targets and their topics (refused while
@@ -340,10 +350,7 @@ def test_monitor_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         _unconfigured_and_idle(lone, loads)
         inputs = {"/mocap/tv/pose", "/joint_states", "/odom", "/psprm/goal", "/psprm/goal_regions"}
         # (b) configure: the subscriptions exist, the models are loaded
-        t0 = time.perf_counter()
-        assert lone.transition(Transition.TRANSITION_CONFIGURE)
-        assert lone.status_after(t0, "configured: scene home"), lone.statuses[-3:]
-        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        _configured(lone, "configured: scene home", inputs)
         assert "replan_monitor" in lone.subscribers("/mocap/tv/pose")
         assert loads.counts["scene"] >= 1 and loads.counts["robot"] >= 1
         # configured: the targets' topics are read at configure, a change is refused with the reason
@@ -399,10 +406,7 @@ def test_scorer_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
     try:
         _unconfigured_and_idle(lone, loads)
         inputs = {"/psprm/state/targets/tv", "/psprm/roadmap/camera_poses", "/psprm/path/camera_poses"}
-        t0 = time.perf_counter()
-        assert lone.transition(Transition.TRANSITION_CONFIGURE)
-        assert lone.status_after(t0, "configured: scene home"), lone.statuses[-3:]
-        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        _configured(lone, "configured: scene home", inputs)
         assert lone.wait(lambda: "/psprm/roadmap/scores" in lone.node_publishers())
         assert loads.counts["scorer"] == 1 and loads.counts["robot"] >= 1
         r = lone.set_params(targets=["cup"])
@@ -486,10 +490,7 @@ def test_adapter_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
     try:
         _unconfigured_and_idle(lone, loads)
         inputs = {"/psprm/trajectory", "/joint_states", "/odom"}
-        t0 = time.perf_counter()
-        assert lone.transition(Transition.TRANSITION_CONFIGURE)
-        assert lone.status_after(t0, "configured: scene dynamic_person, robot stretch2"), lone.statuses[-3:]
-        assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
+        _configured(lone, "configured: scene dynamic_person, robot stretch2", inputs)
         assert lone.wait(lambda: "/stretch/cmd_vel" in lone.node_publishers()), lone.node_publishers()
         assert loads.counts["scene"] >= 1 and loads.counts["robot"] >= 1
         r = lone.set_params(odom_topic="odom_2")
