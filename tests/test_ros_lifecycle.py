@@ -334,6 +334,19 @@ def _configured(lone: _Lone, status: str, inputs: set) -> None:
     assert lone.wait(lambda: inputs <= lone.node_subscriptions()), lone.node_subscriptions()
 
 
+def _reconfigured(lone: _Lone, params: dict, want: set, gone: set) -> None:
+    """Unconfigured: ``params`` are taken; configure again: the node subscribes to ``want`` and not to ``gone``."""
+    from lifecycle_msgs.msg import Transition
+
+    r = lone.set_params(**params)
+    assert all(x.successful for x in r), [x.reason for x in r]
+    assert lone.transition(Transition.TRANSITION_CONFIGURE)
+    assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
+    time.sleep(0.3)
+    subs = lone.node_subscriptions()
+    assert not gone & subs, subs
+
+
 def test_monitor_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
     """The monitor built: no subscription, nothing loaded. Configure: the mocap, robot state and goal subscriptions
     appear; cleanup: they are gone; configure again after changing the targets and their topics (refused while
@@ -364,14 +377,8 @@ def test_monitor_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
         assert not lone.subscribers("/mocap/tv/pose")
         # unconfigured: the change is taken, and the next configure follows it
-        r = lone.set_params(targets=["cup"], target_topics=["/elsewhere/cup"], odom_topic="odom_2")
-        assert all(x.successful for x in r), [x.reason for x in r]
-        assert lone.transition(Transition.TRANSITION_CONFIGURE)
-        want = {"/elsewhere/cup", "/odom_2", "/joint_states"}
-        assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
-        time.sleep(0.3)
-        subs = lone.node_subscriptions()
-        assert not {"/mocap/tv/pose", "/mocap/cup/pose", "/odom"} & subs, subs
+        _reconfigured(lone, {"targets": ["cup"], "target_topics": ["/elsewhere/cup"], "odom_topic": "odom_2"},
+                      {"/elsewhere/cup", "/odom_2", "/joint_states"}, {"/mocap/tv/pose", "/mocap/cup/pose", "/odom"})
         # active: a pose on the new topic is forwarded as the cup's state (behaviour while active unchanged)
         assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
         got = []
@@ -415,13 +422,9 @@ def test_scorer_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
         assert lone.wait(lambda: "/psprm/roadmap/scores" not in lone.node_publishers())
         assert not lone.subscribers("/psprm/state/targets/tv")
-        r = lone.set_params(targets=["cup"], dynamic_obstacles=["sofa"])
-        assert all(x.successful for x in r), [x.reason for x in r]
-        assert lone.transition(Transition.TRANSITION_CONFIGURE)
-        want = {"/psprm/state/targets/cup", "/psprm/state/obstacles/sofa", "/psprm/roadmap/camera_poses"}
-        assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
-        time.sleep(0.3)
-        assert "/psprm/state/targets/tv" not in lone.node_subscriptions()
+        _reconfigured(lone, {"targets": ["cup"], "dynamic_obstacles": ["sofa"]},
+                      {"/psprm/state/targets/cup", "/psprm/state/obstacles/sofa", "/psprm/roadmap/camera_poses"},
+                      {"/psprm/state/targets/tv"})
         assert loads.counts["scorer"] == 2
         assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
     finally:
@@ -501,13 +504,8 @@ def test_adapter_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         assert lone.wait(lambda: lone.node_subscriptions() <= _BASE_TOPICS, 10), lone.node_subscriptions()
         assert lone.wait(lambda: "/stretch/cmd_vel" not in lone.node_publishers()), lone.node_publishers()
         assert not lone.subscribers("/psprm/trajectory")
-        r = lone.set_params(base_pose_source="pose", robot_pose_topic="/mocap/stretch/pose")
-        assert all(x.successful for x in r), [x.reason for x in r]
-        assert lone.transition(Transition.TRANSITION_CONFIGURE)
-        want = {"/psprm/trajectory", "/joint_states", "/mocap/stretch/pose"}
-        assert lone.wait(lambda: want <= lone.node_subscriptions()), lone.node_subscriptions()
-        time.sleep(0.3)
-        assert "/odom" not in lone.node_subscriptions()
+        _reconfigured(lone, {"base_pose_source": "pose", "robot_pose_topic": "/mocap/stretch/pose"},
+                      {"/psprm/trajectory", "/joint_states", "/mocap/stretch/pose"}, {"/odom"})
         assert lone.transition(Transition.TRANSITION_ACTIVATE) and lone.state() == "active"
         assert lone.transition(Transition.TRANSITION_DEACTIVATE)
         assert lone.transition(Transition.TRANSITION_CLEANUP)
