@@ -25,16 +25,16 @@ def lifecycle_node(owner, node_name: str, **node_kwargs):
                 status(f"{name[3:]} failed: {text}", "error")
             except Exception:
                 pass
+        set_state = getattr(owner, "set_state", None)  # the roadmap server's latched state
+        if name == "on_configure" and set_state is not None:
+            try:
+                set_state(f"error: {text}")
+            except Exception:
+                pass
 
     def call(name, state):
         if name == "on_configure" and node.configure_refusal:
             failed(name, node.configure_refusal)
-            set_state = getattr(owner, "set_state", None)  # the roadmap server's latched state
-            if set_state is not None:
-                try:
-                    set_state(f"error: {node.configure_refusal}")
-                except Exception:
-                    pass
             return TransitionCallbackReturn.FAILURE
         fn = getattr(owner, name, None)
         if fn is None:
