@@ -128,7 +128,8 @@ class RoadmapServer:
         self._unset = threading.Event()  # idle while unconfigured: never set
         self.ready = threading.Event()  # set while a roadmap is built or loaded (the loop sets and clears it)
 
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.pub_traj = node.create_publisher(JointTrajectory, core.TRAJECTORY_TOPIC, latched)
         self.pub_info = node.create_publisher(String, core.PLAN_INFO_TOPIC, 10)
         self.pub_status = node.create_publisher(String, "~/status", 10)
@@ -187,7 +188,8 @@ class RoadmapServer:
                                  goals=goals, params=p, clock=self._now, ready=self.ready)
 
         cb = MutuallyExclusiveCallbackGroup()
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
         for t in targets:
             self._made.subscription(PoseStamped, core.target_topic(t), self._pose_cb("target", t),
                                     qos_profile_sensor_data, callback_group=cb)
@@ -392,8 +394,9 @@ class RoadmapServer:
             level, msg, vals = core.DIAG_WARN, "not configured", {"lifecycle": state}
         else:
             level, msg, vals = loop.diagnostics(state)
-        core.publish_diagnostics(self.pub_diag, self.node, [
-            core.diagnostic_status(f"psprm: {self.node.get_fully_qualified_name()}", self.robot_name, level, msg, vals)])
+        name = f"psprm: {self.node.get_fully_qualified_name()}"
+        core.publish_diagnostics(self.pub_diag, self.node,
+                                 [core.diagnostic_status(name, self.robot_name, level, msg, vals)])
 
     def destroy(self) -> None:
         if self.loop is not None:

@@ -31,7 +31,6 @@ action clients and the Stretch driver's services.
 
 from __future__ import annotations
 
-import queue
 import threading
 import time
 from typing import Optional
@@ -48,6 +47,7 @@ from .robots.acceptance import (REST_MPS, REST_RADPS, REST_S, REST_WAIT_S, SPLIC
                                 SPLICE_TOL_M)
 from .robots.base_follower import BaseFollower, Gains, Limits
 from .robots.execution import Execution
+from .robots.inbox import TrajectoryInbox
 
 __all__ = ["ADAPTER_PARAMS", "RobotAdapter", "main", "REST_MPS", "REST_RADPS", "REST_S", "REST_WAIT_S",
            "SPLICE_CHECK_S", "SPLICE_LOOKBACK_S", "SPLICE_TOL_M"]
@@ -123,8 +123,8 @@ class RobotAdapter:
         self.follower: Optional[BaseFollower] = None
         self._made = core.ConfigureScope(node)  # what configure makes, released by cleanup
         self._lock = threading.RLock()
-        self._inbox: queue.Queue = queue.Queue()  # trajectories for the acceptance thread
-        self._acceptor: Optional[threading.Thread] = None
+        # trajectories are checked on their own thread (see _traj_cb), which lives from configure to cleanup
+        self._inbox = TrajectoryInbox(self._accept, self.stop, self._wait_accepted)
         self._last_replan_request = -1e9
         self.counts = {"trajectories": 0, "executed": 0, "refused": 0, "stops": 0, "goals_sent": 0, "spliced": 0,
                        "goals_deferred": 0, "twists": 0, "off_path_stops": 0, "goals_rejected": 0, "goals_failed": 0,
@@ -239,9 +239,7 @@ class RobotAdapter:
         self.cfg, self.follower = cfg, follower
         # the follower runs on its own callback group: a burst of state messages never delays a control step
         self._made.timer(1.0 / b.rate_hz, self.execution.tick, callback_group=MutuallyExclusiveCallbackGroup())
-        # trajectories are checked on their own thread (see _traj_cb), which lives from configure to cleanup
-        self._acceptor = threading.Thread(target=self._accept_loop, name=f"{node.get_name()}-accept", daemon=True)
-        self._acceptor.start()
+        self._inbox.start(f"{node.get_name()}-accept")
         self.status(f"configured: scene {scene.name}, robot {robot.name}; adapter {cfg.robot} ({len(cfg.controllers)} "
                     f"controllers: {', '.join(f'{c.name} [{c.interface}]' for c in cfg.controllers)}; "
                     f"base {b.mode} on {b.topic})")
@@ -249,7 +247,7 @@ class RobotAdapter:
     def _release(self) -> None:
         """End the acceptance thread; destroy the subscriptions, timers, controller links, driver services and the plan
         client configure made; drop the models."""
-        self._end_acceptor()
+        self._inbox.end()
         self._made.release()
         with self._lock:
             if self.links is not None:
@@ -275,7 +273,7 @@ class RobotAdapter:
 
     def on_deactivate(self, state) -> bool:
         self.active = False  # the acceptance thread takes nothing more
-        self._quiesce()
+        self._inbox.quiesce()
         self.stop("adapter deactivated")
         self.execution.restore_driver_mode()
         self.active = False
@@ -289,7 +287,7 @@ class RobotAdapter:
     def on_shutdown(self, state) -> bool:
         was_active, self.active = self.active, False
         if was_active:
-            self._quiesce()
+            self._inbox.quiesce()
         if self.cfg is not None:
             self.stop("shutting down")
             self.execution.restore_driver_mode()
@@ -367,8 +365,9 @@ class RobotAdapter:
         if self.cfg is None or ex is None:
             level, msg = core.DIAG_WARN, "not configured"
             vals = {"lifecycle": core.lifecycle_state(self.node), **self.counts}
-            core.publish_diagnostics(self.pub_diag, self.node, [core.diagnostic_status(
-                f"psprm: {self.node.get_fully_qualified_name()}", self.p["robot"] or self.p["scene"], level, msg, vals)])
+            name = f"psprm: {self.node.get_fully_qualified_name()}"
+            core.publish_diagnostics(self.pub_diag, self.node, [
+                core.diagnostic_status(name, self.p["robot"] or self.p["scene"], level, msg, vals)])
             return
         if ex.last_state_problem:
             level, msg = core.DIAG_WARN, ex.last_state_problem
@@ -448,60 +447,24 @@ class RobotAdapter:
             return
         self._inbox.put(msg)
 
-    def _accept_loop(self) -> None:
-        """The acceptance thread: each trajectory in arrival order (a stop trajectory too, so that nothing accepted
-        before it runs after it); ends at None."""
-        while True:
-            msg = self._inbox.get()
-            try:
-                if msg is None:
-                    return
-                if self.active and self.cfg is not None:
-                    self.execute(msg)
-            except Exception as exc:  # never die on a message; a trajectory we cannot execute stops the robot
-                try:
-                    self.stop(f"cannot execute the trajectory: {exc}")
-                except Exception:
-                    pass
-            finally:
-                self._inbox.task_done()
+    def _accept(self, msg) -> None:
+        if self.active and self.cfg is not None:
+            self.execute(msg)
 
-    def _quiesce(self, timeout: float = 2.0) -> None:
-        """Drop the trajectories not yet accepted and wait for the one being accepted (at most ``timeout``): what a
-        deactivation, a shutdown or the node's end stops must not start after the stop."""
-        while True:
-            try:
-                self._inbox.get_nowait()
-                self._inbox.task_done()
-            except queue.Empty:
-                break
+    def _wait_accepted(self, timeout: float) -> None:
         if self.execution is not None:
             self.execution.wait_accepted(timeout)
-
-    def _end_acceptor(self, timeout: float = 2.0) -> None:
-        """Drop the unchecked trajectories and end the acceptance thread (cleanup, the node's end)."""
-        self._quiesce(timeout)
-        if self._acceptor is not None and self._acceptor.is_alive():
-            self._inbox.put(None)
-            self._acceptor.join(timeout)
-        self._acceptor = None
 
     def execute(self, msg) -> bool:
         """Check a planned trajectory against the measured state and send it to the controllers and the base
         (:meth:`psprm_ros.robots.execution.Execution.execute`)."""
         P = cv.joint_trajectory_positions(msg, self.names)
         t = np.array([cv.duration_to_sec(p.time_from_start) for p in msg.points])
-
-        def velocities():
-            if all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
-                return cv.joint_trajectory_positions(_Velocities(msg), self.names)
-            return None
-
-        return self.execution.execute(t, P, velocities)
+        return self.execution.execute(t, P, lambda: cv.joint_trajectory_velocities(msg, self.names))
 
     def destroy(self) -> None:
         was_active, self.active = self.active, False  # the acceptance thread takes nothing more
-        self._end_acceptor()
+        self._inbox.end()
         try:
             if was_active:
                 self.stop("node destroyed")
@@ -514,19 +477,6 @@ class RobotAdapter:
         """Wait (at most ``timeout_s``) until the subscribers acknowledged what the command publishers sent: a stop
         published just before the process ends is otherwise still in the middleware's queue and lost with it."""
         return True if self.links is None else self.links.wait_acked(timeout_s)
-
-
-class _Velocities:
-    """A JointTrajectory view whose point positions are the velocities (for reordering them by name)."""
-
-    def __init__(self, msg):
-        self.joint_names = msg.joint_names
-        self.points = [_VP(p.velocities) for p in msg.points]
-
-
-class _VP:
-    def __init__(self, v):
-        self.positions = v
 
 
 def main(args=None) -> int:

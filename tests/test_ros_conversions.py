@@ -117,3 +117,21 @@ def test_trajectory_prepended_with_the_measured_start_stays_within_the_limits(lo
     assert np.all(v <= robot.velocity + 1e-9)
     # a trajectory already at the start is left alone
     assert cv.prepend_start(msg, q0, robot.velocity, robot.acceleration, [2]) == 0.0 and len(msg.points) == 3
+
+
+def test_trajectory_velocities_are_reordered_by_name_and_absent_when_a_point_lacks_them():
+    """Velocities come back in the order asked for (the message's own order is another), None when a point carries
+    none, an error when one is not finite."""
+    from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
+
+    m = JointTrajectory()
+    m.joint_names = ["b", "a", "c"]
+    m.points = [JointTrajectoryPoint(positions=[1.0, 2.0, 3.0], velocities=[0.1, 0.2, 0.3]),
+                JointTrajectoryPoint(positions=[4.0, 5.0, 6.0], velocities=[0.4, 0.5, 0.6])]
+    assert np.array_equal(cv.joint_trajectory_velocities(m, ["a", "b", "c"]), [[0.2, 0.1, 0.3], [0.5, 0.4, 0.6]])
+    assert np.array_equal(cv.joint_trajectory_positions(m, ["c", "a"]), [[3.0, 2.0], [6.0, 5.0]])
+    m.points[1].velocities = []
+    assert cv.joint_trajectory_velocities(m, ["a", "b", "c"]) is None
+    m.points[1].velocities = [0.4, float("nan"), 0.6]
+    with pytest.raises(cv.InputError, match="velocities"):
+        cv.joint_trajectory_velocities(m, ["a", "b", "c"])

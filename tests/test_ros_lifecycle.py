@@ -516,8 +516,9 @@ def test_adapter_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
 
 @pytest.mark.parametrize("which", ["monitor", "scorer", "adapter"])
 def test_configure_with_a_bad_parameter_fails_and_the_node_lives_on(which):
-    """An unknown scene (monitor), robot (scorer) or adapter config (adapter): the node is built, configure fails with the reason on
-    ``~/status`` and subscribes to nothing; it stays unconfigured, takes the fixed parameter and then configures."""
+    """An unknown scene (monitor), robot (scorer) or adapter config (adapter): the node is built, configure fails with
+    the reason on ``~/status`` and subscribes to nothing; it stays unconfigured, takes the fixed parameter and then
+    configures."""
     from lifecycle_msgs.msg import Transition
 
     if which == "monitor":

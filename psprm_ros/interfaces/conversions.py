@@ -20,14 +20,16 @@ import numpy as np
 from psprm_core.errors import InputError  # a message that must not reach the planner (non-finite, wrong frame, ...)
 
 from .trajectories import (configs_to_joint_trajectory, densify_linear, duration_msg, duration_to_sec,
-                           joint_trajectory_msg, joint_trajectory_positions, prepend_start, prepend_start_samples,
-                           published_samples, start_move, stop_trajectory, trajectory_samples, trajectory_to_msg)
+                           joint_trajectory_msg, joint_trajectory_positions, joint_trajectory_velocities,
+                           prepend_start, prepend_start_samples, published_samples, start_move, stop_trajectory,
+                           trajectory_samples, trajectory_to_msg)
 
 #: re-exported: InputError (the nodes catch cv.InputError: the library's error of bad input, a ValueError) and the
 #: joint trajectory messages of :mod:`.trajectories`
 __all__ = ["InputError", "configs_to_joint_trajectory", "densify_linear", "duration_msg", "duration_to_sec",
-           "joint_trajectory_msg", "joint_trajectory_positions", "prepend_start", "prepend_start_samples",
-           "published_samples", "start_move", "stop_trajectory", "trajectory_samples", "trajectory_to_msg"]
+           "joint_trajectory_msg", "joint_trajectory_positions", "joint_trajectory_velocities", "prepend_start",
+           "prepend_start_samples", "published_samples", "start_move", "stop_trajectory", "trajectory_samples",
+           "trajectory_to_msg"]
 
 
 # ---------------------------------------------------------------------------------------------------------- time

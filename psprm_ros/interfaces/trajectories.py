@@ -49,15 +49,28 @@ def configs_to_joint_trajectory(Q: np.ndarray, names: Sequence[str], frame: str 
 
 def joint_trajectory_positions(msg, names: Sequence[str]) -> np.ndarray:
     """``JointTrajectory`` -> (M, dof) positions reordered to ``names``; raises on missing joints / non-finite."""
+    return _by_name(msg, names, "positions")
+
+
+def joint_trajectory_velocities(msg, names: Sequence[str]) -> Optional[np.ndarray]:
+    """``JointTrajectory`` -> (M, dof) velocities reordered to ``names``, or None when a point carries none (or not
+    one per joint); raises on missing joints / non-finite."""
+    if not all(len(p.velocities) == len(msg.joint_names) for p in msg.points):
+        return None
+    return _by_name(msg, names, "velocities")
+
+
+def _by_name(msg, names: Sequence[str], field: str) -> np.ndarray:
     idx = []
     for n in names:
         if n not in msg.joint_names:
             raise InputError(f"joint trajectory: missing joint '{n}'")
         idx.append(list(msg.joint_names).index(n))
-    P = np.array([[p.positions[i] for i in idx] if len(p.positions) == len(msg.joint_names) else [np.nan] * len(idx)
-                  for p in msg.points], float).reshape(-1, len(names))
+    rows = [getattr(p, field) for p in msg.points]
+    P = np.array([[r[i] for i in idx] if len(r) == len(msg.joint_names) else [np.nan] * len(idx) for r in rows],
+                 float).reshape(-1, len(names))
     if not np.isfinite(P).all():
-        raise InputError("joint trajectory: non-finite or incomplete positions")
+        raise InputError(f"joint trajectory: non-finite or incomplete {field}")
     return P
 
 
