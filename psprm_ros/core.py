@@ -335,8 +335,7 @@ def declare_reconfigurable_params(node, spec: dict, apply) -> dict:
 def load_configured_scene_and_robot(node, p: dict):
     """The scene and robot model of a node's parameters ``p``, loaded at configure. A robot description the node
     cannot use (robot_description ``topic``/``auto``) fails this configure with the reason; the next configure
-    checks the description again (the node does not refuse every later configure, as a node that loads its model
-    at construction does)."""
+    checks the description again."""
     from psprm_core.errors import RobotModelError
 
     scene, robot = load_scene_and_robot(p["scene"], p["robot"], node=node, params=p)

@@ -12,9 +12,10 @@ from typing import Optional
 def lifecycle_node(owner, node_name: str, **node_kwargs):
     """An ``rclpy.lifecycle.LifecycleNode`` whose transitions call ``owner.on_configure(state)``,
     ``on_activate``, ``on_deactivate``, ``on_cleanup``, ``on_shutdown`` (those the owner has). A callback returning
-    False fails the transition; one raising is reported on the log and fails it too (the node stays usable).
-    ``node.refuse_configure(reason)`` makes every configure fail with ``reason`` (log, ``owner.status``, and
-    ``owner.set_state("error: ...")`` where the owner has one) without calling the owner."""
+    False fails the transition; one raising is reported (log, ``owner.status``, and for a configure
+    ``owner.set_state("error: ...")`` where the owner has one) and fails it too (the node stays usable).
+    ``node.refuse_configure(reason)`` makes every configure fail with ``reason``, reported the same way, without
+    calling the owner."""
     from rclpy.lifecycle import LifecycleNode, TransitionCallbackReturn
 
     def failed(name, text):
@@ -50,8 +51,8 @@ def lifecycle_node(owner, node_name: str, **node_kwargs):
         return TransitionCallbackReturn.FAILURE if ok is False else TransitionCallbackReturn.SUCCESS
 
     class _Managed(LifecycleNode):
-        #: why this node cannot be configured (set at construction, e.g. a robot description that does not match
-        #: the robot config): every configure then fails with it, so the node never activates
+        #: why this node cannot be configured (set at construction, e.g. parameter values it refused): every
+        #: configure then fails with it, so the node never activates
         configure_refusal: str = ""
 
         def refuse_configure(self, reason: str) -> None:
