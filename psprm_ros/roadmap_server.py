@@ -205,12 +205,14 @@ class RoadmapServer:
             self._made.timer(p["heap_trim_period_s"], lambda: loop.submit_side("heap trim", loop.trim_heap),
                              callback_group=MutuallyExclusiveCallbackGroup())
 
-    def _release(self) -> None:
-        """Close the planning loop (its roadmap and threads) and destroy what configure made."""
+    def _release(self, cleanup: bool = True) -> None:
+        """Close the planning loop (its roadmap and threads; ``cleanup``: after its cleanup step, which reports the
+        server unconfigured) and destroy what configure made."""
         self._made.release()
         loop, self.loop = self.loop, None
         if loop is not None:
-            loop.transition("cleanup")
+            if cleanup:
+                loop.transition("cleanup")
             loop.close()
         self.ready.clear()
         self.scene = self.robot = self.frame = self.spec = None
@@ -285,7 +287,7 @@ class RoadmapServer:
         self._made.configure(self._configure, self._release)
         if self.loop.transition("configure"):
             return True
-        self._release()
+        self._release(cleanup=False)  # the loop's latched "error: ..." state stays
         return False
 
     def on_activate(self, state) -> bool:

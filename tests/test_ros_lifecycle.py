@@ -479,6 +479,42 @@ def test_server_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
         lone.close()
 
 
+@pytest.mark.parametrize("bad, needle", [({"targets": ["no_such_face"]}, "no target 'no_such_face'"),
+                                         ({"checkpoint": "/nonexistent/surrogate.pt"}, "surrogate.pt")])
+def test_server_configure_that_fails_leaves_nothing_made_and_says_why(bad, needle):
+    """A server whose target the scene lacks (configure fails before the planning loop exists), or whose surrogate
+    checkpoint is missing (the loop's roadmap build fails): built (no process dies on it), every configure fails with
+    the reason on ``~/status`` and the latched server state, and leaves no subscription and no planner thread."""
+    from lifecycle_msgs.msg import Transition
+    from std_msgs.msg import String
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+    from psprm_ros.roadmap_server import RoadmapServer
+
+    threads0 = _planner_threads()
+    lone = _Lone(RoadmapServer, "roadmap_server", {"scene": "dynamic_person", "roadmap.n_nodes": 300,
+                                                   "roadmap_file": "none", "publish_markers": False, **bad})
+    states = []
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    lone.obs.create_subscription(String, "/psprm/server_state", lambda m: states.append(m.data), latched)
+    try:
+        assert lone.wait(lambda: "/roadmap_server/status" in lone.node_publishers())
+        time.sleep(0.3)
+        for _ in range(2):
+            t0 = time.perf_counter()
+            assert not lone.transition(Transition.TRANSITION_CONFIGURE)
+            msg = lone.status_after(t0, needle)
+            assert msg is not None and msg.startswith("error:"), lone.statuses[-3:]
+            assert lone.state() == "unconfigured"
+            assert lone.wait(lambda: any(x.startswith("error:") and needle in x for x in states)), states
+            time.sleep(0.3)
+            assert lone.node_subscriptions() <= _BASE_TOPICS, lone.node_subscriptions()
+            assert _planner_threads() == threads0
+            assert not lone.owner.ready.is_set()
+    finally:
+        lone.close()
+
+
 def test_adapter_sets_up_in_configure_and_releases_in_cleanup(monkeypatch):
     """The adapter built: no subscription, nothing loaded. Configure: the trajectory, joint state and odometry
     subscriptions and the controller's command topics appear; cleanup: they are gone; configure again with another
