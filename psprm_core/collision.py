@@ -27,7 +27,7 @@ import torch
 
 from .errors import InputError
 from .geometry import obb_overlap
-from .kernels import fastpath
+from .kernels.arrays import as_f64, as_i64, const_f64
 from .kernels.compute import Compute, Computing
 from .robot import RobotModel, load_acm
 
@@ -74,7 +74,7 @@ class BoxTensors:
         float64."""
         from .kernels._fast_packs import BoxPack
 
-        f64 = fastpath.as_f64
+        f64 = as_f64
         return BoxPack(f64(self.center).reshape(-1, 3), f64(self.rotation).reshape(-1, 3, 3),
                        f64(self.half).reshape(-1, 3), f64(self.aabb()).reshape(-1, 6))
 
@@ -215,7 +215,7 @@ class CollisionChecker(Computing):
         :meth:`set_boxes` replaces them."""
         from .kernels._fast_packs import CollisionPack
 
-        f64, i64 = fastpath.as_f64, fastpath.as_i64
+        f64, i64 = as_f64, as_i64
         cache = self.__dict__.get("_kernel_pack")
         if cache is None:
             model = (i64(self.bodies_with_elements), f64(self.body_c), f64(self.body_r), f64(self.body_box_c),
@@ -223,7 +223,7 @@ class CollisionChecker(Computing):
                      i64(self.el_body), f64(self.el_c), f64(self.el_R), f64(self.el_h), f64(self.el_r),
                      i64(self.self_pairs).reshape(-1, 2), np.unique(i64(self.self_pairs)), 1e-6)
             cache = self._kernel_pack = {"model": model, "boxes_of": None, "pack": None}
-        lower, upper = fastpath.const_f64(self.lower), fastpath.const_f64(self.upper)
+        lower, upper = const_f64(self.lower), const_f64(self.upper)
         bx = self.boxes
         pack = cache["pack"]
         if cache["boxes_of"] is not bx or pack.lower is not lower or pack.upper is not upper:
@@ -246,9 +246,12 @@ class CollisionChecker(Computing):
         return det["limits"] | det["self"] | self.env_hits(q, self.true_boxes)
 
     # ---- checks ----------------------------------------------------------------------------------------------------
-    @fastpath.twin(fastpath.check_flags, when=fastpath.on_cpu_applies)
     def check(self, q: torch.Tensor) -> torch.Tensor:
         """In-collision flags (B,) for configurations (B, dof): limits, environment or self-collision."""
+        return self.compute.ops.check(self, q)
+
+    def check_torch(self, q: torch.Tensor) -> torch.Tensor:
+        """:meth:`check` in torch on the checker's device."""
         q = q.to(self.device, self.dtype)
         if q.shape[0] == 0:
             return torch.zeros(0, dtype=torch.bool, device=self.device)
@@ -257,9 +260,12 @@ class CollisionChecker(Computing):
     def valid(self, q: torch.Tensor) -> torch.Tensor:
         return ~self.check(q)
 
-    @fastpath.twin(fastpath.check_detailed, when=fastpath.on_cpu_applies)
     def check_detailed(self, q: torch.Tensor) -> dict:
         """Separate flags: ``limits``, ``environment``, ``self`` (each (B,) bool)."""
+        return self.compute.ops.check_detailed(self, q)
+
+    def check_detailed_torch(self, q: torch.Tensor) -> dict:
+        """:meth:`check_detailed` in torch on the checker's device."""
         q = q.to(self.device, self.dtype)
         poses = self.kin.body_poses(q)
         return {"limits": self.limits_violated(q), "environment": self._env(poses), "self": self._self(poses)}
@@ -272,11 +278,10 @@ class CollisionChecker(Computing):
         (:meth:`robot_aabb`), from the same forward kinematics."""
         q = q.to(self.device, self.dtype)
         bt = boxes if isinstance(boxes, BoxTensors) else self.box_tensors(boxes)
-        return self._env_hits(q, bt, return_aabb)
+        return self.compute.ops.env_hits(self, q, bt, return_aabb)
 
-    @fastpath.twin(fastpath.env_hit_flags, when=fastpath.on_cpu_applies)
-    def _env_hits(self, q: torch.Tensor, bt: "BoxTensors", return_aabb: bool):
-        """:meth:`env_hits` against :class:`BoxTensors`."""
+    def env_hits_torch(self, q: torch.Tensor, bt: "BoxTensors", return_aabb: bool):
+        """:meth:`env_hits` against :class:`BoxTensors`, in torch on the checker's device."""
         saved = self.boxes
         hits, boxes_out = [], []
         try:
@@ -293,11 +298,14 @@ class CollisionChecker(Computing):
             return hit
         return hit, (torch.cat(boxes_out) if boxes_out else torch.zeros(0, 6, dtype=self.dtype, device=self.device))
 
-    @fastpath.twin(fastpath.robot_aabb, when=fastpath.on_cpu_applies)
     def robot_aabb(self, q: torch.Tensor) -> torch.Tensor:
         """World axis-aligned bounds (B, 6) = [min xyz, max xyz] enclosing every collision element of the robot at
         configurations (B, dof) (the union of the element boxes' world bounds). A configuration whose bounds
         miss a box's bounds (:meth:`BoxTensors.aabb`) cannot touch it."""
+        return self.compute.ops.robot_aabb(self, q)
+
+    def robot_aabb_torch(self, q: torch.Tensor) -> torch.Tensor:
+        """:meth:`robot_aabb` in torch on the checker's device."""
         q = q.to(self.device, self.dtype)
         return torch.cat([self._aabb(self.kin.body_poses(q[s:s + self.chunk]))
                           for s in range(0, q.shape[0], self.chunk)]) if q.shape[0] else \

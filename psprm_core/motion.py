@@ -17,7 +17,6 @@ import math
 import torch
 
 from .geometry import wrap_angle
-from .kernels import fastpath
 from .kernels.compute import Compute, Computing
 from .robot import RobotModel
 
@@ -41,7 +40,7 @@ class DiffDriveMotion(Computing):
         return MotionPack(float(self.w_rot), bool(self.mobile))
 
     # ---- base decomposition ----------------------------------------------------------------------------------------
-    def _base_plan(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
+    def base_plan(self, qa: torch.Tensor, qb: torch.Tensor) -> tuple:
         """Heading φ of the straight part and the three phase lengths (rot1, trans, rot2), each (E,)."""
         dxy = qb[:, :2] - qa[:, :2]
         d = dxy.norm(dim=-1)
@@ -56,24 +55,30 @@ class DiffDriveMotion(Computing):
         r2 = wrap_angle(qb[:, 2] - phi)
         return phi, r1, d, r2
 
-    @fastpath.twin(fastpath.motion_distance, when=fastpath.distance_applies)
     def distance(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
         """Motion cost between configurations (E, dof) and (E, dof) -> (E,) (see module docstring)."""
+        return self.compute.ops.distance(self, qa, qb)
+
+    def distance_torch(self, qa: torch.Tensor, qb: torch.Tensor) -> torch.Tensor:
+        """:meth:`distance` in torch (any device, broadcasting, autograd)."""
         qa, qb = torch.broadcast_tensors(qa, qb)
         if not self.mobile:
             return (qb - qa).norm(dim=-1)
-        _, r1, d, r2 = self._base_plan(qa, qb)
+        _, r1, d, r2 = self.base_plan(qa, qb)
         return self.w_rot * (r1.abs() + r2.abs()) + d + (qb[:, 3:] - qa[:, 3:]).norm(dim=-1)
 
-    @fastpath.twin(fastpath.motion_interpolate, when=fastpath.interpolate_applies)
     def interpolate(self, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
         """Configurations at fractions ``s`` (E,) in [0, 1] of the local motion from ``qa`` to ``qb`` (E, dof).
 
         The base fraction follows the three phases in proportion to their weighted lengths; joints move linearly.
         """
+        return self.compute.ops.interpolate(self, qa, qb, s)
+
+    def interpolate_torch(self, qa: torch.Tensor, qb: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
+        """:meth:`interpolate` in torch (any device, autograd)."""
         if not self.mobile:
             return qa + (qb - qa) * s.unsqueeze(-1)
-        phi, r1, d, r2 = self._base_plan(qa, qb)
+        phi, r1, d, r2 = self.base_plan(qa, qb)
         l1, l2, l3 = self.w_rot * r1.abs(), d, self.w_rot * r2.abs()
         total = (l1 + l2 + l3).clamp_min(1e-12)
         u = s * total  # arc length along the base path

@@ -394,9 +394,10 @@ def test_edge_knots_and_nearest_nodes_match_torch(name, load_robot):
     assert kn.shape == rkn.shape and torch.equal(ki, rki)
     assert (kn - rkn).abs().max() < 1e-6
     rm = torch.as_tensor(_configs(robot, scene, 3000, 12), dtype=torch.float64)
-    got = fastpath.nearest(planner.motion, qa[:6], rm, 12)
     d = planner.motion.distance(qa[:6].repeat_interleave(len(rm), 0), rm.repeat(6, 1)).reshape(6, -1)
-    assert torch.equal(got, d.topk(12, largest=False).indices)
+    want = d.topk(12, largest=False).indices
+    for ops in (planner.compute.ops, TORCH.ops):  # compiled, and the torch implementation of the same verb
+        assert torch.equal(ops.nearest(planner.motion, qa[:6], rm, 12), want), ops.name
 
 
 def test_warm_up_loads_the_query_kernels(load_robot):
@@ -511,7 +512,7 @@ def test_fused_query_edge_kernels_match_the_step_by_step_path(dtype, load_robot)
     qa = qa[planner.checker.valid(qa)][:90]
     qb = qa + torch.as_tensor(rng.normal(0, 0.15, qa.shape), dtype=dtype)  # short edges, some colliding
     kn, ki = planner.edge_knots(qa, qb)
-    seeds, seed_i = fastpath.edge_knot_seeds(planner.motion, qa, qb, planner.settings.edges.n_interp)
+    seeds, seed_i = planner.compute.ops.edge_knot_seeds(planner.motion, qa, qb, planner.settings.edges.n_interp)
     assert torch.equal(kn, planner.pipeline.edges.track_knots(seeds)) and torch.equal(ki, seed_i) and kn.dtype == dtype
     args = edges.neural_args(scorer, dtype)
     # a query's start and goal scores: one compiled call, the scorer's values
@@ -631,3 +632,64 @@ def test_a_compute_is_checked_where_it_is_made(load_robot):
         robot.using("torch")
     copy = robot.using(TORCH)  # the original keeps its own
     assert copy.compute is TORCH and robot.compute.compiled and copy.camera_body == robot.camera_body
+
+
+def test_both_kernels_implementations_answer_every_verb_of_the_protocol():
+    """The kernels protocol (``psprm_core.kernels.ops.Kernels``) is implemented twice, torch and numba, with the
+    protocol's parameters; a ``Compute`` carries the implementation its ``kernels`` names."""
+    import inspect
+
+    from psprm_core.kernels.fastpath import NumbaKernels
+    from psprm_core.kernels.ops import Kernels, TorchKernels
+
+    verbs = [n for n, f in vars(Kernels).items() if inspect.isfunction(f) and not n.startswith("_")]
+    assert len(verbs) >= 18
+    for impl in (TorchKernels, NumbaKernels):
+        for verb in verbs:
+            want = list(inspect.signature(getattr(Kernels, verb)).parameters)
+            got = list(inspect.signature(getattr(impl, verb)).parameters)
+            assert got == want, (impl.__name__, verb)
+    assert type(TORCH.ops) is TorchKernels and TORCH.ops.compute is TORCH
+    cp = Compute.make("cpu")
+    assert type(cp.ops) is NumbaKernels and cp.ops.compute is cp and cp.torch_only().ops.name == "torch"
+
+
+@pytest.mark.parametrize("name", ["stretch2", "ur5_mobile"])
+def test_numpy_verbs_match_an_independent_metric_and_the_torch_implementation(name, load_robot):
+    """The numpy verbs the planner's dense paths and the baselines use: the metric of pure joint moves is their
+    Euclidean norm and of a pure drive its length (computed here), interpolation ends at both ends, pieces are
+    ``ceil(d / resolution)`` points apart at most ``resolution`` each; compiled and torch agree on random pairs, and
+    the collision flags of ``check_arrays`` are the checker's torch flags."""
+    from psprm_core.motion import DiffDriveMotion
+
+    robot, scene = _robot_scene(name, load_robot)
+    motion = DiffDriveMotion(robot)
+    a = _configs(robot, scene, 200, 30)
+    a[:, 2] = np.remainder(a[:, 2] + np.pi, 2 * np.pi) - np.pi
+    b = _configs(robot, scene, 200, 31)
+    b[:, 2] = np.remainder(b[:, 2] + np.pi, 2 * np.pi) - np.pi
+    joints = a.copy()
+    joints[:, 3:] = b[:, 3:]
+    drive = a.copy()
+    drive[:, :2] += 0.7 * np.stack([np.cos(a[:, 2]), np.sin(a[:, 2])], -1)  # straight ahead: no turn
+    s = np.random.default_rng(32).uniform(0, 1, len(a))
+    checker = CollisionChecker(robot, scene.collision_boxes(), workspace=scene.workspace)
+    ref_flags = checker.using(TORCH).check_detailed(torch.as_tensor(a, dtype=torch.float32))
+    for ops in (Compute.make("cpu").ops, TORCH.ops):
+        assert np.allclose(ops.metric_arrays(motion, a, joints), np.linalg.norm(b[:, 3:] - a[:, 3:], axis=1),
+                           atol=1e-9), ops.name
+        if robot.mobile:
+            assert np.allclose(ops.metric_arrays(motion, a, drive), 0.7, atol=1e-9), ops.name
+        assert np.allclose(ops.interpolate_arrays(motion, a, b, np.zeros(len(a))), a, atol=1e-9)
+        end = ops.interpolate_arrays(motion, a, b, np.ones(len(a)))
+        assert np.allclose(end[:, 3:], b[:, 3:], atol=1e-9) and np.allclose(end[:, :2], b[:, :2], atol=1e-9)
+        seg, pts = ops.pieces_arrays(motion, a[:20], b[:20], 0.05, 1000, True)
+        n = np.maximum(1, np.ceil(ops.metric_arrays(motion, a[:20], b[:20]) / 0.05)).astype(int)
+        assert np.array_equal(np.bincount(seg, minlength=20), n), ops.name
+        flags = ops.check_arrays(checker, a.astype(np.float32))
+        for k in ("limits", "environment", "self"):
+            assert np.array_equal(flags[k], ref_flags[k].numpy()), (ops.name, k)
+    fast, ref = Compute.make("cpu").ops, TORCH.ops
+    assert np.allclose(fast.metric_arrays(motion, a, b), ref.metric_arrays(motion, a, b), atol=1e-9)
+    assert np.allclose(fast.interpolate_arrays(motion, a, b, s), ref.interpolate_arrays(motion, a, b, s), atol=1e-9)
+    assert any(ref_flags[k].any() for k in ref_flags)  # some configurations collide or leave the limits

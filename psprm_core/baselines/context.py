@@ -18,7 +18,6 @@ import numpy as np
 import torch
 
 from ..collision import CollisionChecker
-from ..kernels import fastpath
 from ..motion import DiffDriveMotion
 from ..planning.constraints import ProjectionSettings, VisibilityConstraint
 from ..planning.constraints import camera_joint_mask
@@ -235,7 +234,7 @@ class PlanningContext:
             return W.copy()
         a = torch.as_tensor(W[:-1], dtype=torch.float64)
         b = torch.as_tensor(W[1:], dtype=torch.float64)
-        _, r1, d, r2 = self.motion._base_plan(a, b)
+        _, r1, d, r2 = self.motion.base_plan(a, b)
         w = self.motion.w_rot
         l1, l2, l3 = w * r1.abs(), d, w * r2.abs()
         tot = (l1 + l2 + l3).clamp_min(1e-12)
@@ -259,23 +258,11 @@ class PlanningContext:
             return W.copy()
         res = self.resolution if resolution is None else resolution
         m = self.motion
-        if m.compute.compiled:  # the compiled metric and interpolation on arrays (the same values)
-            K = fastpath.kernels()
-            a, b = np.ascontiguousarray(W[:-1]), np.ascontiguousarray(W[1:])
-            n = np.clip(np.ceil(K.distance(a, b, float(m.w_rot), bool(m.mobile)) / res).astype(np.int64), 1,
-                        max_steps)
-            seg = np.repeat(np.arange(len(a)), n)
-            s = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
-            pts = K.interpolate(a[seg], b[seg], s, float(m.w_rot), bool(m.mobile))
-            return np.vstack([pts, W[-1:]])
-        a = torch.as_tensor(W[:-1], dtype=torch.float64)
-        b = torch.as_tensor(W[1:], dtype=torch.float64)
-        n = torch.ceil(self.motion.distance(a, b) / res).long().clamp(1, max_steps)
-        seg = torch.repeat_interleave(torch.arange(len(a)), n)
-        k = torch.arange(len(seg)) - torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
-        s = k.double() / n[seg].double()
-        pts = self.motion.interpolate(a[seg], b[seg], s)
-        return np.vstack([pts.numpy(), W[-1:]])
+        ops, a, b = m.compute.ops, np.ascontiguousarray(W[:-1]), np.ascontiguousarray(W[1:])
+        n = np.clip(np.ceil(ops.metric_arrays(m, a, b) / res).astype(np.int64), 1, max_steps)
+        seg = np.repeat(np.arange(len(a)), n)
+        s = (np.arange(len(seg)) - np.repeat(np.cumsum(n) - n, n)) / n[seg]
+        return np.vstack([ops.interpolate_arrays(m, a[seg], b[seg], s), W[-1:]])
 
     def fill_joint_jumps(self, dense: np.ndarray, max_step: float = 0.1) -> np.ndarray:
         """Insert configurations where the camera joints jump by more than ``max_step`` (rad/m) between consecutive

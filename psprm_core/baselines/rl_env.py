@@ -56,7 +56,6 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..kernels import fastpath
 from ..kernels.compute import bulk
 
 log = logging.getLogger(__name__)
@@ -320,10 +319,8 @@ class ActivePerceptionEnv(gym.Env):
 
     def step_cost(self, qa: np.ndarray, qb: np.ndarray) -> float:
         """Differential-drive motion cost of one step (:class:`~psprm_core.motion.DiffDriveMotion`)."""
-        if self.ctx.motion.compute.compiled:
-            return float(fastpath.kernels().distance(qa[None], qb[None], self.w_rot, True)[0])
-        t = torch.as_tensor(np.vstack([qa, qb]), dtype=torch.float64)
-        return float(self.ctx.motion.distance(t[:1], t[1:])[0])
+        m = self.ctx.motion
+        return float(m.compute.ops.metric_arrays(m, np.asarray(qa, np.float64)[None], np.asarray(qb, np.float64)[None])[0])
 
     def motion_points(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
         """The configurations checked along the differential-drive motion qa -> qb: every ``resolution`` after

@@ -4,12 +4,13 @@ planner's stage backend).
 
 A ``Compute`` names the torch device and dtype, which kernels serve CPU batches (``"numba"``: the compiled kernels of
 :mod:`psprm_core.kernels.fastpath` for the batch sizes they serve, torch otherwise; ``"torch"``: torch operators
-only, the path a GPU runs) and the batch policy (how many rows a call may have for the compiled path). The choice is
-data: an object built with ``Compute.make("cpu", kernels="torch")`` runs its torch code on the CPU, one built with
+only, the path a GPU runs) and the batch policy (how many rows a call may have for the compiled path). Its ``ops``
+is the implementation of the kernels protocol (:mod:`.ops`) those choices select, and every object calls its batched
+verbs through it (``self.compute.ops.camera_poses(self, q)``). The choice is data: an object built with ``Compute.make("cpu", kernels="torch")`` runs its torch code on the CPU, one built with
 ``Compute.make("cuda")`` runs on the GPU, and nothing switches kernels process-wide. ``obj.using(compute)`` gives a
 copy of a domain object that computes with another ``Compute`` (the equivalence tests run both).
 
-:func:`bulk` is the one scoped policy: inside it (a roadmap build, re-scoring, repair growth) CPU batches of any size
+:func:`~.runtime.bulk` is the one scoped policy: inside it (a roadmap build, re-scoring, repair growth) CPU batches of any size
 take the compiled kernels, their rows split over a few threads. It is a :class:`contextvars.ContextVar`, so it holds
 for the thread (or task) that entered it and for no other: a query on another thread keeps its small-batch rules.
 """
@@ -17,7 +18,6 @@ for the thread (or task) that entered it and for no other: a query on another th
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import copy
 import dataclasses
 import functools
@@ -26,10 +26,15 @@ from typing import Iterator, Optional, TypeVar
 import torch
 
 from ..errors import ConfigError
+from .fastpath import NumbaKernels
+from .ops import Kernels, TorchKernels
+from .runtime import _BULK_WORKERS, bulk, bulk_workers, numba_importable
+
+__all__ = ["Compute", "Computing", "bulk", "bulk_workers", "compute_for", "default_compute", "numba_importable"]
 
 KERNELS = ("numba", "torch")
+_IMPLEMENTATIONS = {"numba": NumbaKernels, "torch": TorchKernels}
 T = TypeVar("T", bound="Computing")
-_BULK_WORKERS: contextvars.ContextVar[int] = contextvars.ContextVar("psprm_bulk_workers", default=0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,6 +53,13 @@ class Compute:
     motion_max_batch: int = 1 << 16
     mlp_max_rows: int = 32
     bulk_chunk: int = 2048
+    ops: Kernels = dataclasses.field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        impl = _IMPLEMENTATIONS.get(self.kernels)
+        if impl is None:
+            raise ConfigError("compute", "kernels", f"must be one of {KERNELS}, got {self.kernels!r}")
+        object.__setattr__(self, "ops", impl(self))  # the kernels protocol's implementation (:mod:`.ops`)
 
     @classmethod
     def make(cls, device: torch.device | str = "cpu", dtype: torch.dtype = torch.float32, kernels: str = "auto",
@@ -122,20 +134,6 @@ class Compute:
             torch.set_num_threads(n)
 
 
-@functools.lru_cache(maxsize=1)
-def numba_importable() -> bool:
-    """Whether numba can be imported (checked once). The compiled small-batch paths and the compiled roadmap searches
-    (:mod:`psprm_core.planning.search.search_kernels`) need it."""
-    try:
-        import numba  # noqa: F401
-    except Exception as exc:  # pragma: no cover - numba is a pinned requirement
-        import logging
-
-        logging.getLogger(__name__).warning("numba unavailable (%s): batches use torch, graph searches Python", exc)
-        return False
-    return True
-
-
 @functools.lru_cache(maxsize=8)
 def default_compute(device: str = "cpu", dtype: torch.dtype = torch.float32) -> Compute:
     """``Compute.make(device, dtype)``: what an object built without a ``Compute`` uses (compiled on a CPU with
@@ -146,24 +144,6 @@ def default_compute(device: str = "cpu", dtype: torch.dtype = torch.float32) -> 
 def compute_for(device: torch.device | str, dtype: torch.dtype = torch.float32) -> Compute:
     """:func:`default_compute` of a device given as a string or a ``torch.device``."""
     return default_compute(str(torch.device(device)), dtype)
-
-
-@contextlib.contextmanager
-def bulk(workers: Optional[int] = None) -> Iterator[None]:
-    """Run a block in which CPU batches of any size take the compiled kernels (of objects whose ``Compute`` chose
-    them), their rows split into chunks of at least ``bulk_chunk`` over ``workers`` threads (default
-    ``torch.get_num_threads()``). The results are those of the small-batch path (row by row, float64). Holds for the
-    calling thread only."""
-    token = _BULK_WORKERS.set(max(1, int(torch.get_num_threads() if workers is None else workers)))
-    try:
-        yield
-    finally:
-        _BULK_WORKERS.reset(token)
-
-
-def bulk_workers() -> int:
-    """The worker threads of the enclosing :func:`bulk` block (0 outside one)."""
-    return _BULK_WORKERS.get()
 
 
 class Computing:

@@ -14,7 +14,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
-from .fastpath import as_f64, as_i64, const_f64, kernels, solver_pack
+from .arrays import as_f64, as_i64, const_f64
+from .fastpath import kernels, solver_pack
 
 
 @dataclass(frozen=True)

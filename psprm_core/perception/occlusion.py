@@ -48,7 +48,7 @@ import torch
 
 from ..errors import InputError
 from ..geometry import EPS_DIR as _EPS_DIR, quat_to_matrix
-from ..kernels import fastpath
+from ..kernels.arrays import as_f64
 from ..kernels.compute import Computing
 from ..scene import Box, Scene, Target
 
@@ -418,20 +418,18 @@ class OcclusionChecker(Computing):
         return self._cache[key]
 
     def kernel_pack(self):
-        """The occluders and target points as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): an
-        :class:`~psprm_core.kernels._fast_packs.OcclusionPack` of the target points and their centre in every box frame,
-        the boxes grown by the points' radius (the first test of :func:`occlusion_scores`), the box centres, rotations
-        and half extents (float64), ``count_inside`` and the direction eps. Kept until the boxes, the points or
-        ``count_inside`` are replaced."""
+        """The occluders and target points as the compiled kernels take them: an
+        :class:`~psprm_core.kernels._fast_packs.OcclusionPack` (target points and centre in every box frame, boxes grown
+        by the points' radius, box centres, rotations, half extents, ``count_inside``, the direction eps). Kept until
+        the boxes, the points or ``count_inside`` are replaced."""
         from ..kernels._fast_packs import OcclusionPack
 
         key = (self.boxes, self.target_points, bool(self.count_inside))
         got = self.__dict__.get("_kernel_pack")
         if got is None or any(a is not b for a, b in zip(got[0][:2], key[:2])) or got[0][2] != key[2]:
-            f64 = fastpath.as_f64
-            bx, pts = self.boxes, f64(self.target_points).reshape(-1, 3)
-            c, R = f64(bx.centers).reshape(-1, 3), f64(bx.rotations).reshape(-1, 3, 3)
-            h = f64(bx.half_extents).reshape(-1, 3)
+            bx, pts = self.boxes, as_f64(self.target_points).reshape(-1, 3)
+            c, R, h = (as_f64(bx.centers).reshape(-1, 3), as_f64(bx.rotations).reshape(-1, 3, 3),
+                       as_f64(bx.half_extents).reshape(-1, 3))
             centre = pts.mean(0)
             r = np.linalg.norm(pts - centre, axis=1).max() if len(pts) else 0.0
             local = lambda p: np.einsum("...kj,kji->...ki", p[..., None, :] - c, R)  # noqa: E731 - R_k^T (p - c_k)
@@ -445,9 +443,11 @@ class OcclusionChecker(Computing):
         pos = camera_positions(torch.as_tensor(cameras))
         return self.score_positions(pos if pos.is_floating_point() else pos.double())
 
-    @fastpath.twin(fastpath.occlusion_scores)
     def score_positions(self, pos: torch.Tensor) -> torch.Tensor:
         """Occlusion scores (B,) of camera positions (B, 3), on their device."""
+        return self.compute.ops.occlusion_scores(self, pos)
+
+    def score_positions_torch(self, pos: torch.Tensor) -> torch.Tensor:  # the torch implementation
         boxes, pts = self._on(pos.device, pos.dtype)
         return occlusion_scores(pos, pts, boxes, self.count_inside, self.chunk_elements)
 

@@ -36,7 +36,6 @@ import torch
 from torch import nn
 
 from ..errors import InputError, OutOfRangeError, UnknownNameError
-from ..kernels import fastpath
 from ..kernels.compute import Computing
 
 log = logging.getLogger(__name__)
@@ -304,11 +303,10 @@ class PerceptionSurrogate(Computing, nn.Module):
         out_device = cam.device
         if cam.dim() == 2:
             cam = cam.unsqueeze(0)
-        return self._predict_poses(cam, target_pose, class_name, chunk_size).to(out_device)
+        return self.compute.ops.pose_scores(self, cam, target_pose, class_name, chunk_size).to(out_device)
 
-    @fastpath.twin(fastpath.surrogate_pose_scores, when=fastpath.surrogate_applies)
-    def _predict_poses(self, cam: torch.Tensor, target_pose, class_name, chunk_size: Optional[int]) -> torch.Tensor:
-        """:meth:`predict` of camera poses (B, 4, 4): pose features, then :meth:`predict_features`."""
+    def pose_scores_torch(self, cam: torch.Tensor, target_pose, class_name, chunk_size: Optional[int]) -> torch.Tensor:
+        """:meth:`predict` of camera poses (B, 4, 4) in torch: pose features, then :meth:`predict_features`."""
         return self.predict_features(pose_features(cam, target_pose, self.derived), class_name, chunk_size)
 
     @torch.no_grad()

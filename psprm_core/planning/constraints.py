@@ -27,7 +27,7 @@ import torch
 from ..camera import CameraIntrinsics
 from ..errors import InputError
 from ..geometry import wrap_angle
-from ..kernels import fastpath
+from ..kernels.arrays import const_f64
 from ..kernels.compute import Compute, Computing
 from ..robot import RobotModel
 
@@ -174,7 +174,7 @@ class VisibilityConstraint(Computing):
         from ..kernels._fast_packs import ViewPack
 
         intr = self.intr
-        return ViewPack(fastpath.const_f64(self.target, dtype), self.kind == "line", float(self.min_distance),
+        return ViewPack(const_f64(self.target, dtype), self.kind == "line", float(self.min_distance),
                         float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v), float(self.margin))
 
     def _camera_joints(self) -> np.ndarray:
@@ -204,12 +204,12 @@ class VisibilityConstraint(Computing):
                                dtype=torch.long, device=q.device)
         if len(cols) == 0:
             return q, self.error(q).detach() < settings.tolerance
-        return self._gauss_newton(q, settings, lo, hi, cols)
+        return self.compute.ops.project(self, q, settings, lo, hi, cols)
 
-    @fastpath.twin(fastpath.project, when=fastpath.project_applies)
-    def _gauss_newton(self, q: torch.Tensor, settings: ProjectionSettings, lo: torch.Tensor, hi: torch.Tensor,
-                      cols: torch.Tensor) -> tuple:
-        """Damped Gauss-Newton steps of :meth:`project` over the joints ``cols``, in place on ``q`` (a copy)."""
+    def gauss_newton_torch(self, q: torch.Tensor, settings: ProjectionSettings, lo: torch.Tensor, hi: torch.Tensor,
+                           cols: torch.Tensor) -> tuple:
+        """Damped Gauss-Newton steps of :meth:`project` over the joints ``cols``, in place on ``q`` (a copy), in
+        torch (any device); the compiled kernels run the same iteration."""
         robot = self.robot
         active = torch.ones(q.shape[0], dtype=torch.bool, device=q.device)
         eye = torch.eye(self.dim, dtype=q.dtype, device=q.device)

@@ -15,7 +15,7 @@ import torch
 
 from ..errors import ConfigError, InputError, RobotModelError, UnknownNameError
 from ..geometry import axis_angle_matrix_torch
-from ..kernels import fastpath
+from ..kernels.arrays import as_f64, as_i64
 from ..kernels.compute import Computing
 from ..yamlio import load_yaml
 from .bodies import ElementModel, SphereModel, _geom_local_box, _grid_spheres
@@ -288,7 +288,7 @@ class RobotModel(Computing):
                           for j in self.body_joint], dtype=np.int64)
         offs = np.stack(self.body_joint_offset)
         axes = np.stack([j.axis if j is not None else np.zeros(3) for j in self.body_joint])
-        f64, i64 = fastpath.as_f64, fastpath.as_i64
+        f64, i64 = as_f64, as_i64
         return RobotPack(np.arange(1, len(self.bodies), dtype=np.int64), i64(self.camera_chain[1:]),
                          i64(self.parent_body), jtype, f64(offs[:, :3, :3]), f64(offs[:, :3, 3]), f64(axes),
                          f64(self.drive_matrix), f64(self.drive_offset), bool(self.mobile), int(self.camera_body),
@@ -326,20 +326,22 @@ class RobotModel(Computing):
         el = self.elements
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
         local = el.center[:, None, :] + np.einsum("eij,ekj->eki", el.rotation, signs[None] * el.half[:, None, :])
-        return np.ascontiguousarray(local), fastpath.as_i64(el.element_body)
+        return np.ascontiguousarray(local), as_i64(el.element_body)
 
     def element_corners(self, Q) -> np.ndarray:
         """World positions (M, 8E, 3), float64, of the corners of every collision box at configurations ``Q``
         (M, dof): box e's corners are rows 8e .. 8e + 7 (:attr:`element_corners_local` moved by its body's pose,
-        :meth:`body_poses`). The compiled kernel when this model's :class:`~psprm_core.kernels.compute.Compute` chose
-        compiled kernels, else torch in float64 on the CPU; the path tolerance (:mod:`psprm_core.tracking`) asks
-        for a few to a few hundred configurations at a time, where torch's per-operator cost dominates."""
+        :meth:`body_poses`), by this model's :class:`~psprm_core.kernels.compute.Compute` (compiled: the path
+        tolerance (:mod:`psprm_core.tracking`) asks for a few to a few hundred configurations at a time, where torch's
+        per-operator cost dominates)."""
         Q = np.ascontiguousarray(np.asarray(Q, dtype=np.float64).reshape(-1, self.dof))
         if not np.isfinite(Q).all():
             raise InputError("configurations for the corner positions must be finite")
+        return self.compute.ops.element_corners(self, Q)
+
+    def element_corners_torch(self, Q: np.ndarray) -> np.ndarray:
+        """:meth:`element_corners` of finite configurations ``Q`` (M, dof) float64, in torch on the CPU."""
         local, body = self.element_corners_local
-        if self.compute.compiled and len(Q) > 0:
-            return fastpath.kernels().element_corners(Q, self.kernel_pack, body, local)
         with torch.no_grad():
             R, t = self.body_poses(torch.as_tensor(Q, dtype=torch.float64))
         R, t = R.numpy(), t.numpy()
@@ -375,9 +377,13 @@ class RobotModel(Computing):
                 Rs[b], ts[b] = Rj @ axis_angle_matrix_torch(T["axis"][b], v), tj
         return Rs, ts
 
-    @fastpath.twin(fastpath.camera_poses, when=fastpath.camera_applies)
     def camera_poses(self, q: torch.Tensor, body_poses: Optional[tuple] = None) -> torch.Tensor:
-        """Camera optical-frame poses (B, 4, 4) in the scene frame."""
+        """Camera optical-frame poses (B, 4, 4) in the scene frame of configurations ``q`` (B, dof), or from the
+        body poses of :meth:`body_poses` when given; by this model's ``compute``."""
+        return self.compute.ops.camera_poses(self, q, body_poses)
+
+    def camera_poses_torch(self, q: torch.Tensor, body_poses: Optional[tuple] = None) -> torch.Tensor:
+        """:meth:`camera_poses` in torch (any device, autograd)."""
         if body_poses is not None:
             Rb, tb = body_poses[0][:, self.camera_body], body_poses[1][:, self.camera_body]
         else:  # the camera chain only

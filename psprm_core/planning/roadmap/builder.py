@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 import torch
 
-from ...kernels import edges, fastpath
+from ...kernels import edges
 from ...kernels.compute import bulk
 from ..search.graph import Roadmap
 from ..search.graph_search import edge_perception
@@ -170,7 +170,7 @@ class Builder:
         if score or args is not None:  # a neural scorer is the surrogate (one compiled call), not a rendered view
             self.scoring.score_configs(q)
         kn, ki = self.edges.edge_knots(q, qb)  # a query's connection edges (one compiled call)
-        seeds = fastpath.edge_knot_seeds(c.motion, q, qb, c.settings.edges.n_interp)[0]
+        seeds = c.compute.ops.edge_knot_seeds(c.motion, q, qb, c.settings.edges.n_interp)[0]
         self.edges.track_knots(seeds)  # step by step
         if args is not None:  # the lazy verification's compiled calls
             kit, both = c.edge_kit(), np.ones(2, bool)
@@ -181,7 +181,7 @@ class Builder:
             edges.verify_edges(kit, args, kn.numpy().copy(), ki.numpy().copy(), batch, 200)
         self.edges.pieces(q, qb, max_steps=200, include_start=False)
         c.motion.distance(q, qb)
-        fastpath.nearest(c.motion, q, qb, 1)
+        c.compute.ops.nearest(c.motion, q, qb, 1)
         return time.perf_counter() - t0
 
     def expand(self, rng: np.random.Generator) -> dict:

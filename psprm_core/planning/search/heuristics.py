@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Optional, Sequence
 import numpy as np
 import torch
 
-from ...kernels import fastpath
+from ...kernels.runtime import worker_pool
 from ..state import PlannerContext, QueryContext, ReadsQuerySettings
 from . import search_kernels
 from .graph_search import motion_heuristic
@@ -54,7 +54,7 @@ class Heuristics(ReadsQuerySettings):
         workers = max(1, min(torch.get_num_threads(), 8))
         step = 64 * max(1, -(-R // (64 * 2 * workers)))  # whole 64-source batches, two chunks per worker
         chunks = [(lo, min(lo + step, R)) for lo in range(0, R, step)]
-        list(fastpath.pool(workers).map(lambda c: K.hop_columns(nbr, deg, R, c[0], c[1], T), chunks))
+        list(worker_pool(workers).map(lambda c: K.hop_columns(nbr, deg, R, c[0], c[1], T), chunks))
         self.rm.hop_table = (R, T)
 
     def query_hops(self, search_goals: Sequence[int], added_edges: Sequence[int]) -> Optional[np.ndarray]:

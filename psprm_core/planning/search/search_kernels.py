@@ -14,13 +14,13 @@ from __future__ import annotations
 import functools
 from typing import Any
 
+from ...kernels.runtime import numba_importable
+
 __all__ = ["available", "kernels"]
 
 
 def available() -> bool:
     """Whether numba is importable (the searches fall back to the Python loops otherwise, with one warning)."""
-    from ...kernels.fastpath import numba_importable
-
     return numba_importable()
 
 
