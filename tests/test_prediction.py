@@ -220,3 +220,50 @@ def test_a_person_who_turned_away_is_planned_for_where_they_looked_before(load_r
         assert with_routes <= alone * 1.001, (history_yaw, away, with_routes, alone)
         better += with_routes < 0.9 * alone
     assert better >= 2
+
+
+def test_circular_crps_matches_hand_computed_values():
+    """The heading score of ``psprm perf prediction``: a single heading scores its error the shorter way round; two
+    equally weighted headings at +-a score a/2 at their middle (E|Y - y| = a, E|Y - Y'| = a); a mixture that does not
+    sum to 1 is refused."""
+    from psprm_core.evaluation.prediction_score import circular_crps
+
+    assert circular_crps([1.0], [0.3], -0.2) == pytest.approx(0.5)
+    assert circular_crps([1.0], [3.0], -3.0) == pytest.approx(2 * math.pi - 6.0)
+    assert circular_crps([0.5, 0.5], [0.4, -0.4], 0.0) == pytest.approx(0.2)
+    assert circular_crps([0.5, 0.5], [0.4, -0.4], 1.0) == pytest.approx(1.0 - 0.2)  # 0.6 and 1.4, less 0.4
+    with pytest.raises(ValueError):
+        circular_crps([0.5, 0.4], [0.0, 1.0], 0.0)
+
+
+def test_prediction_scores_of_the_latest_pose_are_the_targets_own_change_over_the_horizon():
+    """With prediction off the forecast is the latest pose, so its heading score is the mean absolute heading change
+    over the horizon and its position error the distance walked: both computed here from the scenario's world at the
+    same instants. The shipped predictor, fed the same stream, gives other (finite) figures."""
+    from psprm_core.evaluation.prediction_score import prediction_scores
+    from psprm_core.evaluation.scenario_world import World
+    from psprm_core.evaluation.scenarios import draw_variation, load_scenario
+    from psprm_core.paths import resolve_named
+    from psprm_core.scene import load_scene
+
+    h, T = 2.0, 20.0
+    res = prediction_scores({"off": PredictionSettings(enabled=False), "on": PredictionSettings()},
+                            ["walking_person"], [3], [h], max_duration_s=T)
+    sc = load_scenario(resolve_named("scenario", "walking_person"))
+    world = World(sc, load_scene(resolve_named("scene", sc.scene)), None, draw_variation(sc, 3, 0))
+    tgt = sc.people[0].target
+    dyaw, dxy = [], []
+    for k, t in enumerate(np.arange(0.0, T, 1 / 30)):
+        if k % 15 or t < 2.0 or t + h > T:
+            continue
+        (p0, q0), (p1, q1) = world.poses(float(t))["targets"][tgt], world.poses(float(t + h))["targets"][tgt]
+        d = quat_yaw(np.asarray(q1)) - quat_yaw(np.asarray(q0))
+        dyaw.append(abs((d + math.pi) % (2 * math.pi) - math.pi))
+        dxy.append(float(np.linalg.norm(np.asarray(p1)[:2] - np.asarray(p0)[:2])))
+    off = res["variants"]["off"]["scenarios"]["walking_person"]
+    assert off["forecasts"] == len(dyaw) > 20
+    assert off["yaw_crps_rad"][0] == pytest.approx(np.mean(dyaw), abs=1e-9)
+    assert off["position_error_m"][0] == pytest.approx(np.mean(dxy), abs=1e-9)
+    assert np.mean(dxy) > 0.2  # the person walks
+    on = res["variants"]["on"]["scenarios"]["walking_person"]
+    assert np.isfinite(on["yaw_crps_rad"][0]) and on["position_error_m"][0] != pytest.approx(off["position_error_m"][0])

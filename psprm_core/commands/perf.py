@@ -161,6 +161,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     sc.add_argument("--allow-incomplete", action="store_true", help="a dataset whose build was stopped")
     sc.add_argument("--json", action="store_true")
     sc.set_defaults(func=_json_only(_surrogate_scaling))
+    pr = ps.add_parser("prediction", help="how well the target predictor forecasts the scenarios' people: heading "
+                                          "CRPS and position error per horizon, shipped settings vs the latest pose")
+    pr.add_argument("--scenarios", default="rotating_person,walking_person,nursing_turning_walking")
+    pr.add_argument("--episodes", default="100-104", help="episode indices, FIRST-LAST or comma-separated (the "
+                                                          "dynamic benchmark runs 0..N-1 with the same seed)")
+    pr.add_argument("--seed", type=int, default=0, help="seed of the episodes' variations")
+    pr.add_argument("--horizons", default="1,2,4,8", help="forecast horizons in s, comma-separated")
+    pr.add_argument("--change", action="append", default=[], metavar="KEY=VALUE",
+                    help="also score the shipped prediction settings with this change (PredictionSettings; "
+                         "repeatable)")
+    pr.add_argument("--json", action="store_true")
+    pr.set_defaults(func=_json_only(_prediction))
     vm = ps.add_parser("viewmap", help="where the real detector sees a target: the robot's camera aimed at it from a "
                                        "grid of base positions (share detected, mean confidence, the grid)")
     vm.add_argument("--scene", default="home")
@@ -383,6 +395,30 @@ def _surrogate_scaling(args) -> int:
                             seeds=[int(s) for s in args.seeds.split(",") if s], ensemble=args.ensemble,
                             hidden=args.hidden or None, threads=args.threads, target=args.target,
                             allow_incomplete=args.allow_incomplete)
+    if args.json:
+        print_json(_finite(res))
+    else:
+        print(format_table(res))
+    return 0
+
+
+def _prediction(args) -> int:
+    import dataclasses
+
+    from ..baselines import parse_settings
+    from ..evaluation.prediction_score import format_table, prediction_scores
+    from ..prediction import PredictionSettings
+
+    first, dash, last = args.episodes.partition("-")
+    episodes = (list(range(int(first), int(last) + 1)) if dash else [int(e) for e in args.episodes.split(",") if e])
+    variants = {"shipped": PredictionSettings(), "latest_pose": PredictionSettings(enabled=False)}
+    if args.change:
+        changed = parse_settings(args.change, PredictionSettings, "prediction", flag="--change")
+        variants["changed"] = dataclasses.replace(PredictionSettings(), **changed)
+    res = prediction_scores(variants, [s for s in args.scenarios.split(",") if s], episodes,
+                            [float(h) for h in args.horizons.split(",") if h], seed=args.seed)
+    if args.change:
+        res["change"] = list(args.change)
     if args.json:
         print_json(_finite(res))
     else:
