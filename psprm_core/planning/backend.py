@@ -32,7 +32,8 @@ def backend_for(ctx) -> "TorchBackend":
 
 
 class TorchBackend:
-    """The planner's stage operations in torch (any device, any batch size)."""
+    """The planner's stage operations through its ``Compute``'s kernels (``ctx.compute.ops``), without fused calls:
+    what a GPU, a CPU without numba or a torch-only ``Compute`` runs."""
 
     compiled = False  # whether compiled kernels serve this planner (their warm-up is then worth doing)
 
@@ -101,7 +102,7 @@ class TorchBackend:
 
 
 class CompiledBackend(TorchBackend):
-    """The compiled CPU kernels for the batches they serve; the torch code otherwise."""
+    """:class:`TorchBackend` with the fused compiled calls of a query's few edges and views."""
 
     compiled = True
 
