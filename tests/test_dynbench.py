@@ -289,6 +289,23 @@ def test_dynbench_command_prints_strict_json(tmp_path, capsys):
     assert ep["modes"]["motion"]["det_rate"] is not None
 
 
+def test_dynbench_applies_a_nested_replan_setting(tmp_path, capsys):
+    """``--replan prediction.enabled=false`` reaches the episodes' replanner: mode ``motion`` with prediction off
+    replays exactly what mode ``motion_no_prediction`` (prediction off by its mode) does in the same episode, and
+    no episode fails."""
+    from psprm_core.cli import main
+
+    assert main(["dynbench", "--scenarios", "rotating_person", "--episodes", "1", "--nodes", "600", "--duration",
+                 "8", "--camera-fps", "1", "--modes", "motion,motion_no_prediction", "--workers", "1",
+                 "--no-progress", "--replan", "prediction.enabled=false", "--json"]) == 0
+    s = _strict(capsys.readouterr().out)["scenarios"]["rotating_person"]
+    assert s["summary"]["failed_episodes"] == 0
+    modes = s["episodes"][0]["modes"]
+    keys = ("det_rate", "adopted", "declined", "frames", "goal_switches", "stops")
+    assert {k: modes["motion"][k] for k in keys} == {k: modes["motion_no_prediction"][k] for k in keys}
+    assert modes["motion"]["adopted"] + modes["motion"]["declined"] > 0  # it replanned
+
+
 def test_simulate_json_is_strict(tmp_path, capsys):
     from psprm_core.cli import main
 

@@ -42,6 +42,7 @@ import torch
 
 from ..errors import PsprmError
 from ..planning.execution import SplicedTrajectory
+from ..yamlio import replace_settings
 from .dynamic.episodes import (FrameJudge, count_collisions, count_self_collisions, detection_metrics, execute_fixed,
                                frame_every, frames_of, json_safe, judge_record, speed_ratio, wrap_heading)
 from .scenario_world import World, at_goal, goal_configurations
@@ -375,7 +376,7 @@ def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optio
         return make_planner(sc.planner, scene, list(sc.targets), robot=robot,
                             options={"roadmap.n_nodes": sc.nodes, "seed": sc.seed, **(planner_overrides or {})})
 
-    rs = ReplanSettings(**(replan_overrides or {}))
+    rs = replace_settings(ReplanSettings(), replan_overrides)  # names or dotted paths (prediction.revert_s)
     planner = fresh()
     build_s = planner.build().get("build_s")
     oracle = Oracle(scene, intrinsics=robot.config.intrinsics)

@@ -32,6 +32,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ...yamlio import replace_settings
 from ..simulation import DEFAULT_LATENCY_S, MODES, REPLANNING_MODES
 from .episodes import json_safe
 from .hindsight import SEARCHES, VARIANTS, parse_searches, parse_variants
@@ -181,7 +182,7 @@ def run_episode_modes(scenario, episode: int, cfg: dict, cache=None) -> dict:
             oracle = cache.get("oracle", (scenario.scene, tuple(scenario.targets), threads),
                                lambda: _oracle(scene, robot, scenario.targets, threads), close=lambda o: o.close())
             judge = FrameJudge(oracle, robot, World(scenario, scene, robot, variation), scenario.targets)
-        rs = ReplanSettings(**cfg["replan_overrides"])
+        rs = replace_settings(ReplanSettings(), cfg["replan_overrides"])  # names or dotted paths
         modes, walls = {}, {}
         for mode in cfg["modes"]:
             t0 = time.perf_counter()
