@@ -27,6 +27,7 @@ import torch
 
 from .errors import InputError
 from .geometry import obb_overlap
+from .kernels._fast_packs import BoxPack, CollisionPack
 from .kernels.arrays import as_f64, as_i64, const_f64
 from .kernels.compute import Compute, Computing
 from .robot import RobotModel, load_acm
@@ -72,8 +73,6 @@ class BoxTensors:
         """The boxes as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): a
         :class:`~psprm_core.kernels._fast_packs.BoxPack` of centres, rotations, half extents and :meth:`aabb`,
         float64."""
-        from .kernels._fast_packs import BoxPack
-
         f64 = as_f64
         return BoxPack(f64(self.center).reshape(-1, 3), f64(self.rotation).reshape(-1, 3, 3),
                        f64(self.half).reshape(-1, 3), f64(self.aabb()).reshape(-1, 6))
@@ -213,8 +212,6 @@ class CollisionChecker(Computing):
         eps of :func:`obb_overlap` and the obstacle boxes :attr:`boxes` (:meth:`BoxTensors.kernel_pack`). Kept on
         the checker; the limits are read again when they change (in place, or by new storage), the boxes when
         :meth:`set_boxes` replaces them."""
-        from .kernels._fast_packs import CollisionPack
-
         f64, i64 = as_f64, as_i64
         cache = self.__dict__.get("_kernel_pack")
         if cache is None:

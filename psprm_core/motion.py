@@ -17,6 +17,7 @@ import math
 import torch
 
 from .geometry import wrap_angle
+from .kernels._fast_packs import MotionPack
 from .kernels.compute import Compute, Computing
 from .robot import RobotModel
 
@@ -35,8 +36,6 @@ class DiffDriveMotion(Computing):
     def kernel_pack(self):
         """The metric's parameters as the compiled kernels take them (:mod:`psprm_core.kernels.fastpath`): a
         :class:`~psprm_core.kernels._fast_packs.MotionPack` (w_rot, mobile) of :meth:`distance`."""
-        from .kernels._fast_packs import MotionPack
-
         return MotionPack(float(self.w_rot), bool(self.mobile))
 
     # ---- base decomposition ----------------------------------------------------------------------------------------

@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .motion import DiffDriveMotion
+from .planning.constraints import ProjectionSettings, VisibilityConstraint, camera_joint_mask
+
 
 def aim_joints(robot) -> tuple:
     """The joints that aim the camera at problem ends (non-base camera joints) and every joint's finite limits:
     (cols, lower, upper), for :func:`psprm_core.baselines.base.aim_camera`."""
-    from .planning.constraints import camera_joint_mask
-
     mask = camera_joint_mask(robot)
     mask[: robot.base_dof] = False
     lo = np.where(np.isfinite(robot.lower), robot.lower, -1e9)
@@ -30,8 +31,6 @@ def can_move_away(robot, checker, q: torch.Tensor, template: np.ndarray, drive: 
     (or reach it); the problem generator rejects such ends. Robots without a mobile base are not checked (all
     True).
     """
-    from .motion import DiffDriveMotion
-
     motion = DiffDriveMotion(robot)
     q = torch.as_tensor(q, dtype=checker.dtype, device=checker.device).reshape(-1, robot.dof)
     n = len(q)
@@ -67,8 +66,6 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
     (:func:`psprm_core.baselines.base.aim_camera`); ``aimed_only`` keeps only configurations whose optical axis
     passes through the target (within the projection tolerance); ``mobile_only`` keeps only configurations that a
     short collision-free manoeuvre leaves (:func:`can_move_away`: no boxed-in ends)."""
-    from .planning.constraints import ProjectionSettings, VisibilityConstraint
-
     cols, lo, hi = aim_joints(robot)
     con = VisibilityConstraint(robot, "line", target_center)
     out = []

@@ -15,7 +15,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import ConfigError, OutOfRangeError, UnknownNameError
-from .geometry import quat_to_matrix, yaw_to_quat
+from .geometry import obb_overlap, quat_to_matrix, yaw_to_quat
 from .yamlio import Fields, load_yaml
 
 
@@ -321,8 +321,6 @@ def _check_placements(path: str, targets: tuple, obstacles: tuple, workspace: np
     if not any(t.placements for t in targets):
         return  # nothing to check: no torch import for the common scene
     import torch
-
-    from .geometry import obb_overlap
 
     others_all = list(obstacles) + [t.as_box() for t in targets]
     lo, hi = workspace[:, 0] - 0.5, workspace[:, 1] + 0.5

@@ -10,19 +10,19 @@ Same parameters and topics as the separate nodes; one params file (``/**`` secti
 
 from __future__ import annotations
 
+from .perception_scorer import PerceptionScorer
+from .replan_monitor import ReplanMonitor
+from .robot_adapter import RobotAdapter
+from .runner import run_nodes
+
 
 def factories() -> list:
-    from .perception_scorer import PerceptionScorer
-    from .replan_monitor import ReplanMonitor
     from .roadmap_server import RoadmapServer
-    from .robot_adapter import RobotAdapter
 
     return [RoadmapServer, PerceptionScorer, ReplanMonitor, RobotAdapter]
 
 
 def main(args=None) -> int:
-    from .runner import run_nodes
-
     return run_nodes(factories(), args, description=__doc__, prog="all_in_one")
 
 

@@ -14,12 +14,15 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from psprm_core.errors import InputError, PsprmError
+from psprm_core.errors import ConfigError, InputError, PsprmError, RobotModelError
+from psprm_core.paths import resolve_named
+from psprm_core.yamlio import Fields, load_yaml
 
 # the nodes use these as core.<name>
 from .lifecycle import (DIAG_ERROR, DIAG_OK, DIAG_STALE, DIAG_WARN, DIAGNOSTICS_TOPIC, StallGrace,  # noqa: F401
                         autostart, bare_setting_names, diagnostic_status, lifecycle_node, lifecycle_state,
                         publish_diagnostics)
+from .robots.robot_description import robot_from_params
 
 log = logging.getLogger(__name__)
 
@@ -296,8 +299,6 @@ def install_param_callback(node, spec: dict, values: dict, apply) -> None:
 def _reason(name: str, exc: Exception) -> str:
     """Why a parameter change is refused: a configuration error as it is (it names the setting), others after the
     parameter's name."""
-    from psprm_core.errors import ConfigError
-
     return str(exc) if isinstance(exc, ConfigError) else f"{name}: {exc}"
 
 
@@ -336,8 +337,6 @@ def load_configured_scene_and_robot(node, p: dict):
     """The scene and robot model of a node's parameters ``p``, loaded at configure. A robot description the node
     cannot use (robot_description ``topic``/``auto``) fails this configure with the reason; the next configure
     checks the description again."""
-    from psprm_core.errors import RobotModelError
-
     scene, robot = load_scene_and_robot(p["scene"], p["robot"], node=node, params=p)
     refusal = getattr(node, "configure_refusal", "")
     if refusal:
@@ -400,9 +399,6 @@ class ConfigureScope:
 def resolve_scene(scene_name: str):
     """A scene by path, by name among psprm_core's scenes, or by name among the scenes installed with the colcon
     package (``share/psprm_ros/scenes``)."""
-    from psprm_core.errors import ConfigError
-    from psprm_core.paths import resolve_named
-
     try:
         return resolve_named("scene", scene_name)
     except ConfigError:
@@ -432,8 +428,6 @@ def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, param
 
     scene = load_scene(resolve_scene(scene_name))
     if node is not None:
-        from .robots.robot_description import robot_from_params
-
         return scene, robot_from_params(node, {**(params or {}), "robot": robot_name}, scene)
     robot = RobotModel.load(robot_name or scene.robot)
     return scene, robot
@@ -441,8 +435,6 @@ def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, param
 
 def scene_robot_name(scene_name: str) -> str:
     """The robot a scene file names (its ``robot`` field), read without loading the scene."""
-    from psprm_core.yamlio import Fields, load_yaml
-
     path = resolve_scene(scene_name)
     return Fields(load_yaml(path), str(path)).str("robot")
 

@@ -28,6 +28,7 @@ from psprm_core.errors import InputError
 from .heap import freeze_long_lived
 from .interfaces import conversions as cv
 from .interfaces.recordings import Recording, load_recording
+from .runner import self_check
 
 
 class Replayer:
@@ -142,8 +143,6 @@ def main(args=None) -> int:
     a = ap.parse_args(remove_ros_args(argv)[1:])
     if a.self_check:
         import json
-
-        from .runner import self_check
 
         print(json.dumps(self_check()))
         return 0

@@ -18,6 +18,7 @@ import numpy as np
 
 from . import core
 from .interfaces import conversions as cv
+from .runner import run_nodes
 
 P = core.Param
 SCORER_PARAMS = {
@@ -214,8 +215,6 @@ class PerceptionScorer:
 
 
 def main(args=None) -> int:
-    from .runner import run_nodes
-
     return run_nodes([PerceptionScorer], args, description=__doc__, prog="perception_scorer")
 
 

@@ -10,6 +10,8 @@ import time
 from pathlib import Path
 from typing import Optional
 
+from psprm_core.paths import cache_dir, resolve_named
+
 log = logging.getLogger(__name__)
 
 #: the planner settings (dotted paths) the roadmap server declares as parameters besides the live ones: those that
@@ -87,8 +89,6 @@ def make_planner_for(scene, robot, targets, spec: PlannerSpec):
 
 
 def roadmap_cache_path(planner, scene, spec: PlannerSpec) -> Optional[Path]:
-    from psprm_core.paths import cache_dir
-
     if spec.roadmap_file.lower() == "none":
         return None
     if spec.roadmap_file:
@@ -131,8 +131,6 @@ def _warm_up(planner) -> float:
 def make_replanner(planner, settings_path: str = ""):
     """The core :class:`~psprm_core.planning.replanner.Replanner` around a built or loaded ``planner``."""
     from psprm_core.planning.replanner import Replanner, ReplanSettings
-
-    from psprm_core.paths import resolve_named
 
     settings = ReplanSettings.from_yaml(resolve_named("planner", settings_path)) if settings_path else ReplanSettings()
     return Replanner(planner, settings)

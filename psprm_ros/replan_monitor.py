@@ -26,8 +26,13 @@ import numpy as np
 from psprm_core.errors import InputError
 
 from . import core
+from .interfaces.frames import declare_frame_params
+from .interfaces.tf_tree import TfTree, subscribe_tf
 from .monitor.inputs import InputGate
 from .monitor.triggers import Triggers
+from .robots.adapters import load_adapter
+from .robots.robot_state import RobotStateTracker, offset_from_params
+from .runner import run_nodes
 
 P = core.Param
 MONITOR_PARAMS = {
@@ -92,8 +97,6 @@ class ReplanMonitor(InputGate, Triggers):
         from diagnostic_msgs.msg import DiagnosticArray
         from std_msgs.msg import String
         from std_srvs.srv import Trigger
-
-        from .interfaces.frames import declare_frame_params
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
@@ -172,10 +175,6 @@ class ReplanMonitor(InputGate, Triggers):
 
         from psprm_core.collision import CollisionChecker
 
-        from .interfaces.frames import declare_frame_params
-        from .robots.adapters import load_adapter
-        from .robots.robot_state import RobotStateTracker, offset_from_params
-
         node, p = self.node, dict(self.p)
         scene, robot = core.load_configured_scene_and_robot(node, p)
         frames = declare_frame_params(node, scene.frame)
@@ -227,8 +226,6 @@ class ReplanMonitor(InputGate, Triggers):
         if robot.mobile and src == "odom":
             self._made.subscription(Odometry, p["odom_topic"], self._odom_cb, 10, callback_group=cb)
         if (robot.mobile and src == "tf") or p["input_frames_from_tf"]:
-            from .interfaces.tf_tree import TfTree, subscribe_tf
-
             # one tree: the tracker's when the base pose comes from tf
             frames.tf = tracker.tf if tracker.tf is not None else TfTree()
             self._made.own(subscribe_tf(node, self._tf_cb, cb))
@@ -339,8 +336,6 @@ class ReplanMonitor(InputGate, Triggers):
 
 
 def main(args=None) -> int:
-    from .runner import run_nodes
-
     return run_nodes([ReplanMonitor], args, description=__doc__, prog="replan_monitor")
 
 

@@ -31,8 +31,14 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.errors import ConfigError, PsprmError
+from psprm_core.paths import resolve_named
+from psprm_core.planning.psprm import PSPRMSettings
+from psprm_core.planning.replanner import ReplanSettings
+
 from . import core, planner_setup
-from .interfaces import conversions as cv
+from .interfaces import conversions as cv, markers as mk
+from .runner import run_nodes
 from .server import LOOP_PARAMS, Outputs, PlanningLoop, TrajectorySamples, live_replan
 
 __all__ = ["RoadmapServer", "SERVER_PARAMS", "main"]
@@ -73,9 +79,6 @@ def planner_setting_params(defaults: dict) -> dict:
 def replan_params(settings_name: str) -> dict:
     """The live replan settings (:func:`~psprm_ros.server.params.live_replan`), made from their specs with the
     settings file's values as defaults."""
-    from psprm_core.paths import resolve_named
-    from psprm_core.planning.replanner import ReplanSettings
-
     rs = ReplanSettings.from_yaml(resolve_named("planner", settings_name)) if settings_name else ReplanSettings()
     return {name: core.setting_param(spec, getattr(rs, name)) for name, spec in live_replan().items()}
 
@@ -152,8 +155,6 @@ class RoadmapServer:
     def _robot_name(self, refusals: list) -> str:
         """The robot the parameters name (``robot``, or the scene's robot, read from the scene file without loading
         the scene); '' with a refusal when the scene cannot be read."""
-        from psprm_core.errors import PsprmError
-
         if self.p["robot"]:
             return str(self.p["robot"])
         try:
@@ -227,9 +228,6 @@ class RoadmapServer:
     def _planner_setting_params(self, refusals: list) -> dict:
         """The planner-setting parameters (:func:`planner_setting_params`) with the defaults of the settings file for
         this robot; a file that cannot be read is a refusal (the specs' defaults stand in)."""
-        from psprm_core.errors import ConfigError
-        from psprm_core.planning.psprm import PSPRMSettings
-
         try:
             settings = planner_setup.planner_file_settings(self.p["planner_settings"], self.robot_name)
         except ConfigError as exc:
@@ -439,16 +437,12 @@ class _Publications(Outputs):
         self.s.pub_rm_cams.publish(cv.pose_array(cameras, self.s.frame, self._stamp()))
 
     def roadmap_markers(self, scene, cam_xyz, scores, base_xy, edges) -> None:
-        from .interfaces import markers as mk
-
         s, stamp = self.s, self._stamp()
         ms = mk.scene_markers(scene, stamp)
         ms += mk.roadmap_markers(s.frame, cam_xyz, scores, base_xy, edges, stamp, s.p["marker_max_edges"])
         s.pub_markers.publish(mk.marker_array(ms))
 
     def path(self, cameras, base_xy, scores, scene) -> None:
-        from .interfaces import markers as mk
-
         s, stamp = self.s, self._stamp()
         s.pub_path_cams.publish(cv.pose_array(cameras, s.frame, stamp))
         if s.p["publish_markers"]:
@@ -460,8 +454,6 @@ class _Publications(Outputs):
 
 
 def main(args=None) -> int:
-    from .runner import run_nodes
-
     return run_nodes([RoadmapServer], args, description=__doc__)
 
 

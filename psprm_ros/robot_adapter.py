@@ -42,12 +42,16 @@ from psprm_core.errors import InputError
 from . import core
 from .interfaces import conversions as cv
 from .interfaces.controllers import ControllerLinks, DriverLink, retrieve
+from .interfaces.frames import declare_frame_params
+from .interfaces.tf_tree import TfTree, subscribe_tf
 from .robots import adapters as ad
 from .robots.acceptance import (REST_MPS, REST_RADPS, REST_S, REST_WAIT_S, SPLICE_CHECK_S, SPLICE_LOOKBACK_S,
                                 SPLICE_TOL_M)
 from .robots.base_follower import BaseFollower, Gains, Limits
 from .robots.execution import Execution
 from .robots.inbox import TrajectoryInbox
+from .robots.robot_state import RobotStateTracker, offset_from_params
+from .runner import run_nodes
 
 __all__ = ["ADAPTER_PARAMS", "RobotAdapter", "main", "REST_MPS", "REST_RADPS", "REST_S", "REST_WAIT_S",
            "SPLICE_CHECK_S", "SPLICE_LOOKBACK_S", "SPLICE_TOL_M"]
@@ -96,8 +100,6 @@ class RobotAdapter:
         from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
         from diagnostic_msgs.msg import DiagnosticArray
         from std_msgs.msg import String
-
-        from .interfaces.frames import declare_frame_params
 
         self.node = node = core.lifecycle_node(self, node_name, **node_kwargs)
         self.log = node.get_logger()
@@ -166,9 +168,6 @@ class RobotAdapter:
         from std_srvs.srv import Trigger
         from trajectory_msgs.msg import JointTrajectory
 
-        from .interfaces.frames import declare_frame_params
-        from .robots.robot_state import RobotStateTracker, offset_from_params
-
         node, p = self.node, self.p
         scene, robot = core.load_configured_scene_and_robot(node, dict(p))
         frames = declare_frame_params(node, scene.frame)
@@ -190,8 +189,6 @@ class RobotAdapter:
             raise InputError("base_pose_source 'pose' needs robot_pose_topic (the mocap body on the base)")
         tf_tree = None
         if robot.mobile and src == "tf":
-            from .interfaces.tf_tree import TfTree
-
             tf_tree = TfTree()
         tracker = RobotStateTracker(
             robot, frames, src, cfg.name_map(),
@@ -214,8 +211,6 @@ class RobotAdapter:
             self._made.subscription(PoseStamped, p["robot_pose_topic"], self._pose_cb, qos_profile_sensor_data,
                                     callback_group=cb)
         if tf_tree is not None:
-            from .interfaces.tf_tree import subscribe_tf
-
             self._made.own(subscribe_tf(node, self._tf_cb, cb))
         self.cli_plan = node.create_client(Trigger, p["plan_service"], callback_group=MutuallyExclusiveCallbackGroup())
         self.links = ControllerLinks(node, cfg, robot.mobile, fjt, cb, self._lock, self.counts,
@@ -480,8 +475,6 @@ class RobotAdapter:
 
 
 def main(args=None) -> int:
-    from .runner import run_nodes
-
     return run_nodes([RobotAdapter], args, description=__doc__, prog="robot_adapter")
 
 

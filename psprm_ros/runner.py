@@ -17,6 +17,9 @@ import logging
 import sys
 from typing import Callable, Sequence
 
+from .heap import freeze_long_lived
+from .spinning import NodeSpinner
+
 
 def self_check() -> dict:
     """Import everything an installed node needs; returns what was found."""
@@ -80,7 +83,6 @@ def _freeze_after(threads) -> None:
     def run():
         for t in threads:
             t.join()
-        from .heap import freeze_long_lived
 
         r = freeze_long_lived()
         logging.getLogger("psprm_ros.runner").info(
@@ -113,8 +115,6 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
 
     import rclpy
     from rclpy.executors import ExternalShutdownException
-
-    from .spinning import NodeSpinner
 
     logging.basicConfig(level=logging.INFO, format="[%(levelname)s] [%(name)s]: %(message)s", stream=sys.stderr)
     # The planner thread makes thousands of short torch calls per plan, each releasing and re-taking the GIL; while

@@ -24,8 +24,11 @@ import numpy as np
 from . import core
 from .interfaces import conversions as cv
 from .interfaces.frames import compose_pose, invert_pose
-from .robots.adapters import ControllerConfig, load_adapter
+from .robots.adapters import ControllerConfig, import_follow_joint_trajectory, load_adapter
+from .robots.robot_description import description_qos
 from .robots.sim_model import SimModel
+from .robots.sim_stretch import BASE_JOINT, StretchDriver
+from .runner import run_nodes
 
 SIM_PARAMS = {
     "adapter": "",  # adapter config name or path ("" = the robot's name)
@@ -95,8 +98,6 @@ class SimRobotNode:
         cb = MutuallyExclusiveCallbackGroup()
         self._goal_futures: dict = {}
         if self.p["driver"] == "stretch":
-            from .robots.sim_stretch import StretchDriver
-
             self.driver = StretchDriver(self.model, self.p["driver_mode"])
             self._stretch_interfaces(cb)
         elif self.p["interface"] == "action":
@@ -116,8 +117,6 @@ class SimRobotNode:
         self.pub_status = node.create_publisher(String, "~/status", 10)
         self.pub_description = None
         if self.p["robot_description_topic"]:
-            from .robots.robot_description import description_qos
-
             self.pub_description = node.create_publisher(String, self.p["robot_description_topic"], description_qos())
             self.pub_description.publish(String(data=self.robot.urdf.path.read_text()))
         self.pub_mocap = None
@@ -150,8 +149,6 @@ class SimRobotNode:
         holds."""
         from rclpy.action import ActionServer
         from rclpy.callback_groups import ReentrantCallbackGroup
-
-        from .robots.adapters import import_follow_joint_trajectory
 
         fjt = import_follow_joint_trajectory()
         if fjt is None:
@@ -272,8 +269,6 @@ class SimRobotNode:
         from std_msgs.msg import Bool, String
         from std_srvs.srv import SetBool, Trigger
 
-        from .robots.adapters import import_follow_joint_trajectory
-
         fjt = import_follow_joint_trajectory()
         if fjt is None:
             raise RuntimeError("the Stretch driver profile needs control_msgs (scripts/build_interfaces.sh)")
@@ -353,8 +348,6 @@ class SimRobotNode:
 
     async def _execute_goal(self, goal_handle):
         from rclpy.task import Future
-
-        from .robots.sim_stretch import BASE_JOINT
 
         goal = goal_handle.request
         tr, mt = goal.trajectory, goal.multi_dof_trajectory
@@ -491,8 +484,6 @@ def _unit(q) -> np.ndarray:
 
 
 def main(args=None) -> int:
-    from .runner import run_nodes
-
     return run_nodes([SimRobotNode], args, description=__doc__, prog="sim_robot")
 
 

@@ -12,6 +12,8 @@ import json
 import sys
 import time
 
+from . import core, planner_setup
+
 
 def main(args=None) -> int:
     ap = argparse.ArgumentParser(prog="warm_up", description=__doc__.split("\n\n")[0])
@@ -25,7 +27,6 @@ def main(args=None) -> int:
     import torch
 
     torch.set_num_threads(2)
-    from . import core, planner_setup
 
     t0 = time.perf_counter()
     scene, robot = core.load_scene_and_robot(a.scene)

@@ -10,7 +10,8 @@ from __future__ import annotations
 import importlib
 from typing import Sequence
 
-from ..errors import PsprmError
+from ..errors import ConfigError, PsprmError
+from ..yamlio import Fields, leaf_paths, replace_settings, setting_value, typed_value
 
 #: Planner name -> ``"module:Class"`` (imported on first use).
 BASELINES = {
@@ -125,9 +126,6 @@ def parse_settings(items: Sequence[str], cls: type, label: str, fixed: Sequence[
     import dataclasses
 
     import yaml
-
-    from ..errors import ConfigError
-    from ..yamlio import Fields, leaf_paths, replace_settings, setting_value, typed_value
 
     paths = leaf_paths(cls)
     defaults = cls()

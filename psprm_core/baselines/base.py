@@ -37,6 +37,7 @@ from typing import Optional, Protocol, Sequence, Type, TypeVar, runtime_checkabl
 import numpy as np
 
 from ..errors import ConfigError
+from ..paths import config_dir
 from ..planning.psprm import PlanResult
 from ..yamlio import Fields, dataclass_kwargs, load_yaml
 from .context import CameraFK, PlanningContext, aim_camera, failure, path_length
@@ -111,8 +112,6 @@ S = TypeVar("S")
 
 def baselines_yaml() -> Path:
     """``config/planners/baselines.yaml``."""
-    from ..paths import config_dir
-
     return config_dir() / "planners" / "baselines.yaml"
 
 

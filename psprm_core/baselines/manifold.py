@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from ..planning.psprm import PlanResult
-from ._ompl import ActiveSpace, _ompl
+from ._ompl import ActiveSpace, _ompl, rrt_connect
 from ..planning.results import Failure
 from .base import ContextPlanner, PlanningContext, failure
 
@@ -138,8 +138,6 @@ class _ManifoldPlanner(ContextPlanner):
             return sp
 
         # the constraint must be built per goal (it depends on the planned joints): wrap rrt_connect's keywords
-        from ._ompl import rrt_connect
-
         t_left = timeout_s
         W, reason, gi, timed_out, stats = None, "no goal", -1, False, {}
         for k, g in enumerate(ok_goals if len(ok_goals) == 1 else ok_goals[np.argsort(

@@ -15,6 +15,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..planning.factory import make_planner
 from ..planning.psprm import PlanResult
 from ..planning.results import Failure
 from .base import failure, path_length
@@ -34,8 +35,6 @@ class PSPRMBenchPlanner:
 
     def __init__(self, name: str, scene, targets: Sequence[str], robot=None, seed: int = 0,
                  n_nodes: Optional[int] = None, **overrides):
-        from ..planning.factory import make_planner
-
         self.name = name
         self.targets = list(targets)
         self.planner = make_planner(name, scene, self.targets, robot=robot,

@@ -57,6 +57,9 @@ import torch
 
 from ..errors import InputError
 from ..kernels.compute import bulk
+from ..problems import random_problems
+from .base import PlanningContext
+from .rl_settings import PPOSettings
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +92,6 @@ class ActivePerceptionEnv(gym.Env):
     def __init__(self, scene, targets: Sequence[str], robot=None, settings=None, problems: Optional[list] = None,
                  seed: int = 0, context=None):
         from ..planning.factory import make_scorer
-        from .base import PlanningContext
-        from .rl_settings import PPOSettings
 
         super().__init__()
         self.settings = settings if settings is not None else PPOSettings()
@@ -245,8 +246,6 @@ class ActivePerceptionEnv(gym.Env):
     def problems(self) -> list:
         """The pool of (start, goal) pairs episodes are drawn from (generated on first use)."""
         if self._problems is None:
-            from ..problems import random_problems
-
             s = self.settings
             rng = np.random.default_rng(self._seed + 7919)
             self._problems = random_problems(self.robot, self.scene, self.ctx.checker, s.problems, rng,

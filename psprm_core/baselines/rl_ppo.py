@@ -36,9 +36,12 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from ..paths import cache_dir
+from .base import PlanningContext, failure, resolve_settings
 from .rl_settings import PPOSettings
 from ..errors import InputError
 from ..planning.results import Failure
+from .trajopt import index_of_goal
 
 log = logging.getLogger(__name__)
 
@@ -89,8 +92,6 @@ def _load_obs_stats(path: Path) -> dict:
 
 
 def rl_cache_dir() -> Path:
-    from ..paths import cache_dir
-
     d = cache_dir() / "rl"
     d.mkdir(parents=True, exist_ok=True)
     return d
@@ -111,8 +112,6 @@ class PPOPlanner:
 
     def __init__(self, name: str = "rl-ppo", scene=None, targets: Sequence[str] = (), robot=None, seed: int = 0,
                  settings: Optional[PPOSettings] = None, **overrides):
-        from .base import PlanningContext, resolve_settings
-
         if scene is None or not targets:
             raise InputError("PPOPlanner needs a scene and at least one target")
         self.name = name
@@ -246,9 +245,6 @@ class PPOPlanner:
         ``dense`` is the executed motion (every step's differential-drive motion, densified and collision-checked
         again by :meth:`PlanningContext.execute`).
         """
-        from .base import failure
-        from .trajopt import index_of_goal
-
         t0 = time.perf_counter()
         if self.model is None:
             return failure("policy not trained (call prepare() first)", t0, Failure.NOT_BUILT)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ..errors import ConfigError
+
 
 @dataclass(frozen=True)
 class PPOSettings:
@@ -61,15 +63,11 @@ class PPOSettings:
         except ValueError:
             out = []
         if not out or min(out) < 1:
-            from ..errors import ConfigError
-
             raise ConfigError("rl_ppo settings", "net_arch",
                               f"expected sizes like '256-256-128', got '{self.net_arch}'")
         return out
 
     def validate(self, source: str = "rl_ppo settings") -> None:
-        from ..errors import ConfigError
-
         self.layers()
         if self.n_steps < 2 or self.batch_size < 2 or self.total_timesteps < 1 or self.max_steps < 1:
             raise ConfigError(source, "n_steps", "n_steps, batch_size >= 2, total_timesteps, max_steps >= 1")

@@ -57,8 +57,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
-from ..errors import InputError
+from ..errors import ConfigError, InputError
 from ..planning.results import Failure
+from .base import PlanningContext, failure, resolve_settings
 from .trajopt_problem import TrajOptProblem, _wrap, arc_segments
 
 log = logging.getLogger(__name__)
@@ -100,8 +101,6 @@ class TrajOptSettings:
     seed: int = 0  # unused (the optimisation is deterministic); part of the common settings
 
     def validate(self, source: str = "trajopt settings") -> None:
-        from ..errors import ConfigError
-
         if self.n_waypoints < 3:
             raise ConfigError(source, "n_waypoints", "need at least 3 waypoints")
         if self.collision_substeps < 0 or self.penalty_rounds < 1 or self.max_nfev < 1:
@@ -160,8 +159,6 @@ class TrajOptPlanner:
 
     def __init__(self, name: str = "trajopt", scene=None, targets: Sequence[str] = (), robot=None, seed: int = 0,
                  settings: Optional[TrajOptSettings] = None, **overrides):
-        from .base import PlanningContext, resolve_settings
-
         if scene is None or not targets:
             raise InputError("TrajOptPlanner needs a scene and at least one target")
         self.name = name
@@ -225,8 +222,6 @@ class TrajOptPlanner:
         nonholonomic residual the chord follows the mean heading, so this is the optimised arc up to the
         discretisation). Failures come with a reason, never an exception.
         """
-        from .base import failure
-
         t0 = time.perf_counter()
         timeout_s = self.settings.timeout_s if timeout_s is None else float(timeout_s)
         given = goals
@@ -303,8 +298,6 @@ class TrajOptPlanner:
 
     def _solve(self, start: np.ndarray, goal: np.ndarray, t0: float, deadline: float):
         """Straight-line initialisation first, then up to ``restarts`` bent initialisations (first success wins)."""
-        from .base import failure
-
         res = failure("optimisation not run", t0)
         reasons = []
         for attempt in range(1 + (self.settings.restarts if self.robot.mobile else 0)):
@@ -318,8 +311,6 @@ class TrajOptPlanner:
 
     def _solve_from(self, start: np.ndarray, goal: np.ndarray, attempt: int, t0: float, deadline: float):
         from scipy.optimize import least_squares
-
-        from .base import failure
 
         s = self.settings
         goal_u = self._unwrap_goal(start, goal)
@@ -357,8 +348,6 @@ class TrajOptPlanner:
         return res
 
     def _accept(self, Q: np.ndarray, goal: np.ndarray, goal_u: np.ndarray, t0: float):
-        from .base import failure
-
         s, r = self.settings, self.robot
         err = np.abs(Q[-1] - goal_u)
         if err.max() > s.goal_tolerance:

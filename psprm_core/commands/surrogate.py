@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from .bench import add_backend_arguments
-from ..errors import InputError
+from ..errors import InputError, PsprmError
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +195,6 @@ def _eval(args) -> int:
     import numpy as np
     import torch
 
-    from ..errors import PsprmError
     from ..paths import resolve_named
     from ..perception.dataset import load_dataset
     from ..perception.occlusion import OcclusionChecker

@@ -10,7 +10,18 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from ..collision import CollisionChecker
+from ..geometry import yaw_to_quat
+from ..paths import config_dir, resolve_named
+from ..perception.oracle import Oracle
+from ..planning.factory import default_alpha, make_planner, make_scorer, problem_configurations
+from ..planning.psprm import PSPRM, PSPRMSettings
+from ..planning.replanner import Replanner, ReplanSettings
 from ..problems import random_problems
+from ..robot import RobotModel
+from ..scene import load_scene
+from .reference import PybulletWorld, sample_uniform
+from .simulation import PersonMotion, person_pose
 
 log = logging.getLogger(__name__)
 
@@ -44,12 +55,6 @@ def kinematics_benchmark(robot_name: str, scene_name: str, n: int = 10000, seed:
     the false-positive rate (torch in collision but pybullet free, over pybullet-free configurations) and the FK
     agreement with pybullet on ``fk_check`` configurations.
     """
-    from ..collision import CollisionChecker
-    from ..paths import resolve_named
-    from .reference import PybulletWorld, sample_uniform
-    from ..robot import RobotModel
-    from ..scene import load_scene
-
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(robot_name)
@@ -106,12 +111,6 @@ def _built_planner(scene_name: str, planner: str, nodes: int, problems: int, see
     are only pushed towards the target from the default pose (10 Gauss-Newton steps, converged or not); on the mobile
     UR5, whose whole arm aims the wrist camera, 9 in 10 such ends then lie off the visibility manifold.
     ``overrides``: planner settings (as ``psprm bench --set``)."""
-    from ..collision import CollisionChecker
-    from ..paths import resolve_named
-    from ..planning.factory import make_planner
-    from ..robot import RobotModel
-    from ..scene import load_scene
-
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
@@ -185,12 +184,6 @@ def preprocess_benchmark(scene_name: str = "home", target: str | None = None, no
     oracle's measured seconds per view.
     """
 
-    from ..paths import config_dir, resolve_named
-    from ..planning.factory import default_alpha, make_scorer
-    from ..planning.psprm import PSPRM, PSPRMSettings
-    from ..robot import RobotModel
-    from ..scene import load_scene
-
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
@@ -249,8 +242,6 @@ def surrogate_transfer(scene_name: str = "home", target: str | None = None, samp
     under ``checkpoints``, keyed by path), e.g. a studio-only and a fine-tuned surrogate side by side. ``views`` holds
     the per-view record (camera poses, neural and oracle scores) the correlations are computed from."""
     from scipy.stats import spearmanr
-
-    from ..planning.factory import make_scorer
 
     scene, robot, target, p, stats, _ = _built_planner(scene_name, "neural-psprm-line", nodes, 0, seed, threads,
                                                        target)
@@ -315,8 +306,6 @@ def compare_with_shortest_path(scene_name: str, planner: str = "neural-psprm-lin
     path shortcuts are off, so the shortest-path paths are the roadmap's shortest. ``rows`` holds the per-problem
     record (start, goal, success, length, predicted score and the judged frames) the summaries are computed from."""
 
-    from ..perception.oracle import Oracle
-
     scene, robot, target, p, stats, probs = _built_planner(scene_name, planner, nodes, problems, seed, threads,
                                                            target, aimed=aimed)
     alpha = p.settings.scoring.alpha
@@ -371,15 +360,6 @@ def replan_benchmark(scene_name: str = "dynamic_person", planner: str = "neural-
     * ``goal_move``: a new random collision-free goal (base pose anywhere in the workspace, camera aimed).
     """
     import dataclasses
-
-    from ..collision import CollisionChecker
-    from ..geometry import yaw_to_quat
-    from ..paths import resolve_named
-    from ..planning.factory import make_planner, problem_configurations
-    from ..planning.replanner import Replanner, ReplanSettings
-    from ..robot import RobotModel
-    from ..scene import load_scene
-    from .simulation import PersonMotion, person_pose
 
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))

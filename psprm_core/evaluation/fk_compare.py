@@ -11,7 +11,14 @@ import time
 import numpy as np
 import torch
 
+from ..collision import CollisionChecker
+from ..kernels.compute import Compute
+from ..paths import resolve_named
+from ..robot import RobotModel
+from ..robot.kinematics_pk import PKBodyKinematics
+from ..scene import load_scene
 from .benchmarks import best_time, rotation_angle_error
+from .reference import PybulletWorld, sample_uniform
 
 log = logging.getLogger(__name__)
 
@@ -23,14 +30,6 @@ def body_fk_comparison(robot_name: str, scene_name: str, n: int = 10000, seed: i
     configuration at a time, on ``min(fk_check, n)`` of them), and of the collision checker's torch path on either
     FK; the largest body position / rotation differences from pybullet (float64, on those configurations) and the
     number of configurations whose collision flags differ between the two checkers."""
-    from ..collision import CollisionChecker
-    from ..kernels.compute import Compute
-    from ..paths import resolve_named
-    from ..robot import RobotModel
-    from ..robot.kinematics_pk import PKBodyKinematics
-    from ..scene import load_scene
-    from .reference import PybulletWorld, sample_uniform
-
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(robot_name)

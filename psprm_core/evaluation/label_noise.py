@@ -28,6 +28,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..camera import CameraIntrinsics
+from ..errors import InputError
+from ..paths import project_root
+from ..perception.detectors import default_detector_name, make_detector
+
 log = logging.getLogger(__name__)
 
 
@@ -70,8 +75,6 @@ def perturb_poses(poses: np.ndarray, translation: float = 0.01, rotation_deg: fl
     """
     p = np.array(poses, dtype=float, copy=True)
     if p.ndim != 3 or p.shape[1:] != (4, 4):
-        from ..errors import InputError
-
         raise InputError(f"poses must be (n, 4, 4), got {p.shape}")
     rng = np.random.default_rng(seed)
     n = len(p)
@@ -148,8 +151,6 @@ def labelling_oracle_factory(scorer: str):
     """The :class:`~psprm_core.perception.dataset.OracleFactory` whose description a dataset's metadata records as
     its ``scorer`` (``psprm dataset`` writes ``Oracle(scene=...)`` or ``Oracle(scene=..., {'intrinsics':
     CameraIntrinsics(...)})``); the rebuilt factory describes itself exactly as recorded, or this raises."""
-    from ..camera import CameraIntrinsics
-    from ..errors import InputError
     from ..perception.dataset import OracleFactory
 
     desc = str(scorer or "")
@@ -174,7 +175,6 @@ def labelling_oracle_factory(scorer: str):
 
 def _build_oracle(factory, detectors: dict):
     """The factory's oracle with the given detectors ({class: Detector}; the same models, sized to our threads)."""
-    from ..paths import project_root
     from ..perception.oracle import Oracle
     from ..scene import load_scene
 
@@ -191,9 +191,7 @@ def _relabel(full, parts: list, chosen: np.ndarray, poses: np.ndarray, moved: np
              classes: np.ndarray, reproduce: bool, threads: int) -> dict:
     """Oracle labels of the moved views (and of the unmoved ones with ``reproduce``), each by the oracle of its
     source, with the built-in detectors on ``threads`` threads."""
-    from ..errors import InputError
     from ..perception.dataset_sampling import target_in_fov
-    from ..perception.detectors import default_detector_name, make_detector
 
     n = len(chosen)
     retest, again, thr = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
@@ -288,7 +286,6 @@ def label_noise(checkpoint: str, dataset: str, per_class: int = 200, translation
     """
     import torch
 
-    from ..errors import InputError
     from ..perception.dataset import load_dataset
     from ..perception.surrogate import load_surrogate, target_pose_matrix
     from ..perception.training import TrainConfig, _splits, pool_datasets

@@ -15,6 +15,7 @@ from typing import Iterable, Optional
 import numpy as np
 import torch
 
+from ..collision import CollisionChecker
 from ..geometry import matrix_to_quat
 from ..paths import cache_dir
 from ..robot import RobotModel, image_roll, load_acm
@@ -214,8 +215,6 @@ def compute_acm(robot: RobotModel, samples: int, seed: int = 0, always_fraction:
         world.close()
     allowed, checked = [], []
     import itertools
-
-    from ..collision import CollisionChecker
 
     for a, b in itertools.combinations(sorted(links), 2):
         pr = frozenset((a, b))

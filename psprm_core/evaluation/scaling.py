@@ -35,6 +35,11 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..baselines import make_baseline
+from ..executors import BackendSettings, Executor, Task
+from ..paths import resolve_named
+from .bench import make_problems
+
 #: the paper's protocol: 2,500 home problems per planner (Table II)
 PAPER_PROBLEMS = 2500
 
@@ -47,8 +52,6 @@ def noop(cache) -> int:
 def dispatch_overheads(backend: str, workers: int = 2, tasks: int = 200, address: Optional[str] = None) -> dict:
     """Start-up and per-task dispatch cost of a backend with no-op tasks: ``start_s`` (pool ready), ``round_trip_ms``
     (median over one worker's tasks in turn), ``throughput_per_s`` (all workers, ``tasks`` at once)."""
-    from ..executors import BackendSettings, Executor, Task
-
     t0 = time.perf_counter()
     with Executor(BackendSettings(backend=backend, workers=workers, address=address)) as ex:
         ex.worker_pids()  # starts the pool
@@ -74,9 +77,6 @@ def reset_cost(scene_name: str = "home", planner: str = "neural-psprm-line", nod
     ``problems`` queries), next to the build and query times of the same planner."""
     import torch
 
-    from ..baselines import make_baseline
-    from .bench import make_problems
-    from ..paths import resolve_named
     from ..robot import RobotModel
     from ..scene import load_scene
 
@@ -102,7 +102,6 @@ def reset_cost(scene_name: str = "home", planner: str = "neural-psprm-line", nod
 def labelling_cost(scene_name: str = "surrogate_studio", views: int = 5, seed: int = 0) -> dict:
     """Seconds per oracle-labelled view (render + the class's real detector), per target of the scene, over ``views``
     sampled views each (the oracle built first; its build time reported apart)."""
-    from ..paths import resolve_named
     from ..perception.dataset import OracleFactory, SamplingConfig, sample_camera_poses
     from ..scene import load_scene
 

@@ -56,6 +56,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import ConfigError
+from ..prediction import turned
 from ..yamlio import Fields, load_yaml
 
 
@@ -368,8 +369,6 @@ def person_pose(scene, motion: PersonMotion, yaw: float, xy: Optional[Sequence[f
 
     The target keeps its offset from the body centre (rotated with the body) and its roll and pitch. Returns
     ``{"target": (center, quat), "body": (center, quat) or None}``."""
-    from ..prediction import turned
-
     face0 = scene.target(motion.target)
     body0 = scene.obstacle(motion.body) if motion.body else None
     pivot0 = body0.center if body0 is not None else face0.center

@@ -41,13 +41,24 @@ import numpy as np
 import torch
 
 from ..errors import PsprmError
+from ..motion import DiffDriveMotion
+from ..paths import resolve_named
+from ..perception.oracle import Oracle
+from ..planning.constraints import ProjectionSettings
 from ..planning.execution import SplicedTrajectory
+from ..planning.factory import make_planner
+from ..planning.replanner import Replanner, ReplanSettings
+from ..prediction import quat_yaw
+from ..robot import RobotModel
+from ..scene import load_scene
 from ..yamlio import replace_settings
 from .dynamic.episodes import (FrameJudge, count_collisions, count_self_collisions, detection_metrics, execute_fixed,
                                frame_every, frames_of, json_safe, judge_record, speed_ratio, wrap_heading)
+from .dynamic.hindsight import SEARCHES, VARIANTS, run_hindsight
 from .scenario_world import World, at_goal, goal_configurations
 from .scenarios import (Keyframe, MotionVariation, PersonMotion, PoseKeyframe, Scenario, draw_variation,
                         load_scenario, person_pose)
+from .viz import plot_scene_top
 
 __all__ = ["MODES", "REPLANNING_MODES", "DEFAULT_LATENCY_S", "run_episode", "mode_settings", "judge_frames",
            "summarize", "plot_episodes", "simulate", "json_safe",
@@ -73,8 +84,6 @@ def mode_settings(mode: str, base):
 
 
 def _aimer(planner):
-    from ..planning.constraints import ProjectionSettings
-
     def aim(Q: np.ndarray) -> np.ndarray:
         if len(planner.track_cols) == 0:
             return Q
@@ -112,12 +121,6 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
     ``stops``, ``failed_replans``), ``adoptions`` (each adopted replan: the old and new trajectory, their time
     origins), ``waits`` (the stops' waits at rest), ``reached_goal`` / ``arrival_s``, ``first_plan_s``,
     ``collision_steps``, ``max_jump`` and summary inputs (see :func:`summarize`)."""
-    from ..paths import resolve_named
-    from ..planning.factory import make_planner
-    from ..planning.replanner import Replanner, ReplanSettings
-    from ..robot import RobotModel
-    from ..scene import load_scene
-
     if replanning is not None and not replanning:
         mode = "static"
     if not (math.isfinite(latency_s) and latency_s >= 0):
@@ -162,8 +165,6 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
         rec["frames_scene"] = [world.poses(float(t)) for t in rec["times"][::k]]
         out.update(rec)
     elif mode == "hindsight":
-        from .dynamic.hindsight import SEARCHES, VARIANTS, run_hindsight
-
         h = run_hindsight(scenario, world, planner, settings, start, aim, first_traj=traj, judge=judge,
                           searches=hindsight_searches or SEARCHES, variants=hindsight_variants or VARIANTS,
                           judged=hindsight_judged)
@@ -274,8 +275,6 @@ def judge_frames(ep: dict, oracle, target=None) -> None:
 
 def summarize(ep: dict) -> dict:
     """Summary numbers of an episode (the keys of ``psprm simulate --json``; None where a number does not exist)."""
-    from ..motion import DiffDriveMotion
-
     ex = ep["executed"]
     motion = DiffDriveMotion(ep["robot"])
     length = float(motion.distance(torch.as_tensor(ex[:-1]), torch.as_tensor(ex[1:])).sum()) if len(ex) > 1 else 0.0
@@ -304,9 +303,6 @@ def plot_episodes(episodes: dict, scenario: Scenario, path: str | Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from ..prediction import quat_yaw
-    from .viz import plot_scene_top
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -352,13 +348,6 @@ def simulate(scenario_path: str | Path, compare_static: bool = True, plot: Optio
     planner; ``replan_overrides``: :class:`~psprm_core.planning.replanner.ReplanSettings` fields (both episodes use
     them: the static one for its single plan)."""
     import tempfile
-
-    from ..paths import resolve_named
-    from ..perception.oracle import Oracle
-    from ..planning.factory import make_planner
-    from ..planning.replanner import ReplanSettings
-    from ..robot import RobotModel
-    from ..scene import load_scene
 
     if mode not in REPLANNING_MODES:
         raise PsprmError(f"simulate runs a replanning mode ({', '.join(REPLANNING_MODES)}), not '{mode}'")

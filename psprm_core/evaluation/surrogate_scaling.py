@@ -21,6 +21,8 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ..errors import InputError
+
 log = logging.getLogger(__name__)
 
 
@@ -62,7 +64,6 @@ def surrogate_scaling(dataset: Sequence[str], fractions: Sequence[float] = (0.25
                       threads: Optional[int] = 2, target: float = 0.946, subset_seed: int = 0,
                       allow_incomplete: bool = False) -> dict:
     """Train and judge the surrogates described in the module docstring; returns the rows and the fitted growth."""
-    from ..errors import InputError
     from ..perception.dataset import load_dataset
     from ..perception.training import (TrainConfig, _predict_features, _splits, dataset_tensors, fit_surrogate,
                                        pool_datasets)

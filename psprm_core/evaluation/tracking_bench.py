@@ -8,6 +8,10 @@ import time
 import numpy as np
 import torch
 
+from ..kernels.compute import Compute
+from ..robot import RobotModel
+from ..tracking import CheckedPath
+
 
 def tracking_benchmark(robot_name: str, rounds: int = 20, seed: int = 0, threads: int = 1) -> dict:
     """The path tolerance's measure (:mod:`psprm_core.tracking`) with the compiled corner kernel against torch's FK,
@@ -16,10 +20,6 @@ def tracking_benchmark(robot_name: str, rounds: int = 20, seed: int = 0, threads
     :class:`~psprm_core.tracking.CheckedPath` of it, the distances of 6 configurations from it over a 7 s window,
     the latest time one of them lies on it, 5 deviations) and of one control step (a deviation). Medians in ms, the
     ratio, and the largest difference of the distances (m) between the two."""
-    from ..kernels.compute import Compute
-    from ..robot import RobotModel
-    from ..tracking import CheckedPath
-
     torch.set_num_threads(threads)
     fast = RobotModel.load(robot_name)
     if not fast.compute.compiled:

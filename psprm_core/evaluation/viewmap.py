@@ -8,6 +8,9 @@ from typing import Sequence
 
 import numpy as np
 
+from ..errors import PsprmError
+from ..paths import resolve_named
+
 
 def detection_map(scene_name: str = "home", target: str | Sequence[str] | None = None, spacing: float = 0.5,
                   extra_roll_deg: float = 0.0, clearance: float = 0.2, placement: int = 0) -> dict:
@@ -33,8 +36,6 @@ def detection_map(scene_name: str = "home", target: str | Sequence[str] | None =
     """
     import torch
 
-    from ..errors import PsprmError
-    from ..paths import resolve_named
     from ..perception.oracle import Oracle
     from ..perception.render import look_at_pose
     from ..robot import RobotModel, image_roll

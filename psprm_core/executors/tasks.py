@@ -12,6 +12,8 @@ from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Callable, Hashable, Optional
 
+from ..errors import PsprmError
+
 log = logging.getLogger(__name__)
 
 BACKENDS = ("local", "ray")
@@ -45,8 +47,6 @@ class BackendSettings:
     start_method: str = "spawn"
 
     def validate(self) -> None:
-        from ..errors import PsprmError
-
         if self.backend not in BACKENDS:
             raise PsprmError(f"unknown backend '{self.backend}' (choose from {', '.join(BACKENDS)})")
         if self.workers is not None and self.workers < 0:

@@ -14,6 +14,8 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch
 
+from ..geometry import EPS_DIR as _EPS_DIR
+from ._fast_packs import EdgeOpts, OcclusionPack, ScorerPack
 from .arrays import as_f64, as_i64, const_f64
 from .fastpath import kernels, solver_pack
 
@@ -61,8 +63,6 @@ def _edge_opts(motion, n_interp: int, track: bool, r32: bool, resolution: float 
                mlp_rows: int = 1) -> tuple:
     """The options of the fused edge kernels (:class:`~psprm_core.kernels._fast_packs.EdgeOpts`), typed as the kernels
     were compiled for (the motion's :meth:`DiffDriveMotion.kernel_pack`, int, bool, bool, float, int, int)."""
-    from ._fast_packs import EdgeOpts
-
     return EdgeOpts(motion.kernel_pack(), int(n_interp), bool(track), bool(r32), float(resolution), int(max_steps),
                     int(mlp_rows))
 
@@ -83,9 +83,6 @@ def neural_args(scorer, dtype: torch.dtype) -> tuple | None:
     single-target neural scorer (``NeuralScorer``: ``model``, ``target_pose``, ``class_name``, ``occ``, ``tau``) for
     :func:`check_score_knots` of cameras in ``dtype``, or None when the compiled scoring does not apply (another
     scorer, a model off the CPU or not float32)."""
-    from ..geometry import EPS_DIR as _EPS_DIR
-    from ._fast_packs import OcclusionPack, ScorerPack
-
     model = getattr(scorer, "model", None)
     if getattr(scorer, "name", None) != "neural" or model is None or getattr(model, "device", None) is None or \
             model.device.type != "cpu" or not isinstance(getattr(scorer, "class_name", None), str):

@@ -50,12 +50,14 @@ from typing import Any, Callable, Optional, Sequence, Union
 
 import numpy as np
 
+from ..executors import BackendSettings, Executor, Task
 from ..scene import Target
 from ..errors import ConfigError, InputError
 from .dataset_labelling import OracleFactory, _close_scorer, _factory_key, _label_chunk, _score_fn, label_task
 from .dataset_sampling import (_MAX_ELEVATION, SamplingConfig, _aim_with_pixel, _pan_tilt_for_pixel, _pan_tilt_matrix,
                                _per_target_counts, _pixel_rays, _rodrigues, generate_samples, sample_camera_poses,
                                target_in_fov, view_parameters)
+from .surrogate import target_pose_matrix
 
 log = logging.getLogger(__name__)
 
@@ -262,8 +264,6 @@ def build_dataset(out_dir: Union[str, Path], targets: Sequence[Target], scorer_f
         meta["complete"] = meta["chunks_done"] == n_chunks
         _write_json(meta_path, meta)
 
-    from ..executors import BackendSettings, Executor, Task
-
     if backend is None:
         backend = BackendSettings(workers=max(0, int(workers)), start_method=start_method)
     tasks = [Task(chunk_id, label_task, (scorer_factory, samples["camera_poses"][lo:hi],
@@ -332,7 +332,6 @@ class PerceptionDataset:
     @property
     def target_poses(self) -> np.ndarray:
         """(N, 4, 4) pose of each sample's target."""
-        from .surrogate import target_pose_matrix
         per_target = np.stack([target_pose_matrix(t) for t in self.targets])
         return per_target[self.target_index]
 

@@ -11,6 +11,8 @@ from typing import Any, Callable, Optional, Sequence
 
 import numpy as np
 
+from ..paths import project_root
+
 
 # ------------------------------------------------------------------------------------------------------------------
 # Labelling workers
@@ -37,7 +39,6 @@ class OracleFactory:
         return f"Oracle(scene={self.scene_path}{extra})"
 
     def __call__(self) -> Any:
-        from ..paths import project_root
         from ..scene import load_scene
         from .oracle import Oracle
 

@@ -48,9 +48,11 @@ import torch
 
 from ..errors import InputError
 from ..geometry import EPS_DIR as _EPS_DIR, quat_to_matrix
+from ..kernels._fast_packs import OcclusionPack
 from ..kernels.arrays import as_f64
 from ..kernels.compute import Computing
 from ..scene import Box, Scene, Target
+from .appearance import get_appearance
 
 log = logging.getLogger(__name__)
 
@@ -173,7 +175,6 @@ def is_front_facing(target: Union[Target, Box]) -> bool:
     i.e. what a camera must see is that side, not the whole box. 3-D appearances (a plant) are seen all round."""
     if not isinstance(target, Target):
         return False
-    from .appearance import get_appearance
 
     try:
         app = get_appearance(target.appearance, target.detector_class)
@@ -422,8 +423,6 @@ class OcclusionChecker(Computing):
         :class:`~psprm_core.kernels._fast_packs.OcclusionPack` (target points and centre in every box frame, boxes grown
         by the points' radius, box centres, rotations, half extents, ``count_inside``, the direction eps). Kept until
         the boxes, the points or ``count_inside`` are replaced."""
-        from ..kernels._fast_packs import OcclusionPack
-
         key = (self.boxes, self.target_points, bool(self.count_inside))
         got = self.__dict__.get("_kernel_pack")
         if got is None or any(a is not b for a, b in zip(got[0][:2], key[:2])) or got[0][2] != key[2]:

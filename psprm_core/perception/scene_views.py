@@ -20,8 +20,11 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from ..planning.factory import make_planner
+from ..robot import RobotModel
 from .dataset import view_parameters
 from ..errors import InputError
+from .occlusion import OcclusionChecker
 
 log = logging.getLogger(__name__)
 
@@ -61,10 +64,6 @@ def roadmap_views(scene, targets: Sequence[str], n_per_target: int, nodes: int =
         arrays, ``origin`` (N,) int8 (0 = node, 1 = edge sample) and ``stats`` (per target: roadmap size, views
         drawn, views dropped as occluded).
     """
-    from ..planning.factory import make_planner
-    from ..robot import RobotModel
-    from .occlusion import OcclusionChecker
-
     if n_per_target < 1:
         raise InputError(f"n_per_target must be positive, got {n_per_target}")
     if not 0.0 <= edge_fraction <= 1.0:

@@ -24,6 +24,7 @@ import torch
 from ..camera import CameraIntrinsics
 from ..scene import Scene
 from ..errors import InputError
+from .occlusion import OcclusionChecker
 
 log = logging.getLogger(__name__)
 
@@ -96,8 +97,6 @@ class GeometricScorer(Scorer):
         self.set_scene(scene)
 
     def set_scene(self, scene: Scene) -> None:
-        from .occlusion import OcclusionChecker
-
         self.scene = scene
         t = scene.target(self.target_name)
         self.center = torch.as_tensor(t.center, dtype=torch.float64)
@@ -166,8 +165,6 @@ class NeuralScorer(Scorer):
         self.set_scene(scene)
 
     def set_scene(self, scene: Scene) -> None:
-        from .occlusion import OcclusionChecker
-
         self.scene = scene
         t = scene.target(self.target_name)
         self.class_name = t.detector_class

@@ -36,6 +36,7 @@ import torch
 from torch import nn
 
 from ..errors import InputError, OutOfRangeError, UnknownNameError
+from ..kernels._fast_packs import MlpPack
 from ..kernels.compute import Computing
 
 log = logging.getLogger(__name__)
@@ -350,8 +351,6 @@ class PerceptionSurrogate(Computing, nn.Module):
         compiled MLP (:mod:`psprm_core.kernels.fastpath`), None when the layers are not float32 or the net does not end
         in a single output. Kept on the model until a parameter or buffer changes: in place (the tensors' versions) or
         by new storage (``.to()``, ``load_state_dict``)."""
-        from ..kernels._fast_packs import MlpPack
-
         cache = self.__dict__.get("_kernel_layers")
         tensors = cache[1] if cache is not None else list(self.parameters()) + list(self.buffers())
         key = (cls,) + tuple((t._version, t.data_ptr()) for t in tensors)

@@ -36,6 +36,7 @@ from torch import nn
 
 from .dataset import PerceptionDataset, load_dataset, split_dataset
 from .metrics import DEFAULT_THRESHOLD, occlusion_metrics, perception_metrics
+from .occlusion import OcclusionChecker
 from .surrogate import PerceptionSurrogate, pose_features
 from ..errors import InputError
 
@@ -407,7 +408,6 @@ def evaluate_surrogate(model: Union[str, Path, PerceptionSurrogate], dataset: Un
     pred = _predict_features(model, feats, cls).numpy()
     out = {"split": split, "n": len(ds), "metrics": perception_metrics(pred, ds.scores, threshold)}
     if scene is not None:
-        from .occlusion import OcclusionChecker
         occ_scores = np.zeros(len(ds))
         for ti, t in enumerate(ds.targets):
             sel = ds.target_index == ti

@@ -27,6 +27,7 @@ import torch
 from ..camera import CameraIntrinsics
 from ..errors import InputError
 from ..geometry import wrap_angle
+from ..kernels._fast_packs import ViewPack
 from ..kernels.arrays import const_f64
 from ..kernels.compute import Compute, Computing
 from ..robot import RobotModel
@@ -171,8 +172,6 @@ class VisibilityConstraint(Computing):
         :class:`~psprm_core.kernels._fast_packs.ViewPack` of the target (rounded to ``dtype``, as the torch path casts
         it; kept until the target changes), the model, the minimum distance, the far plane, the half-view tangents and
         the margin (:meth:`residual_jacobian`)."""
-        from ..kernels._fast_packs import ViewPack
-
         intr = self.intr
         return ViewPack(const_f64(self.target, dtype), self.kind == "line", float(self.min_distance),
                         float(intr.far), float(intr.tan_half_h), float(intr.tan_half_v), float(self.margin))

@@ -10,6 +10,9 @@ import numpy as np
 from ..errors import ConfigError, PsprmError
 from ..kernels.compute import Compute
 from ..paths import config_dir, project_root
+from ..perception.oracle import Oracle
+from ..perception.scoring import GeometricScorer, MultiTargetScorer, NeuralScorer, OracleScorer
+from ..perception.surrogate import load_surrogate
 from ..robot import RobotModel
 from ..scene import Scene
 from .psprm import PSPRM, VARIANTS, PSPRMSettings
@@ -43,21 +46,15 @@ def default_checkpoint() -> Path:
 def make_scorer(kind: str, scene: Scene, targets: Sequence[str], intrinsics, checkpoint: Optional[Path] = None,
                 multi_mode: str = "mean", oracle=None):
     """Scorer of one or several targets: ``neural`` (surrogate + ray casting), ``oracle`` or ``geometric``."""
-    from ..perception.scoring import GeometricScorer, MultiTargetScorer, NeuralScorer, OracleScorer
-
     for t in targets:
         scene.target(t)  # clear error for unknown targets
     if kind == "neural":
-        from ..perception.surrogate import load_surrogate
-
         ck = Path(checkpoint) if checkpoint else default_checkpoint()
         if not ck.is_file():
             raise PsprmError(f"surrogate checkpoint not found: {ck} (train one with `psprm dataset` + `psprm train`)")
         model = load_surrogate(ck)
         per = [NeuralScorer(model, scene, t) for t in targets]
     elif kind == "oracle":
-        from ..perception.oracle import Oracle
-
         oracle = oracle or Oracle(scene, intrinsics=intrinsics)
         per = [OracleScorer(oracle, t) for t in targets]
     elif kind == "geometric":

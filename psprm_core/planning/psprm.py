@@ -33,6 +33,7 @@ from ..errors import ConfigError
 from ..kernels.compute import Compute, compute_for
 from ..motion import DiffDriveMotion
 from ..robot import RobotModel
+from ..robot.kinematics_pk import PKBodyKinematics, PKCameraKinematics
 from ..scene import Scene
 from .constraints import VisibilityConstraint, camera_joint_mask
 from .pipeline import Pipeline
@@ -81,8 +82,6 @@ class PSPRM:
             scorer = scorer.using(compute) if hasattr(scorer, "using") else scorer
         kin = body_kin = None
         if settings.visibility.kinematics == "pytorch_kinematics":
-            from ..robot.kinematics_pk import PKBodyKinematics, PKCameraKinematics
-
             kin = PKCameraKinematics(robot, device=device)
             body_kin = None if checker is not None else PKBodyKinematics(robot, device=device, dtype=dtype)
         pad = settings.edges.collision_padding

@@ -20,6 +20,7 @@ from ..errors import ConfigError, RobotModelError
 from ..geometry import make_transform, rpy_to_matrix
 from ..paths import cache_dir, resolve_named
 from ..yamlio import Fields, load_yaml
+from .urdf import find_mesh, parse_urdf, resolve_mesh
 
 log = logging.getLogger(__name__)
 
@@ -208,7 +209,6 @@ def _generate_mobile_arm(spec: dict, source: str) -> Path:
         return out
     tree = ET.parse(arm_path)
     root = tree.getroot()
-    from .urdf import resolve_mesh
 
     for mesh in root.iter("mesh"):
         mesh.set("filename", str(resolve_mesh(mesh.get("filename"), arm_path)))
@@ -342,8 +342,6 @@ def description_urdf(cfg: RobotConfig, urdf_text: str, origin: str = "robot desc
     import os
     import tempfile
     import xml.etree.ElementTree as ET
-
-    from .urdf import find_mesh, parse_urdf
 
     if not isinstance(urdf_text, str) or not urdf_text.strip():
         raise RobotModelError(f"{origin}: empty URDF")

@@ -15,6 +15,7 @@ import torch
 
 from ..errors import ConfigError, InputError, RobotModelError, UnknownNameError
 from ..geometry import axis_angle_matrix_torch
+from ..kernels._fast_packs import PRISMATIC, REVOLUTE, ROOT, RobotPack
 from ..kernels.arrays import as_f64, as_i64
 from ..kernels.compute import Computing
 from ..yamlio import load_yaml
@@ -282,8 +283,6 @@ class RobotModel(Computing):
         (root excluded), parent bodies, joint types, joint origins, axes, drive matrix and offset (float64, int64; the
         quantities of :meth:`tensors` and :meth:`_poses`), the mobile-base flag and the camera body with its offset
         (:meth:`_camera_from_body`). Built on first use and kept: the body tree does not change."""
-        from ..kernels._fast_packs import PRISMATIC, REVOLUTE, ROOT, RobotPack
-
         jtype = np.array([ROOT if j is None else (PRISMATIC if j.type == "prismatic" else REVOLUTE)
                           for j in self.body_joint], dtype=np.int64)
         offs = np.stack(self.body_joint_offset)

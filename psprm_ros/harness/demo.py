@@ -44,9 +44,20 @@ from pathlib import Path
 
 import numpy as np
 
+from psprm_core.errors import PsprmError
+
+from .. import core
+from ..heap import freeze_long_lived
 from ..interfaces import conversions as cv
+from ..interfaces.recordings import load_recording
+from ..mocap_replay import Replayer
+from ..robots.adapters import load_adapter
+from ..robots.robot_state import RobotStateTracker
+from ..spinning import NodeSpinner
 from .demo_analysis import adapter_stops, analyse, rest_arrival, strict_json
-from .probe import claim_domain_id
+from .demo_config import default_recording, demo_config, params_frames, read_params
+from .probe import InProcessSuite, Probe, claim_domain_id
+from .soak_report import save_record
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -58,10 +69,6 @@ class Record:
         from diagnostic_msgs.msg import DiagnosticArray
         from nav_msgs.msg import Odometry
         from sensor_msgs.msg import JointState
-
-        from .. import core
-        from ..robots.adapters import load_adapter
-        from ..robots.robot_state import RobotStateTracker
 
         self.lock = threading.Lock()
         self.tracker = RobotStateTracker(robot, frames, "odom", load_adapter(adapter_name, robot).name_map(),
@@ -187,9 +194,6 @@ class ClosedLoop:
     def start(self, say=None) -> "ClosedLoop":
         import rclpy
 
-        from ..spinning import NodeSpinner
-        from .probe import Probe
-
         env = dict(os.environ, ROS_DOMAIN_ID=str(self.domain), PYTHONUNBUFFERED="1")
         suite = ["bash", str(ROOT / "scripts" / SUITE_SCRIPTS[self.suite]), self.params_file]
         for k, v in self.overrides.items():
@@ -228,8 +232,6 @@ class ClosedLoop:
 
 def _params_frames(params_file: str, scene_frame: str):
     """The input frames of the params file's shared section (the demo reads /odom as the nodes do)."""
-    from .demo_config import params_frames, read_params
-
     return params_frames(read_params(params_file)["roadmap_server"], scene_frame, str(params_file))
 
 
@@ -257,14 +259,6 @@ def main(args=None) -> int:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
-
-    from psprm_core.errors import PsprmError
-
-    from ..heap import freeze_long_lived
-    from ..interfaces.recordings import load_recording
-    from ..mocap_replay import Replayer
-    from .demo_config import default_recording, demo_config
-    from .probe import InProcessSuite
 
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -417,8 +411,6 @@ def main(args=None) -> int:
         say(f"[demo] wrote {out / 'ros_demo.png'} and {out / 'ros_demo.json'}")
         if not result.get("reached_goal") or result.get("executed_collisions"):
             # what went wrong, for a post-mortem: the executed motion, the trajectories and the replayed poses
-            from .soak_report import save_record
-
             with record.lock:
                 ex, poses = list(record.executed), list(record.poses)
             save_record(out / "ros_demo_record.npz", ex, list(probe.trajectories), list(cfg.robot.joint_names),

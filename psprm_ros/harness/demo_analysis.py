@@ -11,6 +11,8 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.evaluation import viz
+
 from ..interfaces import conversions as cv
 
 
@@ -336,8 +338,6 @@ def _figure(path, cfg, record, first, Q, ts, oracle, rows, t_replay) -> None:
     heading and distance from its first pose, the oracle's scores and the plans."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
-
-    from psprm_core.evaluation import viz
 
     scene, robot = cfg.scene, cfg.robot
     fig = Figure(figsize=(14, 5.5), dpi=120)

@@ -31,6 +31,12 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
+from .. import core
+from ..core import resolve_scene
+from ..interfaces.frames import FrameTable
+from ..interfaces.recordings import SHIPPED
+from ..robots.adapters import load_adapter
+
 #: the node sections of a params file
 NODE_SECTIONS = ("roadmap_server", "perception_scorer", "replan_monitor", "robot_adapter", "sim_robot")
 
@@ -134,8 +140,6 @@ def read_params(path) -> dict:
 def params_frames(shared: dict, scene_frame: str, where: str = "params file"):
     """The :class:`~psprm_ros.interfaces.frames.FrameTable` of a node's parameters (``input_frames`` and their
     ``input_frame.<name>`` transforms, nested or dotted)."""
-    from ..interfaces.frames import FrameTable
-
     table = FrameTable(scene_frame)
     specs = shared.get("input_frame") or {}
     for n in shared.get("input_frames") or []:
@@ -196,9 +200,6 @@ def demo_config(params_file, recording=None) -> DemoConfig:
     an input frame of the params file. Raises :class:`~psprm_core.errors.InputError` naming the file and the field."""
     from psprm_core.robot import RobotModel
 
-    from .. import core
-    from ..robots.adapters import load_adapter
-
     where = str(params_file)
     params = read_params(params_file)
     shared = params["roadmap_server"]  # the shared section as the server reads it
@@ -245,16 +246,12 @@ def demo_config(params_file, recording=None) -> DemoConfig:
 def _load_scene(name: str):
     from psprm_core.scene import load_scene
 
-    from ..core import resolve_scene
-
     return load_scene(resolve_scene(name))
 
 
 def default_recording(params_file) -> Optional[str]:
     """The shipped recording replayed with a shipped params file (:data:`psprm_ros.interfaces.recordings.SHIPPED`), or
     None."""
-    from ..interfaces.recordings import SHIPPED
-
     root = Path(__file__).resolve().parents[2]
     try:
         want = Path(params_file).resolve()

@@ -27,8 +27,12 @@ from pathlib import Path
 
 import numpy as np
 
+from psprm_core.paths import resolve_named
+
+from ..core import start_configuration
 from ..interfaces import conversions as cv
-from .probe import claim_domain_id
+from ..runner import self_check
+from .probe import InProcessSuite, claim_domain_id
 
 HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]
 
@@ -37,10 +41,7 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
         log=print, blocks: int = 0, stop_horizon: float = -1.0) -> dict:
     import torch
 
-    from psprm_core.paths import resolve_named
     from psprm_core.scene import load_scene
-
-    from .probe import InProcessSuite
 
     torch.set_num_threads(2)
     # the benchmark's protocol: every target move beyond the thresholds replans at once
@@ -60,7 +61,6 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
         off = float(np.linalg.norm((face.center - body.center)[:2]))
         s.probe.wait_subscribers("/mocap/person_face/pose")
         s.probe.wait_subscribers("psprm/goal_regions")
-        from ..core import start_configuration
 
         robot = s.server.robot  # a robot standing at the start: its /joint_states and /odom
         state = s.probe.hold_robot_state(start_configuration(robot, scene, s.server.p["start_problem"]),
@@ -211,8 +211,6 @@ def main(args=None) -> int:
     ap.add_argument("--self-check", action="store_true")
     a = ap.parse_args(remove_ros_args(argv)[1:])
     if a.self_check:
-        from ..runner import self_check
-
         print(json.dumps(self_check()))
         return 0
     import logging

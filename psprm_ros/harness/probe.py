@@ -12,6 +12,12 @@ from typing import Callable, Optional
 
 from .. import core
 from ..interfaces import conversions as cv
+from ..perception_scorer import PerceptionScorer
+from ..replan_monitor import ReplanMonitor
+from ..robot_adapter import RobotAdapter
+from ..runner import start_lifecycles
+from ..sim_robot import SimRobotNode
+from ..spinning import NodeSpinner
 
 
 _claimed: list = []  # open lock files: a claimed domain stays ours until this process ends
@@ -242,8 +248,6 @@ class InProcessSuite:
         import rclpy
         from rclpy.parameter import Parameter
 
-        from ..perception_scorer import PerceptionScorer
-        from ..replan_monitor import ReplanMonitor
         from ..roadmap_server import RoadmapServer
 
         self.context = rclpy.Context()
@@ -253,12 +257,9 @@ class InProcessSuite:
         kw = {"context": self.context, "parameter_overrides": overrides}
         if self.namespace:
             kw["namespace"] = self.namespace
-        from ..spinning import NodeSpinner
 
         self.executor = NodeSpinner(self.context)
         self.nodes = []
-        from ..robot_adapter import RobotAdapter
-        from ..sim_robot import SimRobotNode
 
         make = {"server": RoadmapServer, "scorer": PerceptionScorer, "monitor": ReplanMonitor,
                 "adapter": RobotAdapter, "sim": SimRobotNode}
@@ -278,8 +279,6 @@ class InProcessSuite:
             raise
         self.executor.start()
         if self.autostart:
-            from ..runner import start_lifecycles
-
             start_lifecycles(self.nodes)
         return self
 

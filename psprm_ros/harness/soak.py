@@ -35,8 +35,12 @@ from pathlib import Path
 
 import numpy as np
 
+from psprm_core.paths import resolve_named
+
 from ..heap import freeze_long_lived
 from ..interfaces import conversions as cv
+from ..interfaces.recordings import load_recording
+from ..robots.adapters import load_adapter
 from .demo import SUITE_SCRIPTS, ClosedLoop, Record, ROOT, _params_frames, rss_mb
 from .demo_analysis import at_goal
 from .probe import claim_domain_id
@@ -204,11 +208,8 @@ def main(args=None) -> int:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    from psprm_core.paths import resolve_named
     from psprm_core.robot import RobotModel
     from psprm_core.scene import load_scene
-
-    from ..interfaces.recordings import load_recording
 
     rng = np.random.default_rng(a.seed)
     out = Path(a.out)
@@ -226,8 +227,6 @@ def main(args=None) -> int:
     from diagnostic_msgs.msg import DiagnosticArray
 
     from trajectory_msgs.msg import JointTrajectory
-
-    from ..robots.adapters import load_adapter
 
     # what the adapter sent the controllers (t, points): which trajectories it executed, which it refused (a hold)
     commands, commands_lock = [], threading.Lock()

@@ -11,6 +11,8 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.tracking import CheckedPath
+
 from ..interfaces import conversions as cv
 from ..robots.acceptance import SPLICE_LOOKBACK_S, SPLICE_TOL_M  # the adapter's splice rule
 from .demo_analysis import GOAL_REASONS, _scene_with
@@ -97,8 +99,6 @@ def tracking_report(ex: list, trajs: list, robot, checker, static_boxes: list) -
     itself came that close, e.g. from a start inside the padding) or clear of it (the tracking error carried the
     robot in)."""
     import torch
-
-    from psprm_core.tracking import CheckedPath
 
     names = list(robot.joint_names)
     if not ex or not trajs:

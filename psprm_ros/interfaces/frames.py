@@ -24,6 +24,8 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
+from .conversions import validated_pose
+
 
 def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Hamilton product of quaternions xyzw (``a`` then ``b`` applied in the body frame: R(a) R(b))."""
@@ -164,8 +166,6 @@ def validated_pose_in(msg, table: FrameTable, now_sec: Optional[float] = None, m
     """``geometry_msgs/PoseStamped`` -> (position, unit quaternion) in the scene frame: refuses non-finite values, a
     zero quaternion, stale stamps (as :func:`psprm_ros.interfaces.conversions.validated_pose`) and a frame the table
     does not know; a known input frame is transformed into the scene frame."""
-    from .conversions import validated_pose
-
     frame = (msg.header.frame_id or "").strip().lstrip("/")
     if not frame:
         raise InputError(f"{what}: empty frame_id (the scene frame is '{table.scene_frame}')")

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.paths import resolve_named
 
 COLUMNS = ["time", "body", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
@@ -193,7 +194,6 @@ def person_turning(scene=None, duration: float = 40.0, rate: float = 120.0, peri
     frames (0.5 % of samples, marker occlusion).
     """
     if scene is None:
-        from psprm_core.paths import resolve_named
         from psprm_core.scene import load_scene
 
         scene = load_scene(resolve_named("scene", "dynamic_person"))
@@ -255,7 +255,6 @@ def _scene(scene, name: str):
     """``scene`` itself, or the shipped scene ``name`` loaded when it is None."""
     if scene is not None:
         return scene
-    from psprm_core.paths import resolve_named
     from psprm_core.scene import load_scene
 
     return load_scene(resolve_named("scene", name))

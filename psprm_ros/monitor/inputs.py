@@ -13,6 +13,7 @@ import numpy as np
 
 from .. import core
 from ..interfaces import conversions as cv
+from ..interfaces.frames import validated_pose_in
 
 
 class InputGate:
@@ -24,8 +25,6 @@ class InputGate:
         return self.node.get_clock().now().nanoseconds * 1e-9
 
     def _pose_cb(self, kind: str, name: str):
-        from ..interfaces.frames import validated_pose_in
-
         def cb(msg):
             if self.frames is None:  # released by a cleanup while this message was on its way
                 return

@@ -34,7 +34,8 @@ import dataclasses
 from pathlib import Path
 from typing import Dict
 
-from psprm_core.errors import InputError, UnknownNameError
+from psprm_core.errors import ConfigError, InputError, UnknownNameError
+from psprm_core.yamlio import Fields, load_yaml
 
 # the commands of a controller, with the config they are made for (importable from here)
 from .commands import (BASE_JOINTS, Command, GoalGate, action_goal_fields, base_columns,  # noqa: F401
@@ -191,8 +192,6 @@ def adapter_dirs() -> list:
 
 
 def resolve_adapter(name_or_path: str) -> Path:
-    from psprm_core.errors import ConfigError
-
     p = Path(name_or_path)
     if p.suffix in (".yaml", ".yml"):
         if not p.is_file():
@@ -213,8 +212,6 @@ _BASE_KEYS = [f.name for f in dataclasses.fields(BaseConfig)]
 def load_adapter(name_or_path: str, robot=None) -> AdapterConfig:
     """Load and check an adapter config; with ``robot`` (a RobotModel) every non-base planning joint must belong to
     exactly one controller. Errors are :class:`psprm_core.errors.ConfigError` naming the file and the field."""
-    from psprm_core.yamlio import Fields, load_yaml
-
     path = resolve_adapter(name_or_path)
     src = str(path)
     f = Fields(load_yaml(path), src)
@@ -316,8 +313,6 @@ def _load_driver(f, src: str) -> DriverConfig:
 
 
 def check_against_robot(cfg: AdapterConfig, robot) -> None:
-    from psprm_core.errors import ConfigError
-
     owned: Dict[str, str] = {}
     for c in cfg.controllers:
         for j in c.joints:

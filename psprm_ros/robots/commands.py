@@ -22,6 +22,8 @@ import numpy as np
 
 from psprm_core.errors import InputError
 
+from ..interfaces.conversions import duration_msg, sec_to_stamp
+
 if TYPE_CHECKING:  # the adapter config's types, for the annotations only
     from .adapters import BaseConfig, ControllerConfig
 
@@ -226,8 +228,6 @@ def to_joint_trajectory(cmd: Command, frame_id: str = ""):
     """:class:`Command` -> ``trajectory_msgs/JointTrajectory``."""
     from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
-    from ..interfaces.conversions import duration_msg, sec_to_stamp
-
     m = JointTrajectory()
     m.header.frame_id = frame_id
     m.header.stamp = sec_to_stamp(cmd.stamp)
@@ -248,8 +248,6 @@ def action_goal_fields(cmd: Command, goal_time_tolerance_s: float = 1.0) -> dict
     """The fields of a ``control_msgs/FollowJointTrajectory`` goal for ``cmd``: ``trajectory`` (JointTrajectory) and
     ``goal_time_tolerance`` (builtin_interfaces/Duration). Tolerances are left at their defaults (the controller's
     own)."""
-    from ..interfaces.conversions import duration_msg
-
     return {"trajectory": to_joint_trajectory(cmd), "goal_time_tolerance": duration_msg(goal_time_tolerance_s)}
 
 

@@ -36,6 +36,8 @@ import numpy as np
 from psprm_core.errors import InputError
 from psprm_core.tracking import CheckedPath
 
+from ..interfaces.conversions import duration_msg, yaw_quat
+
 BASE_JOINT = "position"  # the driver's multi-DOF base joint in trajectory mode
 DRIVER_MIN_INTERVAL_S = 0.8  # Stretch Body refuses waypoints this close (or closer) in time
 TRANSLATION_ATOL_M = 2e-3  # a base segment moving (x, y) less than this is a rotation (stretch_body get_pose_diff)
@@ -221,8 +223,6 @@ def goal_messages(goal: TrajectoryModeGoal) -> tuple:
     from geometry_msgs.msg import Transform, Twist
     from trajectory_msgs.msg import (JointTrajectory, JointTrajectoryPoint, MultiDOFJointTrajectory,
                                      MultiDOFJointTrajectoryPoint)
-
-    from ..interfaces.conversions import duration_msg, yaw_quat
 
     jt = JointTrajectory()
     jt.joint_names = list(goal.joint_names)

@@ -8,6 +8,9 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.paths import resolve_named
+from psprm_core.planning.replanner import ReplanSettings
+
 from .. import core
 
 P = core.Param
@@ -72,8 +75,6 @@ def live_replan() -> dict:
     """The replanner's settings a running server changes live, by name: the ``live`` fields of
     :class:`~psprm_core.planning.replanner.ReplanSettings` as their
     :class:`~psprm_core.planning.settings_groups.SettingSpec` (their defaults come from the replan settings file)."""
-    from psprm_core.planning.replanner import ReplanSettings
-
     return {spec.name: spec for spec in ReplanSettings.specs() if spec.live}
 
 
@@ -84,9 +85,6 @@ REQUESTS = ("plan", "rebuild", "stop")
 def default_params(replan_settings: str = "") -> dict:
     """Values of :data:`LOOP_PARAMS` and of the live replan settings (defaults from ``replan_settings``, a name in
     config/planners/ or a YAML path; '' = the ReplanSettings defaults)."""
-    from psprm_core.paths import resolve_named
-    from psprm_core.planning.replanner import ReplanSettings
-
     rs = ReplanSettings.from_yaml(resolve_named("planner", replan_settings)) if replan_settings else ReplanSettings()
     return {**{k: v.default for k, v in LOOP_PARAMS.items()}, **{k: getattr(rs, k) for k in live_replan()}}
 

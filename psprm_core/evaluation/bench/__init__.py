@@ -47,6 +47,10 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ...baselines import BASELINES, planner_names
+from ...errors import PsprmError
+from ...executors import BackendSettings, Executor, Task
+from ...paths import resolve_named
 from .paths import arc_lengths, evaluate_path, frame_indices, track_flags, unseen_ends, verify_success
 from .problems import DEFAULT_EXCLUDED_CLASSES, default_target_groups, make_problems, scenario_problems
 from .report import (HEADROOM_MIN_GAIN, METRICS, PAPER_TABLE2, PAPER_TABLE3, annotate_headroom, cells_table,
@@ -102,9 +106,6 @@ def run_bench(cfg: BenchConfig, progress: bool = True, on_start=None) -> dict:
 
     ``on_start(key, worker)``: called when the task ``key`` = (planner, problem index) is sent to a worker
     (``pid@host``; ``inline`` in this process)."""
-    from ...baselines import BASELINES, planner_names
-    from ...errors import PsprmError
-    from ...paths import resolve_named
     from ...robot import RobotModel
     from ...scene import load_scene
 
@@ -186,8 +187,6 @@ class BenchTask:
 def backend_settings(cfg: BenchConfig):
     """The :class:`~psprm_core.executors.BackendSettings` of a run: ``workers`` <= 1 on the local backend runs the
     tasks in this process."""
-    from ...executors import BackendSettings
-
     workers = cfg.workers
     if cfg.backend == "local" and workers is not None and workers <= 1:
         workers = 0
@@ -206,8 +205,6 @@ def read_journal(out_dir: str | Path, cfgd: dict) -> list:
     PsprmError
         The journal is of another configuration (the fields that differ are named).
     """
-    from ...errors import PsprmError
-
     path = Path(out_dir) / JOURNAL_FILE
     if not path.is_file():
         return []
@@ -242,8 +239,6 @@ def _run_tasks(tasks: list, cfgd: dict, cfg: BenchConfig, progress: bool, planne
     such rows are journalled as failed tasks, which a resumed run runs again.
     """
     from tqdm import tqdm
-
-    from ...executors import Executor, Task
 
     rows: dict = {}  # (planner, problem) -> row
     paths, prepares = [], []

@@ -9,6 +9,8 @@ from typing import Optional
 
 import numpy as np
 
+from ...errors import PsprmError
+
 log = logging.getLogger(__name__)
 
 
@@ -53,7 +55,6 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
         ``placements`` < 1, or a target of a group with fewer placements.
     """
     from ...collision import CollisionChecker
-    from ...errors import PsprmError
     from ...problems import random_problems
 
     if placements < 1:
@@ -104,7 +105,6 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
     """
     from ...baselines.base import aim_camera
     from ...collision import CollisionChecker
-    from ...errors import PsprmError
     from ...planning.constraints import VisibilityConstraint
     from ...planning.factory import problem_configurations
     from ...problems import aim_joints

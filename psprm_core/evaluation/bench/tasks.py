@@ -13,7 +13,10 @@ from typing import Sequence
 
 import numpy as np
 
+from ...baselines import make_baseline
 from ...errors import InputError
+from ...executors import WorkerCache
+from ...paths import resolve_named
 from .paths import evaluate_path, verify_success
 
 log = logging.getLogger(__name__)
@@ -91,7 +94,6 @@ def _worker_init() -> None:
 def _placed_scene(scene_name: str, targets: Sequence[str], placement: int) -> tuple:
     """(scene with the group's targets at ``placement``, robot, motion)."""
     from ...motion import DiffDriveMotion
-    from ...paths import resolve_named
     from ...robot import RobotModel
     from ...scene import load_scene
 
@@ -118,8 +120,6 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
     import torch
 
     torch.set_num_threads(1)
-    from ...baselines import make_baseline
-    from ...executors import WorkerCache
 
     def emit(kind, payload):
         if q is not None:

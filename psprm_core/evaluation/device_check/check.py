@@ -56,7 +56,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ...commands.perf import print_json, stdout_to_stderr
 from ...errors import InputError, PsprmError
+from ...paths import resolve_named
 from .references import (DEFAULT_REFERENCES, DEFAULTS, TOLERANCES, References, carried_robot,
                                 compute_references, planner_options, record, replan_settings, sphere_table)
 
@@ -68,7 +70,6 @@ def run(device: str = "cuda", torch_path: bool = False, scene_name: str | None =
     """The check of the module docstring: references computed here (``references`` None; None sizes take
     :data:`DEFAULTS`) or read from the file ``references`` (then the scene, target, nodes and seed are the file's,
     and ``configs``, ``queries``, ``replans`` take a prefix of its own)."""
-    from ...paths import resolve_named
     from ...scene import load_scene
 
     if references is None:
@@ -288,8 +289,6 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, help=f"default {DEFAULTS['seed']}; with --references: the file's")
     a = ap.parse_args(argv)
     import torch
-
-    from ...commands.perf import print_json, stdout_to_stderr
 
     if a.record:
         sizes = {k: DEFAULTS[k] if getattr(a, k) is None else getattr(a, k) for k in DEFAULTS}

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ...errors import InputError
+from ...paths import resolve_named
 
 #: the shipped references (``--references`` without a value takes this file); regenerate with ``--record``
 DEFAULT_REFERENCES = Path(__file__).resolve().parents[2] / "data" / "device_check" / "references.npz"
@@ -269,7 +270,6 @@ def record(path: Path, scene_name: str = DEFAULTS["scene"], target: str = DEFAUL
            replans: int = DEFAULTS["replans"], seed: int = DEFAULTS["seed"]) -> dict:
     """Compute the references in this (full) environment and write them to ``path``; verifies first that the robot
     model built from the carried planning URDF equals the packaged one. Returns the header and the file's size."""
-    from ...paths import resolve_named
     from ...robot import RobotModel
     from ...scene import load_scene
     from ..reference import PybulletWorld

@@ -32,9 +32,20 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from ...errors import PsprmError
+from ...executors import BackendSettings, Executor, Task, WorkerCache, one_torch_thread
+from ...paths import resolve_named
+from ...perception.detectors import default_detector_name, make_detector
+from ...perception.oracle import Oracle
+from ...planning.factory import make_planner
+from ...planning.replanner import ReplanSettings
+from ...robot import RobotModel
+from ...scene import load_scene
 from ...yamlio import replace_settings
-from ..simulation import DEFAULT_LATENCY_S, MODES, REPLANNING_MODES
-from .episodes import json_safe
+from ..scenario_world import World
+from ..scenarios import draw_variation, load_scenario
+from ..simulation import DEFAULT_LATENCY_S, MODES, REPLANNING_MODES, run_episode
+from .episodes import FrameJudge, detection_metrics, json_safe
 from .hindsight import SEARCHES, VARIANTS, parse_searches, parse_variants
 
 log = logging.getLogger(__name__)
@@ -68,8 +79,6 @@ class DynBenchConfig:
     max_retries: int = 1
 
     def validate(self) -> None:
-        from ...errors import PsprmError
-
         if self.episodes < 1:
             raise PsprmError(f"episodes must be at least 1, got {self.episodes}")
         bad = [m for m in self.modes if m not in MODES]
@@ -87,8 +96,6 @@ class DynBenchConfig:
         self.backend_settings().validate()
 
     def backend_settings(self):
-        from ...executors import BackendSettings
-
         workers = self.workers
         if self.backend == "local" and workers is not None and workers <= 1:
             workers = 0
@@ -98,9 +105,6 @@ class DynBenchConfig:
 
 def load_scenarios(cfg: DynBenchConfig) -> list:
     """The run's scenarios with the config's overrides applied."""
-    from ...paths import resolve_named
-    from ..scenarios import load_scenario
-
     out = []
     for name in cfg.scenarios:
         p = Path(name)
@@ -110,8 +114,6 @@ def load_scenarios(cfg: DynBenchConfig) -> list:
         out.append(dataclasses.replace(sc, **changes))
     names = [s.name for s in out]
     if len(set(names)) != len(names):
-        from ...errors import PsprmError
-
         raise PsprmError(f"a scenario is named twice: {', '.join(names)}")
     return out
 
@@ -121,11 +123,6 @@ def _roadmap(cache, scenario, overrides: dict) -> tuple:
     """(path of the saved roadmap, build stats, scene, robot) of a scenario, built once per worker."""
     import shutil
     import tempfile
-
-    from ...paths import resolve_named
-    from ...planning.factory import make_planner
-    from ...robot import RobotModel
-    from ...scene import load_scene
 
     key = (scenario.name, scenario.scene, tuple(scenario.targets), scenario.planner, scenario.nodes, scenario.seed,
            json.dumps(overrides, sort_keys=True, default=str))
@@ -151,9 +148,6 @@ def _oracle(scene, robot, targets: Sequence[str], threads: int):
     """The oracle of a scene, its detectors (the built-in ones of the targets' classes) with ``threads`` intra-op
     threads each (0: onnxruntime's default, every core; a worker of a pool runs one, as it runs one torch thread:
     two workers with a detector thread per core each judge about 1.5x the frames that two all-core detectors do)."""
-    from ...perception.detectors import default_detector_name, make_detector
-    from ...perception.oracle import Oracle
-
     classes = {scene.target(t).detector_class for t in targets}
     dets = {c: make_detector(default_detector_name(c), threads=threads) for c in classes}
     return Oracle(scene, dets, intrinsics=robot.config.intrinsics)
@@ -162,14 +156,6 @@ def _oracle(scene, robot, targets: Sequence[str], threads: int):
 def run_episode_modes(scenario, episode: int, cfg: dict, cache=None) -> dict:
     """Every mode of one episode (module docstring): the episode's variation, a roadmap copy per mode, one frame
     judge for all. ``cfg``: :class:`DynBenchConfig` as a dict. Returns the episode's record (strict-JSON values)."""
-    from ...executors import WorkerCache
-    from ...planning.factory import make_planner
-    from ...planning.replanner import ReplanSettings
-    from ..scenario_world import World
-    from ..scenarios import draw_variation
-    from ..simulation import run_episode
-    from .episodes import FrameJudge
-
     own = cache is None
     cache = WorkerCache() if own else cache
     try:
@@ -212,8 +198,6 @@ def dynbench_task(cache, scenario, episode: int, cfg: dict) -> dict:
 
 def episode_metrics(ep: dict) -> dict:
     """The numbers of one mode of one episode (strict-JSON values; the module docstring)."""
-    from .episodes import detection_metrics
-
     first = ep.get("first_plan_s")
     arrival = ep.get("arrival_s")
     lat = np.asarray(ep["latencies_ms"][1:], float) if len(ep.get("latencies_ms", [])) > 1 else np.zeros(0)
@@ -300,11 +284,6 @@ def run_dynbench(cfg: DynBenchConfig, progress: bool = True, on_start=None) -> d
     """Run every episode of every scenario of ``cfg`` on its backend; returns ``{"config", "scenarios": {name:
     {"summary", "episodes"}}, "wall_s"}`` (strict-JSON values)."""
     from tqdm import tqdm
-
-    from ...executors import Executor, Task, one_torch_thread
-    from ...paths import resolve_named
-    from ...scene import load_scene
-    from ..scenario_world import World
 
     cfg.validate()
     scenarios = load_scenarios(cfg)

@@ -11,6 +11,7 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
+from ...collision import CollisionChecker
 from ..scenario_world import World, at_goal
 
 
@@ -62,8 +63,6 @@ def count_collisions(robot, world: World, times: np.ndarray, executed: np.ndarra
     obstacles) posed as the world has them at ``times[i]``, moving ones included, or outside the workspace; the
     boxes as they are (no planning padding), checked with the planner's box model. Self-collision and joint limits
     are not the world's: :func:`count_self_collisions`."""
-    from ...collision import CollisionChecker
-
     moving = set(world.poses(0.0)["targets"]) | set(world.poses(0.0)["obstacles"])
     fixed = [b for b in world.scene0.collision_boxes() if b.name not in moving]
     checker = CollisionChecker(robot, fixed, workspace=world.scene0.workspace)
@@ -84,8 +83,6 @@ def count_collisions(robot, world: World, times: np.ndarray, executed: np.ndarra
 def count_self_collisions(robot, executed: np.ndarray) -> np.ndarray:
     """(N,) flags: executed configuration i outside a joint limit or in self-collision under the planner's box model
     (conservative: pybullet's exact meshes may find it free)."""
-    from ...collision import CollisionChecker
-
     det = CollisionChecker(robot, []).check_detailed(torch.as_tensor(np.asarray(executed), dtype=torch.float32))
     return (det["limits"] | det["self"]).numpy()
 

@@ -26,8 +26,9 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ...errors import PsprmError
+from ...planning.replanner import Replanner
 from ..scenario_world import World, goal_configurations
-from .episodes import FrameJudge, count_collisions, detection_metrics, execute_fixed, judge_record
+from .episodes import FrameJudge, count_collisions, detection_metrics, execute_fixed, frames_of, judge_record
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +114,6 @@ def predicted_perception(planner, world: World, scenario, records: list) -> list
     that instant; the mean per record. Changes the planner's scene."""
     import torch
 
-    from .episodes import frames_of
-
     frames = [frames_of(r, scenario) for r in records]
     by_t: dict = {}
     for i, (ts, qs) in enumerate(frames):
@@ -142,8 +141,6 @@ def run_hindsight(scenario, world: World, planner, rp_settings, start: np.ndarra
     ...}], "best": the best judged candidate's executed record (or None), "n_valid"}``; without a ``judge`` (the
     oracle) nothing is ranked and ``best`` is None."""
     import dataclasses
-
-    from ...planning.replanner import Replanner
 
     robot = planner.robot
     settings = dataclasses.replace(rp_settings, prediction=dataclasses.replace(rp_settings.prediction,

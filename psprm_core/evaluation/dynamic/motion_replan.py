@@ -23,6 +23,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from ...geometry import yaw_to_quat
+from ...paths import resolve_named
+from ...planning.factory import make_planner, problem_configurations
+from ...planning.replanner import Replanner, ReplanSettings
+from ...prediction import PredictionSettings
+from ...scene import load_scene
+
 log = logging.getLogger(__name__)
 
 
@@ -36,13 +43,6 @@ def _yaw(t: float) -> float:
 
 def motion_replan_benchmark(nodes: int = 3000, replans: int = 30, rounds: int = 2, seed: int = 0,
                             threads: int = 1) -> dict:
-    from ...geometry import yaw_to_quat
-    from ...paths import resolve_named
-    from ...planning.factory import make_planner, problem_configurations
-    from ...planning.replanner import Replanner, ReplanSettings
-    from ...prediction import PredictionSettings
-    from ...scene import load_scene
-
     torch.set_num_threads(threads)
     scene = load_scene(resolve_named("scene", "dynamic_person"))
     planner = make_planner("neural-psprm-line", scene, ["person_face"],

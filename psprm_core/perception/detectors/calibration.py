@@ -20,6 +20,7 @@ from typing import Dict, List, Optional, Sequence
 
 import numpy as np
 from ...errors import InputError
+from . import default_detector_name
 
 log = logging.getLogger(__name__)
 
@@ -162,8 +163,6 @@ def calibrate(appearances: Optional[Sequence[str]] = None, measure=None) -> dict
     ValueError
         An unknown appearance name (the known ones are listed).
     """
-    from . import default_detector_name
-
     known = [c.appearance for c in DEFAULT_CASES]
     unknown = sorted(set(appearances or ()) - set(known))
     if unknown:

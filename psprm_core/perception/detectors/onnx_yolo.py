@@ -18,6 +18,7 @@ from typing import List, Optional, Sequence
 import numpy as np
 
 from .base import Detection, Detector, DetectorUnavailableError, nms, onnx_session
+from .centernet import COCO80
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +39,6 @@ class OnnxYoloDetector(Detector):
 
     def __init__(self, model_path, class_names: Optional[Sequence[str]] = None, name: str = "onnx-yolo",
                  min_score: float = 0.05, iou: float = 0.5, threads: int = 0):
-        from .centernet import COCO80
-
         self.model_path = Path(model_path)
         if not self.model_path.is_file():
             raise DetectorUnavailableError(f"ONNX model not found: {self.model_path}")

@@ -13,7 +13,7 @@ import torch
 from ...kernels import edges
 from ...kernels.compute import bulk
 from ..search.graph import Roadmap
-from ..search.graph_search import edge_perception
+from ..search.graph_search import edge_perception, warm_up as warm_up_search
 from ..state import PlannerContext, large_batches
 
 if TYPE_CHECKING:
@@ -145,7 +145,6 @@ class Builder:
         1.4 s) now rather than in the first plan. ``score=False`` leaves out the scorer (the build's own warm-up: it
         must not score views of its own, e.g. with the oracle). Returns the seconds it took."""
         c = self.ctx
-        from ..search.graph_search import warm_up as warm_up_search
 
         t0 = time.perf_counter()
         W = np.stack([self.rm.template] * 3)

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from ..search.graph import Roadmap
+from ..search.search_types import _scipy_matrix
 from ..state import NP_DTYPE, PlannerContext
 
 
@@ -50,8 +51,6 @@ class RoadmapState:
     def components(self) -> tuple:
         """Connected components of the roadmap: (valid roadmap node ids, component label of each)."""
         from scipy.sparse.csgraph import connected_components
-
-        from ..search.search_types import _scipy_matrix
 
         ids = self.roadmap_node_ids()
         _, lab = connected_components(_scipy_matrix(self.graph, None), directed=False)
