@@ -226,7 +226,7 @@ def test_circular_crps_matches_hand_computed_values():
     """The heading score of ``psprm perf prediction``: a single heading scores its error the shorter way round; two
     equally weighted headings at +-a score a/2 at their middle (E|Y - y| = a, E|Y - Y'| = a); a mixture that does not
     sum to 1 is refused."""
-    from psprm_core.evaluation.prediction_score import circular_crps
+    from psprm_core.evaluation.dynamic.prediction_score import circular_crps
 
     assert circular_crps([1.0], [0.3], -0.2) == pytest.approx(0.5)
     assert circular_crps([1.0], [3.0], -3.0) == pytest.approx(2 * math.pi - 6.0)
@@ -240,7 +240,7 @@ def test_prediction_scores_of_the_latest_pose_are_the_targets_own_change_over_th
     """With prediction off the forecast is the latest pose, so its heading score is the mean absolute heading change
     over the horizon and its position error the distance walked: both computed here from the scenario's world at the
     same instants. The shipped predictor, fed the same stream, gives other (finite) figures."""
-    from psprm_core.evaluation.prediction_score import prediction_scores
+    from psprm_core.evaluation.dynamic.prediction_score import prediction_scores
     from psprm_core.evaluation.scenario_world import World
     from psprm_core.evaluation.scenarios import draw_variation, load_scenario
     from psprm_core.paths import resolve_named

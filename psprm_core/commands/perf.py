@@ -406,7 +406,7 @@ def _prediction(args) -> int:
     import dataclasses
 
     from ..baselines import parse_settings
-    from ..evaluation.prediction_score import format_table, prediction_scores
+    from ..evaluation.dynamic.prediction_score import format_table, prediction_scores
     from ..prediction import PredictionSettings
 
     first, dash, last = args.episodes.partition("-")

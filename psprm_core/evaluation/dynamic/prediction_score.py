@@ -1,6 +1,6 @@
 """How well :class:`~psprm_core.prediction.TargetPredictor` forecasts the people of the shipped scenarios.
 
-Each scenario's people move as its keyframes say, varied per episode (:func:`~.scenarios.draw_variation`, the same
+Each scenario's people move as its keyframes say, varied per episode (:func:`~..scenarios.draw_variation`, the same
 variations as the dynamic benchmark for the same seed and episode indices). The predictor is fed their target poses
 at ``rate_hz`` (a mocap stream) and asked, every ``every_s``, for the predicted pose at the horizons ``horizons``;
 each forecast is judged against the pose the target then has:
@@ -22,11 +22,12 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..paths import resolve_named
-from ..prediction import PredictionSettings, TargetPredictor, quat_yaw
-from ..scene import load_scene
-from .scenario_world import World
-from .scenarios import draw_variation, load_scenario
+from ...errors import InputError
+from ...paths import resolve_named
+from ...prediction import PredictionSettings, TargetPredictor, quat_yaw
+from ...scene import load_scene
+from ..scenario_world import World
+from ..scenarios import draw_variation, load_scenario
 
 DEFAULT_SCENARIOS = ("rotating_person", "walking_person", "nursing_turning_walking")
 
@@ -41,7 +42,7 @@ def circular_crps(weights: Sequence[float], yaws: Sequence[float], truth: float)
     w = np.asarray(weights, float)
     y = np.asarray(yaws, float)
     if w.shape != y.shape or w.ndim != 1 or len(w) == 0 or not np.isclose(w.sum(), 1.0):
-        raise ValueError("a mixture needs as many weights as headings, summing to 1")
+        raise InputError("a mixture needs as many weights as headings, summing to 1")
     e1 = float(w @ np.abs(_wrap(y - truth)))
     e2 = float(w @ np.abs(_wrap(y[:, None] - y[None, :])) @ w)
     return e1 - 0.5 * e2
@@ -54,7 +55,7 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
     """Mean heading CRPS and position error per variant, scenario and horizon (module docstring), and each
     variant's mean over the scenarios and horizons. ``variants``: name -> settings."""
     if not variants or not scenarios or not episodes or not horizons:
-        raise ValueError("prediction_scores needs variants, scenarios, episodes and horizons")
+        raise InputError("prediction_scores needs variants, scenarios, episodes and horizons")
     horizons = [float(h) for h in horizons]
     out = {"horizons_s": horizons, "episodes": [int(e) for e in episodes], "seed": int(seed), "rate_hz": rate_hz,
            "every_s": every_s, "variants": {}}
@@ -63,7 +64,7 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
         sc = load_scenario(resolve_named("scenario", name))
         scene = load_scene(resolve_named("scene", sc.scene))
         if not sc.people:
-            raise ValueError(f"scenario {name} has no people to predict")
+            raise InputError(f"scenario {name} has no people to predict")
         for v, settings in variants.items():
             yaw = {h: [] for h in horizons}
             pos = {h: [] for h in horizons}
