@@ -47,8 +47,9 @@ class PredictionSettings:
     history_s: float = 20.0  # headings kept for the mixture (a back-and-forth turn should fit in it)
     rate_window_s: float = 0.5  # velocity and heading rate fitted over this
     rate_decay_s: float = 0.8  # the extrapolated heading rate fades with this time constant (s)
-    velocity_decay_s: float = 4.0  # the extrapolated velocity fades with this time constant (s)
-    revert_s: float = 2.0  # the extrapolated heading gives way to the history's headings with this time constant (s)
+    velocity_decay_s: float = 2.0  # the extrapolated velocity fades with this time constant (s): a walk goes on a
+    # second or two (people indoors walk short legs; `psprm perf prediction` scores the forecasts)
+    revert_s: float = 4.0  # the extrapolated heading gives way to the history's headings with this time constant (s)
     components: int = 3  # mixture poses: the extrapolation and (components - 1) quantiles of the history's headings
     still_mps: float = 0.05  # a fitted speed below this is mocap noise and sway: the target stands
     walk_mps: float = 0.3  # a target faster than this walks: it looks where it goes (no history components); a face

@@ -86,9 +86,9 @@ def test_a_person_turning_back_and_forth_is_predicted_by_what_they_looked_at():
     # the test's own quantiles of the headings of the last 20 s
     recent = yaw[t >= t[-1] - 20.0]
     expected = np.quantile(recent, (np.arange(3) + 0.5) / 3)
-    yaws, w = _mix_yaws(pr.mixture(t[-1] + 15.0))
+    yaws, w = _mix_yaws(pr.mixture(t[-1] + 5 * s.revert_s))
     assert w.sum() == pytest.approx(1.0)
-    assert w[0] < 0.01  # far ahead, the extrapolation has given way
+    assert w[0] < 0.01  # far ahead (five reversion times), the extrapolation has given way
     assert np.abs(_wrap(np.sort(yaws[1:]) - np.sort(expected))).max() < 0.05
     # the spread grows with the horizon, from nothing to the history's (the test's quantiles, equally weighted)
     spreads = [pr.expected_yaw_spread(t[-1] + tau) for tau in (0.0, 0.5, 20.0)]
