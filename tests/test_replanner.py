@@ -870,6 +870,41 @@ def _judged(robot, scene, scale: float, motion, dense: np.ndarray) -> tuple:
     return float(np.clip(sc * scale, 0.0, 1.0).mean()), length
 
 
+def test_a_view_triggered_replan_that_is_shorter_but_sees_less_is_declined(replanner, world):
+    """The robot drives the plan of the perception cost alone (alpha 1); the roadmap is then re-weighted for motion
+    alone (alpha 0), so a replan the view triggers returns a shorter route that sees less. Judged by the test's own
+    measure (:func:`_judged`, the rest of each trajectory sampled every 50 ms) the new route saves more than the length
+    margin and sees less: the robot keeps its plan (a shorter route replaces the current one only when it is predicted to
+    see no less)."""
+    from psprm_core.prediction import PredictionSettings
+
+    scene, robot = world
+    rp = replanner
+    s = rp.update_settings(prediction=PredictionSettings(enabled=False))
+    rp.planner.reweight(alpha=1.0)  # the plan that sees most, whatever its length
+    plan = rp.replan(now=1.0)
+    assert plan.success and rp.result is plan, plan.reason
+    traj = plan.trajectory
+    t_along = 0.2 * traj.duration
+    rp.set_robot_state(traj.evaluate([t_along])[0][0], t_along=t_along)
+    rp.planner.reweight(alpha=0.0)
+    res = rp.replan(now=10.0, triggers=["score_drop"], horizon_s=0.3)
+    assert res.success, res.reason
+    new = res.declined if res.kept else res
+    t_c = t_along + new.committed_s
+
+    def sampled(tr, t0, t1):
+        return tr.evaluate(np.append(np.arange(t0, t1, 0.05), t1))[0]
+
+    p = rp.planner
+    rem_score, rem_len = _judged(robot, scene, p.score_scale, p.motion, sampled(traj, t_c, traj.duration))
+    new_score, new_len = _judged(robot, scene, p.score_scale, p.motion,
+                                 sampled(new.trajectory, new.committed_s, new.trajectory.duration))
+    assert new_len < (1.0 - s.keep_length_margin) * rem_len, (new_len, rem_len)  # shorter by the margin
+    assert new_score < rem_score - 0.02, (new_score, rem_score)  # and it sees less
+    assert res.kept and rp.result is plan and res.trajectory is None
+
+
 @pytest.mark.parametrize("length_margin", [0.1, 1.0])  # 1.0: only the view can make a new plan better
 def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more_or_is_shorter(replanner, world,
                                                                                                length_margin):
@@ -911,18 +946,22 @@ def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more
         rem_score, rem_len = _judged(robot, current_scene, scale, motion, sampled(traj, t_c, traj.duration))
         new_score, new_len = _judged(robot, current_scene, scale, motion,
                                      sampled(new.trajectory, new.committed_s, new.trajectory.duration))
+        shorter = new_len < (1.0 - s.keep_length_margin) * rem_len
         if res.kept:
             assert rp.result is plan and res.trajectory is None and res.dense is None
             assert new_score <= rem_score + s.keep_score_margin + tol, (new_score, rem_score)
-            assert new_len >= (1.0 - s.keep_length_margin) * rem_len * 0.98, (new_len, rem_len)
-            outcomes.append("kept")
+            # not shorter, or shorter but seeing less
+            assert new_len >= (1.0 - s.keep_length_margin) * rem_len * 0.98 or new_score <= rem_score + tol, \
+                (new_score, rem_score, new_len, rem_len)
+            outcomes.append("kept shorter, seeing less" if shorter and new_score < rem_score - tol else "kept")
         else:
             assert rp.result is res and res.trajectory is not None
             assert new_score > rem_score + s.keep_score_margin - tol \
-                or new_len < (1.0 - s.keep_length_margin) * rem_len * 1.02, (new_score, rem_score, new_len, rem_len)
+                or (new_len < (1.0 - s.keep_length_margin) * rem_len * 1.02 and new_score >= rem_score - tol), \
+                (new_score, rem_score, new_len, rem_len)
             outcomes.append("adopted")
             t_along = 0.0  # the new trajectory starts where the robot is
-    assert "kept" in outcomes and "adopted" in outcomes, outcomes
+    assert "adopted" in outcomes and any(o.startswith("kept") for o in outcomes), outcomes
     # a collision trigger: the replan is adopted even when it is no better for the view
     face = rp.scene.target("person_face")
     rp.update_target("person_face", face.center + np.array([0.06, 0.0, 0.0]), face.quat)

@@ -7,9 +7,11 @@ mean perception score along the remaining path is below ``score_min`` or has dro
 since the plan; the target or an obstacle moved beyond its threshold; the goal changed.
 
 A replan that only the view triggered (:data:`VIEW_TRIGGERS`) replaces the current plan only when it is
-better for the robot: it sees more along its path (``keep_score_margin``, normalised as c_p in Eq. 1) or it is
-shorter (``keep_length_margin`` of the remaining path's motion cost), or it leads to another goal (which the goal
-hysteresis allowed). Otherwise the robot keeps driving its trajectory (:attr:`PlanResult.kept`), and a person
+better for the robot: it sees more along its path (``keep_score_margin``, normalised as c_p in Eq. 1), or it is
+shorter (``keep_length_margin`` of the remaining path's motion cost) without being predicted to see less, or it
+leads to another goal (which the goal hysteresis allowed). A shorter route that sees less is not taken on a view
+trigger: a person turning away predicts little to see on every route, and the shortest would win although the
+person turns back. Otherwise the robot keeps driving its trajectory (:attr:`PlanResult.kept`), and a person
 turning away every few seconds does not restart the robot towards views that are gone before it gets there.
 """
 
@@ -185,7 +187,8 @@ class PlanJudging:
         rem_len, new_len = (float(motion.distance(q[:-1], q[1:]).sum()) if len(q) > 1 else 0.0
                             for q in (torch.as_tensor(np.asarray(d), dtype=torch.float64) for d in (rem, res.dense)))
         self._new_plan_score = plan_score
-        if plan_score > current + s.keep_score_margin or new_len < (1.0 - s.keep_length_margin) * rem_len:
+        shorter = new_len < (1.0 - s.keep_length_margin) * rem_len
+        if plan_score > current + s.keep_score_margin or (shorter and plan_score >= current):
             return None
         return (f"kept the current plan: the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} against "
                 f"the remaining path's {current:.3f} along {rem_len:.2f}", current)

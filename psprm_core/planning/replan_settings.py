@@ -45,7 +45,7 @@ class ReplanSettings:
     keep_score_margin: float = setting(0.05, "normalised mean score along the path a new plan must add to replace "
                                              "the current", live=True)
     keep_length_margin: float = setting(0.1, "fraction of the remaining path's motion cost a new plan must save to "
-                                             "replace the current", live=True)
+                                             "replace the current (predicted to see no less)", live=True)
     min_interval_s: float = setting(1.0, "at most one score/move-triggered replan per interval (s)", live=True)
     score_samples: int = setting(200, "configurations of the remaining path scored for the score trigger",
                                  range=(1, None))
