@@ -874,8 +874,8 @@ def test_a_view_triggered_replan_that_is_shorter_but_sees_less_is_declined(repla
     """The robot drives the plan of the perception cost alone (alpha 1); the roadmap is then re-weighted for motion
     alone (alpha 0), so a replan the view triggers returns a shorter route that sees less. Judged by the test's own
     measure (:func:`_judged`, the rest of each trajectory sampled every 50 ms) the new route saves more than the length
-    margin and sees less: the robot keeps its plan (a shorter route replaces the current one only when it is predicted to
-    see no less)."""
+    margin and sees less: the robot keeps its plan (a shorter route replaces the current one only when it is
+    predicted to see no less)."""
     from psprm_core.prediction import PredictionSettings
 
     scene, robot = world
