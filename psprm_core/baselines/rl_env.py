@@ -319,7 +319,8 @@ class ActivePerceptionEnv(gym.Env):
     def step_cost(self, qa: np.ndarray, qb: np.ndarray) -> float:
         """Differential-drive motion cost of one step (:class:`~psprm_core.motion.DiffDriveMotion`)."""
         m = self.ctx.motion
-        return float(m.compute.ops.metric_arrays(m, np.asarray(qa, np.float64)[None], np.asarray(qb, np.float64)[None])[0])
+        qa, qb = np.asarray(qa, np.float64)[None], np.asarray(qb, np.float64)[None]
+        return float(m.compute.ops.metric_arrays(m, qa, qb)[0])
 
     def motion_points(self, qa: np.ndarray, qb: np.ndarray) -> np.ndarray:
         """The configurations checked along the differential-drive motion qa -> qb: every ``resolution`` after

@@ -6,13 +6,15 @@ A ``Compute`` names the torch device and dtype, which kernels serve CPU batches 
 :mod:`psprm_core.kernels.fastpath` for the batch sizes they serve, torch otherwise; ``"torch"``: torch operators
 only, the path a GPU runs) and the batch policy (how many rows a call may have for the compiled path). Its ``ops``
 is the implementation of the kernels protocol (:mod:`.ops`) those choices select, and every object calls its batched
-verbs through it (``self.compute.ops.camera_poses(self, q)``). The choice is data: an object built with ``Compute.make("cpu", kernels="torch")`` runs its torch code on the CPU, one built with
-``Compute.make("cuda")`` runs on the GPU, and nothing switches kernels process-wide. ``obj.using(compute)`` gives a
+verbs through it (``self.compute.ops.camera_poses(self, q)``). The choice is data: an object built with
+``Compute.make("cpu", kernels="torch")`` runs its torch code on the CPU, one built with ``Compute.make("cuda")`` runs
+on the GPU, and nothing switches kernels process-wide. ``obj.using(compute)`` gives a
 copy of a domain object that computes with another ``Compute`` (the equivalence tests run both).
 
-:func:`~.runtime.bulk` is the one scoped policy: inside it (a roadmap build, re-scoring, repair growth) CPU batches of any size
-take the compiled kernels, their rows split over a few threads. It is a :class:`contextvars.ContextVar`, so it holds
-for the thread (or task) that entered it and for no other: a query on another thread keeps its small-batch rules.
+:func:`~.runtime.bulk` is the one scoped policy: inside it (a roadmap build, re-scoring, repair growth) CPU batches
+of any size take the compiled kernels, their rows split over a few threads. It is a
+:class:`contextvars.ContextVar`, so it holds for the thread (or task) that entered it and for no other: a query on
+another thread keeps its small-batch rules.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """Where the planner's batched stage operations run: one object per planner, chosen from its
 :class:`~psprm_core.kernels.compute.Compute`.
 
-Both backends call the verbs of the ``Compute``'s kernels implementation (``ctx.compute.ops``, :mod:`psprm_core.kernels.ops`)
-for the knots, pieces and nearest nodes of local motions, the metric and the checks of numpy batches; they differ in
-the fused calls of a query:
+Both backends call the verbs of the ``Compute``'s kernels implementation (``ctx.compute.ops``,
+:mod:`psprm_core.kernels.ops`) for the knots, pieces and nearest nodes of local motions, the metric and the checks of
+numpy batches; they differ in the fused calls of a query:
 
 - :class:`TorchBackend`: none (a GPU, a CPU without numba, or a ``Compute`` with ``kernels="torch"``);
 - :class:`CompiledBackend` (``kernels="numba"``): a query's few edges knotted, checked and scored in one compiled call
