@@ -11,7 +11,9 @@ answer those verbs:
   lets them serve, the torch method otherwise.
 
 The planner's stages and the baselines use the verbs on arrays and local motions (knots, pieces, nearest nodes, the
-metric of numpy batches) in the same way; neither they nor the domain classes test which implementation runs.
+metric of numpy batches) in the same way; neither they nor the domain classes test which implementation runs. These
+verbs reach the metric, interpolation and checks through the implementation's own verbs, so the torch
+implementation computes in torch whatever ``Compute`` the motion or checker was built with.
 """
 
 from __future__ import annotations
@@ -121,7 +123,7 @@ class TorchKernels:
         s_sorted = torch.gather(s_all, 1, order)
         interior_idx = torch.argsort(order, dim=-1)[:, 1:1 + n]
         M = s_all.shape[1]
-        knots = motion.interpolate(qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0), s_sorted.reshape(-1))
+        knots = self.interpolate(motion, qa.repeat_interleave(M, 0), qb.repeat_interleave(M, 0), s_sorted.reshape(-1))
         return knots.reshape(E, M, -1), interior_idx
 
     def pieces(self, motion, a, b, resolution, max_steps, include_start):
@@ -130,7 +132,7 @@ class TorchKernels:
         diff = b - a
         if motion.mobile:
             diff[:, 2] = torch.remainder(diff[:, 2] + np.pi, 2 * np.pi) - np.pi
-        n = torch.ceil(motion.distance(a, b) / resolution).long().clamp(1, max_steps)
+        n = torch.ceil(self.distance(motion, a, b) / resolution).long().clamp(1, max_steps)
         count = n if include_start else n - 1
         seg = torch.repeat_interleave(torch.arange(len(a), device=a.device), count)
         k = torch.arange(len(seg), device=a.device) - torch.repeat_interleave(torch.cumsum(count, 0) - count, count)
@@ -141,19 +143,19 @@ class TorchKernels:
         """Indices (Q, k) of the ``k`` configurations of ``pool`` nearest to each of ``qq`` under the motion metric,
         sorted by distance (``pool_f64``: a callable giving the pool as float64 numpy, for the compiled pass)."""
         pool = torch.as_tensor(pool, dtype=qq.dtype, device=qq.device)
-        d = motion.distance(qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
+        d = self.distance(motion, qq.repeat_interleave(pool.shape[0], 0), pool.repeat(len(qq), 1))
         return d.reshape(len(qq), -1).topk(k, largest=False).indices
 
     # ---- numpy batches -----------------------------------------------------------------------------------------------
     def metric_arrays(self, motion, qa, qb):
         """The motion metric of numpy batches (E, dof), in their dtype."""
         with torch.no_grad():
-            return motion.distance(torch.from_numpy(qa), torch.from_numpy(qb)).numpy()
+            return self.distance(motion, torch.from_numpy(qa), torch.from_numpy(qb)).numpy()
 
     def interpolate_arrays(self, motion, qa, qb, s):
         """Configurations at fractions ``s`` (E,) of the local motions qa -> qb (numpy batches (E, dof))."""
         with torch.no_grad():
-            return motion.interpolate(torch.from_numpy(qa), torch.from_numpy(qb), torch.from_numpy(s)).numpy()
+            return self.interpolate(motion, torch.from_numpy(qa), torch.from_numpy(qb), torch.from_numpy(s)).numpy()
 
     def pieces_arrays(self, motion, a, b, resolution, max_steps, include_start):
         """:meth:`pieces` of numpy batches: (piece index, points)."""
@@ -165,4 +167,4 @@ class TorchKernels:
     def check_arrays(self, checker, Q):
         """Collision flags {"limits", "environment", "self"} (numpy bool) of configurations ``Q`` (numpy)."""
         q = torch.from_numpy(Q).to(checker.device)
-        return {k: v.cpu().numpy() for k, v in checker.check_detailed(q).items()}
+        return {k: v.cpu().numpy() for k, v in self.check_detailed(checker, q).items()}
