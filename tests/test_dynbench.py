@@ -56,7 +56,10 @@ def _expected_person(t: float, var: dict) -> dict:
 @pytest.fixture(scope="module")
 def episodes():
     """rotating_person (600 nodes, 20 s) in every replanning mode and static, episode 0's variation, every mode from
-    a copy of one saved roadmap."""
+    a copy of one saved roadmap. Every replan a trigger asks for is adopted (``keep_unless_better`` off: which replans
+    replace the plan under way is judged in test_replanner.py), so that the modes' splices and stops happen."""
+    from psprm_core.planning.replanner import ReplanSettings
+
     torch.set_num_threads(1)
     sc = load_scenario(resolve_named("scenario", "rotating_person"))
     sc = dataclasses.replace(sc, nodes=600, duration_s=20.0, camera_fps=1.0)
@@ -76,7 +79,8 @@ def episodes():
         for mode in MODES:
             pl = fresh()
             pl.load(path)
-            out[mode] = run_episode(sc, mode=mode, planner=pl, variation=var, latency_s=LATENCY)
+            out[mode] = run_episode(sc, mode=mode, planner=pl, variation=var, latency_s=LATENCY,
+                                    replan_settings=ReplanSettings(keep_unless_better=False))
     return sc, robot, var, out
 
 
