@@ -75,9 +75,17 @@ def adapter_stops(statuses, t0: float, t1: float) -> dict:
 GOAL_REASONS = ("goal_received", "goal_changed", "no_plan", "plan requested")
 
 
-def _goal_triggered(row) -> bool:
-    """Whether a plan was made for a goal (or on request) rather than triggered by a pose."""
-    return any(r in GOAL_REASONS for r in (row.get("reasons") or []))
+def goal_triggered(reasons) -> bool:
+    """Whether a plan was made for a goal (or on request) rather than triggered by a pose, from its trigger reasons."""
+    return any(r in GOAL_REASONS for r in (reasons or []))
+
+
+def published_plan(info: dict) -> bool:
+    """Whether a plan info of the server is of a new trajectory it published for a stamped input: a success, not a
+    stop, not the last plan kept or a replan declined. With :func:`goal_triggered` false, its latency is pose ->
+    trajectory (the demo's and the soak's latency samples)."""
+    return bool(info.get("input_stamp") and info.get("success")) and not (
+        info.get("stop") or info.get("kept_last") or info.get("kept"))
 
 
 def _scene_with(scene, poses: dict):
@@ -141,8 +149,7 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
             continue
         rx = [tt for tt, _ in trajs if tt <= t + 1e-6]
         e2e = at_client = None
-        if info.get("input_stamp") and rx and not info.get("kept_last") and not info.get("kept") \
-                and not info.get("stop") and info.get("success"):
+        if published_plan(info) and rx:
             # the suite's latency: the pose message's stamp to the trajectory's publication (the server's clock,
             # the same wall clock); and as this client received it (its own callbacks and the replay add to it)
             if info.get("published_stamp"):
@@ -171,11 +178,11 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
     # pose -> trajectory: plans a pose triggered (a move, a score or collision trigger after it); plans for a new
     # goal or on request are goal -> trajectory (their first input is the goal, not a pose)
     lat = np.array([r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None
-                    and not _goal_triggered(r)], float)
+                    and not goal_triggered(r["reasons"])], float)
     goal_lat = [r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None
-                and _goal_triggered(r)]
-    client = np.array([r["at_client_ms"] for r in rows if r["at_client_ms"] is not None and not _goal_triggered(r)],
-                      float)
+                and goal_triggered(r["reasons"])]
+    client = np.array([r["at_client_ms"] for r in rows if r["at_client_ms"] is not None
+                       and not goal_triggered(r["reasons"])], float)
     # the executed motion against the replayed bodies at each instant
     with record.lock:
         ex = [(t, q) for t, q in record.executed if t_replay <= t <= t_end]

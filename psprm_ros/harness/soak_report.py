@@ -15,7 +15,7 @@ from psprm_core.tracking import CheckedPath
 
 from ..interfaces import conversions as cv
 from ..robots.acceptance import SPLICE_LOOKBACK_S, SPLICE_TOL_M  # the adapter's splice rule
-from .demo_analysis import GOAL_REASONS, _scene_with
+from .demo_analysis import _scene_with, goal_triggered, published_plan
 
 
 CLOSING_WINDOW_S = 0.25  # the motion before a collision over which the closing speeds are measured
@@ -203,10 +203,7 @@ def latency_samples(infos: list) -> list:
     goal spam, a wait for a braking base)."""
     out = []
     for info in infos:
-        if not info.get("input_stamp") or not info.get("success") or info.get("stop") or info.get("kept_last") \
-                or info.get("kept") or any(r in GOAL_REASONS for r in info.get("reasons") or []):
-            continue
-        if not info.get("published_stamp"):
+        if not published_plan(info) or goal_triggered(info.get("reasons")) or not info.get("published_stamp"):
             continue
         x = {"total": (info["published_stamp"] - info["input_stamp"]) * 1e3}
         for k in PHASES:
