@@ -65,35 +65,36 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
         scene = load_scene(resolve_named("scene", sc.scene))
         if not sc.people:
             raise InputError(f"scenario {name} has no people to predict")
-        for v, settings in variants.items():
-            yaw = {h: [] for h in horizons}
-            pos = {h: [] for h in horizons}
-            for ep in episodes:
-                world = World(sc, scene, None, draw_variation(sc, int(ep), seed))
-                targets = [p.target for p in world.people]
-                preds = {t: TargetPredictor(settings, t) for t in targets}
-                T = min(float(sc.duration_s), max_duration_s)
-                every = max(1, int(round(every_s * rate_hz)))
-                for k, t in enumerate(np.arange(0.0, T, 1.0 / rate_hz)):
-                    now = world.poses(float(t))["targets"]
+        yaw = {v: {h: [] for h in horizons} for v in variants}
+        pos = {v: {h: [] for h in horizons} for v in variants}
+        T = min(float(sc.duration_s), max_duration_s)
+        every = max(1, int(round(every_s * rate_hz)))
+        for ep in episodes:  # one pose stream per episode, fed to every variant's predictors
+            world = World(sc, scene, None, draw_variation(sc, int(ep), seed))
+            targets = [p.target for p in world.people]
+            preds = {v: {t: TargetPredictor(settings, t) for t in targets} for v, settings in variants.items()}
+            for k, t in enumerate(np.arange(0.0, T, 1.0 / rate_hz)):
+                now = world.poses(float(t))["targets"]
+                for v in variants:
                     for tg in targets:
-                        preds[tg].add(float(t), *now[tg])
-                    if k % every or t < warm_up_s:
+                        preds[v][tg].add(float(t), *now[tg])
+                if k % every or t < warm_up_s:
+                    continue
+                for h in horizons:
+                    if t + h > T:
                         continue
-                    for h in horizons:
-                        if t + h > T:
-                            continue
-                        later = world.poses(float(t + h))["targets"]
+                    later = world.poses(float(t + h))["targets"]
+                    for v in variants:
                         for tg in targets:
-                            mix = preds[tg].mixture(float(t + h))
-                            w = [m[0] for m in mix]
-                            yaw[h].append(circular_crps(w, [quat_yaw(m[2]) for m in mix],
-                                                        quat_yaw(np.asarray(later[tg][1]))))
+                            mix = preds[v][tg].mixture(float(t + h))
+                            yaw[v][h].append(circular_crps([m[0] for m in mix], [quat_yaw(m[2]) for m in mix],
+                                                           quat_yaw(np.asarray(later[tg][1]))))
                             mean_p = sum(m[0] * m[1] for m in mix)
-                            pos[h].append(float(np.linalg.norm((mean_p - np.asarray(later[tg][0]))[:2])))
-            acc[v][name] = {"yaw_crps_rad": [float(np.mean(yaw[h])) for h in horizons],
-                            "position_error_m": [float(np.mean(pos[h])) for h in horizons],
-                            "forecasts": sum(len(yaw[h]) for h in horizons)}
+                            pos[v][h].append(float(np.linalg.norm((mean_p - np.asarray(later[tg][0]))[:2])))
+        for v in variants:
+            acc[v][name] = {"yaw_crps_rad": [float(np.mean(yaw[v][h])) for h in horizons],
+                            "position_error_m": [float(np.mean(pos[v][h])) for h in horizons],
+                            "forecasts": sum(len(yaw[v][h]) for h in horizons)}
     for v in variants:
         rows = acc[v]
         out["variants"][v] = {"scenarios": rows,
