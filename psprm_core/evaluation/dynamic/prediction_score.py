@@ -17,12 +17,12 @@ each forecast is judged against the pose the target then has:
 
 from __future__ import annotations
 
-import math
 from typing import Mapping, Sequence
 
 import numpy as np
 
 from ...errors import InputError
+from ...geometry import wrap_angle
 from ...paths import resolve_named
 from ...prediction import PredictionSettings, TargetPredictor, quat_yaw
 from ...scene import load_scene
@@ -32,10 +32,6 @@ from ..scenarios import draw_variation, load_scenario
 DEFAULT_SCENARIOS = ("rotating_person", "walking_person", "nursing_turning_walking")
 
 
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return (np.asarray(a, float) + math.pi) % (2 * math.pi) - math.pi
-
-
 def circular_crps(weights: Sequence[float], yaws: Sequence[float], truth: float) -> float:
     """CRPS of a discrete heading mixture (weights summing to 1, headings in rad) at the true heading ``truth``, with
     angular distances (module docstring)."""
@@ -43,8 +39,8 @@ def circular_crps(weights: Sequence[float], yaws: Sequence[float], truth: float)
     y = np.asarray(yaws, float)
     if w.shape != y.shape or w.ndim != 1 or len(w) == 0 or not np.isclose(w.sum(), 1.0):
         raise InputError("a mixture needs as many weights as headings, summing to 1")
-    e1 = float(w @ np.abs(_wrap(y - truth)))
-    e2 = float(w @ np.abs(_wrap(y[:, None] - y[None, :])) @ w)
+    e1 = float(w @ np.abs(wrap_angle(y - truth)))
+    e2 = float(w @ np.abs(wrap_angle(y[:, None] - y[None, :])) @ w)
     return e1 - 0.5 * e2
 
 
