@@ -35,6 +35,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError
+from .geometry import wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +84,6 @@ def turned(q: np.ndarray, dyaw: float) -> np.ndarray:
     return np.array([c * x - s * y, c * y + s * x, c * z + s * w, c * w - s * z])
 
 
-def _wrap(a):
-    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
-
 
 class TargetPredictor:
     """The predictive mixture of one target's pose (module docstring). Feed it with :meth:`add`; ask it with
@@ -121,7 +119,7 @@ class TargetPredictor:
             dt = t - self.t_last
             if dt <= 0:
                 return self._discard(f"a pose at {t:.3f} s, not after the last one ({self.t_last:.3f} s)")
-            dyaw = float(_wrap(yaw - quat_yaw(self.q_last)))
+            dyaw = float(wrap_angle(yaw - quat_yaw(self.q_last)))
             jump = (np.linalg.norm(p - self.p_last) > s.max_speed_mps * dt + 0.02
                     or abs(dyaw) > s.max_turn_rate * dt + 0.05)
             if jump and self._rejects + 1 < s.max_rejects:
@@ -181,7 +179,7 @@ class TargetPredictor:
         unwrapped around their circular mean)."""
         yaws = np.array([h[1] for h in self._hist])
         c = math.atan2(float(np.sin(yaws).mean()), float(np.cos(yaws).mean()))
-        rel = _wrap(yaws - c)
+        rel = wrap_angle(yaws - c)
         return c + np.quantile(rel, (np.arange(m) + 0.5) / m)
 
     def mixture(self, t: float) -> list:
@@ -203,7 +201,7 @@ class TargetPredictor:
             w_e = math.exp(-tau / s.revert_s)
             out = [(w_e, p, out[0][2])]
             for y in self._history_quantiles(m):
-                out.append(((1.0 - w_e) / m, p, turned(self.q_last, float(_wrap(y - yaw_now)))))
+                out.append(((1.0 - w_e) / m, p, turned(self.q_last, float(wrap_angle(y - yaw_now)))))
         return out
 
     def expected_yaw_spread(self, t: float) -> float:
@@ -213,4 +211,4 @@ class TargetPredictor:
         yaws = np.array([quat_yaw(q) for _, _, q in mix])
         w = np.array([w for w, _, _ in mix])
         c = math.atan2(float(w @ np.sin(yaws)), float(w @ np.cos(yaws)))
-        return float(math.sqrt(max(0.0, float(w @ _wrap(yaws - c) ** 2))))
+        return float(math.sqrt(max(0.0, float(w @ wrap_angle(yaws - c) ** 2))))

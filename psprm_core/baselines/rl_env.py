@@ -56,6 +56,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..geometry import wrap_angle
 from ..kernels.compute import bulk
 from ..problems import random_problems
 from .base import PlanningContext
@@ -67,9 +68,6 @@ log = logging.getLogger(__name__)
 #: an older environment is not reused).
 ENV_VERSION = 2
 
-
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 class ActivePerceptionEnv(gym.Env):
@@ -238,7 +236,7 @@ class ActivePerceptionEnv(gym.Env):
             m = v if math.isfinite(v) else e
         if s.w_heading > 0.0 and e > 1e-9:  # turning towards the goal counts as progress (faded out near it)
             d = self.goal[:2] - q[:2]
-            m += s.w_heading * abs(_wrap(math.atan2(d[1], d[0]) - q[2])) * min(1.0, e / 0.5)
+            m += s.w_heading * abs(wrap_angle(math.atan2(d[1], d[0]) - q[2])) * min(1.0, e / 0.5)
         return m
 
     # ---- problems ----------------------------------------------------------------------------------------------------
@@ -307,7 +305,7 @@ class ActivePerceptionEnv(gym.Env):
         h = q[2] + 0.5 * tau
         qn[0] += f * math.cos(h)
         qn[1] += f * math.sin(h)
-        qn[2] = _wrap(q[2] + tau)
+        qn[2] = wrap_angle(q[2] + tau)
         if len(self.act_cols):
             qn[self.act_cols] = np.clip(q[self.act_cols] + a[2:] * s.step_joint, self.lo[self.act_cols],
                                         self.hi[self.act_cols])
@@ -387,7 +385,7 @@ class ActivePerceptionEnv(gym.Env):
                 a, b = b, a
             a = self._curriculum_start(a, b)
             self.q, self.goal = np.asarray(a, float).copy(), np.asarray(b, float).copy()
-        self.q[2] = _wrap(self.q[2])
+        self.q[2] = wrap_angle(self.q[2])
         self.t = 0
         self.path = [self.q.copy()]
         self.reached = False

@@ -57,10 +57,12 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
+
 from ..errors import ConfigError, InputError
+from ..geometry import wrap_angle
 from ..planning.results import Failure
 from .base import PlanningContext, failure, resolve_settings
-from .trajopt_problem import TrajOptProblem, _wrap, arc_segments
+from .trajopt_problem import TrajOptProblem, arc_segments
 
 log = logging.getLogger(__name__)
 
@@ -270,10 +272,10 @@ class TrajOptPlanner:
     def _unwrap_goal(self, start, goal):
         goal = goal.copy()
         if self.robot.mobile:
-            goal[2] = start[2] + _wrap(goal[2] - start[2])
+            goal[2] = start[2] + wrap_angle(goal[2] - start[2])
         for i in np.nonzero(self.robot.continuous)[0]:
             if i >= self.robot.base_dof:
-                goal[i] = start[i] + _wrap(goal[i] - start[i])
+                goal[i] = start[i] + wrap_angle(goal[i] - start[i])
         return goal
 
     def _segment_dt(self, start, goal) -> float:
@@ -362,7 +364,7 @@ class TrajOptPlanner:
             if lat.max() > s.lateral_tolerance:
                 return failure(f"path needs sideways base motion (max {lat.max():.3f} m per segment; the "
                                "differential-drive constraint is violated)", t0)
-            Q[:, 2] = _wrap(Q[:, 2])
+            Q[:, 2] = wrap_angle(Q[:, 2])
         Q[-1] = goal
         res = self.ctx.execute(Q, t0=t0)
         if not res.success:

@@ -8,10 +8,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..geometry import wrap_angle
 
-
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def arc_segments(qa: np.ndarray, qb: np.ndarray, w_rot: float) -> dict:
@@ -22,7 +20,7 @@ def arc_segments(qa: np.ndarray, qb: np.ndarray, w_rot: float) -> dict:
     ``w_rot |dth| + |arc| + ||d joints||``), each (E,).
     """
     qa, qb = np.atleast_2d(qa), np.atleast_2d(qb)
-    dth = _wrap(qb[:, 2] - qa[:, 2])
+    dth = wrap_angle(qb[:, 2] - qa[:, 2])
     thm = qa[:, 2] + 0.5 * dth
     dx, dy = qb[:, 0] - qa[:, 0], qb[:, 1] - qa[:, 1]
     fwd = np.cos(thm) * dx + np.sin(thm) * dy
