@@ -433,6 +433,20 @@ def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, param
     return scene, robot
 
 
+class ConfiguredRobot:
+    """The ``robot`` of a node that builds its robot model in configure (into ``_robot``) from the parameters
+    ``scene`` and ``robot`` (``p``). Before configure (or after cleanup) the node holds none: asked then (a caller
+    comparing the nodes' robots), the packaged model the parameters name is loaded for the caller and not kept."""
+
+    _robot = None
+
+    @property
+    def robot(self):
+        if self._robot is not None:
+            return self._robot
+        return load_scene_and_robot(self.p["scene"], self.p["robot"])[1]
+
+
 def scene_robot_name(scene_name: str) -> str:
     """The robot a scene file names (its ``robot`` field), read without loading the scene."""
     path = resolve_scene(scene_name)

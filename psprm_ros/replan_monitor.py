@@ -82,7 +82,7 @@ MONITOR_PARAMS = {
 }
 
 
-class ReplanMonitor(InputGate, Triggers):
+class ReplanMonitor(InputGate, Triggers, core.ConfiguredRobot):
     """The monitor as a lifecycle node. Construction declares the parameters and makes ``~/status``, the
     ``/diagnostics`` publisher, the plan/stop service clients and the 1 Hz summary; configure reads the parameters,
     loads the scene and robot model, and makes the input subscriptions, the forwarding publishers and the watchdog
@@ -147,15 +147,6 @@ class ReplanMonitor(InputGate, Triggers):
         self.cli_plan = node.create_client(Trigger, f"{core.SERVER_NAME}/plan", callback_group=srv_cb)
         self.cli_stop = node.create_client(Trigger, f"{core.SERVER_NAME}/stop", callback_group=srv_cb)
         node.create_timer(1.0, self._report, callback_group=MutuallyExclusiveCallbackGroup())
-
-    @property
-    def robot(self):
-        """The robot model configure built. Before configure (or after cleanup) the node holds none: asked then (a
-        caller comparing the nodes' robots), the packaged model of the robot the parameters name is loaded for the
-        caller and not kept."""
-        if self._robot is not None:
-            return self._robot
-        return core.load_scene_and_robot(self.p["scene"], self.p["robot"])[1]
 
     # ------------------------------------------------------------------------------------------------ lifecycle
     def on_configure(self, state) -> bool:

@@ -91,7 +91,7 @@ ADAPTER_PARAMS = {
 }
 
 
-class RobotAdapter:
+class RobotAdapter(core.ConfiguredRobot):
     """The ``robot_adapter`` lifecycle node: parameters, subscriptions, publishers, clients and timers. What becomes
     of each trajectory and what happens at every control step is :class:`psprm_ros.robots.execution.Execution`'s;
     the node is its port (clock, measured state, replan requests, driver services, status)."""
@@ -137,14 +137,6 @@ class RobotAdapter:
         self.cli_plan = None
         node.create_timer(self.p["diagnostics_period_s"], self._diagnostics,
                           callback_group=MutuallyExclusiveCallbackGroup())
-
-    @property
-    def robot(self):
-        """The robot model configure built. Before configure (or after cleanup) the node holds none: asked then, the
-        packaged model of the robot the parameters name is loaded for the caller and not kept."""
-        if self._robot is not None:
-            return self._robot
-        return core.load_scene_and_robot(self.p["scene"], self.p["robot"])[1]
 
     @property
     def speed_scaling(self) -> float:

@@ -24,16 +24,13 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ..geometry import wrap_angle
 from ..prediction import quat_yaw
 from .execution import progress_time
 from .psprm import PlanResult
 
 #: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
 VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
-
-
-def _wrap_angle(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 class PlanJudging:
@@ -216,7 +213,7 @@ class PlanJudging:
         alts = []
         for _, _, scene in self._mixture_scenes(t_mid):
             yaws = self._target_yaws(scene)
-            if all(max(abs(_wrap_angle(yaws[n] - h[n])) for n in yaws) > s.predicted_route_turn_rad for h in heads):
+            if all(max(abs(wrap_angle(yaws[n] - h[n])) for n in yaws) > s.predicted_route_turn_rad for h in heads):
                 heads.append(yaws)
                 alts.append(scene)
         if not alts:

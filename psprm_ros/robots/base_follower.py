@@ -24,6 +24,7 @@ from typing import Optional
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.geometry import wrap_angle
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,7 +154,7 @@ class BaseFollower:
         c, s = math.cos(th), math.sin(th)
         ex = c * (xr - x) + s * (yr - y)
         ey = -s * (xr - x) + c * (yr - y)
-        eth = _wrap(thr - th)
+        eth = wrap_angle(thr - th)
         self.error = np.array([ex, ey, eth])
         if tau >= self.ref.duration:
             near = math.hypot(xr - x, yr - y) <= self.goal_tolerance_m and abs(eth) <= self.goal_tolerance_rad
@@ -172,7 +173,7 @@ class BaseFollower:
         end, kind = self.ref.run_end(tau)
         delay = max([self.preview_s] + self._periods[-30:])  # a loaded computer runs this loop late at times
         if kind == "rotation" and w != 0.0:
-            rem = _wrap(end[2] - th) * np.sign(w)
+            rem = wrap_angle(end[2] - th) * np.sign(w)
             w = float(np.sign(w) * min(abs(w), _stoppable(rem, lim.angular_acceleration, delay)))
         elif kind == "translation" and v != 0.0:
             rem = ((end[0] - x) * c + (end[1] - y) * s) * np.sign(v)
@@ -192,6 +193,3 @@ def _stoppable(remaining: float, accel: float, delay: float) -> float:
         return 0.0
     return accel * (-delay + math.sqrt(delay * delay + 2.0 * remaining / accel))
 
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi

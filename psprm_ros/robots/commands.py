@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, List, Optional, Sequence
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.geometry import wrap_angle
 
 from ..interfaces.conversions import duration_msg, sec_to_stamp
 
@@ -191,7 +192,7 @@ def check_start(ctrl: ControllerConfig, names: Sequence[str], first: np.ndarray,
 def check_base_start(base: BaseConfig, first: np.ndarray, measured: np.ndarray) -> tuple:
     """(ok, what, error) for the base's (x, y, theta) against start_tolerance_m / _rad."""
     d_xy = float(np.hypot(first[0] - measured[0], first[1] - measured[1]))
-    d_th = abs(_wrap(float(first[2] - measured[2])))
+    d_th = abs(wrap_angle(float(first[2] - measured[2])))
     if d_xy > base.start_tolerance_m:
         return False, "base position", d_xy
     if d_th > base.start_tolerance_rad:
@@ -308,7 +309,7 @@ def stretch_base_steps(base_waypoints: np.ndarray, min_step_m: float = 0.005, mi
 
     def rot(target):
         nonlocal heading
-        d = _wrap(target - heading)
+        d = wrap_angle(target - heading)
         if abs(d) > 1e-9:
             steps.append(("rotate_mobile_base", d))
             heading = heading + d
@@ -319,7 +320,7 @@ def stretch_base_steps(base_waypoints: np.ndarray, min_step_m: float = 0.005, mi
         if dist > 1e-4:
             drive = math.atan2(dxy[1], dxy[0])
             # drive backwards when that needs less turning (as the planner's local motions do)
-            if abs(_wrap(drive - heading)) > math.pi / 2:
+            if abs(wrap_angle(drive - heading)) > math.pi / 2:
                 rot(drive + math.pi)
                 steps.append(("translate_mobile_base", -dist))
             else:
@@ -343,10 +344,6 @@ def stretch_base_command(step: tuple, base: BaseConfig, linear_velocity: float, 
     speed = linear_velocity if joint == "translate_mobile_base" else angular_velocity
     dur = max(0.2, abs(inc) / max(speed, 1e-6))
     return Command("base", [joint], 0.0, np.array([dur]), np.array([[inc]]), np.zeros((1, 1)))
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def base_columns(names: Sequence[str]) -> list:

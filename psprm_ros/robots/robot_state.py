@@ -21,6 +21,7 @@ from typing import Optional
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.geometry import wrap_angle
 
 from ..interfaces import conversions as cv
 from ..interfaces.frames import FrameTable, compose_pose
@@ -157,7 +158,7 @@ class RobotStateTracker:
         if not 1e-4 < dt <= 1.0:  # time went back or a gap: no velocity from this pair
             self.base_velocity, self.base_velocity_measured = np.zeros(2), False
             return
-        dyaw = _wrap(yaw - prev[3])
+        dyaw = wrap_angle(yaw - prev[3])
         mid = prev[3] + 0.5 * dyaw
         v = (math.cos(mid) * (x - prev[1]) + math.sin(mid) * (y - prev[2])) / dt
         vel = np.array([v, dyaw / dt])
@@ -167,7 +168,7 @@ class RobotStateTracker:
     def _set_base(self, p: np.ndarray, q: np.ndarray, t: float) -> np.ndarray:
         base = np.array([p[0], p[1], cv.yaw_of(q)])
         if self.base is not None:  # keep theta continuous with the last value (the planner unwraps it)
-            base[2] = self.base[2] + _wrap(base[2] - self.base[2])
+            base[2] = self.base[2] + wrap_angle(base[2] - self.base[2])
         self.base, self.base_t = base, t
         return base
 
@@ -210,10 +211,6 @@ def _checked_pose(pose, header, now_sec, max_age_s, what) -> tuple:
     if now_sec is not None:
         cv.check_stamp(cv.stamp_to_sec(header.stamp), now_sec, max_age_s, what)
     return p, q / n
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def offset_from_params(xyz, quat) -> Optional[tuple]:

@@ -34,6 +34,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.geometry import wrap_angle
 from psprm_core.tracking import CheckedPath
 
 from ..interfaces.conversions import duration_msg, yaw_quat
@@ -69,10 +70,6 @@ class TrajectoryModeGoal:
         return np.interp(t_goal, self.times, self.planned_times)
 
 
-def _wrap(a):
-    return (np.asarray(a, float) + math.pi) % (2 * math.pi) - math.pi
-
-
 def relative_pose(origin: np.ndarray, pose: np.ndarray) -> np.ndarray:
     """(x, y, theta) of ``pose`` (..., 3) in the frame of ``origin`` (3,); theta continuous (not wrapped)."""
     c, s = math.cos(origin[2]), math.sin(origin[2])
@@ -95,7 +92,7 @@ def base_phases(times: np.ndarray, base: np.ndarray, tol_m: float = 1e-4, tol_ra
     interval that both translates and rotates (beyond ``tol_m`` / ``tol_rad``) is an error: the driver cannot
     execute it."""
     d_xy = np.hypot(*np.diff(base[:, :2], axis=0).T)
-    d_th = np.abs(_wrap(np.diff(base[:, 2])))
+    d_th = np.abs(wrap_angle(np.diff(base[:, 2])))
     kinds = np.full(len(d_xy), STILL)
     kinds[d_th > tol_rad] = ROTATING
     kinds[d_xy > tol_m] = TRANSLATING
