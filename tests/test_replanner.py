@@ -905,6 +905,63 @@ def test_a_view_triggered_replan_that_is_shorter_but_sees_less_is_declined(repla
     assert res.kept and rp.result is plan and res.trajectory is None
 
 
+def test_a_view_triggered_replan_that_would_arrive_after_the_arrival_budget_is_declined(replanner, world):
+    """The first plan for the goals is the shortest (alpha 0), made at t = 1 s; the robot drives 30 % of it, the
+    clock advancing with it; the roadmap is then re-weighted for perception alone (alpha 1), so a replan the view
+    triggers returns a longer route that sees more. Its arrival and the current plan's, both counted by the test from
+    the replan's instant on the trajectories' clocks, bracket the budget's end: set between them (the budget measured
+    from the first plan's start and duration), the replan is declined and the robot keeps its plan; set beyond the
+    new arrival, the same route is adopted."""
+    from psprm_core.prediction import PredictionSettings
+
+    scene, robot = world
+    rp = replanner
+    rp.update_settings(arrival_budget=0.0, prediction=PredictionSettings(enabled=False))
+    _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    rp.planner.reweight(alpha=0.0)
+    rp.set_goals(goals[:1])  # new goals: the next plan is the first for them
+    t0 = 1.0
+    plan = rp.replan(now=t0)
+    assert plan.success and rp.result is plan, plan.reason
+    T0 = float(plan.trajectory.duration)
+    t_along = 0.3 * T0
+    rp.set_robot_state(plan.trajectory.evaluate([t_along])[0][0], t_along=t_along)
+    now = t0 + t_along
+    rp.planner.reweight(alpha=1.0)
+
+    def sampled(tr, a, b):
+        return tr.evaluate(np.append(np.arange(a, b, 0.05), b))[0]
+
+    free = rp.replan(now=now, triggers=["score_drop"], horizon_s=0.3)  # no budget: adopted
+    assert free.success and not free.kept and rp.result is free, free.reason
+    # arrivals from the replan's instant: the current plan from the robot's time along it, the new one from its time 0
+    # (the same instant along the trajectory it continues)
+    cur_arrival = T0 - free.start_offset_s
+    new_arrival = float(free.trajectory.duration)
+    assert abs(free.start_offset_s - t_along) < 1e-6
+    assert new_arrival > cur_arrival + 1.0, (new_arrival, cur_arrival)
+    p = rp.planner
+    t_c = t_along + free.committed_s
+    rem_score, _ = _judged(robot, scene, p.score_scale, p.motion, sampled(plan.trajectory, t_c, T0))
+    new_score, _ = _judged(robot, scene, p.score_scale, p.motion,
+                           sampled(free.trajectory, free.committed_s, free.trajectory.duration))
+    assert new_score > rem_score + 0.05, (new_score, rem_score)  # it sees more
+    assert rp.withdraw(free) and rp.result is plan
+
+    def budget_ending_in(seconds):  # the budget whose end lies this long after the replan's instant
+        return (now + seconds - t0) / T0 - 1.0
+
+    rp.update_settings(arrival_budget=budget_ending_in(0.5 * (cur_arrival + new_arrival)))
+    res = rp.replan(now=now, triggers=["score_drop"], horizon_s=0.3)
+    assert res.success and res.kept and rp.result is plan and res.trajectory is None, res.reason
+    assert "arrival budget" in res.reason
+    assert abs(float(res.declined.trajectory.duration) - new_arrival) < 1e-6  # the same route, declined
+    rp.update_settings(arrival_budget=budget_ending_in(new_arrival + 1.0))
+    res = rp.replan(now=now, triggers=["score_drop"], horizon_s=0.3)
+    assert res.success and not res.kept and rp.result is res, res.reason
+    assert abs(float(res.trajectory.duration) - new_arrival) < 1e-6
+
+
 @pytest.mark.parametrize("length_margin", [0.1, 1.0])  # 1.0: only the view can make a new plan better
 def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more_or_is_shorter(replanner, world,
                                                                                                length_margin):
@@ -914,12 +971,13 @@ def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more
     scene as the test turned it, on the trajectories sampled every 50 ms: perception integrated over time), from the
     commitment on: a plan turned down is no better than the rest of the current one by either margin, an adopted one
     is better by one of them. Both happen. A collision trigger is never turned down. (Prediction off: the judge's
-    scene is the latest pose.)"""
+    scene is the latest pose; no arrival budget: the view and the length decide.)"""
     from psprm_core.prediction import PredictionSettings
 
     scene, robot = world
     rp = replanner
-    s = rp.update_settings(keep_length_margin=length_margin, prediction=PredictionSettings(enabled=False))
+    s = rp.update_settings(keep_length_margin=length_margin, arrival_budget=0.0,
+                           prediction=PredictionSettings(enabled=False))
     p = rp.planner
     tol = 0.02  # the replanner scores at most score_samples configurations of each part, the test every 50 ms
     motion, scale = p.motion, p.score_scale

@@ -9,7 +9,9 @@ since the plan; the target or an obstacle moved beyond its threshold; the goal c
 A replan that only the view triggered (:data:`VIEW_TRIGGERS`) replaces the current plan only when it is
 better for the robot: it sees more along its path (``keep_score_margin``, normalised as c_p in Eq. 1), or it is
 shorter (``keep_length_margin`` of the remaining path's motion cost) without being predicted to see less, or it
-leads to another goal (which the goal hysteresis allowed). A shorter route that sees less is not taken on a view
+leads to another goal (which the goal hysteresis allowed); and it arrives within the arrival budget (the first plan's
+duration for the goals times 1 + ``arrival_budget`` after that plan was made) or no later than the current plan,
+so that views are never bought with an unbounded delay. A shorter route that sees less is not taken on a view
 trigger: a person turning away predicts little to see on every route, and the shortest would win although the
 person turns back. Otherwise the robot keeps driving its trajectory (:attr:`PlanResult.kept`), and a person
 turning away every few seconds does not restart the robot towards views that are gone before it gets there.
@@ -185,10 +187,27 @@ class PlanJudging:
                             for q in (torch.as_tensor(np.asarray(d), dtype=torch.float64) for d in (rem, res.dense)))
         self._new_plan_score = plan_score
         shorter = new_len < (1.0 - s.keep_length_margin) * rem_len
-        if plan_score > current + s.keep_score_margin or (shorter and plan_score >= current):
+        # arrival, both from the instant the replan began: the current plan from where it was then, the new one after
+        # the commitment it starts from
+        cur_arrival = float(cur.trajectory.duration) - (commit["t_from"] if commit is not None else t_c)
+        new_arrival = lead + float(res.trajectory.duration)
+        budget = self.arrival_budget_left()
+        late = new_arrival > max(budget, cur_arrival) + 1e-6
+        if not late and (plan_score > current + s.keep_score_margin or (shorter and plan_score >= current)):
             return None
-        return (f"kept the current plan: the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} against "
-                f"the remaining path's {current:.3f} along {rem_len:.2f}", current)
+        why = (f"the new one would arrive in {new_arrival:.1f} s, beyond the arrival budget ({budget:.1f} s)" if late
+               else f"the new one sees {plan_score:.3f} (predicted) along {new_len:.2f}")
+        return (f"kept the current plan: {why}; the remaining path sees {current:.3f} along {rem_len:.2f} and "
+                f"arrives in {cur_arrival:.1f} s", current)
+
+    def arrival_budget_left(self) -> float:
+        """Seconds from the latest replan's instant to the end of the arrival budget: the first plan for the current
+        goals made at t0 with duration T ends its budget at t0 + T (1 + ``arrival_budget``); inf without a budget."""
+        b = self.settings.arrival_budget
+        if b <= 0 or self._first_plan is None:
+            return math.inf
+        t0, T = self._first_plan
+        return t0 + (1.0 + b) * T - self._last_plan_time
 
     def _predicted_routes(self, res: PlanResult, start: np.ndarray, commit: Optional[dict]) -> PlanResult:
         """The route of the best predicted objective among ``res`` (the search over the roadmap scored against the

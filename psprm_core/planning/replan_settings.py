@@ -46,6 +46,10 @@ class ReplanSettings:
                                              "the current", live=True)
     keep_length_margin: float = setting(0.1, "fraction of the remaining path's motion cost a new plan must save to "
                                              "replace the current (predicted to see no less)", live=True)
+    arrival_budget: float = setting(0.5, "a replan the view alone triggered may delay the arrival to at most the first "
+                                         "plan's duration times (1 + this) after the plan for the goals was made, or "
+                                         "else arrive no later than the current plan (0: no bound)",
+                                    range=(0.0, None), live=True)
     min_interval_s: float = setting(1.0, "at most one score/move-triggered replan per interval (s)", live=True)
     score_samples: int = setting(200, "configurations of the remaining path scored for the score trigger",
                                  range=(1, None))

@@ -68,7 +68,7 @@ def _pose(position, quat, what: str) -> tuple:
 
 # what adopting a plan changes, restored by Replanner.withdraw
 _ADOPTION_STATE = ("result", "_progress", "_t_along", "_goal_cfg", "_goal_since", "_switches", "goal_switches",
-                   "_plan_score", "_pending", "_moved_obstacles", "adopted")
+                   "_plan_score", "_pending", "_moved_obstacles", "adopted", "_first_plan")
 
 
 def _snapshot(value):
@@ -115,6 +115,7 @@ class Replanner(PlanJudging):
         self._plan_score = float("nan")  # normalised predicted score of the current plan
         self._last_plan_time = -math.inf
         self._goal_cfg: Optional[np.ndarray] = None  # the current plan's goal configuration
+        self._first_plan: Optional[tuple] = None  # (now, duration) of the first plan for the goals (arrival_budget)
         self._goal_since = -math.inf  # when the current plan's goal was chosen (the clock of replan's ``now``)
         self._switches = 0  # switches between the candidate goals since they were set (goal_commit_growth)
         self._last_failed = False
@@ -434,6 +435,10 @@ class Replanner(PlanJudging):
                     self.goal_switches += 1
                 self._goal_since = self._last_plan_time
             self._goal_cfg = new_goal
+            if ("no_plan" in reasons or "goal_changed" in reasons) and res.trajectory is not None:
+                # the arrival budget's reference: the plan's time to the goal from now (its time 0 is now, or the
+                # instant the replan began along the trajectory it continues)
+                self._first_plan = (self._last_plan_time, float(res.trajectory.duration))
             # the hysteresis' reference: the adopted plan's predicted perception (outside the measured replan)
             if self._new_plan_score is not None:  # scored by the keep decision (from the commit on)
                 self._plan_score = self._new_plan_score
