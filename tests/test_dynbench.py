@@ -356,7 +356,7 @@ def test_scenario_summary_ratios_and_headroom_share_from_hand_made_episodes():
 
     def row(det, reached=True, collisions=0, stops=0, time_ratio=1.0, switches=0):
         return {"det_rate": det, "det_rate_any": det, "reached": reached, "collisions": collisions, "stops": stops,
-                "adopted": stops, "declined": 0, "goal_switches": switches,
+                "adopted": stops, "declined": 2 * stops, "declined_late": stops, "goal_switches": switches,
                 "time_ratio": time_ratio if reached else None}
 
     det = {"motion": [0.6, 0.5, 0.4], "motion_no_prediction": [0.5, 0.5, 0.2], "from_rest": [0.4, 0.3, 0.3],
@@ -374,6 +374,7 @@ def test_scenario_summary_ratios_and_headroom_share_from_hand_made_episodes():
     assert m["hindsight"]["det_rate"] == pytest.approx(0.65)
     assert m["static"]["reached_pct"] == pytest.approx(200 / 3) and m["static"]["collisions"] == 5
     assert m["from_rest"]["stops"] == 6 and m["motion"]["time_ratio"] == pytest.approx(1.5)
+    assert m["from_rest"]["declined_mean"] == pytest.approx(4.0) and m["from_rest"]["declined_late_mean"] == 2.0
     r = s["ratios"]
     assert r["motion_over_static"] == pytest.approx(0.5 / (1.1 / 3))
     assert r["motion_over_no_prediction"] == pytest.approx(0.5 / 0.4)

@@ -22,7 +22,7 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
-from psprm_core.planning.results import Failure
+from psprm_core.planning.results import Failure, Keep
 from psprm_core.scene import load_scene
 
 from psprm_core.evaluation.reference import PybulletWorld
@@ -903,6 +903,7 @@ def test_a_view_triggered_replan_that_is_shorter_but_sees_less_is_declined(repla
     assert new_len < (1.0 - s.keep_length_margin) * rem_len, (new_len, rem_len)  # shorter by the margin
     assert new_score < rem_score - 0.02, (new_score, rem_score)  # and it sees less
     assert res.kept and rp.result is plan and res.trajectory is None
+    assert res.kept_because is Keep.NO_BETTER and rp.declined_by == {Keep.NO_BETTER: 1}
 
 
 def test_a_view_triggered_replan_that_would_arrive_after_the_arrival_budget_is_declined(replanner, world):
@@ -954,7 +955,7 @@ def test_a_view_triggered_replan_that_would_arrive_after_the_arrival_budget_is_d
     rp.update_settings(arrival_budget=budget_ending_in(0.5 * (cur_arrival + new_arrival)))
     res = rp.replan(now=now, triggers=["score_drop"], horizon_s=0.3)
     assert res.success and res.kept and rp.result is plan and res.trajectory is None, res.reason
-    assert "arrival budget" in res.reason
+    assert res.kept_because is Keep.LATE and rp.declined_by == {Keep.LATE: 1}
     assert abs(float(res.declined.trajectory.duration) - new_arrival) < 1e-6  # the same route, declined
     rp.update_settings(arrival_budget=budget_ending_in(new_arrival + 1.0))
     res = rp.replan(now=now, triggers=["score_drop"], horizon_s=0.3)

@@ -48,6 +48,7 @@ from ..planning.constraints import ProjectionSettings
 from ..planning.execution import SplicedTrajectory
 from ..planning.factory import make_planner
 from ..planning.replanner import Replanner, ReplanSettings
+from ..planning.results import Keep
 from ..prediction import quat_yaw
 from ..robot import RobotModel
 from ..scene import load_scene
@@ -186,6 +187,8 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
     # the first plan is not a replan
     out["adopted"] = rp.adopted - (1 if first.success else 0) if mode in REPLANNING_MODES else 0
     out["declined"] = rp.declined if mode in REPLANNING_MODES else 0
+    # of those, kept because the new plan would have arrived beyond the arrival budget
+    out["declined_late"] = rp.declined_by.get(Keep.LATE, 0) if mode in REPLANNING_MODES else 0
     out["goal_switches"] = rp.goal_switches if mode in REPLANNING_MODES else 0
     out["n_plans"] = (1 if first.success else 0) + out["adopted"]
     out["kept_replans"] = out["declined"]

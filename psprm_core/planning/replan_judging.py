@@ -30,6 +30,7 @@ from ..geometry import wrap_angle
 from ..prediction import quat_yaw
 from .execution import progress_time
 from .psprm import PlanResult
+from .results import Keep
 
 #: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
 VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
@@ -153,7 +154,7 @@ class PlanJudging:
         return out
 
     def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Optional[tuple]:
-        """(why, the current plan's predicted score) when the new plan ``res`` (from the committed state, or from
+        """(:class:`~.results.Keep` kind, why, the current plan's predicted score) when the new plan ``res`` (from the committed state, or from
         the robot's state) should not replace the current one (the module's docstring), else None. Both are judged
         from the same instant on, against the targets' predicted poses (:meth:`predicted_score`): the current plan
         from the commit instant (or the robot's progress), the new one from its start."""
@@ -197,7 +198,8 @@ class PlanJudging:
             return None
         why = (f"the new one would arrive in {new_arrival:.1f} s, beyond the arrival budget ({budget:.1f} s)" if late
                else f"the new one sees {plan_score:.3f} (predicted) along {new_len:.2f}")
-        return (f"kept the current plan: {why}; the remaining path sees {current:.3f} along {rem_len:.2f} and "
+        return (Keep.LATE if late else Keep.NO_BETTER,
+                f"kept the current plan: {why}; the remaining path sees {current:.3f} along {rem_len:.2f} and "
                 f"arrives in {cur_arrival:.1f} s", current)
 
     def arrival_budget_left(self) -> float:

@@ -39,7 +39,7 @@ from .execution import commit_time, splice
 from .psprm import PSPRM, PlanResult
 from .replan_judging import PlanJudging
 from .replan_settings import ReplanSettings
-from .results import Failure
+from .results import Failure, Keep
 
 log = logging.getLogger(__name__)
 
@@ -124,6 +124,7 @@ class Replanner(PlanJudging):
         self.replans = 0  # replans so far
         self.adopted = 0  # replans whose plan replaced the current one
         self.declined = 0  # replans that kept the current plan (kept)
+        self.declined_by: dict = {}  # Keep -> how many of those kept it for that reason
         self.goal_switches = 0  # adopted plans that went to another of the candidate goals
         self._collides_cache: Optional[tuple] = None  # (result, progress, planner scene, remaining path collides)
         self._score_cache: Optional[tuple] = None  # ((result, progress, planner scene, normalized), path score)
@@ -383,21 +384,22 @@ class Replanner(PlanJudging):
         if commit is not None and res.success and res.trajectory is None:
             # the committed state is the goal: the trajectory under way already ends there
             res = PlanResult(True, "kept the current plan: the trajectory under way ends at the best goal",
-                             goal_index=self.result.goal_index, cost=self.result.cost, kept=True)
+                             goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                             kept_because=Keep.AT_GOAL)
         elif commit is not None and res.success:
             fresh = res
             res = self._splice(res, commit)
             kept = self._keep_current(fresh, triggers, commit) if res.success else None
             if kept is not None:
-                res = PlanResult(True, kept[0], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
-                                 declined=res)
-                self._plan_score = kept[1]
+                res = PlanResult(True, kept[1], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                                 declined=res, kept_because=kept[0])
+                self._plan_score = kept[2]
         elif res.success:
             kept = self._keep_current(res, triggers, None)
             if kept is not None:
-                res = PlanResult(True, kept[0], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
-                                 declined=res)
-                self._plan_score = kept[1]
+                res = PlanResult(True, kept[1], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                                 declined=res, kept_because=kept[0])
+                self._plan_score = kept[2]
         if res.success and not res.kept and res.dense is not None:
             # against the obstacles as they are: the planner's collision padding is a margin it plans with (a start
             # inside it is moved out of it by the path's first motion), not what makes a path unsafe
@@ -412,13 +414,15 @@ class Replanner(PlanJudging):
             self._moved_obstacles.clear()
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
-                             "repair_rounds": rounds, "kept": res.kept, "spliced": commit is not None,
+                             "repair_rounds": rounds, "kept": res.kept, "kept_because": res.kept_because.value,
+                             "spliced": commit is not None,
                              "route": res.route,
                              **{k: v for k, v in info.items() if k == "rescore"}})
         self.replans += 1
         self._last_failed = not res.success
         if res.kept:
             self.declined += 1
+            self.declined_by[res.kept_because] = self.declined_by.get(res.kept_because, 0) + 1
             log.info("%s", res.reason)
         elif res.success:
             # the plan objects themselves (callers compare them by identity), copies of the containers adoption clears

@@ -28,6 +28,15 @@ class Failure(str, enum.Enum):
     INTERNAL = "internal"  # a defect: an exception or a path failing the final check
 
 
+class Keep(str, enum.Enum):
+    """Why a replanner kept its current plan (:attr:`PlanResult.kept_because`, beside the human ``reason``)."""
+
+    NONE = "none"  # not kept: the result is a new plan (or a failure)
+    AT_GOAL = "at_goal"  # the trajectory under way already ends at the best goal
+    NO_BETTER = "no_better"  # the new plan is predicted to see no more, nor is it shorter and seeing no less
+    LATE = "late"  # the new plan would arrive beyond the arrival budget and after the current one
+
+
 @dataclass
 class PlanResult:
     """Outcome of a query (``success`` False comes with a ``reason``; never an exception for bad problems).
@@ -52,6 +61,7 @@ class PlanResult:
     route_candidates: dict = field(default_factory=dict, repr=False)  # search -> (route perception, path length)
     kept: bool = False  # a replanner kept its current plan: the new one was no better (no path, no trajectory here)
     declined: Optional["PlanResult"] = field(default=None, repr=False, compare=False)  # with ``kept``: that new plan
+    kept_because: Keep = Keep.NONE  # with ``kept``: why (control flow and counters read this, not ``reason``)
     start_offset_s: float = 0.0  # a replan of a robot in motion: time 0 of ``trajectory`` is this far along the
     # previous trajectory (planning.execution), 0 for a plan from the robot's state
     committed_s: float = 0.0  # ... and its first this many seconds are the previous trajectory's (the commitment)

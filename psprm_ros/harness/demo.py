@@ -25,7 +25,8 @@ params file (:data:`psprm_ros.interfaces.recordings.SHIPPED`).
    (rendered views + the real detector, every target of the params file) along the executed motion and along the
    first plan alone; writes ``<out>/ros_demo.json`` (strict JSON: ``reached_goal``, ``goal``, ``time_to_goal_s``,
    ``executed_collisions``, ``pose_to_trajectory_ms_median`` / ``_p95``, ``first_plan_s``,
-   ``first_plan_duration_s``, ``adopted_replans``, ``declined_replans``, ``goal_switches``, ``stops``,
+   ``first_plan_duration_s``, ``adopted_replans``, ``declined_replans`` (``declined_late_replans`` of them beyond the
+   arrival budget), ``goal_switches``, ``stops``,
    ``adapter_refusals``, ``oracle_detected_fraction``, ``cpu_s_during_run``: the CPU seconds of this process, the
    suite, sim_robot, the whole machine and everything else while the robot drove, ...) and ``<out>/ros_demo.png``.
 """
@@ -393,7 +394,8 @@ def main(args=None) -> int:
             f"{result['time_to_goal_s']} s), executed collisions {result['executed_collisions']}, pose->trajectory "
             f"median {result['pose_to_trajectory_ms_median']} ms / p95 {result['pose_to_trajectory_ms_p95']} ms, "
             f"first plan {result['first_plan_s']} s (duration {result['first_plan_duration_s']} s), "
-            f"{result['adopted_replans']} replans adopted, {result['declined_replans']} declined, "
+            f"{result['adopted_replans']} replans adopted, {result['declined_replans']} declined "
+            f"({result['declined_late_replans']} beyond the arrival budget), "
             f"{result['goal_switches']} goal switches, {result['stops']} stops ({result['server_stops']} server, "
             f"{result['adapter_stops']} adapter), {result['adapter_refusals']} adapter refusals "
             f"(load average {result['load_avg_1min']} on {result['cpus']} cores)")

@@ -156,7 +156,8 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
                 e2e = (info["published_stamp"] - info["input_stamp"]) * 1e3
             at_client = (rx[-1] + wall_minus_perf - info["input_stamp"]) * 1e3
         rows.append({"t": round(t - t_replay, 2), "reasons": info.get("reasons"), "success": info.get("success"),
-                     "stop": bool(info.get("stop")), "kept": bool(info.get("kept")), "goal_index": info.get("goal_index"),
+                     "stop": bool(info.get("stop")), "kept": bool(info.get("kept")),
+                     "kept_because": info.get("kept_because"), "goal_index": info.get("goal_index"),
                      "pose_to_trajectory_ms": None if e2e is None else round(e2e, 1),
                      "at_client_ms": None if at_client is None else round(at_client, 1),
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
@@ -256,6 +257,7 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
     summary = {
         "plans_ok": n_ok, "replans": max(0, n_ok - 1), "kept": sum(r["kept"] for r in rows),
         "adopted_replans": max(0, n_ok - 1), "declined_replans": sum(r["kept"] for r in rows),
+        "declined_late_replans": sum(r.get("kept_because") == "late" for r in rows),
         "goal_switches": goal_switches(r["goal_index"] for r in adopted),
         "adopted_goals": [goal_names[r["goal_index"]] if r["goal_index"] is not None and
                           0 <= r["goal_index"] < len(goal_names) else None for r in adopted],
@@ -287,7 +289,8 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
         "first_plan_only_all_detected_fraction": _all(detected0),
     }
     say(f"[demo] {n_ok} plans ({summary['adopted_replans']} replans adopted, {summary['goal_switches']} goal "
-        f"switches), {summary['declined_replans']} replans not adopted (no better than the trajectory under way), "
+        f"switches), {summary['declined_replans']} replans not adopted ({summary['declined_late_replans']} would have "
+        f"arrived beyond the arrival budget, the rest were no better than the trajectory under way), "
         f"{summary['stops']} stops by the server, {summary['failed']} failed; "
         f"pose->trajectory latency median {summary['pose_to_trajectory_ms_median']} ms, p95 "
         f"{summary['pose_to_trajectory_ms_p95']} ms, max {summary['pose_to_trajectory_ms_max']} ms "

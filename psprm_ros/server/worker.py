@@ -297,9 +297,9 @@ class PlanningWorker:
                 "replan_ms": _f((t1 - t0) * 1e3), "spliced": bool(res.success and res.committed_s > 0),
                 "committed_s": _f(res.committed_s), "commit_horizon_s": _f(horizon), "route": res.route}
         self.seq += 1
-        if res.kept:  # the new plan saw no more and was no shorter: the robot keeps driving the current trajectory
+        if res.kept:  # the new plan was no better or would arrive late: the robot keeps driving the current trajectory
             self.counts["kept"] += 1
-            info.update(kept=True, stop=False)
+            info.update(kept=True, kept_because=res.kept_because.value, stop=False)
             self.outputs.info(info)
             self.outputs.status(f"plan {info['seq']} ({', '.join(reasons)}): {res.reason}")
             return True, json.dumps(info)

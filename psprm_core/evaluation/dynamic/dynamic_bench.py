@@ -206,6 +206,7 @@ def episode_metrics(ep: dict) -> dict:
            "collisions": int(ep["collision_steps"]), "self_collisions": int(ep.get("self_collision_steps") or 0),
            "stops": int(ep.get("stops", 0)),
            "adopted": int(ep.get("adopted", 0)), "declined": int(ep.get("declined", 0)),
+           "declined_late": int(ep.get("declined_late", 0)),
            "goal_switches": int(ep.get("goal_switches", 0)), "failed_replans": int(ep.get("failed_replans", 0)),
            **detection_metrics(ep), "frames": int(len(ep.get("frames_t", []))), "sim_time_s": ep.get("sim_time_s"),
            "speed_ratio": ep.get("speed_ratio"), "max_jump": ep.get("max_jump"),
@@ -244,6 +245,7 @@ def summarize_scenario(episodes: list, modes: Sequence[str]) -> dict:
                   "stops": sum(r["stops"] for r in rows), "stops_mean": _mean(r["stops"] for r in rows),
                   "adopted_mean": _mean(r["adopted"] for r in rows),
                   "declined_mean": _mean(r["declined"] for r in rows),
+                  "declined_late_mean": _mean(r.get("declined_late", 0) for r in rows),
                   "goal_switches": sum(r["goal_switches"] for r in rows),
                   "time_ratio": _mean(r["time_ratio"] for r in rows if r["reached"])}
         if m == "hindsight":
