@@ -154,10 +154,10 @@ class PlanJudging:
         return out
 
     def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Optional[tuple]:
-        """(:class:`~.results.Keep` kind, why, the current plan's predicted score) when the new plan ``res`` (from the committed state, or from
-        the robot's state) should not replace the current one (the module's docstring), else None. Both are judged
-        from the same instant on, against the targets' predicted poses (:meth:`predicted_score`): the current plan
-        from the commit instant (or the robot's progress), the new one from its start."""
+        """(:class:`~.results.Keep` kind, why, the current plan's predicted score) when the new plan ``res`` (from the
+        committed state, or from the robot's state) should not replace the current one (the module's docstring), else
+        None. Both are judged from the same instant on, against the targets' predicted poses (:meth:`predicted_score`):
+        the current plan from the commit instant (or the robot's progress), the new one from its start."""
         s = self.settings
         if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) \
                 or "goal_changed" in self._pending:
