@@ -386,20 +386,16 @@ class Replanner(PlanJudging):
             res = PlanResult(True, "kept the current plan: the trajectory under way ends at the best goal",
                              goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
                              kept_because=Keep.AT_GOAL)
-        elif commit is not None and res.success:
-            fresh = res
-            res = self._splice(res, commit)
+        elif res.success:
+            fresh = res  # judged from where it starts (the committed state in motion)
+            if commit is not None:
+                res = self._splice(res, commit)
             kept = self._keep_current(fresh, triggers, commit) if res.success else None
             if kept is not None:
-                res = PlanResult(True, kept[1], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
-                                 declined=res, kept_because=kept[0])
-                self._plan_score = kept[2]
-        elif res.success:
-            kept = self._keep_current(res, triggers, None)
-            if kept is not None:
-                res = PlanResult(True, kept[1], goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
-                                 declined=res, kept_because=kept[0])
-                self._plan_score = kept[2]
+                kind, why, current_score = kept
+                res = PlanResult(True, why, goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
+                                 declined=res, kept_because=kind)
+                self._plan_score = current_score
         if res.success and not res.kept and res.dense is not None:
             # against the obstacles as they are: the planner's collision padding is a margin it plans with (a start
             # inside it is moved out of it by the path's first motion), not what makes a path unsafe

@@ -290,7 +290,8 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
     }
     say(f"[demo] {n_ok} plans ({summary['adopted_replans']} replans adopted, {summary['goal_switches']} goal "
         f"switches), {summary['declined_replans']} replans not adopted ({summary['declined_late_replans']} would have "
-        f"arrived beyond the arrival budget, the rest were no better than the trajectory under way), "
+        f"arrived beyond the arrival budget, the rest were no better than the trajectory under way or it already ended "
+        f"at the best goal), "
         f"{summary['stops']} stops by the server, {summary['failed']} failed; "
         f"pose->trajectory latency median {summary['pose_to_trajectory_ms_median']} ms, p95 "
         f"{summary['pose_to_trajectory_ms_p95']} ms, max {summary['pose_to_trajectory_ms_max']} ms "
