@@ -200,10 +200,18 @@ class CollisionChecker(Computing):
         log.debug("collision model %s: %d elements, %d self pairs", robot.name, E, len(pairs))
 
     def set_boxes(self, boxes: Iterable) -> None:
-        """Replace the obstacle set (e.g. after an obstacle moved). :attr:`boxes` are the ones checked (grown by the
-        padding), :attr:`true_boxes` the ones given."""
+        """Replace the obstacle set (e.g. after an obstacle moved). :attr:`boxes` are the ones checked (a turning box
+        as :meth:`~psprm_core.scene.Box.swept`, grown by the padding), :attr:`true_boxes` the ones given."""
+        boxes = list(boxes)
         self.true_boxes = BoxTensors.from_boxes(boxes, self.device, self.dtype)
-        self.boxes = self.true_boxes.padded(self.padding)
+        self.boxes = (self.box_tensors(boxes) if any(b.turning for b in boxes)
+                      else self.true_boxes.padded(self.padding))
+
+    @property
+    def keeps_margin(self) -> bool:
+        """The boxes checked are larger than the real ones (a padding, or a turning box's sweep): a configuration
+        may be inside that margin without touching an obstacle (:meth:`check_unpadded`)."""
+        return self.boxes is not self.true_boxes
 
     def kernel_pack(self):
         """The checker as the compiled kernels take it (:mod:`psprm_core.kernels.fastpath`): a
@@ -230,14 +238,16 @@ class CollisionChecker(Computing):
         return pack
 
     def box_tensors(self, boxes: Iterable) -> "BoxTensors":
-        """``boxes`` as this checker tests them (tensors on its device, grown by its padding)."""
-        return BoxTensors.from_boxes(boxes, self.device, self.dtype).padded(self.padding)
+        """``boxes`` as this checker tests them (tensors on its device, a turning box swept through every heading,
+        grown by its padding)."""
+        return BoxTensors.from_boxes([b.planned() for b in boxes], self.device, self.dtype).padded(self.padding)
 
     def check_unpadded(self, q: torch.Tensor) -> torch.Tensor:
-        """In-collision flags (B,) against the boxes as given (:attr:`true_boxes`, no padding), the limits and
-        self-collision: whether a configuration touches the real obstacles, not the clearance kept from them."""
+        """In-collision flags (B,) against the boxes as given (:attr:`true_boxes`: no padding, a turning box at its
+        heading), the limits and self-collision: whether a configuration touches the real obstacles, not the
+        clearance kept from them."""
         q = q.to(self.device, self.dtype)
-        if self.padding == 0.0:
+        if self.boxes is self.true_boxes:
             return self.check(q)
         det = self.check_detailed(q)
         return det["limits"] | det["self"] | self.env_hits(q, self.true_boxes)

@@ -63,6 +63,15 @@ def yaw_to_quat(yaw: float) -> np.ndarray:
     return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
 
 
+def turn_about_z(qa, qb) -> float:
+    """How far (rad, in [0, pi]) orientation ``qb`` is turned from ``qa`` about ``qa``'s own z axis (quaternions
+    [x, y, z, w]): the heading of the relative rotation's x axis in ``qa``'s xy plane; a tilt alone turns nothing."""
+    r = quat_to_matrix(qa).T @ quat_to_matrix(qb)
+    if math.hypot(r[0, 0], r[1, 0]) < 1e-9:  # x axis tilted onto z: measured by the y axis instead
+        return abs(math.atan2(-r[0, 1], r[1, 1]))
+    return abs(math.atan2(r[1, 0], r[0, 0]))
+
+
 def make_transform(rotation: np.ndarray, translation) -> np.ndarray:
     t = np.eye(4)
     t[:3, :3] = rotation

@@ -36,6 +36,9 @@ class Box:
         RGBA used by renderers and plots.
     mesh : str or None
         Optional visual mesh (resource path); collision always uses the box.
+    turning : bool
+        The box turns about its own z axis (a person's body): planners keep clear of every heading it can take,
+        :meth:`swept` (a collision checker plans with that box and keeps this one as the real one).
     """
 
     name: str
@@ -44,6 +47,7 @@ class Box:
     quat: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 0.0, 1.0]))
     color: np.ndarray = field(default_factory=lambda: np.array([0.6, 0.6, 0.6, 1.0]))
     mesh: Optional[str] = None
+    turning: bool = False
 
     @property
     def rotation(self) -> np.ndarray:
@@ -52,6 +56,16 @@ class Box:
     @property
     def half_extents(self) -> np.ndarray:
         return 0.5 * np.asarray(self.size)
+
+    def swept(self) -> "Box":
+        """The box that holds this one at every heading about its own z axis: x and y extents grown to the diameter
+        of its footprint's circumscribed circle (the footprint's corners sweep that circle as it turns)."""
+        r = math.hypot(self.size[0], self.size[1])
+        return replace(self, size=np.array([r, r, self.size[2]], dtype=float), turning=False)
+
+    def planned(self) -> "Box":
+        """The box a planner keeps clear of: :meth:`swept` for a turning box, else this one."""
+        return self.swept() if self.turning else self
 
     def corners(self) -> np.ndarray:
         """The 8 corners in the scene frame, shape (8, 3)."""
@@ -212,10 +226,12 @@ class Scene:
         return list(self.obstacles) + [t.as_box() for t in self.targets if t.obstacle]
 
     # ---- updates (scenes are immutable; updates return a new scene) ----------------------------------------------
-    def with_obstacle_pose(self, name: str, center, quat=None) -> "Scene":
+    def with_obstacle_pose(self, name: str, center, quat=None, turning: Optional[bool] = None) -> "Scene":
+        """The scene with obstacle ``name`` at a new pose (``turning``: set :attr:`Box.turning`; None keeps it)."""
         self.obstacle(name)
         obs = tuple(
-            replace(b, center=np.asarray(center, float), quat=b.quat if quat is None else np.asarray(quat, float))
+            replace(b, center=np.asarray(center, float), quat=b.quat if quat is None else np.asarray(quat, float),
+                    turning=b.turning if turning is None else bool(turning))
             if b.name == name else b
             for b in self.obstacles
         )
@@ -279,7 +295,7 @@ def _color(f: Fields, default) -> np.ndarray:
 
 
 def _parse_box(f: Fields) -> Box:
-    f.check_keys(["name", "center", "size", "yaw", "quat", "color", "mesh"])
+    f.check_keys(["name", "center", "size", "yaw", "quat", "color", "mesh", "turning"])
     return Box(
         name=f.str("name"),
         center=np.array(f.vec("center", 3)),
@@ -287,6 +303,7 @@ def _parse_box(f: Fields) -> Box:
         quat=_orientation(f),
         color=_color(f, (0.6, 0.6, 0.6, 1.0)),
         mesh=f.str("mesh", None),
+        turning=f.bool("turning", False),
     )
 
 

@@ -105,13 +105,14 @@ class Query(ReadsQuerySettings):
         if bad[0]:
             why = ", ".join(k for k in ("limits", "environment", "self") if det[k][0])
             pad = self.ctx.checker.padding
-            if why != "environment" or pad == 0 or bool(self.ctx.checker.check_unpadded(self.ctx.t(Q[:1]))[0]):
+            if why != "environment" or not self.ctx.checker.keeps_margin or bool(self.ctx.checker.check_unpadded(self.ctx.t(Q[:1]))[0]):
                 return PlanResult(False, f"start configuration invalid ({why})", Failure.START_BLOCKED)
             # inside the clearance kept from the obstacles, not touching them: the start fix moves it out first
             fix = self.recovery.move_out(Q[0])
             if fix is None:
                 return PlanResult(False, f"start configuration within the collision padding ({pad:g} m) of an "
-                                         f"obstacle, and no motion out of it was found within "
+                                         f"obstacle or the sweep of a turning one, and no motion out of it was "
+                                         f"found within "
                                          f"{self.ctx.settings.recovery.start_fix_radius:g} (start_fix_radius)",
                                   Failure.START_BLOCKED)
             origin, Q = Q[0].copy(), Q.copy()

@@ -85,7 +85,7 @@ class Trajectory(ReadsQuerySettings):
         be clear of the obstacles themselves."""
         ck = self.ctx.checker
         bad = ck.check(self.ctx.t(traj.positions[curved])).cpu().numpy()
-        if not bad.any() or ck.padding == 0:
+        if not bad.any() or not ck.keeps_margin:
             return not bad.any()
         inside = ck.check(self.ctx.t(W)).cpu().numpy()
         if not inside[0] or inside.all():

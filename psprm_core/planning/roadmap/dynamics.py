@@ -134,7 +134,7 @@ class Dynamics:
             return self.rm.roadmap_node_ids(), self.rm.roadmap_edge_ids()
         idx = self.spatial_index()
         nsel, esel = set(), set()
-        for b in boxes:
+        for b in (b.planned() for b in boxes):  # a turning box as checked: swept through every heading
             c = np.asarray(b.center, float)[:2]
             rad = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + idx["reach"] + margin \
                 + self.ctx.checker.padding  # the box as checked: grown by the planner's clearance
@@ -166,7 +166,7 @@ class Dynamics:
             if box_list is not None:
                 reach = self.spatial_index()["reach"]
                 near = torch.zeros(len(inner), dtype=torch.bool, device=inner.device)
-                for b in box_list:
+                for b in (b.planned() for b in box_list):
                     r = float(np.linalg.norm(np.asarray(b.size, float)[:2]) / 2) + reach + 0.05
                     c = torch.as_tensor(np.asarray(b.center, float)[:2], dtype=inner.dtype, device=inner.device)
                     near |= (inner[:, :2] - c).norm(dim=-1) <= r
