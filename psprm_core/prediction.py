@@ -1,4 +1,5 @@
-"""Where a moving target will be, and where it will look, over the next seconds (from its pose stream).
+"""Where a moving target will be, and where it will look, over the next seconds (from its pose stream); which
+obstacles turn in place (:class:`TurningWatch`).
 
 A plan takes tens of seconds to execute; judging its views by where the target looks *now* chases a person who turns
 back and forth towards views that are gone before the robot gets there. :class:`TargetPredictor` turns a target's
@@ -35,7 +36,7 @@ from typing import Optional
 import numpy as np
 
 from .errors import InputError
-from .geometry import wrap_angle
+from .geometry import turn_about_z, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -212,3 +213,32 @@ class TargetPredictor:
         w = np.array([w for w, _, _ in mix])
         c = math.atan2(float(w @ np.sin(yaws)), float(w @ np.cos(yaws)))
         return float(math.sqrt(max(0.0, float(w @ wrap_angle(yaws - c) ** 2))))
+
+
+class TurningWatch:
+    """Which obstacles are turning in place: a person's body that turns about its vertical axis sweeps a disc, and a
+    robot that passes or rests beside it at its current heading is hit by its next turn.
+
+    A body turns in place when its heading (about its own z axis) moves by more than ``turn_rad`` from an anchor pose
+    while its centre stays within ``in_place_m`` of the anchor's; the anchor is its first pose, moved to the latest
+    one after each such turn and whenever the centre leaves that radius (a walking person, or a chair carried
+    elsewhere and set down at another heading, has not turned in place). It counts as turning until ``hold_s`` have
+    passed without another turn: a nurse who turns to the bed every ten seconds stays turning, a chair turned once
+    does not for long. Stamps are the caller's clock (seconds), one clock per body."""
+
+    def __init__(self, turn_rad: float, hold_s: float, in_place_m: float):
+        self.turn_rad, self.hold_s, self.in_place_m = float(turn_rad), float(hold_s), float(in_place_m)
+        self._anchor: dict = {}  # name -> (centre (3,), quat (4,))
+        self._last_turn: dict = {}  # name -> stamp of the latest turn in place
+
+    def update(self, name: str, center, quat, stamp: float) -> bool:
+        """A new pose of body ``name`` at ``stamp``; whether it is turning now."""
+        c, q = np.asarray(center, float), np.asarray(quat, float)
+        anchor = self._anchor.get(name)
+        if anchor is None or np.linalg.norm(c[:2] - anchor[0][:2]) > self.in_place_m:
+            self._anchor[name] = (c.copy(), q.copy())
+        elif turn_about_z(anchor[1], q) > self.turn_rad:
+            self._anchor[name] = (anchor[0], q.copy())
+            self._last_turn[name] = stamp
+        last = self._last_turn.get(name)
+        return last is not None and stamp - last <= self.hold_s

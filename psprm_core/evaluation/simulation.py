@@ -145,7 +145,7 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
         for name, (c, q) in poses["targets"].items():
             rp.update_target(name, c, q, stamp=t)
         for name, (c, q) in poses["obstacles"].items():
-            rp.update_obstacle(name, c, q)
+            rp.update_obstacle(name, c, q, stamp=t)
         return poses
 
     poses0 = apply_world(0.0)
@@ -217,7 +217,7 @@ def _replanning_loop(scenario, world, rp, settings, traj, start, specs, aim, lat
         for name, (c, qq) in poses["targets"].items():
             rp.update_target(name, c, qq, stamp=t)
         for name, (c, qq) in poses["obstacles"].items():
-            rp.update_obstacle(name, c, qq)
+            rp.update_obstacle(name, c, qq, stamp=t)
         new_specs = world.goal_specs(t)
         if new_specs != specs:
             specs = new_specs

@@ -298,7 +298,8 @@ class PlanJudging:
 
     def needs_replan(self, now: Optional[float] = None) -> list:
         """Reasons to replan now ([] = keep the current plan). ``now``: the caller's clock (default: monotonic);
-        apart from a collision or a goal change, at most one replan per ``min_interval_s``."""
+        apart from a collision, a goal change or a body starting to turn beside the path, at most one replan per
+        ``min_interval_s``."""
         if self.goals is None:
             return []
         now = time.monotonic() if now is None else now
@@ -312,6 +313,8 @@ class PlanJudging:
             reasons.append("collision")
         if "goal_changed" in self._pending:
             reasons.append("goal_changed")
+        if "turning_obstacle" in self._pending:
+            reasons.append("turning_obstacle")
         if not reasons and since < self.settings.min_interval_s:
             return []
         if self.settings.replan_on_move:

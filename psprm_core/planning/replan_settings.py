@@ -24,6 +24,13 @@ class ReplanSettings:
     obstacle_move_m: float = setting(0.03, "obstacle translation that counts as a move (m; re-check, replan)",
                                      live=True)
     obstacle_turn_rad: float = setting(0.1, "obstacle rotation that counts as a move (rad)", live=True)
+    turning_hull: bool = setting(True, "an obstacle seen turning in place about its vertical axis by more than "
+                                       "obstacle_turn_rad (a person's body) is planned against at every heading it "
+                                       "can take (scene.Box.swept); its real box stays what a path must not touch")
+    turning_hold_s: float = setting(10.0, "... until it has not turned for this long (s)", range=(0.0, None))
+    turning_in_place_m: float = setting(0.15, "... a turn counts when the centre stays within this of where the turn "
+                                              "began (m; a walking person or a carried chair does not turn in place)",
+                                        range=(0.0, None))
     focus_move_m: float = setting(0.25, "the visibility focus follows a target that moved further than this (m)")
     replan_on_move: bool = setting(False, "a target/obstacle move alone triggers a replan (else it triggers the "
                                           "score and collision checks, and those decide)", live=True)

@@ -12,6 +12,11 @@ Only the work an update makes necessary is done:
   (:meth:`PSPRM.invalidate_near`); nodes are re-scored (occlusion). When no goal is reachable any more, the roadmap is
   repaired by sampling new nodes around the moved obstacles and the start, keeping every valid node
   (:meth:`PSPRM.grow`);
+* **obstacle turning** (``turning_hull``: turned about its vertical axis beyond ``obstacle_turn_rad`` from its first
+  pose, as a person's body does): from then on it is planned against at every heading it can take
+  (:meth:`~psprm_core.scene.Box.swept`), so that a robot passing or resting beside it is not swept by its next turn;
+  a remaining path through the swept box replans (``turning_obstacle``). Paths are still judged against its real box;
+  a start inside the swept box is moved out of it as one inside the collision padding is;
 * **goal moved / several goals**: start and goals are reconnected and the goal with the best composite (Eq. 2) cost
   wins.
 
@@ -34,7 +39,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, PsprmError
-from ..prediction import TargetPredictor
+from ..prediction import TargetPredictor, TurningWatch
 from .execution import commit_time, splice
 from .psprm import PSPRM, PlanResult
 from .replan_judging import PlanJudging
@@ -104,6 +109,9 @@ class Replanner(PlanJudging):
         self._target_step_ref = dict(self._target_ref)
         self._target_box_ref = dict(self._target_ref)
         self._obstacle_ref = {b.name: (b.center.copy(), b.quat.copy()) for b in self.scene.obstacles}
+        self.turning = TurningWatch(self.settings.obstacle_turn_rad, self.settings.turning_hold_s,
+                                    self.settings.turning_in_place_m)
+        self._declared_turning = {b.name for b in self.scene.obstacles if b.turning}  # the scene says so: always
         self._moved_obstacles: dict = {}  # name -> Box (new pose) since the last plan, for repair sampling
         self._score_stale = False
         self._rescore_all = False  # the roadmap was scored against another heading: every edge is estimated again
@@ -153,6 +161,9 @@ class Replanner(PlanJudging):
         self.settings, self.plan_options = new, options
         for pr in getattr(self, "predictors", {}).values():
             pr.settings = new.prediction
+        if hasattr(self, "turning"):
+            t = self.turning
+            t.turn_rad, t.hold_s, t.in_place_m = new.obstacle_turn_rad, new.turning_hold_s, new.turning_in_place_m
         return new
 
     # ---- inputs ------------------------------------------------------------------------------------------------------
@@ -234,19 +245,25 @@ class Replanner(PlanJudging):
     def _beyond(p: np.ndarray, q: np.ndarray, ref: tuple, move_m: float, turn_rad: float) -> bool:
         return bool(np.linalg.norm(p - ref[0]) > move_m or _rotation_angle(q, ref[1]) > turn_rad)
 
-    def update_obstacle(self, name: str, position, quat=None) -> bool:
-        """New pose of an obstacle; when it moved beyond the thresholds the roadmap near it is re-checked now.
-        Returns True in that case."""
+    def update_obstacle(self, name: str, position, quat=None, stamp: Optional[float] = None) -> bool:
+        """New pose of an obstacle; when it moved beyond the thresholds, or started or stopped turning in place
+        (``turning_hull``, :class:`~psprm_core.prediction.TurningWatch`), the roadmap near it is re-checked now.
+        Returns True in that case. ``stamp``: the pose's time (s; default: monotonic)."""
         self._known(self.scene.obstacle, name)
         p, q = _pose(position, quat, f"obstacle '{name}'")
-        self.scene = self.scene.with_obstacle_pose(name, p, q)
-        if not self._beyond(p, q, self._obstacle_ref[name], self.settings.obstacle_move_m,
-                            self.settings.obstacle_turn_rad):
+        s = self.settings
+        stamp = time.monotonic() if stamp is None else float(stamp)
+        was = self.scene.obstacle(name).turning
+        seen = self.turning.update(name, p, q, stamp)
+        turning = name in self._declared_turning or (s.turning_hull and seen)
+        self.scene = self.scene.with_obstacle_pose(name, p, q, turning=turning)
+        if turning == was and not self._beyond(p, q, self._obstacle_ref[name], s.obstacle_move_m,
+                                               s.obstacle_turn_rad):
             return False
         box = self.scene.obstacle(name)
         ref = self._obstacle_ref[name]  # where the roadmap last saw it (re-checked there; the planner's scene may
         # have been synced to a later pose below the thresholds by a trigger evaluation since)
-        old_box = dataclasses.replace(box, center=ref[0], quat=ref[1])
+        old_box = dataclasses.replace(box, center=ref[0], quat=ref[1], turning=was)
         self.planner.set_scene(self.scene)
         self.planner.invalidate_near([box], old_boxes=[old_box])
         self._obstacle_ref[name] = (p.copy(), q.copy())
@@ -255,7 +272,15 @@ class Replanner(PlanJudging):
         self._pending.add("obstacle_moved")
         if self.remaining_path_collides():
             self._pending.add("collision")
+        elif turning and not was and self._remaining_enters(box):
+            self._pending.add("turning_obstacle")  # the path passes where the box sweeps when it turns
         return True
+
+    def _remaining_enters(self, box) -> bool:
+        """The remaining path enters ``box`` as the planner checks it (a turning box swept, the padding)."""
+        rem = self.remaining()
+        return rem is not None and len(rem) > 0 and bool(
+            self.planner.checker.env_hits(torch.as_tensor(rem, dtype=torch.float32), [box]).any())
 
     # ---- triggers ----------------------------------------------------------------------------------------------------
     def remaining(self) -> Optional[np.ndarray]:

@@ -128,7 +128,7 @@ class PlanningWorker:
                 self.rp.update_target(t.name, t.center, t.quat, stamp=self.clock())
         for o in self.obstacles:
             b = scene.obstacle(o)
-            self.rp.update_obstacle(o, b.center, b.quat)
+            self.rp.update_obstacle(o, b.center, b.quat, stamp=self.clock())
         self.rp.set_robot_state(self.q)
         if self.goal_configs is not None:
             self.rp.set_goals(self.goal_configs)
@@ -236,7 +236,7 @@ class PlanningWorker:
                 self.outputs.status(f"target {name} refused by the planner: {exc}", "warning")
         for name, (p, q) in pend["obstacles"].items():
             try:
-                moved |= self.rp.update_obstacle(name, p, q) is not False
+                moved |= self.rp.update_obstacle(name, p, q, stamp=self.clock()) is not False
                 boxes_changed = True
             except (PsprmError, KeyError, ValueError) as exc:
                 self.outputs.status(f"obstacle {name} refused by the planner: {exc}", "warning")

@@ -168,7 +168,7 @@ def run_hindsight(scenario, world: World, planner, rp_settings, start: np.ndarra
         for name, (c, q) in poses["obstacles"].items():
             if name in scenario.obstacles and variant == "mid":
                 c, q = world.obstacle_pose(name, max(kf.t for kf in scenario.obstacles[name]))
-            rp.update_obstacle(name, c, q)
+            rp.update_obstacle(name, c, q, stamp=float(k))
         rp.set_robot_state(start)
         rp.set_goals(goals)
         first = rp.replan(now=float(k))  # syncs the roadmap with these poses (re-scored, re-checked)
