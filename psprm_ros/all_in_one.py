@@ -12,13 +12,12 @@ from __future__ import annotations
 
 from .perception_scorer import PerceptionScorer
 from .replan_monitor import ReplanMonitor
+from .roadmap_server import RoadmapServer
 from .robot_adapter import RobotAdapter
 from .runner import run_nodes
 
 
 def factories() -> list:
-    from .roadmap_server import RoadmapServer
-
     return [RoadmapServer, PerceptionScorer, ReplanMonitor, RobotAdapter]
 
 

@@ -16,6 +16,9 @@ import numpy as np
 
 from psprm_core.errors import ConfigError, InputError, PsprmError, RobotModelError
 from psprm_core.paths import resolve_named
+from psprm_core.planning.factory import problem_configurations
+from psprm_core.robot import RobotModel
+from psprm_core.scene import load_scene
 from psprm_core.yamlio import Fields, load_yaml
 
 # the nodes use these as core.<name>
@@ -423,9 +426,6 @@ def load_scene_and_robot(scene_name: str, robot_name: str = "", node=None, param
     ``params``, the robot model is built as the node's ``robot_description`` parameters say
     (:func:`psprm_ros.robots.robot_description.robot_from_params`: the packaged URDF, or the robot's own from its
     topic)."""
-    from psprm_core.robot import RobotModel
-    from psprm_core.scene import load_scene
-
     scene = load_scene(resolve_scene(scene_name))
     if node is not None:
         return scene, robot_from_params(node, {**(params or {}), "robot": robot_name}, scene)
@@ -468,8 +468,6 @@ def scene_targets(scene, targets) -> list:
 
 def start_configuration(robot, scene, problem: str = "") -> np.ndarray:
     """Start configuration of a scene problem (the first one by default; the robot's default pose without one)."""
-    from psprm_core.planning.factory import problem_configurations
-
     if not scene.problems:
         return robot.default_configuration()
     p = scene.problem(problem) if problem else scene.problems[0]

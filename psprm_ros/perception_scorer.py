@@ -15,6 +15,7 @@ import time
 from typing import Optional
 
 import numpy as np
+from psprm_core.planning.factory import make_scorer
 
 from . import core
 from .interfaces import conversions as cv
@@ -73,8 +74,6 @@ class PerceptionScorer:
         from geometry_msgs.msg import PoseArray, PoseStamped
         from std_msgs.msg import Float32, Float32MultiArray
         import torch
-
-        from psprm_core.planning.factory import make_scorer
 
         node, p = self.node, dict(self.p)
         torch.set_num_threads(max(1, p["torch_threads"]))

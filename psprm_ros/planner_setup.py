@@ -11,6 +11,10 @@ from pathlib import Path
 from typing import Optional
 
 from psprm_core.paths import cache_dir, resolve_named
+from psprm_core.planning.factory import load_preset, make_planner
+from psprm_core.planning.psprm import PSPRMSettings
+from psprm_core.planning.replanner import Replanner, ReplanSettings
+from psprm_core.planning.settings import parameter_specs, VARIANTS
 
 log = logging.getLogger(__name__)
 
@@ -42,17 +46,12 @@ PLANNER_PARAMS = {f.name: f.default for f in dataclasses.fields(PlannerSpec) if 
 def server_setting_specs() -> tuple:
     """The planner settings the roadmap server declares as parameters (their
     :class:`~psprm_core.planning.settings_groups.SettingSpec`): every live one, and :data:`SERVER_BUILD_SETTINGS`."""
-    from psprm_core.planning.settings import parameter_specs
-
     return tuple(s for s in parameter_specs() if s.live or s.name in SERVER_BUILD_SETTINGS)
 
 
 def planner_file_settings(planner_settings: str, robot_name: str):
     """The settings a planner of the server starts from: the file ``planner_settings`` ('' = the shipped preset) for
     robot ``robot_name``, validated (a :class:`~psprm_core.errors.ConfigError` for a bad file)."""
-    from psprm_core.planning.factory import load_preset
-    from psprm_core.planning.psprm import PSPRMSettings
-
     if planner_settings:
         return PSPRMSettings.from_yaml(planner_settings, robot=robot_name)
     return load_preset(robot=robot_name)
@@ -69,8 +68,6 @@ def server_setting_values(settings) -> dict:
 def resolve_live_settings(settings, changes: dict, variant: str):
     """``settings`` (a planner's) with ``changes`` (dotted paths) applied; ``scoring.alpha`` None in ``changes`` is
     the default of ``variant``'s scorer for the objective (:func:`~psprm_core.planning.settings.default_alpha`)."""
-    from psprm_core.planning.settings import VARIANTS
-
     new = settings.changed(changes)
     if "scoring.alpha" in changes and changes["scoring.alpha"] is None:
         new = new.changed({"scoring.alpha": None}).resolved(VARIANTS.get(variant, (None, None))[1])
@@ -80,8 +77,6 @@ def resolve_live_settings(settings, changes: dict, variant: str):
 def make_planner_for(scene, robot, targets, spec: PlannerSpec):
     """The planner ``spec`` describes: its variant, settings file and ``settings`` (over
     :data:`SERVER_SETTING_DEFAULTS`), by dotted path."""
-    from psprm_core.planning.factory import make_planner
-
     settings = planner_file_settings(spec.planner_settings, robot.name) if spec.planner_settings else None
     return make_planner(spec.variant, scene, targets, robot=robot, settings=settings,
                         checkpoint=Path(spec.checkpoint) if spec.checkpoint else None,
@@ -130,7 +125,5 @@ def _warm_up(planner) -> float:
 
 def make_replanner(planner, settings_path: str = ""):
     """The core :class:`~psprm_core.planning.replanner.Replanner` around a built or loaded ``planner``."""
-    from psprm_core.planning.replanner import Replanner, ReplanSettings
-
     settings = ReplanSettings.from_yaml(resolve_named("planner", settings_path)) if settings_path else ReplanSettings()
     return Replanner(planner, settings)

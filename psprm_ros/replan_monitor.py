@@ -23,6 +23,7 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.collision import CollisionChecker
 from psprm_core.errors import InputError
 
 from . import core
@@ -163,8 +164,6 @@ class ReplanMonitor(InputGate, Triggers, core.ConfiguredRobot):
         from sensor_msgs.msg import JointState
         from std_msgs.msg import Float32, String
         from trajectory_msgs.msg import JointTrajectory
-
-        from psprm_core.collision import CollisionChecker
 
         node, p = self.node, dict(self.p)
         scene, robot = core.load_configured_scene_and_robot(node, p)

@@ -17,7 +17,9 @@ import logging
 import sys
 from typing import Callable, Sequence
 
+from .core import autostart
 from .heap import freeze_long_lived
+from .robots.adapters import import_follow_joint_trajectory
 from .spinning import NodeSpinner
 
 
@@ -35,7 +37,6 @@ def self_check() -> dict:
             "psprm_ros.mocap_replay", "psprm_ros.harness.soak"]
     for m in mods:
         importlib.import_module(m)
-    from .robots.adapters import import_follow_joint_trajectory
 
     return {"ok": True, "psprm_ros": psprm_ros.__file__, "psprm_core": psprm_core.__file__, "modules": len(mods),
             "control_msgs": import_follow_joint_trajectory() is not None}
@@ -59,8 +60,6 @@ def start_lifecycles(owners) -> list:
     """Configure and activate every lifecycle node whose ``autostart`` parameter is true, each on its own thread
     (the roadmap server's configure builds or loads the roadmap). Returns the threads."""
     import threading
-
-    from .core import autostart
 
     threads = []
     for n in owners:

@@ -58,6 +58,7 @@ import torch
 from ..errors import InputError
 from ..geometry import wrap_angle
 from ..kernels.compute import bulk
+from ..planning.factory import make_scorer
 from ..problems import random_problems
 from .base import PlanningContext
 from .rl_settings import PPOSettings
@@ -89,8 +90,6 @@ class ActivePerceptionEnv(gym.Env):
 
     def __init__(self, scene, targets: Sequence[str], robot=None, settings=None, problems: Optional[list] = None,
                  seed: int = 0, context=None):
-        from ..planning.factory import make_scorer
-
         super().__init__()
         self.settings = settings if settings is not None else PPOSettings()
         s = self.settings

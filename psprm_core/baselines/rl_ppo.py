@@ -36,11 +36,12 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..paths import cache_dir
-from .base import PlanningContext, failure, resolve_settings
-from .rl_settings import PPOSettings
 from ..errors import InputError
+from ..paths import cache_dir
 from ..planning.results import Failure
+from .base import PlanningContext, failure, resolve_settings
+from .rl_env import ActivePerceptionEnv, ENV_VERSION
+from .rl_settings import PPOSettings
 from .trajopt import index_of_goal
 
 log = logging.getLogger(__name__)
@@ -127,8 +128,6 @@ class PPOPlanner:
     def make_env(self, problems: Optional[list] = None, seed_offset: int = 0):
         """A fresh :class:`~psprm_core.baselines.rl_env.ActivePerceptionEnv` for this planner (episode seed
         ``settings.seed + seed_offset``)."""
-        from .rl_env import ActivePerceptionEnv
-
         return ActivePerceptionEnv(self.scene, self.targets, settings=self.settings, problems=problems,
                                    seed=self.settings.seed + seed_offset, context=self.ctx)
 
@@ -153,8 +152,6 @@ class PPOPlanner:
         """Hash of what the policy depends on: robot, scene geometry, targets, settings, seed, library versions and the
         environment version (:data:`~psprm_core.baselines.rl_env.ENV_VERSION`)."""
         import stable_baselines3
-
-        from .rl_env import ENV_VERSION
 
         h = hashlib.sha256(self.robot.hash().encode())
         h.update(f"env{ENV_VERSION}".encode())

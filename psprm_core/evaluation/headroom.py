@@ -15,6 +15,7 @@ import logging
 from typing import Sequence
 
 import numpy as np
+from ..baselines.psprm_adapter import PSPRMBenchPlanner
 
 log = logging.getLogger(__name__)
 
@@ -41,8 +42,6 @@ class ReferenceRoutes:
     def __init__(self, scene, targets: Sequence[str], robot=None, seed: int = 0, variant: str = "neural-psprm-line",
                  searches: Sequence[tuple] = SEARCHES, alternatives: int = ALTERNATIVES, penalty: float = PENALTY,
                  **overrides):
-        from ..baselines.psprm_adapter import PSPRMBenchPlanner
-
         self._bench = PSPRMBenchPlanner(variant, scene, list(targets), robot=robot, seed=seed, **overrides)
         self.planner = self._bench.planner
         self.robot = self.planner.robot

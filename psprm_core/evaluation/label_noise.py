@@ -31,7 +31,14 @@ import numpy as np
 from ..camera import CameraIntrinsics
 from ..errors import InputError
 from ..paths import project_root
+from ..perception.dataset import OracleFactory, load_dataset
+from ..perception.dataset_sampling import target_in_fov
 from ..perception.detectors import default_detector_name, make_detector
+from ..perception.metrics import perception_metrics
+from ..perception.oracle import Oracle
+from ..perception.surrogate import load_surrogate, target_pose_matrix
+from ..perception.training import TrainConfig, _splits, pool_datasets
+from ..scene import load_scene
 
 log = logging.getLogger(__name__)
 
@@ -106,8 +113,6 @@ def retest_statistics(original, retest, thresholds, predictions: Optional[dict] 
         module docstring (``ceiling_spearman`` = sqrt(retest Spearman), ``noise_rmse`` = retest RMSE / sqrt 2);
         one entry per predictor with its Spearman, RMSE, MAE and F1 against the originals.
     """
-    from ..perception.metrics import perception_metrics
-
     y = np.asarray(original, float).ravel()
     r = np.asarray(retest, float).ravel()
     thr = np.broadcast_to(np.asarray(thresholds, float), y.shape)
@@ -151,8 +156,6 @@ def labelling_oracle_factory(scorer: str):
     """The :class:`~psprm_core.perception.dataset.OracleFactory` whose description a dataset's metadata records as
     its ``scorer`` (``psprm dataset`` writes ``Oracle(scene=...)`` or ``Oracle(scene=..., {'intrinsics':
     CameraIntrinsics(...)})``); the rebuilt factory describes itself exactly as recorded, or this raises."""
-    from ..perception.dataset import OracleFactory
-
     desc = str(scorer or "")
     m = re.fullmatch(r"Oracle\(scene=([^,)]+)(?:, (.*))?\)", desc.strip())
     if not m:
@@ -175,9 +178,6 @@ def labelling_oracle_factory(scorer: str):
 
 def _build_oracle(factory, detectors: dict):
     """The factory's oracle with the given detectors ({class: Detector}; the same models, sized to our threads)."""
-    from ..perception.oracle import Oracle
-    from ..scene import load_scene
-
     path = Path(factory.scene_path)
     if not path.is_absolute() and not path.is_file():
         path = project_root() / path
@@ -191,8 +191,6 @@ def _relabel(full, parts: list, chosen: np.ndarray, poses: np.ndarray, moved: np
              classes: np.ndarray, reproduce: bool, threads: int) -> dict:
     """Oracle labels of the moved views (and of the unmoved ones with ``reproduce``), each by the oracle of its
     source, with the built-in detectors on ``threads`` threads."""
-    from ..perception.dataset_sampling import target_in_fov
-
     n = len(chosen)
     retest, again, thr = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
     left_view, out_before = np.zeros(n, dtype=bool), np.zeros(n, dtype=bool)
@@ -285,10 +283,6 @@ def label_noise(checkpoint: str, dataset: str, per_class: int = 200, translation
         are), ``oracle_s``, and ``views`` (the per-view record).
     """
     import torch
-
-    from ..perception.dataset import load_dataset
-    from ..perception.surrogate import load_surrogate, target_pose_matrix
-    from ..perception.training import TrainConfig, _splits, pool_datasets
 
     old_threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(threads)))

@@ -38,6 +38,9 @@ import numpy as np
 from ..baselines import make_baseline
 from ..executors import BackendSettings, Executor, Task
 from ..paths import resolve_named
+from ..perception.dataset import OracleFactory, SamplingConfig, sample_camera_poses
+from ..robot import RobotModel
+from ..scene import load_scene
 from .bench import make_problems
 
 #: the paper's protocol: 2,500 home problems per planner (Table II)
@@ -77,9 +80,6 @@ def reset_cost(scene_name: str = "home", planner: str = "neural-psprm-line", nod
     ``problems`` queries), next to the build and query times of the same planner."""
     import torch
 
-    from ..robot import RobotModel
-    from ..scene import load_scene
-
     torch.set_num_threads(1)
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)
@@ -102,9 +102,6 @@ def reset_cost(scene_name: str = "home", planner: str = "neural-psprm-line", nod
 def labelling_cost(scene_name: str = "surrogate_studio", views: int = 5, seed: int = 0) -> dict:
     """Seconds per oracle-labelled view (render + the class's real detector), per target of the scene, over ``views``
     sampled views each (the oracle built first; its build time reported apart)."""
-    from ..perception.dataset import OracleFactory, SamplingConfig, sample_camera_poses
-    from ..scene import load_scene
-
     path = resolve_named("scene", scene_name)
     scene = load_scene(path)
     t0 = time.perf_counter()

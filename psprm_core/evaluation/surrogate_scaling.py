@@ -22,6 +22,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError
+from ..perception.dataset import load_dataset
+from ..perception.training import TrainConfig, _predict_features, _splits, dataset_tensors, fit_surrogate, pool_datasets
 
 log = logging.getLogger(__name__)
 
@@ -64,10 +66,6 @@ def surrogate_scaling(dataset: Sequence[str], fractions: Sequence[float] = (0.25
                       threads: Optional[int] = 2, target: float = 0.946, subset_seed: int = 0,
                       allow_incomplete: bool = False) -> dict:
     """Train and judge the surrogates described in the module docstring; returns the rows and the fitted growth."""
-    from ..perception.dataset import load_dataset
-    from ..perception.training import (TrainConfig, _predict_features, _splits, dataset_tensors, fit_surrogate,
-                                       pool_datasets)
-
     ds = pool_datasets([load_dataset(d, allow_incomplete=allow_incomplete) for d in dataset])
     base = TrainConfig(threads=threads)
     splits = _splits(ds, base)

@@ -10,6 +10,10 @@ import numpy as np
 
 from ..errors import PsprmError
 from ..paths import resolve_named
+from ..perception.oracle import Oracle
+from ..perception.render import look_at_pose
+from ..robot import RobotModel, image_roll
+from ..scene import load_scene
 
 
 def detection_map(scene_name: str = "home", target: str | Sequence[str] | None = None, spacing: float = 0.5,
@@ -35,11 +39,6 @@ def detection_map(scene_name: str = "home", target: str | Sequence[str] | None =
     limit, every frame aimed.
     """
     import torch
-
-    from ..perception.oracle import Oracle
-    from ..perception.render import look_at_pose
-    from ..robot import RobotModel, image_roll
-    from ..scene import load_scene
 
     scene = load_scene(resolve_named("scene", scene_name))
     robot = RobotModel.load(scene.robot)

@@ -15,6 +15,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 from ..errors import InputError
+from ..geometry import quat_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +46,6 @@ def box_footprint(center, size, quat) -> np.ndarray:
     (K, 2) ndarray
         Counter-clockwise polygon vertices (K = 4 for boxes rotated about z only, up to 6 otherwise).
     """
-    from ..geometry import quat_to_matrix
-
     half = 0.5 * np.asarray(size, dtype=float)
     signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=float)
     corners = (signs * half) @ quat_to_matrix(quat).T + np.asarray(center, dtype=float)
@@ -80,8 +79,6 @@ def _darker(color, factor: float = 0.6) -> tuple:
 
 
 def _top_z(center, size, quat) -> float:
-    from ..geometry import quat_to_matrix
-
     half = 0.5 * np.asarray(size, dtype=float)
     return float(np.asarray(center, dtype=float)[2] + np.abs(quat_to_matrix(quat)[2]) @ half)
 

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import Callable, Dict, Optional, Tuple
 
 import numpy as np
+from ..geometry import matrix_to_quat, rpy_to_matrix
 
 log = logging.getLogger(__name__)
 
@@ -179,8 +180,6 @@ def draw_suitcase_shell(rng: np.random.Generator, size: int = 384) -> np.ndarray
 
 def _plant_parts(n_leaves: int = 120, seed: int = 1) -> tuple:
     """A terracotta pot (cylinder) with ``n_leaves`` thin green boxes radiating from the soil."""
-    from ..geometry import matrix_to_quat, rpy_to_matrix
-
     rng = np.random.default_rng(seed)
     parts = [Part(center=(0, 0, -0.33), size=(0.6, 0.6, 0.34), color=(0.72, 0.36, 0.2, 1.0), kind="cylinder"),
              Part(center=(0, 0, -0.155), size=(0.56, 0.56, 0.01), color=(0.25, 0.17, 0.1, 1.0), kind="cylinder")]

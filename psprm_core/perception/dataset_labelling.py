@@ -12,6 +12,8 @@ from typing import Any, Callable, Optional, Sequence
 import numpy as np
 
 from ..paths import project_root
+from ..scene import load_scene
+from .oracle import Oracle
 
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -39,9 +41,6 @@ class OracleFactory:
         return f"Oracle(scene={self.scene_path}{extra})"
 
     def __call__(self) -> Any:
-        from ..scene import load_scene
-        from .oracle import Oracle
-
         path = Path(self.scene_path)
         if not path.is_absolute() and not path.is_file():  # a project-relative path, on a worker started elsewhere
             path = project_root() / path

@@ -11,6 +11,7 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.collision import CollisionChecker
 from psprm_core.evaluation import viz
 
 from ..interfaces import conversions as cv
@@ -136,8 +137,6 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
     """Plans, latencies, the executed motion against the replayed bodies, and the oracle's verdict on every target
     of the params file along the executed motion and along the first plan alone; writes the figure."""
     import torch
-
-    from psprm_core.collision import CollisionChecker
 
     scene, robot = cfg.scene, cfg.robot
     with probe.cond:

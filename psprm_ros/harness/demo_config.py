@@ -30,6 +30,8 @@ from typing import Optional
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.robot import RobotModel
+from psprm_core.scene import load_scene
 
 from .. import core
 from ..core import resolve_scene
@@ -198,8 +200,6 @@ def demo_config(params_file, recording=None) -> DemoConfig:
     """The closed loop of ``params_file``; with ``recording`` (a :class:`~psprm_ros.interfaces.recordings.Recording`),
     its bodies are checked to be targets or dynamic obstacles the monitor subscribes to, recorded in the scene frame or
     an input frame of the params file. Raises :class:`~psprm_core.errors.InputError` naming the file and the field."""
-    from psprm_core.robot import RobotModel
-
     where = str(params_file)
     params = read_params(params_file)
     shared = params["roadmap_server"]  # the shared section as the server reads it
@@ -244,8 +244,6 @@ def demo_config(params_file, recording=None) -> DemoConfig:
 
 
 def _load_scene(name: str):
-    from psprm_core.scene import load_scene
-
     return load_scene(resolve_scene(name))
 
 

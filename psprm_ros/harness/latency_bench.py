@@ -27,7 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from psprm_core.collision import CollisionChecker
 from psprm_core.paths import resolve_named
+from psprm_core.scene import load_scene
 
 from ..core import start_configuration
 from ..interfaces import conversions as cv
@@ -40,8 +42,6 @@ HEADINGS = [2.8, 2.2, 1.5, 0.8, 0.3, -0.6, -1.6, -2.4]
 def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float, domain_id: int,
         log=print, blocks: int = 0, stop_horizon: float = -1.0) -> dict:
     import torch
-
-    from psprm_core.scene import load_scene
 
     torch.set_num_threads(2)
     # the benchmark's protocol: every target move beyond the thresholds replans at once
@@ -124,8 +124,6 @@ def run(params_file: str, n_nodes: int, changes: int, gap: float, timeout: float
 def block_reactions(s, scene, robot, n: int, timeout: float, log=print) -> dict:
     """The ``--blocks`` protocol (module docstring); the robot stands at the start of the current trajectory."""
     import torch
-
-    from psprm_core.collision import CollisionChecker
 
     body = scene.obstacle("person_body")
     checker = CollisionChecker(robot, workspace=scene.workspace)

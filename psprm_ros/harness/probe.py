@@ -8,12 +8,14 @@ import json
 import threading
 import time
 from typing import Callable, Optional
+from psprm_core.scene import load_scene
 
 
 from .. import core
 from ..interfaces import conversions as cv
 from ..perception_scorer import PerceptionScorer
 from ..replan_monitor import ReplanMonitor
+from ..roadmap_server import RoadmapServer
 from ..robot_adapter import RobotAdapter
 from ..runner import start_lifecycles
 from ..sim_robot import SimRobotNode
@@ -229,8 +231,6 @@ class StatePublisher:
 
 def scene_frame(scene_name: str) -> str:
     """The frame a scene's poses are in (the nodes load the scene at configure; the probe needs its frame first)."""
-    from psprm_core.scene import load_scene
-
     return load_scene(core.resolve_scene(scene_name)).frame
 
 
@@ -247,8 +247,6 @@ class InProcessSuite:
     def __enter__(self) -> "InProcessSuite":
         import rclpy
         from rclpy.parameter import Parameter
-
-        from ..roadmap_server import RoadmapServer
 
         self.context = rclpy.Context()
         args = ["--ros-args", "--params-file", self.params_file] if self.params_file else None

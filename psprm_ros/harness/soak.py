@@ -36,6 +36,8 @@ from pathlib import Path
 import numpy as np
 
 from psprm_core.paths import resolve_named
+from psprm_core.robot import RobotModel
+from psprm_core.scene import load_scene
 
 from ..heap import freeze_long_lived
 from ..interfaces import conversions as cv
@@ -208,8 +210,6 @@ def main(args=None) -> int:
     import logging
 
     logging.basicConfig(level=logging.ERROR)
-    from psprm_core.robot import RobotModel
-    from psprm_core.scene import load_scene
 
     rng = np.random.default_rng(a.seed)
     out = Path(a.out)

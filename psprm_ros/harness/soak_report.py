@@ -11,6 +11,7 @@ from typing import Optional
 
 import numpy as np
 
+from psprm_core.collision import CollisionChecker
 from psprm_core.tracking import CheckedPath
 
 from ..interfaces import conversions as cv
@@ -269,8 +270,6 @@ def save_record(path: Path, ex: list, trajs: list, names: list, commands: list =
 def report(a, scene, robot, probe, record, procs, exits, mem, stream, n_spam, reached, diags, t0, t_end,
            wall_minus_perf, commands: list, commands_lock) -> dict:
     import torch
-
-    from psprm_core.collision import CollisionChecker
 
     with probe.cond:
         trajs = [(t, m) for t, m in probe.trajectories if t0 <= t <= t_end]

@@ -18,6 +18,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from psprm_core.errors import InputError  # a message that must not reach the planner (non-finite, wrong frame, ...)
+from psprm_core.geometry import matrix_to_quat, quat_to_matrix
 
 from .trajectories import (configs_to_joint_trajectory, densify_linear, duration_msg, duration_to_sec,
                            joint_trajectory_msg, joint_trajectory_positions, joint_trajectory_velocities,
@@ -68,14 +69,10 @@ def numpy_to_pose(position, quat_xyzw=(0.0, 0.0, 0.0, 1.0), pose=None):
 
 def matrix_to_pose(T: np.ndarray, pose=None):
     """4x4 homogeneous transform -> ``geometry_msgs/Pose``."""
-    from psprm_core.geometry import matrix_to_quat
-
     return numpy_to_pose(T[:3, 3], matrix_to_quat(T[:3, :3]), pose)
 
 
 def pose_to_matrix(pose) -> np.ndarray:
-    from psprm_core.geometry import quat_to_matrix
-
     p, q = pose_to_numpy(pose)
     T = np.eye(4)
     T[:3, :3] = quat_to_matrix(q)
@@ -176,8 +173,6 @@ def pose_array_to_matrices(msg) -> np.ndarray:
 
 def matrices_to_quats(R: np.ndarray) -> np.ndarray:
     """(N, 3, 3) rotations -> (N, 4) quaternions xyzw."""
-    from psprm_core.geometry import matrix_to_quat
-
     return np.array([matrix_to_quat(r) for r in R]).reshape(-1, 4)
 
 

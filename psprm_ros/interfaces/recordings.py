@@ -25,6 +25,7 @@ import numpy as np
 
 from psprm_core.errors import InputError
 from psprm_core.paths import resolve_named
+from psprm_core.scene import load_scene
 
 COLUMNS = ["time", "body", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
@@ -255,7 +256,6 @@ def _scene(scene, name: str):
     """``scene`` itself, or the shipped scene ``name`` loaded when it is None."""
     if scene is not None:
         return scene
-    from psprm_core.scene import load_scene
 
     return load_scene(resolve_named("scene", name))
 

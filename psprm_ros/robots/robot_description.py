@@ -25,6 +25,7 @@ import time
 from typing import Optional
 
 from psprm_core.errors import PsprmError, RobotModelError
+from psprm_core.robot import RobotModel
 
 MODES = ("package", "topic", "auto")
 DEFAULT_TOPIC = "robot_description"
@@ -85,8 +86,6 @@ def robot_from_params(node, p: dict, scene):
     A description that cannot be used (none within the timeout with ``topic``, or one that does not match the robot
     config) makes a lifecycle node refuse to configure (the packaged model is returned, to build the node around)
     and raises :class:`~psprm_core.errors.RobotModelError` for any other node."""
-    from psprm_core.robot import RobotModel
-
     name = p.get("robot") or scene.robot
     mode = str(p.get("robot_description", "package") or "package").strip().lower()
     log = node.get_logger()
@@ -117,8 +116,6 @@ def robot_from_params(node, p: dict, scene):
 def _refuse(node, name: str, reason: str):
     """A lifecycle node refuses to configure with ``reason`` and is built around the packaged model; another node
     raises it."""
-    from psprm_core.robot import RobotModel
-
     refuse = getattr(node, "refuse_configure", None)
     if refuse is None:
         raise RobotModelError(reason)

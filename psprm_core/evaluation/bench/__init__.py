@@ -57,6 +57,8 @@ from .report import (HEADROOM_MIN_GAIN, METRICS, PAPER_TABLE2, PAPER_TABLE3, ann
                      json_summary, markdown_table, summarize, summarize_cells, write_outputs)
 from .tasks import (REFERENCE, REFERENCE_VARIANT, ROW_FIELDS, _failure_row, _worker_init, base_name, bench_task,
                     run_task)
+from ...robot import RobotModel
+from ...scene import load_scene
 
 log = logging.getLogger(__name__)
 
@@ -106,9 +108,6 @@ def run_bench(cfg: BenchConfig, progress: bool = True, on_start=None) -> dict:
 
     ``on_start(key, worker)``: called when the task ``key`` = (planner, problem index) is sent to a worker
     (``pid@host``; ``inline`` in this process)."""
-    from ...robot import RobotModel
-    from ...scene import load_scene
-
     for name in cfg.planners:  # unknown names fail before any work; a missing module becomes failure rows
         if base_name(name) not in BASELINES or name == REFERENCE:
             raise PsprmError(f"unknown planner '{name}' (choose from {', '.join(BASELINES)}; NAME~LABEL runs "

@@ -8,6 +8,7 @@ import math
 from typing import Sequence
 
 import numpy as np
+from ...perception.oracle import box_iou
 
 
 def arc_lengths(motion, dense: np.ndarray) -> np.ndarray:
@@ -44,8 +45,6 @@ def unseen_ends(arc: np.ndarray, seen: np.ndarray) -> tuple:
 
 
 def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
-    from ...perception.oracle import box_iou
-
     return float(box_iou(np.asarray(a, float).reshape(4), np.asarray(b, float).reshape(4)))
 
 

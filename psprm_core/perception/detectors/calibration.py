@@ -19,8 +19,12 @@ from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence
 
 import numpy as np
-from ...errors import InputError
 from . import default_detector_name
+from ...errors import InputError
+from ...geometry import yaw_to_quat
+from ...scene import Box, Scene, Target
+from ..oracle import Oracle
+from ..render import look_at_pose
 
 log = logging.getLogger(__name__)
 
@@ -63,11 +67,6 @@ def measure_case(case: CalibrationCase, oracle_factory=None) -> Dict[str, List[f
     dict
         ``{"pos": [...], "neg": [...], "views": {view_name: score}, "ms_render": float, "ms_detect": float}``
     """
-    from ...geometry import yaw_to_quat
-    from ...scene import Box, Scene, Target
-    from ..oracle import Oracle
-    from ..render import look_at_pose
-
     z = 1.0
     size = np.asarray(case.size, float)
     target = Target(name="t", detector_class=case.detector_class, center=np.array([0.0, 0.0, z]), size=size,
