@@ -223,9 +223,17 @@ class _Loads:
                 return fn(*a, **kw)
             return wrapper
 
-        monkeypatch.setattr(scene_mod, "load_scene", counted("scene", scene_mod.load_scene))
+        def everywhere(name, kind, fn):
+            # the function and every module's name bound to it (a module imports it by name at its top)
+            wrapped = counted(kind, fn)
+            for mod in list(sys.modules.values()):
+                if getattr(mod, "__name__", "").startswith(("psprm_core", "psprm_ros")) \
+                        and getattr(mod, name, None) is fn:
+                    monkeypatch.setattr(mod, name, wrapped)
+
+        everywhere("load_scene", "scene", scene_mod.load_scene)
         monkeypatch.setattr(RobotModel, "load", staticmethod(counted("robot", RobotModel.load)))
-        monkeypatch.setattr(factory, "make_scorer", counted("scorer", factory.make_scorer))
+        everywhere("make_scorer", "scorer", factory.make_scorer)
 
     def total(self) -> int:
         return sum(self.counts.values())
