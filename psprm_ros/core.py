@@ -17,6 +17,7 @@ import numpy as np
 from psprm_core.errors import ConfigError, InputError, PsprmError, RobotModelError
 from psprm_core.paths import resolve_named
 from psprm_core.planning.factory import problem_configurations
+from psprm_core.planning.settings import PSPRMSettings
 from psprm_core.robot import RobotModel
 from psprm_core.scene import load_scene
 from psprm_core.yamlio import Fields, load_yaml
@@ -68,8 +69,6 @@ def setting_param(spec, default: Any = dataclasses.MISSING, source: str = "ROS p
 
     def check(value):
         if spec.type is tuple:
-            from psprm_core.planning.settings import PSPRMSettings
-
             value = PSPRMSettings.coerce(spec.name, value, source)
         spec.check(value, source)
 

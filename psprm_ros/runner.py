@@ -17,6 +17,8 @@ import logging
 import sys
 from typing import Callable, Sequence
 
+from psprm_core.errors import PsprmError
+
 from .core import autostart
 from .heap import freeze_long_lived
 from .robots.adapters import import_follow_joint_trajectory
@@ -142,8 +144,6 @@ def run_nodes(factories: Sequence[Callable], args=None, description: str = "", p
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # configuration errors (unknown scene, bad params file): one line, status 2
-        from psprm_core.errors import PsprmError
-
         if not rclpy.ok():  # SIGTERM/SIGINT shut the context down while the executor was building its wait set
             return 0
         if not isinstance(exc, (PsprmError, KeyError)):

@@ -195,8 +195,6 @@ def person_turning(scene=None, duration: float = 40.0, rate: float = 120.0, peri
     frames (0.5 % of samples, marker occlusion).
     """
     if scene is None:
-        from psprm_core.scene import load_scene
-
         scene = load_scene(resolve_named("scene", "dynamic_person"))
     rng = np.random.default_rng(seed)
     face, body = scene.target("person_face"), scene.obstacle("person_body")

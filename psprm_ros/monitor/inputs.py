@@ -139,8 +139,6 @@ class InputGate:
 
     def _goal_cb(self, msg) -> None:
         try:
-            from ..interfaces.frames import validated_pose_in
-
             p, q = validated_pose_in(msg, self.frames, None, 0.0, "goal")
             if not self._robot.mobile:
                 raise cv.InputError("goal poses need a mobile base; use goal regions")

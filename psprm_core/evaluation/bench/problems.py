@@ -9,7 +9,13 @@ from typing import Optional
 
 import numpy as np
 
+from ...baselines.base import aim_camera
+from ...collision import CollisionChecker
 from ...errors import PsprmError
+from ...perception.surrogate import load_surrogate
+from ...planning.constraints import VisibilityConstraint
+from ...planning.factory import default_checkpoint, problem_configurations
+from ...problems import aim_joints, random_problems
 
 log = logging.getLogger(__name__)
 
@@ -28,9 +34,6 @@ def default_target_groups(scene) -> list:
     if "nurse_1_face" in names and "nurse_2_face" in names:
         return [["nurse_1_face", "nurse_2_face"]]
     try:
-        from ...perception.surrogate import load_surrogate
-        from ...planning.factory import default_checkpoint
-
         classes = set(load_surrogate(default_checkpoint()).classes)
     except Exception:  # pragma: no cover - no checkpoint: every target
         classes = set()
@@ -54,9 +57,6 @@ def make_problems(scene, robot, groups: list, n: int, seed: int, placements: int
     PsprmError
         ``placements`` < 1, or a target of a group with fewer placements.
     """
-    from ...collision import CollisionChecker
-    from ...problems import random_problems
-
     if placements < 1:
         raise PsprmError(f"placements must be at least 1, got {placements}")
     for g in groups:
@@ -103,12 +103,6 @@ def scenario_problems(scene, robot, name: str, n: int, seed: int, targets: Optio
     PsprmError
         Unknown problem (the known names are listed), or a start or goal in collision.
     """
-    from ...baselines.base import aim_camera
-    from ...collision import CollisionChecker
-    from ...planning.constraints import VisibilityConstraint
-    from ...planning.factory import problem_configurations
-    from ...problems import aim_joints
-
     try:
         prob = scene.problem(name)
     except KeyError:

@@ -14,9 +14,16 @@ from typing import Sequence
 import numpy as np
 
 from ...baselines import make_baseline
+from ...baselines.base import path_length
+from ...collision import CollisionChecker
 from ...errors import InputError
 from ...executors import WorkerCache
+from ...motion import DiffDriveMotion
 from ...paths import resolve_named
+from ...perception.oracle import Oracle
+from ...robot import RobotModel
+from ...scene import load_scene
+from ..headroom import ReferenceRoutes
 from .paths import evaluate_path, verify_success
 
 log = logging.getLogger(__name__)
@@ -56,8 +63,6 @@ def _reference_row(ref, prob: dict, oracle, robot, motion, cfg: dict, placement:
     ReferenceRoutes`) judged by the oracle; the row carries the best one's metrics (detection rate, then mean
     confidence), its label as ``route``, and the shortest unseen stretches at the start and the goal over all
     candidates."""
-    from ...baselines.base import path_length
-
     t1 = time.perf_counter()
     try:
         cands = ref.routes(prob["start"], prob["goal"])
@@ -93,10 +98,6 @@ def _worker_init() -> None:
 
 def _placed_scene(scene_name: str, targets: Sequence[str], placement: int) -> tuple:
     """(scene with the group's targets at ``placement``, robot, motion)."""
-    from ...motion import DiffDriveMotion
-    from ...robot import RobotModel
-    from ...scene import load_scene
-
     scene = load_scene(resolve_named("scene", scene_name)).with_placement(list(targets), placement)
     robot = RobotModel.load(scene.robot)
     return scene, robot, DiffDriveMotion(robot)
@@ -149,8 +150,6 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
         t0 = time.perf_counter()
         try:
             if reference:
-                from ..headroom import ReferenceRoutes
-
                 p = ReferenceRoutes(scene, targets, robot=robot, seed=seed, variant=REFERENCE_VARIANT, **kw)
             else:
                 p = make_baseline(base, scene, targets, robot=robot, seed=seed, **kw)
@@ -165,16 +164,12 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
         return p, prep, float(prep.get("preprocess_s", float("nan"))), None
 
     def oracle_of():
-        from ...perception.oracle import Oracle
-
         return cache.get("oracle", where, lambda: Oracle(scene, intrinsics=robot.config.intrinsics),
                          close=lambda o: o.close())
 
     # one instance per build seed (the bench's seed, or in scenario runs the run's), built when first needed
     checker = None
     try:
-        from ...collision import CollisionChecker
-
         for prob in problems:
             seed = int(prob.get("run_seed", cfg["seed"]))
             p, prep, pre, build_error = cache.get("planner", (planner, *where, seed, settings_key),
@@ -216,8 +211,6 @@ def run_task(planner: str, targets: list, problems: list, cfg: dict, q=None, kee
             elif not res.success or res.dense is None or len(res.dense) == 0:
                 row = _failure_row(planner, prob, res.reason or "failed", pre, plan_s)
             else:
-                from ...baselines.base import path_length
-
                 t2 = time.perf_counter()
                 try:
                     ev = evaluate_path(oracle, robot, motion, np.asarray(res.dense, float), prob["targets"],
