@@ -113,6 +113,22 @@ class Pipeline:
         finally:
             self.qc.settings = None
 
+    @one_thread
+    def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray) -> PlanResult:
+        """The route of least motion cost (the motion-weighted objective at alpha 0: length alone) from ``start`` to
+        the nearest of ``goals``, timed: what the robot needs at least to get there over this roadmap. One search
+        (no recovery, no route selection) with the edges weighted for it inside the search
+        (:meth:`~.roadmap.scoring.Scoring.weighted_for`); the planner's weights and settings after it are as
+        before."""
+        fast = self.ctx.settings.changed({"scoring.objective": "motion", "scoring.alpha": 0.0,
+                                          "query.route_searches": ()})
+        with self.scoring.weighted_for(fast):
+            self.qc.settings = fast
+            try:
+                return self.query.plan_once(start, goals, True, None)
+            finally:
+                self.qc.settings = None
+
     def plan_recovering(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray, timing: bool = True,
                         goal_costs: Optional[np.ndarray] = None) -> PlanResult:
         """Plan from ``start`` to the cheapest of ``goals`` (one configuration (dof,) or several (G, dof)); see

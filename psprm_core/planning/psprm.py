@@ -178,6 +178,11 @@ class PSPRM:
         what failed."""
         return self.pipeline.plan(start, goals, timing, goal_costs, options)
 
+    def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray) -> PlanResult:
+        """The shortest route by motion cost from ``start`` to the nearest of ``goals``, timed
+        (:meth:`.pipeline.Pipeline.fastest`); the planner's weights are unchanged."""
+        return self.pipeline.fastest(start, goals)
+
     def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None) -> None:
         """Re-weight every edge with a new ``alpha`` and/or objective without rebuilding
         (:meth:`.scoring.Scoring.reweight`)."""

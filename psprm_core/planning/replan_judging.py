@@ -19,6 +19,7 @@ are gone before it gets there.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import Optional
@@ -31,6 +32,8 @@ from ..prediction import quat_yaw
 from .execution import progress_time
 from .psprm import PlanResult
 from .results import Keep
+
+log = logging.getLogger(__name__)
 
 #: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
 VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
@@ -204,12 +207,36 @@ class PlanJudging:
 
     def arrival_budget_left(self) -> float:
         """Seconds from the latest replan's instant to the end of the arrival budget: the first plan for the current
-        goals made at t0 with duration T ends its budget at t0 + T (1 + ``arrival_budget``); inf without a budget."""
+        goals, made at t0, ends its budget at t0 + T (1 + ``arrival_budget``), T its reference duration
+        (``arrival_reference``: the fastest route's, at most the plan's own); inf without a budget."""
         b = self.settings.arrival_budget
         if b <= 0 or self._first_plan is None:
             return math.inf
-        t0, T = self._first_plan
-        return t0 + (1.0 + b) * T - self._last_plan_time
+        return self._first_plan[0] + (1.0 + b) * self._arrival_reference() - self._last_plan_time
+
+    def _set_arrival_reference(self, res: PlanResult, start: np.ndarray) -> None:
+        """``res``, just adopted as the first plan for the current goals from ``start`` (the committed state in
+        motion), is the arrival budget's reference: its instant, its time to the goal from then (its time 0 is the
+        instant, or the robot's time along the trajectory it continues, ``committed_s`` before its start), and what
+        the fastest route needs, searched when the budget is first asked for (a replan that follows a goal change
+        does not wait for it)."""
+        lead = float(res.committed_s or 0.0)
+        self._first_plan = (self._last_plan_time, float(res.trajectory.duration),
+                            (np.array(start, float), np.array(self.goals, float), lead))
+
+    def _arrival_reference(self) -> float:
+        """The arrival budget's reference duration (:meth:`arrival_budget_left`)."""
+        t0, T, pending = self._first_plan
+        if pending is not None and self.settings.arrival_reference == "fastest":
+            start, goals, lead = pending
+            fast = self.planner.fastest(start, goals)
+            if fast.success and fast.trajectory is not None:
+                T = min(T, lead + float(fast.trajectory.duration))
+            else:
+                log.info("no fastest route for the arrival budget (%s): the first plan's duration is its reference",
+                         fast.reason)
+            self._first_plan = (t0, T, None)
+        return T
 
     def _predicted_routes(self, res: PlanResult, start: np.ndarray, commit: Optional[dict]) -> PlanResult:
         """The route of the best predicted objective among ``res`` (the search over the roadmap scored against the

@@ -57,6 +57,10 @@ class ReplanSettings:
                                          "plan's duration times (1 + this) after the plan for the goals was made, or "
                                          "else arrive no later than the current plan (0: no bound)",
                                     range=(0.0, None), live=True)
+    arrival_reference: str = setting("fastest", "the duration the arrival budget multiplies: fastest (the route of "
+                                                "least motion over the roadmap to the goals, from where the first plan "
+                                                "for them started) | plan (that first plan's own duration)",
+                                     choices=("fastest", "plan"), live=True)
     min_interval_s: float = setting(1.0, "at most one score/move-triggered replan per interval (s)", live=True)
     score_samples: int = setting(200, "configurations of the remaining path scored for the score trigger",
                                  range=(1, None))

@@ -123,7 +123,7 @@ class Replanner(PlanJudging):
         self._plan_score = float("nan")  # normalised predicted score of the current plan
         self._last_plan_time = -math.inf
         self._goal_cfg: Optional[np.ndarray] = None  # the current plan's goal configuration
-        self._first_plan: Optional[tuple] = None  # (now, duration) of the first plan for the goals (arrival_budget)
+        self._first_plan: Optional[tuple] = None  # the first plan for the goals (arrival budget): instant, duration
         self._goal_since = -math.inf  # when the current plan's goal was chosen (the clock of replan's ``now``)
         self._switches = 0  # switches between the candidate goals since they were set (goal_commit_growth)
         self._last_failed = False
@@ -461,9 +461,7 @@ class Replanner(PlanJudging):
                 self._goal_since = self._last_plan_time
             self._goal_cfg = new_goal
             if ("no_plan" in reasons or "goal_changed" in reasons) and res.trajectory is not None:
-                # the arrival budget's reference: the plan's time to the goal from now (its time 0 is now, or the
-                # instant the replan began along the trajectory it continues)
-                self._first_plan = (self._last_plan_time, float(res.trajectory.duration))
+                self._set_arrival_reference(res, start)
             # the hysteresis' reference: the adopted plan's predicted perception (outside the measured replan)
             if self._new_plan_score is not None:  # scored by the keep decision (from the commit on)
                 self._plan_score = self._new_plan_score
