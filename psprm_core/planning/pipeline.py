@@ -114,13 +114,14 @@ class Pipeline:
             self.qc.settings = None
 
     @one_thread
-    def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray) -> PlanResult:
+    def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray,
+                options: Optional[dict] = None) -> PlanResult:
         """The route of least motion cost (the motion-weighted objective at alpha 0: length alone) from ``start`` to
         the nearest of ``goals``, timed: what the robot needs at least to get there over this roadmap. One search
         (no recovery, no route selection) with the edges weighted for it inside the search
-        (:meth:`~.roadmap.scoring.Scoring.weighted_for`); the planner's weights and settings after it are as
-        before."""
-        fast = self.ctx.settings.changed({"scoring.objective": "motion", "scoring.alpha": 0.0,
+        (:meth:`~.roadmap.scoring.Scoring.weighted_for`); ``options`` as in :meth:`plan` (a replanner's timing).
+        The planner's weights and settings after it are as before."""
+        fast = self.ctx.settings.changed({**(options or {}), "scoring.objective": "motion", "scoring.alpha": 0.0,
                                           "query.route_searches": ()})
         with self.scoring.weighted_for(fast):
             self.qc.settings = fast

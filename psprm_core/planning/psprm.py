@@ -178,10 +178,11 @@ class PSPRM:
         what failed."""
         return self.pipeline.plan(start, goals, timing, goal_costs, options)
 
-    def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray) -> PlanResult:
+    def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray,
+                options: Optional[dict] = None) -> PlanResult:
         """The shortest route by motion cost from ``start`` to the nearest of ``goals``, timed
-        (:meth:`.pipeline.Pipeline.fastest`); the planner's weights are unchanged."""
-        return self.pipeline.fastest(start, goals)
+        (:meth:`.pipeline.Pipeline.fastest`; ``options`` as in :meth:`plan`); the planner's weights are unchanged."""
+        return self.pipeline.fastest(start, goals, options)
 
     def reweight(self, alpha: Optional[float] = None, objective: Optional[str] = None) -> None:
         """Re-weight every edge with a new ``alpha`` and/or objective without rebuilding

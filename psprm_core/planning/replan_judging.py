@@ -229,7 +229,7 @@ class PlanJudging:
         t0, T, pending = self._first_plan
         if pending is not None and self.settings.arrival_reference == "fastest":
             start, goals, lead = pending
-            fast = self.planner.fastest(start, goals)
+            fast = self.planner.fastest(start, goals, self.plan_options)
             if fast.success and fast.trajectory is not None:
                 T = min(T, lead + float(fast.trajectory.duration))
             else:
