@@ -963,6 +963,36 @@ def test_a_view_triggered_replan_that_would_arrive_after_the_arrival_budget_is_d
     assert abs(float(res.trajectory.duration) - new_arrival) < 1e-6
 
 
+def test_the_arrival_budget_is_measured_against_the_fastest_route_to_the_goals(replanner, world):
+    """The first plan for new goals is made for perception alone (alpha 1) at t = 1 s and is long. The arrival
+    budget's end (``arrival_reference: fastest``) lies (1 + b) times the duration of the fastest route after that
+    instant: the route the test plans itself at alpha 0 from the same start with the replans' options, shorter than
+    the first plan by more than a second. With ``arrival_reference: plan`` the end lies (1 + b) times the first
+    plan's own duration after it."""
+    from psprm_core.prediction import PredictionSettings
+
+    scene, robot = world
+    rp = replanner
+    rp.update_settings(arrival_budget=0.5, prediction=PredictionSettings(enabled=False))
+    _, goals = problem_configurations(robot, scene, scene.problem("south_to_either"))
+    start = rp.q.copy()
+    p = rp.planner
+    p.reweight(alpha=0.0)
+    fastest = p.plan(start, goals[:1], options=rp.plan_options)
+    assert fastest.success, fastest.reason
+    T_fast = float(fastest.trajectory.duration)
+    p.reweight(alpha=1.0)
+    rp.set_goals(goals[:1])  # new goals: the next plan is the first for them
+    t0 = 1.0
+    plan = rp.replan(now=t0)
+    assert plan.success and rp.result is plan and plan.trajectory is not None, plan.reason
+    T = float(plan.trajectory.duration)
+    assert T > T_fast + 1.0, (T, T_fast)
+    assert abs(rp.arrival_budget_left() - 1.5 * T_fast) < 0.05, (rp.arrival_budget_left(), T_fast, T)
+    rp.update_settings(arrival_reference="plan")
+    assert abs(rp.arrival_budget_left() - 1.5 * T) < 1e-6
+
+
 @pytest.mark.parametrize("length_margin", [0.1, 1.0])  # 1.0: only the view can make a new plan better
 def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more_or_is_shorter(replanner, world,
                                                                                                length_margin):

@@ -222,21 +222,24 @@ class PlanJudging:
         does not wait for it)."""
         lead = float(res.committed_s or 0.0)
         self._first_plan = (self._last_plan_time, float(res.trajectory.duration),
-                            (np.array(start, float), np.array(self.goals, float), lead))
+                            (np.array(start, float), np.array(self.goals, float), lead), None)
 
     def _arrival_reference(self) -> float:
         """The arrival budget's reference duration (:meth:`arrival_budget_left`)."""
-        t0, T, pending = self._first_plan
-        if pending is not None and self.settings.arrival_reference == "fastest":
+        t0, T, pending, fastest = self._first_plan
+        if self.settings.arrival_reference == "plan":
+            return T
+        if fastest is None:
             start, goals, lead = pending
             fast = self.planner.fastest(start, goals, self.plan_options)
             if fast.success and fast.trajectory is not None:
-                T = min(T, lead + float(fast.trajectory.duration))
+                fastest = lead + float(fast.trajectory.duration)
             else:
                 log.info("no fastest route for the arrival budget (%s): the first plan's duration is its reference",
                          fast.reason)
-            self._first_plan = (t0, T, None)
-        return T
+                fastest = T
+            self._first_plan = (t0, T, pending, fastest)
+        return min(T, fastest)
 
     def _predicted_routes(self, res: PlanResult, start: np.ndarray, commit: Optional[dict]) -> PlanResult:
         """The route of the best predicted objective among ``res`` (the search over the roadmap scored against the
