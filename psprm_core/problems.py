@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from .baselines.base import aim_camera
 from .motion import DiffDriveMotion
 from .planning.constraints import ProjectionSettings, VisibilityConstraint, camera_joint_mask
 
@@ -75,8 +76,6 @@ def random_problems(robot, scene, checker, n: int, rng: np.random.Generator, tem
         q[:, 1] = rng.uniform(*scene.workspace[1], 4 * n)
         q[:, 2] = rng.uniform(-np.pi, np.pi, 4 * n)
         if aim_restarts > 0:
-            from .baselines.base import aim_camera
-
             qa, ok = aim_camera(con, q, cols, lo, hi, iters=10, restarts=aim_restarts,
                                 seed=int(rng.integers(2**31)))
             qt = torch.as_tensor(qa, dtype=torch.float32)
