@@ -121,6 +121,27 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
     assert planner.settings == before
 
 
+def test_fastest_is_the_route_of_least_motion_and_leaves_the_weights(setup):
+    """``PSPRM.fastest`` returns, timed, the route a search gives with the roadmap re-weighted for motion alone (alpha
+    0, through the planner's own re-weighting); after it every edge weighs what the planner's objective gives (Eq. 2's
+    motion-weighted form written out here) and the settings are the planner's."""
+    scene, robot, planner, problems = setup
+    before = planner.settings
+    for start, goals in problems[:4]:
+        fast = planner.fastest(start, goals)
+        assert fast.success and fast.trajectory is not None, fast.reason
+        ref = _reweighted_route(planner, start, goals, "motion", 0.0)
+        assert ref.success, ref.reason
+        assert fast.path_length == pytest.approx(ref.path_length, rel=1e-6)
+        assert fast.trajectory.duration > 0
+    g = planner.graph
+    ids = g.valid_edge_ids()
+    ids = ids[np.isfinite(np.asarray(g.weights)[ids])]
+    cp, cm = g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids]
+    np.testing.assert_allclose(np.asarray(g.weights)[ids], cm * ((1 - ALPHA) + ALPHA * (1 - cp)), rtol=1e-6)
+    assert planner.settings == before
+
+
 def test_bad_route_searches_are_config_errors():
     for bad in ("motion", "motion@1.5", "hops@0.5", "motion@x", "alt@2"):
         with pytest.raises(ConfigError, match="route_searches"):
