@@ -117,7 +117,8 @@ class Pipeline:
     def fastest(self, start: np.ndarray, goals: Sequence[np.ndarray] | np.ndarray,
                 options: Optional[dict] = None) -> PlanResult:
         """The route of least motion cost (the motion-weighted objective at alpha 0: length alone) from ``start`` to
-        the nearest of ``goals``, timed: what the robot needs at least to get there over this roadmap. One search
+        the nearest of ``goals`` over the roadmap's edges, timed (a shortcut of another route may still be shorter:
+        a replanner's arrival budget takes the smaller of the two durations). One search
         (no recovery, no route selection) with the edges weighted for it inside the search
         (:meth:`~.roadmap.scoring.Scoring.weighted_for`); ``options`` as in :meth:`plan` (a replanner's timing).
         The planner's weights and settings after it are as before."""
