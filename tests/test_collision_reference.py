@@ -4,7 +4,9 @@ robot in two shipped scenes: camera poses agree to 1e-5 m / 1e-5 rad and no coll
 from __future__ import annotations
 
 import logging
+import xml.etree.ElementTree as ET
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,7 +14,7 @@ import torch
 
 from psprm_core.collision import CollisionChecker, obb_overlap
 from psprm_core.evaluation.benchmarks import rotation_angle_error
-from psprm_core.evaluation.reference import PybulletWorld, sample_uniform
+from psprm_core.evaluation.reference import PybulletWorld, pybullet_urdf, sample_uniform
 from psprm_core.scene import Box, load_scene
 from psprm_core.paths import resolve_named
 
@@ -166,3 +168,22 @@ def test_self_pair_dependencies_follow_the_tree(load_robot):
         links = {em.link_names[em.element_link[a]], em.link_names[em.element_link[b]]}
         if any("head_tilt" in x or "head_pan" in x for x in links) and not all("head" in x for x in links):
             assert d[pan], links
+
+
+def test_a_cached_pybullet_urdf_naming_meshes_no_longer_on_disk_is_written_again(tmp_path, monkeypatch, load_robot):
+    """A derived URDF left in the cache by an install since removed (its mesh paths under a folder that is gone) is
+    not handed to pybullet: the world loads and every mesh the URDF it loaded names is a file."""
+    monkeypatch.setenv("PSPRM_CACHE_DIR", str(tmp_path / "cache"))
+    robot = load_robot("stretch2")
+    path = pybullet_urdf(robot)
+    tree = ET.parse(path)
+    meshes = list(tree.getroot().iter("mesh"))
+    assert meshes, "the stretch2 URDF has meshes"
+    gone = tmp_path / "removed_install"
+    for m in meshes:
+        m.set("filename", str(gone / "meshes" / Path(m.get("filename")).name))
+    tree.write(path)  # the cache entry as an earlier install at another place left it
+    world = PybulletWorld(robot, [])
+    world.close()
+    loaded = ET.parse(pybullet_urdf(robot)).getroot()
+    assert all(Path(m.get("filename")).is_file() for m in loaded.iter("mesh"))

@@ -7,6 +7,7 @@ in the default configuration, when they touch in (almost) every sample, or when 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -26,10 +27,13 @@ log = logging.getLogger(__name__)
 
 
 def pybullet_urdf(robot: RobotModel) -> Path:
-    """Derived URDF for pybullet: absolute mesh paths and virtual planar base joints (base_x, base_y, base_theta)."""
-    key = robot.hash()
+    """Derived URDF for pybullet: absolute mesh paths and virtual planar base joints (base_x, base_y, base_theta).
+
+    Cached under the robot's hash and the URDF's location (the mesh paths written depend on it); a cached file that
+    names a mesh no longer on disk (an install since moved or removed) is written again."""
+    key = hashlib.sha256(f"{robot.hash()}\n{robot.urdf.path.resolve()}".encode()).hexdigest()[:16]
     out = cache_dir() / "urdf" / f"{robot.name}_{key}_pybullet.urdf"
-    if out.is_file():
+    if out.is_file() and _meshes_on_disk(out):
         return out
     tree = ET.parse(robot.urdf.path)
     root = tree.getroot()
@@ -56,6 +60,15 @@ def pybullet_urdf(robot: RobotModel) -> Path:
     tree.write(tmp)
     tmp.replace(out)
     return out
+
+
+def _meshes_on_disk(path: Path) -> bool:
+    """Whether every mesh a derived URDF names is a file (False for an unreadable URDF)."""
+    try:
+        root = ET.parse(path).getroot()
+    except (ET.ParseError, OSError):
+        return False
+    return all(Path(m.get("filename") or "").is_file() for m in root.iter("mesh"))
 
 
 class PybulletWorld:
