@@ -906,6 +906,51 @@ def test_a_view_triggered_replan_that_is_shorter_but_sees_less_is_declined(repla
     assert res.kept_because is Keep.NO_BETTER and rp.declined_by == {Keep.NO_BETTER: 1}
 
 
+def test_the_length_rules_floor_keeps_a_plan_when_both_routes_are_predicted_to_see_nothing(replanner, world):
+    """The robot drives the plan of the perception cost alone (alpha 1); the person then turns away from the robot's
+    routes, and the roadmap is re-weighted for motion alone (alpha 0), so a replan the view triggers
+    returns a shorter route. Judged by the test's own measure (:func:`_judged`, under the scene as the test turned
+    it) both routes see less than 0.02 and the new one saves more than the length margin: with
+    ``keep_length_min_score`` 0.02 the robot keeps its plan (two routes that see nothing are not told apart by their
+    views); with the floor at 0 (shipped) the same shorter route is adopted (predicted to see no less)."""
+    from psprm_core.prediction import PredictionSettings
+
+    scene, robot = world
+    rp = replanner
+    s = rp.update_settings(prediction=PredictionSettings(enabled=False), arrival_budget=0.0)
+    rp.planner.reweight(alpha=1.0)
+    plan = rp.replan(now=1.0)
+    assert plan.success and rp.result is plan, plan.reason
+    traj = plan.trajectory
+    t_along = 0.2 * traj.duration
+    rp.set_robot_state(traj.evaluate([t_along])[0][0], t_along=t_along)
+    pp = person_pose(scene, PersonMotion(target="person_face", body="person_body"), 0.0)  # turned from the routes
+    turned = scene.with_target_pose("person_face", *pp["target"])
+    rp.update_target("person_face", *pp["target"])
+    rp.planner.reweight(alpha=0.0)
+
+    def sampled(tr, t0, t1):
+        return tr.evaluate(np.append(np.arange(t0, t1, 0.05), t1))[0]
+
+    p = rp.planner
+    for floor in (0.02, 0.0):
+        rp.update_settings(keep_length_min_score=floor)
+        res = rp.replan(now=10.0, triggers=["score_low"], horizon_s=0.3)
+        assert res.success, res.reason
+        new = res.declined if res.kept else res
+        t_c = t_along + new.committed_s
+        rem_score, rem_len = _judged(robot, turned, p.score_scale, p.motion, sampled(traj, t_c, traj.duration))
+        new_score, new_len = _judged(robot, turned, p.score_scale, p.motion,
+                                     sampled(new.trajectory, new.committed_s, new.trajectory.duration))
+        assert new_len < (1.0 - s.keep_length_margin) * rem_len, (new_len, rem_len)  # shorter by the margin
+        assert max(new_score, rem_score) < 0.02, (new_score, rem_score)  # both see nothing
+        if floor > 0:
+            assert res.kept and rp.result is plan and res.trajectory is None, res.reason
+            assert res.kept_because is Keep.NO_BETTER
+        else:
+            assert not res.kept and rp.result is res and res.trajectory is not None, res.reason
+
+
 def test_a_view_triggered_replan_that_would_arrive_after_the_arrival_budget_is_declined(replanner, world):
     """The first plan for the goals is the shortest (alpha 0), made at t = 1 s; the robot drives 30 % of it, the
     clock advancing with it; the roadmap is then re-weighted for perception alone (alpha 1), so a replan the view

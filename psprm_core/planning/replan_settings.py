@@ -53,6 +53,9 @@ class ReplanSettings:
                                              "the current", live=True)
     keep_length_margin: float = setting(0.1, "fraction of the remaining path's motion cost a new plan must save to "
                                              "replace the current (predicted to see no less)", live=True)
+    keep_length_min_score: float = setting(0.0, "a shorter plan replaces the current only when it is predicted to see "
+                                                "at least this (normalised mean score): two routes both predicted to "
+                                                "see nothing are not told apart by the views", live=True)
     arrival_budget: float = setting(0.5, "a replan the view alone triggered may delay the arrival to at most the first "
                                          "plan's duration times (1 + this) after the plan for the goals was made, or "
                                          "else arrive no later than the current plan (0: no bound)",
