@@ -103,6 +103,16 @@ def test_selected_route_sees_most_within_the_length_bound(setup):
     assert changed >= 1
 
 
+def assert_planner_weights(planner) -> None:
+    """Every finite roadmap edge weighs what the planner's objective gives from its stored Eq. 1 score and motion
+    cost (Eq. 2's motion-weighted form written out here; the build weighs in float32)."""
+    g = planner.graph
+    ids = g.valid_edge_ids()
+    ids = ids[np.isfinite(np.asarray(g.weights)[ids])]
+    cp, cm = g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids]
+    np.testing.assert_allclose(np.asarray(g.weights)[ids], cm * ((1 - ALPHA) + ALPHA * (1 - cp)), rtol=1e-6)
+
+
 def test_weights_after_a_selecting_query_are_the_planners(setup):
     """After queries with route selection every roadmap edge weighs what the planner's own objective gives from its
     stored Eq. 1 score and motion cost (the alternative searches' weights are gone), and the settings are the
@@ -112,12 +122,7 @@ def test_weights_after_a_selecting_query_are_the_planners(setup):
     for start, goals in problems[:3]:
         res = planner.plan(start, goals, timing=False, options={"query.route_searches": "motion@1.0,eq2@0.7,alt"})
         assert "alt" in res.route_candidates
-    g = planner.graph
-    ids = g.valid_edge_ids()
-    ids = ids[np.isfinite(np.asarray(g.weights)[ids])]
-    cp, cm = g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids]
-    # the build weighs in float32
-    np.testing.assert_allclose(np.asarray(g.weights)[ids], cm * ((1 - ALPHA) + ALPHA * (1 - cp)), rtol=1e-6)
+    assert_planner_weights(planner)
     assert planner.settings == before
 
 
@@ -134,11 +139,7 @@ def test_fastest_is_the_route_of_least_motion_and_leaves_the_weights(setup):
         assert ref.success, ref.reason
         assert fast.path_length == pytest.approx(ref.path_length, rel=1e-6)
         assert fast.trajectory.duration > 0
-    g = planner.graph
-    ids = g.valid_edge_ids()
-    ids = ids[np.isfinite(np.asarray(g.weights)[ids])]
-    cp, cm = g.edge_attribute("c_p")[ids], g.edge_attribute("c_m")[ids]
-    np.testing.assert_allclose(np.asarray(g.weights)[ids], cm * ((1 - ALPHA) + ALPHA * (1 - cp)), rtol=1e-6)
+    assert_planner_weights(planner)
     assert planner.settings == before
 
 
