@@ -9,10 +9,10 @@ since the plan; the target or an obstacle moved beyond its threshold; the goal c
 A replan that only the view triggered (:data:`VIEW_TRIGGERS`) replaces the current plan (whichever goal it leads to)
 only when it is better for the robot: it sees more along its path (``keep_score_margin``, normalised as c_p in Eq.
 1), or it is shorter (``keep_length_margin`` of the remaining path's motion cost) without being predicted to see
-less (nor less than ``keep_length_min_score``, 0 as shipped); and it arrives within the arrival budget (the duration of the fastest route to the goals, from where their
-first plan started, times 1 + ``arrival_budget`` after that plan was made; ``arrival_reference``) or no later than the
-current plan, so that views are never bought with an unbounded delay, even when the first plan for a goal is itself a
-long route that sees.
+less (nor less than ``keep_length_min_score``, 0 as shipped); and it arrives within the arrival budget (the
+duration of the fastest route to the goals, from where their first plan started, times 1 + ``arrival_budget`` after
+that plan was made; ``arrival_reference``) or no later than the current plan, so that views are never bought with
+an unbounded delay, even when the first plan for a goal is itself a long route that sees.
 A shorter route that sees less is not taken on a view trigger: a person turning away predicts little to see on every
 route, and the shortest would win although the person turns back. Otherwise the robot keeps driving its trajectory
 (:attr:`PlanResult.kept`), and a person turning away every few seconds does not restart the robot towards views that
@@ -199,7 +199,9 @@ class PlanJudging:
         new_arrival = lead + float(res.trajectory.duration)
         budget = self.arrival_budget_left()
         late = new_arrival > max(budget, cur_arrival) + 1e-6
-        if not late and (plan_score > current + s.keep_score_margin or (shorter and plan_score >= max(current, s.keep_length_min_score))):
+        sees_more = plan_score > current + s.keep_score_margin
+        shorter_seeing_no_less = shorter and plan_score >= max(current, s.keep_length_min_score)
+        if not late and (sees_more or shorter_seeing_no_less):
             return None
         why = (f"the new one would arrive in {new_arrival:.1f} s, beyond the arrival budget ({budget:.1f} s)" if late
                else f"the new one sees {plan_score:.3f} (predicted) along {new_len:.2f}")
