@@ -22,7 +22,7 @@ from psprm_core.perception.scoring import GeometricScorer
 from psprm_core.planning.factory import problem_configurations
 from psprm_core.planning.psprm import PSPRM, PlanResult, PSPRMSettings
 from psprm_core.planning.replanner import Replanner, ReplanSettings
-from psprm_core.planning.results import Failure, Keep
+from psprm_core.planning.results import Adopt, Failure, Keep
 from psprm_core.scene import load_scene
 
 from psprm_core.evaluation.reference import PybulletWorld
@@ -259,6 +259,28 @@ def test_path_collision_trigger_and_replan_avoid_a_box_dropped_on_the_path(repla
         assert len(dense) == len(res.dense)
         assert not judge.colliding(dense).any() and not judge.colliding(timed, exact_every=5).any()
         assert same_config(res.dense[0], rp.q) and any(same_config(res.dense[-1], g) for g in rp.goals)
+    finally:
+        judge.close()
+
+
+def test_a_view_triggered_replan_replaces_a_plan_whose_remaining_path_collides(replanner, world):
+    """A chair dropped onto the middle of the path while the caller replans for the view alone (``score_drop``): the
+    old path collides with it (judged from the test's own record), so the new plan replaces it whatever it sees, and
+    says so (:attr:`~psprm_core.planning.results.Adopt.UNSAFE`); the new path is free (the same record)."""
+    scene, robot = world
+    rp = replanner
+    old = rp.result
+    q_mid = old.dense[len(old.dense) // 2]
+    sent = SentPoses("dynamic_person")
+    rp.update_obstacle("chair", [q_mid[0], q_mid[1], 0.45])
+    sent.sent("chair", [q_mid[0], q_mid[1], 0.45], sent.scene.obstacle("chair").quat)
+    judge = Judge(robot, sent)
+    try:
+        assert judge.colliding(old.dense).any()
+        res = rp.replan(triggers=["score_drop"])
+        assert res.success and not res.kept and rp.result is res, res.reason
+        assert res.adopted_because is Adopt.UNSAFE and rp.history[-1]["adopted_because"] == "unsafe"
+        assert not judge.colliding(res.dense).any()
     finally:
         judge.close()
 
@@ -949,6 +971,8 @@ def test_the_length_rules_floor_keeps_a_plan_when_both_routes_are_predicted_to_s
             assert res.kept_because is Keep.NO_BETTER
         else:
             assert not res.kept and rp.result is res and res.trajectory is not None, res.reason
+            assert res.adopted_because is Adopt.SHORTER and rp.history[-1]["adopted_because"] == "shorter"
+            assert "the remaining path sees" in res.judgement, res.judgement
 
 
 def test_a_view_triggered_replan_that_would_arrive_after_the_arrival_budget_is_declined(replanner, world):
@@ -1093,11 +1117,17 @@ def test_a_replan_triggered_by_the_view_replaces_the_plan_only_when_it_sees_more
             assert new_score > rem_score + s.keep_score_margin - tol \
                 or (new_len < (1.0 - s.keep_length_margin) * rem_len * 1.02 and new_score >= rem_score - tol), \
                 (new_score, rem_score, new_len, rem_len)
-            outcomes.append("adopted")
+            # the reason it names agrees with the test's measure wherever that measure is clear of its tolerances
+            if new_score > rem_score + s.keep_score_margin + tol:
+                assert res.adopted_because is Adopt.SEES_MORE, (res.adopted_because, new_score, rem_score)
+            elif new_score < rem_score + s.keep_score_margin - tol:
+                assert res.adopted_because is Adopt.SHORTER, (res.adopted_because, new_score, rem_score)
+            outcomes.append(f"adopted, {res.adopted_because.value}")
             t_along = 0.0  # the new trajectory starts where the robot is
-    assert "adopted" in outcomes and any(o.startswith("kept") for o in outcomes), outcomes
-    # a collision trigger: the replan is adopted even when it is no better for the view
+    assert any(o.startswith("adopted") for o in outcomes) and any(o.startswith("kept") for o in outcomes), outcomes
+    # a collision trigger: the replan is adopted even when it is no better for the view, and not judged
     face = rp.scene.target("person_face")
     rp.update_target("person_face", face.center + np.array([0.06, 0.0, 0.0]), face.quat)
     res = rp.replan(now=1e4, triggers=["collision"])
     assert res.success and not res.kept and rp.result is res
+    assert res.adopted_because is Adopt.UNJUDGED and res.judgement == ""

@@ -24,7 +24,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Optional
+from typing import NamedTuple, Optional
 
 import numpy as np
 import torch
@@ -33,12 +33,24 @@ from ..geometry import wrap_angle
 from ..prediction import quat_yaw
 from .execution import progress_time
 from .psprm import PlanResult
-from .results import Keep
+from .results import Adopt, Keep
 
 log = logging.getLogger(__name__)
 
 #: triggers that say only that the view changed (the current path is still collision-free and leads to the goal)
 VIEW_TRIGGERS = frozenset({"score_low", "score_drop", "score_low_retry", "target_moved"})
+
+
+class Verdict(NamedTuple):
+    """The keep decision on a replan's new plan (:meth:`PlanJudging._keep_current`): ``keep`` is not
+    :attr:`~.results.Keep.NONE` when the current plan stays, else ``adopt`` says why the new one replaces it; ``why``
+    gives both plans' predicted perception and arrival when they were judged, ``current`` the remaining path's
+    predicted score then."""
+
+    keep: Keep
+    adopt: Adopt
+    why: str = ""
+    current: Optional[float] = None
 
 
 class PlanJudging:
@@ -158,34 +170,35 @@ class PlanJudging:
             out.append((weights[k][0], tuple(key), scene))
         return out
 
-    def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Optional[tuple]:
-        """(:class:`~.results.Keep` kind, why, the current plan's predicted score) when the new plan ``res`` (from the
-        committed state, or from the robot's state) should not replace the current one (the module's docstring), else
-        None. Both are judged from the same instant on, against the targets' predicted poses (:meth:`predicted_score`):
-        the current plan from the commit instant (or the robot's progress), the new one from its start."""
+    def _keep_current(self, res: PlanResult, triggers: tuple, commit: Optional[dict]) -> Verdict:
+        """Whether the new plan ``res`` (from the committed state, or from the robot's state) replaces the current
+        one (the module's docstring), and why. Both are judged from the same instant on, against the targets'
+        predicted poses (:meth:`predicted_score`): the current plan from the commit instant (or the robot's
+        progress), the new one from its start."""
         s = self.settings
+        unjudged = Verdict(Keep.NONE, Adopt.UNJUDGED)
         if not (s.keep_unless_better and triggers and set(triggers) <= VIEW_TRIGGERS) \
                 or "goal_changed" in self._pending:
-            return None
+            return unjudged
         cur = self.result
         if cur is None or cur.dense is None or res.dense is None or self._goal_cfg is None or res.trajectory is None:
-            return None
+            return unjudged
         if not 0 <= res.goal_index < len(self.goals):
-            return None
+            return unjudged
         if self.remaining_path_collides():
-            return None
+            return Verdict(Keep.NONE, Adopt.UNSAFE, "the remaining path collides")
         if commit is not None:
             t_c, lead = commit["t_commit"], commit["t_commit"] - commit["t_from"]
             if t_c >= float(cur.trajectory.duration) - 1e-6:
-                return None
+                return unjudged
             rem = cur.trajectory.evaluate(np.linspace(t_c, float(cur.trajectory.duration), 200))[0]
         elif cur.trajectory is not None:
             t_c, lead = self._time_along(), 0.0
             rem = self.remaining()
         else:
-            return None
+            return unjudged
         if rem is None or len(rem) < 2:
-            return None
+            return unjudged
         current = self.predicted_score(cur.trajectory, t_c)
         plan_score = self.predicted_score(res.trajectory, 0.0, lead_s=lead)
         motion = self.planner.motion
@@ -201,13 +214,12 @@ class PlanJudging:
         late = new_arrival > max(budget, cur_arrival) + 1e-6
         sees_more = plan_score > current + s.keep_score_margin
         shorter_seeing_no_less = shorter and plan_score >= max(current, s.keep_length_min_score)
+        both = (f"the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} and arrives in "
+                f"{new_arrival:.1f} s (budget {budget:.1f} s); the remaining path sees {current:.3f} along "
+                f"{rem_len:.2f} and arrives in {cur_arrival:.1f} s")
         if not late and (sees_more or shorter_seeing_no_less):
-            return None
-        why = (f"the new one would arrive in {new_arrival:.1f} s, beyond the arrival budget ({budget:.1f} s)" if late
-               else f"the new one sees {plan_score:.3f} (predicted) along {new_len:.2f}")
-        return (Keep.LATE if late else Keep.NO_BETTER,
-                f"kept the current plan: {why}; the remaining path sees {current:.3f} along {rem_len:.2f} and "
-                f"arrives in {cur_arrival:.1f} s", current)
+            return Verdict(Keep.NONE, Adopt.SEES_MORE if sees_more else Adopt.SHORTER, both, current)
+        return Verdict(Keep.LATE if late else Keep.NO_BETTER, Adopt.NONE, f"kept the current plan: {both}", current)
 
     def arrival_budget_left(self) -> float:
         """Seconds from the latest replan's instant to the end of the arrival budget: the first plan for the current

@@ -415,12 +415,13 @@ class Replanner(PlanJudging):
             fresh = res  # judged from where it starts (the committed state in motion)
             if commit is not None:
                 res = self._splice(res, commit)
-            kept = self._keep_current(fresh, triggers, commit) if res.success else None
-            if kept is not None:
-                kind, why, current_score = kept
-                res = PlanResult(True, why, goal_index=self.result.goal_index, cost=self.result.cost, kept=True,
-                                 declined=res, kept_because=kind)
-                self._plan_score = current_score
+            verdict = self._keep_current(fresh, triggers, commit) if res.success else None
+            if verdict is not None and verdict.keep is not Keep.NONE:
+                res = PlanResult(True, verdict.why, goal_index=self.result.goal_index, cost=self.result.cost,
+                                 kept=True, declined=res, kept_because=verdict.keep)
+                self._plan_score = verdict.current
+            elif verdict is not None:
+                res.adopted_because, res.judgement = verdict.adopt, verdict.why
         if res.success and not res.kept and res.dense is not None:
             # against the obstacles as they are: the planner's collision padding is a margin it plans with (a start
             # inside it is moved out of it by the path's first motion), not what makes a path unsafe
@@ -436,8 +437,8 @@ class Replanner(PlanJudging):
         res.query_ms = ms
         self.history.append({"reasons": reasons, "success": res.success, "reason": res.reason, "ms": ms,
                              "repair_rounds": rounds, "kept": res.kept, "kept_because": res.kept_because.value,
-                             "spliced": commit is not None,
-                             "route": res.route,
+                             "spliced": commit is not None, "route": res.route,
+                             "adopted_because": res.adopted_because.value, "judgement": res.judgement,
                              **{k: v for k, v in info.items() if k == "rescore"}})
         self.replans += 1
         self._last_failed = not res.success
@@ -449,6 +450,7 @@ class Replanner(PlanJudging):
             # the plan objects themselves (callers compare them by identity), copies of the containers adoption clears
             self._adopted_over = (res, {k: _snapshot(getattr(self, k)) for k in _ADOPTION_STATE})
             self.adopted += 1
+            log.info("new plan adopted (%s)%s", res.adopted_because.value, res.judgement and f": {res.judgement}")
             self.result, self._progress = res, 0
             self._t_along = None  # until the caller reports the robot's progress along the new trajectory
             new_goal = self.goals[res.goal_index].copy() if 0 <= res.goal_index < len(self.goals) else None

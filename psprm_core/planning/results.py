@@ -37,6 +37,17 @@ class Keep(str, enum.Enum):
     LATE = "late"  # the new plan would arrive beyond the arrival budget and after the current one
 
 
+class Adopt(str, enum.Enum):
+    """Why a replanner adopted a new plan (:attr:`PlanResult.adopted_because`, beside ``judgement``)."""
+
+    NONE = "none"  # not an adopted replan: a kept plan, a failure, a query outside a replanner
+    UNJUDGED = "unjudged"  # the keep decision does not apply: no plan under way (or it has ended), a trigger other
+    # than the view (the goal, an obstacle, a collision, no plan), or ``keep_unless_better`` off
+    UNSAFE = "unsafe"  # the remaining path of the current plan collides with the latest obstacle poses
+    SEES_MORE = "sees_more"  # predicted to see more than the remaining path, by ``keep_score_margin``
+    SHORTER = "shorter"  # shorter by ``keep_length_margin`` and predicted to see no less (nor less than the floor)
+
+
 @dataclass
 class PlanResult:
     """Outcome of a query (``success`` False comes with a ``reason``; never an exception for bad problems).
@@ -62,6 +73,8 @@ class PlanResult:
     kept: bool = False  # a replanner kept its current plan: the new one was no better (no path, no trajectory here)
     declined: Optional["PlanResult"] = field(default=None, repr=False, compare=False)  # with ``kept``: that new plan
     kept_because: Keep = Keep.NONE  # with ``kept``: why (control flow and counters read this, not ``reason``)
+    adopted_because: Adopt = Adopt.NONE  # a replan's adopted plan: why it replaced the current one ...
+    judgement: str = ""  # ... and, when the keep decision judged it, both plans' predicted perception and arrival
     start_offset_s: float = 0.0  # a replan of a robot in motion: time 0 of ``trajectory`` is this far along the
     # previous trajectory (planning.execution), 0 for a plan from the robot's state
     committed_s: float = 0.0  # ... and its first this many seconds are the previous trajectory's (the commitment)

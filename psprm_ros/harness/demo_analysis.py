@@ -162,8 +162,9 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
                      "server_ms": info.get("latency_ms"), "replan_ms": info.get("replan_ms"),
                      "apply_ms": info.get("apply_ms"), "msg_ms": info.get("msg_ms"), "check_ms": info.get("check_ms"),
                      "input_age_ms": info.get("input_age_ms"), "triggers_ms": info.get("triggers_ms"),
-                     "predicted_score": info.get("mean_score"), "reason": info.get("reason"),
-                     "route": info.get("route", "")})
+                     "path_score": info.get("mean_score"), "reason": info.get("reason"),
+                     "route": info.get("route", ""), "adopted_because": info.get("adopted_because"),
+                     "judgement": info.get("judgement") or ""})
     goal_names = cfg.goal_names
     say("[demo] plans (t = seconds since the replay started):")
     for r in rows:
@@ -172,9 +173,15 @@ def analyse(a, cfg, probe, record, first, t_first, t_replay, t_end, wall_minus_p
         goal = goal_names[gi] if r["success"] and gi is not None and 0 <= gi < len(goal_names) else "-"
         lat = "" if r["pose_to_trajectory_ms"] is None else f", pose->trajectory {r['pose_to_trajectory_ms']:.0f} ms"
         rp = "" if r["replan_ms"] is None else f", replan {r['replan_ms']:.0f} ms"
-        sc = "" if r["predicted_score"] is None else f", predicted score {r['predicted_score']:.3f}"
+        sc = "" if r["path_score"] is None else f", path score {r['path_score']:.3f}"
         route = f", route: {r['route']}" if r["route"] else ""
-        say(f"  t={r['t']:6.2f}  {what:6s} -> {goal:10s} triggers: {', '.join(r['reasons'] or [])}{lat}{rp}{sc}{route}")
+        because = r["kept_because"] if r["kept"] else r["adopted_because"] if what == "plan" else None
+        because = f" [{because}]" if because else ""
+        say(f"  t={r['t']:6.2f}  {what:6s} -> {goal:10s} triggers: {', '.join(r['reasons'] or [])}{lat}{rp}{sc}{route}"
+            f"{because}")
+        judged = r["reason"] if r["kept"] else r["judgement"] if what == "plan" else ""
+        if judged:
+            say(f"{'':16s}{judged}")
     # pose -> trajectory: plans a pose triggered (a move, a score or collision trigger after it); plans for a new
     # goal or on request are goal -> trajectory (their first input is the goal, not a pose)
     lat = np.array([r["pose_to_trajectory_ms"] for r in rows if r["pose_to_trajectory_ms"] is not None

@@ -92,8 +92,9 @@ class Executing:
         self.outputs.info(info)
         start = (f"spliced {info['committed_s']:.2f} s ahead" if info["spliced"] else "from the robot's state")
         self.outputs.status(f"plan {info['seq']} ({', '.join(reasons)}): {info['n_points']} points, "
-                            f"{info['duration_s']:.1f} s, {start}, predicted score {res.mean_score:.3f}, query "
-                            f"{res.query_ms:.0f} ms")
+                            f"{info['duration_s']:.1f} s, {start}, path score {res.mean_score:.3f}, query "
+                            f"{res.query_ms:.0f} ms, adopted ({res.adopted_because.value})"
+                            + (f": {res.judgement}" if res.judgement else ""))
         return json.dumps(info)
 
     def stop(self, q: np.ndarray, why: str, info: Optional[dict], seq: int) -> None:

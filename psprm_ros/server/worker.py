@@ -295,7 +295,8 @@ class PlanningWorker:
                 "query_ms": _f(res.query_ms), "goal_index": int(res.goal_index),
                 "input_stamp": pend["stamp"], "input_age_ms": _f(pend.get("input_age_ms")), **pend.get("timing", {}),
                 "replan_ms": _f((t1 - t0) * 1e3), "spliced": bool(res.success and res.committed_s > 0),
-                "committed_s": _f(res.committed_s), "commit_horizon_s": _f(horizon), "route": res.route}
+                "committed_s": _f(res.committed_s), "commit_horizon_s": _f(horizon), "route": res.route,
+                "adopted_because": res.adopted_because.value, "judgement": res.judgement}
         self.seq += 1
         if res.kept:  # the new plan was no better or would arrive late: the robot keeps driving the current trajectory
             self.counts["kept"] += 1
