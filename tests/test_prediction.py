@@ -267,3 +267,34 @@ def test_prediction_scores_of_the_latest_pose_are_the_targets_own_change_over_th
     assert np.mean(dxy) > 0.2  # the person walks
     on = res["variants"]["on"]["scenarios"]["walking_person"]
     assert np.isfinite(on["yaw_crps_rad"][0]) and on["position_error_m"][0] != pytest.approx(off["position_error_m"][0])
+
+
+def test_the_scores_by_heading_are_the_scores_of_the_person_at_each_heading(load_robot):
+    """A person has looked south for 10 s, turned east over 1 s and looked east since: the predicted mixture is the
+    extrapolation (east, no turn under way) and the history's two headings (south, east). The remaining path's score
+    under each component alone is the score a replanner without prediction gives the same trajectory with the
+    person standing at that heading; the mixture's mean lies between them."""
+    from psprm_core.planning.replanner import Replanner, ReplanSettings
+
+    scene, robot, p, start, goals = _person_planner(load_robot)
+    face = scene.target("person_face")
+    south, east = -math.pi / 2, 0.0
+    rp = Replanner(p, ReplanSettings(), targets=["person_face"])
+    for k in range(631):
+        y = south if k < 300 else east if k >= 330 else south + (east - south) * (k - 300) / 30
+        rp.update_target("person_face", face.center, yaw_to_quat(y), stamp=k / 30)
+    rp.set_robot_state(start)
+    rp.set_goals(goals[:1])
+    res = rp.replan(now=0.0)
+    assert res.success, res.reason
+    mean, by_heading = rp.predicted_score(res.trajectory, per_component=True)
+
+    def alone(yaw):
+        ref = Replanner(p, ReplanSettings(prediction=PredictionSettings(enabled=False)), targets=["person_face"])
+        ref.update_target("person_face", face.center, yaw_to_quat(yaw), stamp=0.0)
+        return ref.predicted_score(res.trajectory)
+
+    s_south, s_east = alone(south), alone(east)
+    assert abs(s_south - s_east) > 0.05, (s_south, s_east)  # the headings see the route differently
+    assert by_heading == pytest.approx([s_east, s_south, s_east], abs=1e-4)
+    assert min(s_south, s_east) - 1e-6 <= mean <= max(s_south, s_east) + 1e-6

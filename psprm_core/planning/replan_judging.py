@@ -99,56 +99,69 @@ class PlanJudging:
         self._along_cache = (self.result, self._progress, t)
         return t
 
-    def predicted_score(self, traj, t0: float = 0.0, lead_s: float = 0.0, normalized: bool = True) -> float:
+    def predicted_score(self, traj, t0: float = 0.0, lead_s: float = 0.0, normalized: bool = True,
+                        per_component: bool = False):
         """Time-integrated predicted perception of ``traj`` from its time ``t0`` to its end: the mean score of
         configurations every 50 ms (at most ``predict_samples``, evenly in time), each of ``score_bins`` stretches
         scored against the targets' predicted pose mixture (:meth:`~psprm_core.prediction.TargetPredictor.mixture`)
         at the time the robot will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp).
-        Without prediction, the targets' latest poses."""
+        Without prediction, the targets' latest poses. ``per_component``: (that mean, (C,) the mean under each
+        mixture component alone: the extrapolation, then each heading of the history)."""
         T = float(traj.duration)
         t0 = min(max(0.0, float(t0)), T)
         n = int(max(2, min(self.settings.predict_samples, (T - t0) / 0.05 + 1)))
         ts = np.linspace(t0, T, n)
         Q = traj.evaluate(ts)[0]
         now = self._stamp if self._stamp is not None else 0.0
-        sc = self._score_timed(Q, now + lead_s + (ts - t0))
-        return float((self.planner.normalized_scores(sc) if normalized else sc).mean())
+        sc, comp = self._score_timed(Q, now + lead_s + (ts - t0))
+        norm = self.planner.normalized_scores if normalized else (lambda x: x)
+        mean = float(norm(sc).mean())
+        return (mean, norm(comp).mean(dim=1).numpy()) if per_component else mean
 
     def _predicting(self) -> bool:
         return self.settings.prediction.enabled and self._stamp is not None and \
             any(pr.ready for pr in self.predictors.values())
 
-    def _score_timed(self, Q: np.ndarray, stamps: np.ndarray) -> torch.Tensor:
+    def _score_timed(self, Q: np.ndarray, stamps: np.ndarray) -> tuple:
         """Scores (K,) of configurations ``Q`` (K, dof), each against the targets' predicted mixture at its stamp
         (expected score over the mixture), the mixture taken at the middle of each of ``score_bins`` stretches of
-        consecutive configurations. Each distinct set of predicted poses is scored once, on the configurations of
+        consecutive configurations; and (C, K) the scores under each mixture component alone (a stretch with fewer
+        components repeats its last). Each distinct set of predicted poses is scored once, on the configurations of
         the stretches that use it (a standing person's history components are the same in every stretch), in
         batches the compiled scorer takes."""
         p = self.planner
         self._sync_scene()
         Qt = torch.as_tensor(np.asarray(Q), dtype=torch.float32)
         if not self._predicting():
-            return p.score_configs(Qt).double()
-        groups: dict = {}  # pose key -> [scene, [(rows, weight), ...]]
+            sc = p.score_configs(Qt).double()
+            return sc, sc[None]
+        groups: dict = {}  # pose key -> [scene, [(rows, weight, component), ...]]
+        bins = []  # (rows, number of components)
         for idx in np.array_split(np.arange(len(Q)), min(self.settings.score_bins, len(Q))):
             if len(idx):
-                for w, key, scene in self._mixture_scenes(float(np.mean(stamps[idx]))):
-                    groups.setdefault(key, [scene, []])[1].append((idx, w))
+                mix = self._mixture_scenes(float(np.mean(stamps[idx])))
+                bins.append((idx, len(mix)))
+                for k, (w, key, scene) in enumerate(mix):
+                    groups.setdefault(key, [scene, []])[1].append((idx, w, k))
         out = torch.zeros(len(Q), dtype=torch.float64)
+        comp = torch.zeros(max(c for _, c in bins), len(Q), dtype=torch.float64)
         restore = p.scene
         try:
             for scene, parts in groups.values():
-                rows = np.concatenate([idx for idx, _ in parts])
+                rows = np.concatenate([idx for idx, *_ in parts])
                 p.set_scorer_scene(scene)
                 step = p.compute.mlp_max_rows
                 sc = torch.cat([p.score_configs(Qt[rows[i:i + step]]).double() for i in range(0, len(rows), step)])
-                k = 0
-                for idx, w in parts:
-                    out[idx] += w * sc[k:k + len(idx)]
-                    k += len(idx)
+                j = 0
+                for idx, w, k in parts:
+                    out[idx] += w * sc[j:j + len(idx)]
+                    comp[k, idx] = sc[j:j + len(idx)]
+                    j += len(idx)
         finally:
             p.set_scene(restore)  # the scorer back on the planning scene (the checker never left it)
-        return out
+        for idx, c in bins:
+            comp[c:, idx] = comp[c - 1, idx]
+        return out, comp
 
     def _mixture_scenes(self, t: float) -> list:
         """[(weight, key, scene)]: the scene with every predicted target at its k-th mixture component at time ``t``
@@ -199,8 +212,8 @@ class PlanJudging:
             return unjudged
         if rem is None or len(rem) < 2:
             return unjudged
-        current = self.predicted_score(cur.trajectory, t_c)
-        plan_score = self.predicted_score(res.trajectory, 0.0, lead_s=lead)
+        current, cur_k = self.predicted_score(cur.trajectory, t_c, per_component=True)
+        plan_score, new_k = self.predicted_score(res.trajectory, 0.0, lead_s=lead, per_component=True)
         motion = self.planner.motion
         rem_len, new_len = (float(motion.distance(q[:-1], q[1:]).sum()) if len(q) > 1 else 0.0
                             for q in (torch.as_tensor(np.asarray(d), dtype=torch.float64) for d in (rem, res.dense)))
@@ -214,9 +227,10 @@ class PlanJudging:
         late = new_arrival > max(budget, cur_arrival) + 1e-6
         sees_more = plan_score > current + s.keep_score_margin
         shorter_seeing_no_less = shorter and plan_score >= max(current, s.keep_length_min_score)
-        both = (f"the new one sees {plan_score:.3f} (predicted) along {new_len:.2f} and arrives in "
-                f"{new_arrival:.1f} s (budget {budget:.1f} s); the remaining path sees {current:.3f} along "
-                f"{rem_len:.2f} and arrives in {cur_arrival:.1f} s")
+        heads = (lambda v: "" if len(v) < 2 else f" ({'/'.join(f'{x:.2f}' for x in v)} by heading)")
+        both = (f"the new one sees {plan_score:.3f} (predicted){heads(new_k)} along {new_len:.2f} and arrives in "
+                f"{new_arrival:.1f} s (budget {budget:.1f} s); the remaining path sees {current:.3f}{heads(cur_k)} "
+                f"along {rem_len:.2f} and arrives in {cur_arrival:.1f} s")
         if not late and (sees_more or shorter_seeing_no_less):
             return Verdict(Keep.NONE, Adopt.SEES_MORE if sees_more else Adopt.SHORTER, both, current)
         return Verdict(Keep.LATE if late else Keep.NO_BETTER, Adopt.NONE, f"kept the current plan: {both}", current)
