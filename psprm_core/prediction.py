@@ -16,6 +16,14 @@ horizon.
   where they have been looking, in the proportion they have, not to keep turning. A target whose heading has not
   changed has a history of one heading, and the mixture collapses to it. A target that walks (faster than
   ``walk_mps``) looks where it goes, not where it looked while standing: its mixture is the extrapolation alone.
+* **A turn that repeats** (a person scanning side to side at a steady pace): over the last ``period_window_s`` (the
+  headings resampled at 10 Hz), the lag between 2 s and the window over 1.6 that best correlates the heading with
+  itself, past the lag where the correlation first turns negative, is the turn's period P when that correlation c
+  is at least ``period_min_corr``. The heading at t is then predicted to be the one seen k periods earlier (the
+  smallest k that reaches back before the latest sample), a component of weight (0.9 c)**k of what the extrapolation
+  leaves (each period reached back adds the uncertainty of one more repetition); the history's quantiles share the
+  rest. Without such a period (too little history, an irregular turn, a target that does not turn) the mixture is
+  as above.
 
 Every component keeps the latest pose's roll and pitch (rotation about the vertical only).
 
@@ -40,6 +48,10 @@ from .geometry import turn_about_z, wrap_angle
 
 log = logging.getLogger(__name__)
 
+PERIOD_STEP_S = 0.1  # the headings' resampling step for a repeating turn
+PERIOD_MIN_S = 2.0  # the shortest period looked for
+PERIOD_TRUST = 0.9  # a repetition is trusted at most this much (a person never repeats a turn exactly)
+
 
 @dataclass(frozen=True)
 class PredictionSettings:
@@ -60,6 +72,8 @@ class PredictionSettings:
     max_turn_rate: float = 10.0  # rad/s, likewise
     max_gap_s: float = 1.0  # a longer gap restarts the rate fit
     max_rejects: int = 30  # this many jumps in a row: a relocation, accepted
+    period_window_s: float = 45.0  # headings kept (10 Hz) to find a turn that repeats; 0: no periodic component
+    period_min_corr: float = 0.7  # a repeating turn: the heading one period earlier correlates with it this well
 
     def __post_init__(self):
         for name in ("history_s", "rate_window_s", "rate_decay_s", "velocity_decay_s", "revert_s", "max_speed_mps",
@@ -69,6 +83,10 @@ class PredictionSettings:
                 raise InputError(f"prediction.{name} must be a positive number, got {v}")
         if self.components < 1 or self.max_rejects < 1:
             raise InputError("prediction.components and prediction.max_rejects must be >= 1")
+        if not (math.isfinite(self.period_window_s) and self.period_window_s >= 0):
+            raise InputError(f"prediction.period_window_s must be >= 0, got {self.period_window_s}")
+        if not (0.0 < self.period_min_corr <= 1.0):
+            raise InputError(f"prediction.period_min_corr must be in (0, 1], got {self.period_min_corr}")
 
 
 def quat_yaw(q: np.ndarray) -> float:
@@ -95,6 +113,8 @@ class TargetPredictor:
         self.name = name
         self._hist: deque = deque()  # (t, yaw) over history_s
         self._recent: deque = deque()  # (t, p(3), yaw_unwrapped) over rate_window_s, for the rates
+        self._series: deque = deque()  # (t, yaw_unwrapped) every 0.1 s over period_window_s, for a repeating turn
+        self._period_at: Optional[tuple] = None  # (t_last, (grid, headings, period, correlation) or None)
         self.t_last: Optional[float] = None
         self.p_last: Optional[np.ndarray] = None
         self.q_last: Optional[np.ndarray] = None
@@ -131,6 +151,7 @@ class TargetPredictor:
                 log.warning("target %s: relocated (%d jumps in a row): prediction restarts", self.name, s.max_rejects)
                 self._hist.clear()
                 self._recent.clear()
+                self._series.clear()
                 self._yaw_unwrapped = yaw
             else:
                 if dt > s.max_gap_s:
@@ -144,6 +165,10 @@ class TargetPredictor:
         self._hist.append((float(t), yaw))
         while self._hist and self._hist[0][0] < t - s.history_s:
             self._hist.popleft()
+        if s.period_window_s > 0 and (not self._series or t - self._series[-1][0] >= PERIOD_STEP_S - 1e-9):
+            self._series.append((float(t), self._yaw_unwrapped))
+            while self._series and self._series[0][0] < t - s.period_window_s:
+                self._series.popleft()
         self._recent.append((float(t), p, self._yaw_unwrapped))
         while self._recent and self._recent[0][0] < t - s.rate_window_s:
             self._recent.popleft()
@@ -183,6 +208,52 @@ class TargetPredictor:
         rel = wrap_angle(yaws - c)
         return c + np.quantile(rel, (np.arange(m) + 0.5) / m)
 
+    def period(self) -> Optional[tuple]:
+        """(P, c): the period (s) of a turn that repeats and how well one period predicts the next (the correlation
+        of the heading with itself P earlier), or None (module docstring). Found once per sample."""
+        if self._period_at is not None and self._period_at[0] == self.t_last:
+            found = self._period_at[1]
+            return None if found is None else found[2:]
+        self._period_at = (self.t_last, self._find_period())
+        found = self._period_at[1]
+        return None if found is None else found[2:]
+
+    def _find_period(self) -> Optional[tuple]:
+        ser = self._series
+        if len(ser) < 2 or ser[-1][0] - ser[0][0] < 2 * PERIOD_MIN_S:
+            return None
+        ts = np.array([a for a, _ in ser])
+        grid = np.arange(ts[0], ts[-1] + 1e-9, PERIOD_STEP_S)
+        y = np.interp(grid, ts, np.array([b for _, b in ser]))
+        r = y - y.mean()
+        if r.std() < 0.1:  # not turning (mocap noise and sway)
+            return None
+        lags = np.arange(int(round(PERIOD_MIN_S / PERIOD_STEP_S)), int(len(r) / 1.6))
+        if len(lags) == 0:
+            return None
+        cross = np.correlate(r, r, "full")[len(r) - 1 + lags]  # sum of r[L:] * r[:-L] per lag L
+        e = np.concatenate([[0.0], np.cumsum(r * r)])
+        head, tail = e[len(r) - lags], e[-1] - e[lags]  # energies of r[:-L] and r[L:]
+        corr = cross / np.maximum(1e-12, np.sqrt(head * tail))
+        neg = np.flatnonzero(corr < 0)
+        if len(neg) == 0:  # no turn back within the window
+            return None
+        i = neg[0] + int(np.argmax(corr[neg[0]:]))
+        if corr[i] < self.settings.period_min_corr:
+            return None
+        return grid, y, float(lags[i] * PERIOD_STEP_S), float(corr[i])
+
+    def _periodic_yaw(self, t: float) -> Optional[tuple]:
+        """(weight c**k, heading) of the periodic component at ``t`` (module docstring), or None."""
+        if self.period() is None:
+            return None
+        grid, y, P, c = self._period_at[1]
+        k = max(1, math.ceil((t - self.t_last) / P - 1e-9))
+        u = t - k * P
+        if u < grid[0]:
+            return None
+        return (c * PERIOD_TRUST) ** k, float(np.interp(u, grid, y))
+
     def mixture(self, t: float) -> list:
         """The predicted pose at time ``t`` as [(weight, position (3,), quat (4,)), ...], weights summing to 1. At or
         before the latest sample, and with prediction off, the latest pose alone."""
@@ -200,9 +271,13 @@ class TargetPredictor:
         walking = bool(np.linalg.norm(self.velocity) > s.walk_mps)
         if m > 0 and len(self._hist) > 1 and not walking:
             w_e = math.exp(-tau / s.revert_s)
-            out = [(w_e, p, out[0][2])]
+            out, rest = [(w_e, p, out[0][2])], 1.0 - w_e
+            periodic = self._periodic_yaw(t)
+            if periodic is not None:
+                out.append((rest * periodic[0], p, turned(self.q_last, float(wrap_angle(periodic[1] - yaw_now)))))
+                rest *= 1.0 - periodic[0]
             for y in self._history_quantiles(m):
-                out.append(((1.0 - w_e) / m, p, turned(self.q_last, float(wrap_angle(y - yaw_now)))))
+                out.append((rest / m, p, turned(self.q_last, float(wrap_angle(y - yaw_now)))))
         return out
 
     def expected_yaw_spread(self, t: float) -> float:
