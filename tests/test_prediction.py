@@ -1,10 +1,10 @@
 """Target motion prediction (psprm_core.prediction), judged against the motion the test itself generated: a turn in
 progress is extrapolated, a walk is extrapolated, a person turning back and forth is predicted, beyond a few
 seconds, to look where they have been looking in the proportions they have (the test's own quantiles of its own
-headings), a turn that repeats at a steady pace is predicted from one period earlier (the test's own formula)
-and a turn that does not repeat is not, a standing target stays; bad input (NaN, time going back, jumps, gaps) is discarded with a warning and the
-last good pose used; and the replanner's predicted path score changes with the predicted poses, not with the
-instantaneous one alone."""
+headings), a turn that repeats at a steady pace is predicted from one period earlier (the test's own formula) and
+a turn that does not repeat is not, a standing target stays; bad input (NaN, time going back, jumps, gaps) is
+discarded with a warning and the last good pose used; and the replanner's predicted path score changes with the
+predicted poses, not with the instantaneous one alone."""
 
 from __future__ import annotations
 
