@@ -106,7 +106,8 @@ class PlanJudging:
         scored against the targets' predicted pose mixture (:meth:`~psprm_core.prediction.TargetPredictor.mixture`)
         at the time the robot will be there (now + ``lead_s`` + (t - ``t0``), "now" being the latest pose's stamp).
         Without prediction, the targets' latest poses. ``per_component``: (that mean, (C,) the mean under each
-        mixture component alone: the extrapolation, then each heading of the history)."""
+        mixture component alone: the extrapolation, the periodic heading when a turn repeats, then each heading of
+        the history)."""
         T = float(traj.duration)
         t0 = min(max(0.0, float(t0)), T)
         n = int(max(2, min(self.settings.predict_samples, (T - t0) / 0.05 + 1)))
