@@ -30,7 +30,7 @@ Every component keeps the latest pose's roll and pitch (rotation about the verti
 Bad input: a sample with NaN/inf, a time that does not advance, or a jump (faster than ``max_speed_mps`` /
 ``max_turn_rate``) is discarded with a warning, and the last good pose is used; ``max_rejects`` jumps in a row are
 taken as a real relocation (the history restarts there). A gap longer than ``max_gap_s`` restarts the rate fit
-(the rates are zero until it has samples again).
+(the rates are zero until it has samples again) and the search for a repeating turn.
 """
 
 from __future__ import annotations
@@ -155,8 +155,10 @@ class TargetPredictor:
                 self._yaw_unwrapped = yaw
             else:
                 if dt > s.max_gap_s:
-                    log.warning("target %s: %.2f s without a pose: the rates restart", self.name, dt)
+                    log.warning("target %s: %.2f s without a pose: the rates and the search for a repeating turn "
+                                "restart", self.name, dt)
                     self._recent.clear()
+                    self._series.clear()
                 self._yaw_unwrapped += dyaw
         else:
             self._yaw_unwrapped = yaw
@@ -211,10 +213,8 @@ class TargetPredictor:
     def period(self) -> Optional[tuple]:
         """(P, c): the period (s) of a turn that repeats and how well one period predicts the next (the correlation
         of the heading with itself P earlier), or None (module docstring). Found once per sample."""
-        if self._period_at is not None and self._period_at[0] == self.t_last:
-            found = self._period_at[1]
-            return None if found is None else found[2:]
-        self._period_at = (self.t_last, self._find_period())
+        if self._period_at is None or self._period_at[0] != self.t_last:
+            self._period_at = (self.t_last, self._find_period())
         found = self._period_at[1]
         return None if found is None else found[2:]
 
@@ -244,7 +244,7 @@ class TargetPredictor:
         return grid, y, float(lags[i] * PERIOD_STEP_S), float(corr[i])
 
     def _periodic_yaw(self, t: float) -> Optional[tuple]:
-        """(weight c**k, heading) of the periodic component at ``t`` (module docstring), or None."""
+        """(weight (0.9 c)**k, heading) of the periodic component at ``t`` (module docstring), or None."""
         if self.period() is None:
             return None
         grid, y, P, c = self._period_at[1]

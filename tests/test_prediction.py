@@ -124,6 +124,10 @@ def test_a_turn_that_repeats_is_predicted_from_one_period_earlier(period):
         err, err_off = (float(ww @ np.abs(_wrap(yy - y_true))) for yy, ww in ((yaws, w), (yaws_off, w_off)))
         if tau >= 2.0:
             assert err < 0.8 * err_off, (tau, err, err_off)
+    # a gap in the stream (longer than max_gap_s) restarts the search: no period until it has seen one again
+    t_gap = t[-1] + 2.0
+    assert pr.add(t_gap, [0.0, 0.0, 0.0], yaw_to_quat(float(truth(t_gap))))
+    assert pr.period() is None and len(pr.mixture(t_gap + 4.0)) == 3
 
 
 def test_a_turn_that_does_not_repeat_has_no_periodic_component():
