@@ -19,7 +19,8 @@ horizon.
 * **A turn that repeats** (a person scanning side to side at a steady pace): over the last ``period_window_s`` (the
   headings resampled at 10 Hz), the lag between 2 s and the window over 1.6 that best correlates the heading with
   itself, past the lag where the correlation first turns negative, is the turn's period P when that correlation c
-  is at least ``period_min_corr``. The heading at t is then predicted to be the one seen k periods earlier (the
+  is at least ``period_min_corr`` (of lags that correlate within 0.02 of the best, the shortest: a turn repeats
+  at twice its period too). The heading at t is then predicted to be the one seen k periods earlier (the
   smallest k that reaches back before the latest sample), a component of weight (0.9 c)**k of what the extrapolation
   leaves (each period reached back adds the uncertainty of one more repetition); the history's quantiles share the
   rest. Without such a period (too little history, an irregular turn, a target that does not turn) the mixture is
@@ -50,6 +51,7 @@ log = logging.getLogger(__name__)
 
 PERIOD_STEP_S = 0.1  # the headings' resampling step for a repeating turn
 PERIOD_MIN_S = 2.0  # the shortest period looked for
+PERIOD_TIE = 0.02  # a multiple of the period correlating within this of the best is not taken for the period
 PERIOD_TRUST = 0.9  # a repetition is trusted at most this much (a person never repeats a turn exactly)
 
 
@@ -238,9 +240,15 @@ class TargetPredictor:
         neg = np.flatnonzero(corr < 0)
         if len(neg) == 0:  # no turn back within the window
             return None
-        i = neg[0] + int(np.argmax(corr[neg[0]:]))
-        if corr[i] < self.settings.period_min_corr:
+        after = corr[neg[0]:]
+        best = float(after.max())
+        if best < self.settings.period_min_corr:
             return None
+        # the shortest lag that correlates about as well as the best: a turn that repeats every P also repeats
+        # every 2P, and a turn that dwells at each side correlates as well (to rounding) at both
+        i = neg[0] + int(np.flatnonzero(after >= best - PERIOD_TIE)[0])
+        while i + 1 < len(corr) and corr[i + 1] > corr[i]:  # up to that peak's top
+            i += 1
         return grid, y, float(lags[i] * PERIOD_STEP_S), float(corr[i])
 
     def _periodic_yaw(self, t: float) -> Optional[tuple]:

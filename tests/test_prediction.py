@@ -130,6 +130,23 @@ def test_a_turn_that_repeats_is_predicted_from_one_period_earlier(period):
     assert pr.period() is None and len(pr.mixture(t_gap + 4.0)) == 3
 
 
+@pytest.mark.parametrize("period", [9.0, 14.0])
+def test_a_turn_that_dwells_at_each_side_is_found_at_its_own_period_not_a_multiple(period):
+    """A person who dwells at each side of the turn (the shipped recording's shape: a squashed cosine) correlates
+    with themselves as well two periods back as one; the period found is the turn's own (the test's), not twice it,
+    so that the component needs no more history than one period does."""
+    def truth(tt):
+        return -math.pi / 2 - (math.pi / 2) * np.tanh(1.5 * np.cos(2 * np.pi * tt / period)) / math.tanh(1.5)
+
+    pr, found = TargetPredictor(), []
+    for t in np.arange(0.0, 68.0, 1 / 30):
+        assert pr.add(t, np.zeros(3), yaw_to_quat(float(truth(t))))
+        if t >= 45.0 and round(t * 30) % 30 == 0:  # once a second over the last 23 s
+            found.append(pr.period())
+    assert all(f is not None and f[1] > 0.95 for f in found)
+    assert [round(f[0], 1) for f in found] == pytest.approx([period] * len(found), abs=0.15)
+
+
 def test_a_turn_that_does_not_repeat_has_no_periodic_component():
     """Turns that do not repeat at a steady pace (dwell times drawn by the test between 2 and 9 s), a steady spin,
     a standing person with mocap noise, and too little history for one period: no period, and the mixture is the
