@@ -219,13 +219,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     rp.add_argument("--json", action="store_true")
     rp.set_defaults(func=_json_only(_replan))
     rm = ps.add_parser("replan-motion", help="replans of a robot in motion (committed state, splice, keep decision) "
-                                             "with target prediction off, on, and on with the routes of the predicted "
-                                             "headings, alternated")
+                                             "with target prediction off, on, on without the periodic component, "
+                                             "and on with the routes of the predicted headings, alternated")
     rm.add_argument("--nodes", type=int, default=3000)
     rm.add_argument("--replans", type=int, default=30)
     rm.add_argument("--rounds", type=int, default=2)
     rm.add_argument("--seed", type=int, default=0)
     rm.add_argument("--threads", type=int, default=1)
+    rm.add_argument("--history-s", type=float, default=4.0,
+                    help="seconds of the person's poses before the first plan (default 4; a period is found after "
+                         "about 1.6 turns)")
+    rm.add_argument("--turn-period-s", type=float, default=20.0, help="the person's turn (default 20 s, the "
+                                                                      "shipped recording's)")
+    rm.add_argument("--variants", default=None, help="comma-separated: off, prediction, no_period, "
+                                                     "predicted_routes (default: all)")
     rm.add_argument("--json", action="store_true")
     rm.set_defaults(func=_json_only(_replan_motion))
     tk = ps.add_parser("tracking", help="the path tolerance's measure (a splice check, a control step): compiled "
@@ -284,10 +291,12 @@ def _replan(args) -> int:
 
 
 def _replan_motion(args) -> int:
-    from ..evaluation.dynamic.motion_replan import motion_replan_benchmark
+    from ..evaluation.dynamic.motion_replan import VARIANTS, motion_replan_benchmark
 
+    variants = tuple(v.strip() for v in args.variants.split(",") if v.strip()) if args.variants else VARIANTS
     _print(motion_replan_benchmark(nodes=args.nodes, replans=args.replans, rounds=args.rounds, seed=args.seed,
-                                   threads=args.threads), args.json)
+                                   threads=args.threads, history_s=args.history_s, turn_period_s=args.turn_period_s,
+                                   variants=variants), args.json)
     return 0
 
 
