@@ -228,3 +228,42 @@ def test_broad_phase_scores_equal_ray_by_ray(count_inside):
     ref = ray_hits(o, e, bt, count_inside=count_inside).reshape(len(cams), len(pts)).double().mean(1)
     assert torch.equal(got, ref)
     assert 0.1 < (ref == 0).double().mean() < 0.9 and 0.05 < ((ref > 0) & (ref < 1)).double().mean()  # informative
+
+
+def test_a_scorer_moved_from_scene_to_scene_scores_as_one_built_for_each():
+    """A scorer keeps its occluders while only its target turns in place (what-if scoring of predicted headings);
+    after each kind of change from the same scene (the target turned, an obstacle moved, another target moved, the
+    target moved into the box of its body) its occlusion and its scores equal those of a scorer built for that scene
+    alone, over cameras all round the target."""
+    from psprm_core.perception.scoring import GeometricScorer
+
+    face = Target(name="face", detector_class="face", center=np.array([0.06, 0.0, 1.6]),
+                  size=np.array([0.12, 0.16, 0.22]), appearance="face_astronaut")
+    body = Box(name="body", center=np.array([-0.1, 0.0, 0.8]), size=np.array([0.2, 0.45, 1.6]))
+    wall = Box(name="wall", center=np.array([1.2, -0.4, 1.5]), size=np.array([0.05, 0.8, 2.0]))
+    other = Target(name="other", detector_class="tv", center=np.array([0.0, 1.5, 1.5]), size=np.array([0.1, 0.6, 0.4]))
+    base = _scene([body, wall], [face, other]).with_target_pose("face", face.center, yaw_to_quat(0.7))
+    changes = {"turned": base.with_target_pose("face", face.center, yaw_to_quat(-0.9)),
+               "obstacle moved": base.with_obstacle_pose("wall", np.array([1.2, 0.4, 1.5])),
+               "other target moved": base.with_target_pose("other", np.array([0.7, 0.1, 1.6])),
+               "into its body": base.with_target_pose("face", np.array([-0.1, 0.0, 1.2]))}
+    rng = np.random.default_rng(3)
+    az, r = rng.uniform(-np.pi, np.pi, 400), rng.uniform(0.6, 3.0, 400)
+    pos = np.stack([r * np.cos(az), r * np.sin(az), rng.uniform(0.8, 2.0, 400)], 1)
+    cams = torch.zeros(400, 4, 4, dtype=torch.float64)
+    for i, p in enumerate(pos):  # looking at the face's centre (z forward)
+        z = (face.center - p) / np.linalg.norm(face.center - p)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        x /= np.linalg.norm(x)
+        cams[i, :3, :3] = torch.as_tensor(np.stack([x, np.cross(z, x), z], 1))
+        cams[i, :3, 3], cams[i, 3, 3] = torch.as_tensor(p), 1.0
+    moved = GeometricScorer(base, "face")
+    base_occ = GeometricScorer(base, "face").occ.score(cams[:, :3, 3])
+    for what, sc in changes.items():
+        moved.set_scene(base)
+        moved.set_scene(sc)
+        fresh = GeometricScorer(sc, "face")
+        occ = fresh.occ.score(cams[:, :3, 3])
+        assert torch.equal(moved.occ.score(cams[:, :3, 3]), occ), what
+        assert torch.equal(moved.score(cams), fresh.score(cams)), what
+        assert not torch.equal(occ, base_occ), what  # each change changes what occludes the face somewhere

@@ -24,7 +24,7 @@ import torch
 from ..camera import CameraIntrinsics
 from ..scene import Scene
 from ..errors import InputError
-from .occlusion import OcclusionChecker
+from .occlusion import OcclusionChecker, occluder_boxes
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,21 @@ class Scorer:
         """``part`` (an occlusion checker built by :meth:`set_scene`) following the scorer's Compute, if given."""
         return part if part is None or self._compute is None else part.using(self._compute)
 
+    def _occlusion_checker(self, scene: Scene, **kw) -> OcclusionChecker:
+        """:meth:`OcclusionChecker.from_scene` for the scorer's target, following the scorer's Compute. The occluders
+        of the last scene are reused while the obstacles and the other targets are the same objects and the target's
+        centre has not moved (a target turned in place: what-if scoring of its predicted headings); the rays' target
+        points always follow the target."""
+        target = scene.target(self.target_name)
+        others = tuple(t for t in scene.targets if t.name != self.target_name)
+        key = (scene.obstacles, others, tuple(np.asarray(target.center, float).tolist()), tuple(sorted(kw.items())))
+        memo = self.__dict__.get("_occluders")
+        same = memo is not None and memo[0][0] is key[0] and len(memo[0][1]) == len(others) and \
+            all(a is b for a, b in zip(memo[0][1], others)) and memo[0][2:] == key[2:]
+        if not same:
+            memo = self._occluders = (key, occluder_boxes(scene, self.target_name, dtype=torch.float64))
+        return self._computing(OcclusionChecker.from_scene(scene, self.target_name, boxes=memo[1], **kw))
+
 
 def _target_pose(scene: Scene, name: str) -> np.ndarray:
     t = scene.target(name)
@@ -101,7 +116,7 @@ class GeometricScorer(Scorer):
         t = scene.target(self.target_name)
         self.center = torch.as_tensor(t.center, dtype=torch.float64)
         self.facing = torch.as_tensor(t.facing, dtype=torch.float64)
-        self.occ = self._computing(OcclusionChecker.from_scene(scene, self.target_name) if self.occlusion else None)
+        self.occ = self._occlusion_checker(scene) if self.occlusion else None
 
     def score(self, cameras: torch.Tensor) -> torch.Tensor:
         dt = cameras.dtype
@@ -170,8 +185,7 @@ class NeuralScorer(Scorer):
         self.class_name = t.detector_class
         self.model.class_index(self.class_name)  # raises a clear error for classes the model was not trained on
         self.target_pose = torch.as_tensor(_target_pose(scene, self.target_name))
-        self.occ = self._computing(OcclusionChecker.from_scene(scene, self.target_name, tau=self.tau)
-                                   if self.occlusion else None)
+        self.occ = self._occlusion_checker(scene, tau=self.tau) if self.occlusion else None
 
     def score(self, cameras: torch.Tensor) -> torch.Tensor:
         s = self.model.predict(cameras, self.target_pose.to(cameras.device, cameras.dtype), self.class_name)

@@ -159,7 +159,7 @@ class PlanJudging:
                     comp[k, idx] = sc[j:j + len(idx)]
                     j += len(idx)
         finally:
-            p.set_scene(restore)  # the scorer back on the planning scene (the checker never left it)
+            p.set_scorer_scene(restore)  # the scorer back on the planning scene (the checker never left it)
         for idx, c in bins:
             comp[c:, idx] = comp[c - 1, idx]
         return out, comp
