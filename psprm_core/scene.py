@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import math
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Optional
 
@@ -51,11 +52,16 @@ class Box:
 
     @property
     def rotation(self) -> np.ndarray:
-        return quat_to_matrix(self.quat)
+        """(3, 3) rotation matrix of :attr:`quat` (a copy of the one worked out once per box)."""
+        return self._rotation.copy()
 
     @property
     def half_extents(self) -> np.ndarray:
         return 0.5 * np.asarray(self.size)
+
+    @cached_property
+    def _rotation(self) -> np.ndarray:
+        return quat_to_matrix(self.quat)
 
     def swept(self) -> "Box":
         """The box that holds this one at every heading about its own z axis: x and y extents grown to the diameter
@@ -112,6 +118,11 @@ class Target:
 
     @property
     def rotation(self) -> np.ndarray:
+        """(3, 3) rotation matrix of :attr:`quat` (a copy of the one worked out once per target)."""
+        return self._rotation.copy()
+
+    @cached_property
+    def _rotation(self) -> np.ndarray:
         return quat_to_matrix(self.quat)
 
     @property
@@ -141,6 +152,11 @@ class Target:
         return self.rotation[:, 0]
 
     def as_box(self) -> Box:
+        """The target's box (one per target: boxes are immutable)."""
+        return self._box
+
+    @cached_property
+    def _box(self) -> Box:
         return Box(name=self.name, center=self.center, size=self.size, quat=self.quat,
                    color=np.array([0.9, 0.7, 0.2, 1.0]))
 

@@ -400,3 +400,35 @@ def test_plot_helpers(tmp_path):
     assert poly.shape == (4, 2) and np.allclose(np.abs(poly).max(axis=0), [0.5, 1.0])
     tilted = box_footprint([0, 0, 0], [1.0, 1.0, 1.0], [0.0, math.sin(0.3), 0.0, math.cos(0.3)])
     assert 4 <= len(tilted) <= 6
+
+
+def test_box_and_target_rotations_follow_their_quaternions():
+    """A box's and a target's rotation matrix is pybullet's of its quaternion, for the box itself, for a box made
+    from it with another quaternion, and after a caller wrote into a rotation it was given (each caller gets its
+    own array); a target's box has the target's pose."""
+    from dataclasses import replace
+
+    import pybullet
+
+    from psprm_core.scene import Box, Target
+
+    def reference(q):
+        return np.asarray(pybullet.getMatrixFromQuaternion((np.asarray(q) / np.linalg.norm(q)).tolist())).reshape(3, 3)
+
+    rng = np.random.default_rng(5)
+    for _ in range(20):
+        q1, q2 = rng.normal(size=4), rng.normal(size=4)
+        box = Box(name="b", center=rng.normal(size=3), size=rng.uniform(0.1, 1.0, 3), quat=q1)
+        got = box.rotation
+        assert np.allclose(got, reference(q1), atol=1e-12)
+        got[:] = 0.0  # the caller's copy
+        assert np.allclose(box.rotation, reference(q1), atol=1e-12)
+        moved = replace(box, quat=q2)
+        assert np.allclose(moved.rotation, reference(q2), atol=1e-12)
+        assert np.allclose(box.rotation, reference(q1), atol=1e-12)
+        assert np.allclose(moved.half_extents, 0.5 * box.size)
+        tgt = Target(name="t", detector_class="face", center=box.center, size=box.size, quat=q1)
+        assert np.allclose(tgt.rotation, reference(q1), atol=1e-12) and np.allclose(tgt.facing, reference(q1)[:, 0])
+        turned = replace(tgt, quat=q2)
+        assert np.allclose(turned.as_box().rotation, reference(q2), atol=1e-12)
+        assert np.allclose(turned.as_box().center, box.center) and np.allclose(tgt.as_box().rotation, reference(q1))
