@@ -43,6 +43,11 @@ def test_bad_input_gives_one_line_error(capsys):
     assert main(["perf", "kinematics", "--robot", "nope", "--scene", "home", "--n", "10"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unknown robot 'nope'" in err[0]
+    for bad, words in ((["--variants", "prediction,nope"], "unknown variant 'nope'"),
+                       (["--history-s", "0"], "history_s and turn_period_s must be > 0")):
+        assert main(["perf", "replan-motion", "--nodes", "50", *bad]) == 2, bad
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0], err
 
 
 def test_plan_json_and_plot(tmp_path, capsys):
