@@ -394,20 +394,17 @@ class OcclusionChecker(Computing):
     @classmethod
     def from_scene(cls, scene: Scene, target_name: str, tau: float = DEFAULT_TAU, shrink: float = 0.9,
                    grid: Optional[int] = None, exclude: Iterable[str] = (), exclude_containing: bool = True,
-                   front: Optional[bool] = None, boxes: Optional[BoxTensors] = None,
-                   **kw) -> "OcclusionChecker":
+                   front: Optional[bool] = None, boxes: Optional[BoxTensors] = None, **kw) -> "OcclusionChecker":
         """Build the checker for ``target_name`` (see :func:`occluder_boxes` and :func:`target_sample_points`);
-        ``boxes``: the occluders when the caller has them (:func:`occluder_boxes` of the same scene, target and
-        exclusions, float64), else found here.
+        ``boxes``: the occluders when the caller has them (:func:`occluder_boxes`, float64), else found here.
 
         ``front`` (default: :func:`is_front_facing`) casts the rays to a 3 x 3 grid on the target's facing side
         instead of its whole box: for a face on a body, rays to the back of the face box graze the body (the
         shoulders) although the face itself is in view. On the nursing views this brought the RMSE on occluded views
         from 0.18 to 0.10 (docs/benchmarks.md).
         """
-        if boxes is None:
-            boxes = occluder_boxes(scene, target_name, exclude=exclude, exclude_containing=exclude_containing,
-                                   dtype=torch.float64)
+        boxes = boxes if boxes is not None else occluder_boxes(scene, target_name, exclude, exclude_containing,
+                                                               dtype=torch.float64)
         target = scene.target(target_name)
         if front is None:
             front = is_front_facing(target)
