@@ -193,6 +193,26 @@ def test_demo_configuration_is_the_params_files(params_file):
         want.update(zip(names, topics))
     assert cfg.body_topics == want
     assert json.loads(json.dumps(cfg.describe()))["scene"] == scene["name"]
+    # the server's arrival budget: its replan settings file's (read here), and the loop given that much time
+    planners = yaml.safe_load((ROOT / "config" / "planners" / f"{server['replan_settings']}.yaml").read_text())
+    budget = server.get("arrival_budget", planners["arrival_budget"])
+    assert cfg.arrival_budget == budget > 0
+    assert cfg.patience_s(100.0, 120.0) == pytest.approx((1 + budget) * 100.0 + 10.0)
+    assert cfg.patience_s(40.0, 120.0) == 120.0
+
+
+def test_the_loop_waits_as_long_as_a_params_files_own_arrival_budget(tmp_path):
+    """A params file that sets the server's arrival budget gives the loop that budget's time; with no budget (0) the
+    loop waits ``--timeout`` alone."""
+    src = (ROOT / "config" / "ros" / "dynamic_person.yaml").read_text()
+    for budget, want in ((1.0, 2.0 * 100.0 + 10.0), (0.0, 120.0)):
+        data = yaml.safe_load(src)
+        data["roadmap_server"]["ros__parameters"]["arrival_budget"] = budget
+        f = tmp_path / f"b{budget}.yaml"
+        f.write_text(yaml.safe_dump(data))
+        cfg = demo_config(f)
+        assert cfg.arrival_budget == budget
+        assert cfg.patience_s(100.0, 120.0) == pytest.approx(want)
 
 
 def test_a_recording_the_params_file_does_not_stream_is_refused(tmp_path):

@@ -19,7 +19,7 @@ params file (:data:`psprm_ros.interfaces.recordings.SHIPPED`).
    monitor's topics, looped) and sends the goal (goal regions by name, or a goal pose);
 3. the robot adapter executes every planned trajectory on the simulated robot; this process records what the robot
    reports (/odom, /joint_states, the adapter's /diagnostics) and every pose it replayed, until the robot rests at a
-   goal (or ``--timeout``);
+   goal (or ``--timeout``, at least what the server's arrival budget allows the first plan);
 4. prints every plan and replan (triggers, latency from the pose message to the trajectory), the executed motion, the
    executed configurations in collision with the replayed bodies (poses at that instant), and the oracle's verdict
    (rendered views + the real detector, every target of the params file) along the executed motion and along the
@@ -246,7 +246,9 @@ def main(args=None) -> int:
                     help="CSV or rosbag2 of the moving bodies (default: the shipped recording of the params file)")
     ap.add_argument("--out", default="out")
     ap.add_argument("--nodes", type=int, default=3000)
-    ap.add_argument("--timeout", type=float, default=120.0, help="longest closed-loop run after the first plan (s)")
+    ap.add_argument("--timeout", type=float, default=120.0,
+                    help="longest closed-loop run after the first plan (s); at least what the server's arrival "
+                         "budget allows a replanning robot, (1 + arrival_budget) x the first plan's duration + 10 s")
     ap.add_argument("--in-process", action="store_true", help="run the suite and the simulated robot in this process")
     ap.add_argument("--suite", choices=sorted(SUITE_SCRIPTS), default="processes",
                     help="the node suite as a process per node (run_nodes.sh; the planner does not share its "
@@ -333,7 +335,11 @@ def main(args=None) -> int:
         say(f"[demo] first plan {first_plan_s:.1f} s after start ({t_first - t_ready:.1f} s after ready): "
             f"{len(first.points)} points, {first_duration:.1f} s")
         reached = ""
-        deadline = time.perf_counter() + a.timeout
+        patience = cfg.patience_s(first_duration, a.timeout)
+        if patience > a.timeout:
+            say(f"[demo] waiting up to {patience:.0f} s for the goal: the arrival budget "
+                f"({cfg.arrival_budget:g}) of a {first_duration:.1f} s first plan")
+        deadline = time.perf_counter() + patience
         rest_since = None
         while time.perf_counter() < deadline:
             time.sleep(0.2)

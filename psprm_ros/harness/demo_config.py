@@ -30,10 +30,12 @@ from typing import Optional
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.paths import resolve_named
+from psprm_core.planning.replan_settings import ReplanSettings
 from psprm_core.robot import RobotModel
 from psprm_core.scene import load_scene
 
-from .. import core
+from .. import core, planner_setup
 from ..core import resolve_scene
 from ..interfaces.frames import FrameTable
 from ..interfaces.recordings import SHIPPED
@@ -81,6 +83,15 @@ class DemoConfig:
     frames: object  # psprm_ros.interfaces.frames.FrameTable of the params' input frames
     recorded_bodies: list = dataclasses.field(default_factory=list)
     recorded_frames: dict = dataclasses.field(default_factory=dict)  # body -> frame id of its recorded poses
+    arrival_budget: float = 0.0  # the server's: a view-triggered replan arrives within (1 + this) x the reference
+
+    def patience_s(self, first_duration: float, at_least: float, settle_s: float = 10.0) -> float:
+        """How long after the first plan the loop is given to reach its goal: ``at_least``, and no less than the
+        server's arrival budget allows a robot whose replans trade time for views ((1 + ``arrival_budget``) times
+        the first plan's duration, which bounds the budget's reference), plus ``settle_s`` to come to rest."""
+        if self.arrival_budget <= 0:
+            return at_least
+        return max(at_least, (1.0 + self.arrival_budget) * first_duration + settle_s)
 
     @property
     def goal_names(self) -> list:
@@ -224,10 +235,12 @@ def demo_config(params_file, recording=None) -> DemoConfig:
     monitor = params["replan_monitor"]
     topics = {**_topics(monitor, targets, "target_topics", where),
               **_topics(monitor, obstacles, "obstacle_topics", where)}
+    replan = str(shared.get("replan_settings") or planner_setup.PLANNER_PARAMS["replan_settings"])
+    budget = shared.get("arrival_budget", ReplanSettings.from_yaml(resolve_named("planner", replan)).arrival_budget)
     cfg = DemoConfig(params_file=where, scene=scene, robot=robot, adapter=adapter, targets=targets,
                      dynamic_obstacles=obstacles, start_problem=start_problem, start=start, goal_problem=goal_problem,
                      goals=goals, goal_regions=regions, body_topics=topics,
-                     frames=params_frames(params["roadmap_server"], scene.frame, where))
+                     frames=params_frames(params["roadmap_server"], scene.frame, where), arrival_budget=float(budget))
     if recording is not None:
         unknown = [b for b in recording.bodies if b not in topics]
         if unknown:
