@@ -116,7 +116,7 @@ class TargetPredictor:
         self._hist: deque = deque()  # (t, yaw) over history_s
         self._recent: deque = deque()  # (t, p(3), yaw_unwrapped) over rate_window_s, for the rates
         self._series: deque = deque()  # (t, yaw_unwrapped) every 0.1 s over period_window_s, for a repeating turn
-        self._period_at: Optional[tuple] = None  # (t_last, (grid, headings, period, correlation) or None)
+        self._period_at: Optional[tuple] = None  # (latest resampled stamp, (grid, headings, period, corr) or None)
         self.t_last: Optional[float] = None
         self.p_last: Optional[np.ndarray] = None
         self.q_last: Optional[np.ndarray] = None
@@ -214,9 +214,11 @@ class TargetPredictor:
 
     def period(self) -> Optional[tuple]:
         """(P, c): the period (s) of a turn that repeats and how well one period predicts the next (the correlation
-        of the heading with itself P earlier), or None (module docstring). Found once per sample."""
-        if self._period_at is None or self._period_at[0] != self.t_last:
-            self._period_at = (self.t_last, self._find_period())
+        of the heading with itself P earlier), or None (module docstring). Found once per resampled heading (every
+        0.1 s), not per pose."""
+        key = self._series[-1][0] if self._series else None
+        if self._period_at is None or self._period_at[0] != key:
+            self._period_at = (key, self._find_period())
         found = self._period_at[1]
         return None if found is None else found[2:]
 
