@@ -385,3 +385,115 @@ def test_scenario_summary_ratios_and_headroom_share_from_hand_made_episodes():
     for e in eps[:3]:
         e["modes"]["hindsight"]["det_rate"] = e["modes"]["static"]["det_rate"]
     assert summarize_scenario(eps, list(det))["ratios"]["headroom_share"] is None
+
+
+def _write_recording(path: Path, n: int = 41, dt: float = 0.1, frame: str = "map") -> tuple:
+    """A recording written here: the dynamic_person scene's face and body, the face turning at a constant rate
+    (heading -1.5708 + 0.3 t) and both drifting east (x + 0.05 t), sampled every ``dt`` s. Returns the numbers it
+    was written from, (times, face positions, face headings)."""
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    face, body = scene.target("person_face"), scene.obstacle("person_body")
+    ts = np.arange(n) * dt
+    rows = ["time,body,frame,x,y,z,qx,qy,qz,qw"]
+    fc, fyaw = [], []
+    for t in ts:
+        yaw = -1.5708 + 0.3 * t
+        shift = np.array([0.05 * t, 0.0, 0.0])
+        for name, c in (("person_face", face.center + shift), ("person_body", body.center + shift)):
+            q = yaw_to_quat(yaw)
+            rows.append(f"{t + 100.0:.6f},{name},{frame}," + ",".join(f"{v:.9f}" for v in (*c, *q)))
+        fc.append(face.center + shift)
+        fyaw.append(yaw)
+    path.write_text("\n".join(rows) + "\n")
+    return ts, np.array(fc), np.array(fyaw)
+
+
+def _recorded_scenario(tmp_path: Path, extra: str = "", bodies: str = "[person_face, person_body]") -> Path:
+    f = tmp_path / "rec_scenario.yaml"
+    f.write_text("name: rec\nscene: dynamic_person\ntarget: person_face\n"
+                 "start: {base_x: 4.0, base_y: 0.7, base_theta: 1.5708}\ngoals: [at_shelf]\n"
+                 f"recording: {{file: rec.csv, bodies: {bodies}}}\n" + extra)
+    return f
+
+
+def test_a_recorded_scenario_replays_the_recording_looped_from_the_drawn_moment(tmp_path):
+    ts, fc, fyaw = _write_recording(tmp_path / "rec.csv")
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    sc = load_scenario(_recorded_scenario(tmp_path))
+    world = World(sc, scene)
+    loop = 4.0 + 0.1  # 41 samples 0.1 s apart; the first follows the last one period later
+    for t, c, yaw in zip(ts, fc, fyaw):  # the samples as written (recorded time 100 s = replay time 0)
+        for tt in (t, t + loop, t + 3 * loop):
+            got = world.poses(float(tt))["targets"]["person_face"]
+            assert np.allclose(got[0], c, atol=1e-8)
+            assert abs(_heading(got[1]) - yaw) < 1e-6
+    mid = world.poses(1.25)  # halfway between the samples at 1.2 and 1.3 s
+    assert np.allclose(mid["targets"]["person_face"][0], 0.5 * (fc[12] + fc[13]), atol=1e-8)
+    assert abs(_heading(mid["targets"]["person_face"][1]) - (-1.5708 + 0.3 * 1.25)) < 1e-6
+    assert np.allclose(mid["obstacles"]["person_body"][0][0],
+                       scene.obstacle("person_body").center[0] + 0.05 * 1.25, atol=1e-8)
+    wrap = world.poses(4.05)  # halfway from the last sample back to the first
+    assert np.allclose(wrap["targets"]["person_face"][0], 0.5 * (fc[-1] + fc[0]), atol=1e-8)
+    # an episode starts its replay a drawn fraction into the loop; the people's draws come first, unchanged
+    starts = set()
+    for e in range(3):
+        var = draw_variation(sc, e)
+        frac = var["<recording>"].phase_rad / (2 * math.pi)
+        assert 0.0 <= frac < 1.0
+        starts.add(round(frac, 6))
+        w = World(sc, scene, variation=var)
+        for t in (0.0, 0.7, 2.0):
+            tau = (t + frac * loop) % loop
+            if tau <= ts[-1]:
+                want_c = np.array([np.interp(tau, ts, fc[:, k]) for k in range(3)])
+                want_yaw = np.interp(tau, ts, fyaw)
+            else:  # on the stretch back to the first sample
+                w8 = (tau - ts[-1]) / 0.1
+                want_c, want_yaw = (1 - w8) * fc[-1] + w8 * fc[0], None
+            c, q = w.poses(t)["targets"]["person_face"]
+            assert np.allclose(c, want_c, atol=1e-8)
+            if want_yaw is not None:
+                assert abs(_heading(q) - want_yaw) < 1e-6
+    assert len(starts) == 3
+    rot = load_scenario(resolve_named("scenario", "rotating_person"))
+    both = dataclasses.replace(rot, recording=dataclasses.replace(sc.recording, bodies=("person_face",)))
+    assert draw_variation(both, 2)["person_face"] == draw_variation(rot, 2)["person_face"]
+
+
+def test_bad_recordings_in_a_scenario_name_the_field(tmp_path):
+    _write_recording(tmp_path / "rec.csv")
+    scene = load_scene(resolve_named("scene", "dynamic_person"))
+    with pytest.raises(ConfigError, match=r"recording\.bodies.*not in"):
+        World(load_scenario(_recorded_scenario(tmp_path, bodies="[person_face, nurse_body]")), scene)
+    missing = tmp_path / "missing.yaml"
+    missing.write_text(_recorded_scenario(tmp_path).read_text().replace("rec.csv", "absent.csv"))
+    with pytest.raises(ConfigError, match=r"recording\.file"):
+        World(load_scenario(missing), scene)
+    with pytest.raises(ConfigError, match=r"recording\.bodies"):
+        load_scenario(_recorded_scenario(tmp_path, extra="person: {target: person_face}\n"))
+    _write_recording(tmp_path / "rec.csv", frame="world")
+    with pytest.raises(ConfigError, match="frame 'world'"):
+        World(load_scenario(_recorded_scenario(tmp_path)), scene)
+
+
+def test_a_recorded_episode_judges_its_frames_against_the_recording(tmp_path):
+    """A static episode of a recorded scenario: every camera frame's person is the recording's at that instant of
+    the replay, as interpolated here from the file's numbers."""
+    ts, fc, fyaw = _write_recording(tmp_path / "rec.csv")
+    sc = dataclasses.replace(load_scenario(_recorded_scenario(tmp_path)), nodes=400, duration_s=8.0)
+    var = draw_variation(sc, 1)
+    ep = run_episode(sc, mode="static", variation=var)
+    frac, loop = var["<recording>"].phase_rad / (2 * math.pi), 4.1
+    k = int(round(1.0 / (sc.camera_fps * sc.control_dt)))
+    times = np.asarray(ep["times"])[::k]
+    assert len(times) >= 5 and len(ep["frames_scene"]) == len(times)
+    checked = 0
+    for t, poses in zip(times, ep["frames_scene"]):
+        tau = (float(t) + frac * loop) % loop
+        if tau > ts[-1]:
+            continue
+        c, q = poses["targets"]["person_face"]
+        assert np.allclose(c, [np.interp(tau, ts, fc[:, j]) for j in range(3)], atol=1e-8)
+        assert abs(_heading(q) - np.interp(tau, ts, fyaw)) < 1e-6
+        checked += 1
+    assert checked >= 4

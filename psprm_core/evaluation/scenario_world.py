@@ -8,14 +8,15 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..geometry import yaw_to_quat
-from .scenarios import Scenario, _heading, keyframed_pose, person_pose, vary
+from ..recording import RecordedTrack, load_recording
+from .scenarios import RECORDING_KEY, Scenario, _heading, keyframed_pose, person_pose, vary
 
 
 class World:
-    """The scenario's time-varying scene: ``poses(t)`` gives the moving targets' and obstacles' poses, ``goal_specs(t)``
-    the goal set at time t. ``variation``: ``{target: MotionVariation}`` of an episode (:func:`draw_variation`);
+    """The scenario's time-varying scene: ``poses(t)`` gives the moving targets' and obstacles' poses (the people,
+    the keyframed obstacles and the recorded bodies), ``goal_specs(t)`` the goal set at time t. ``variation``: ``{target: MotionVariation}`` of an episode (:func:`draw_variation`);
     None: the motion as written."""
 
     def __init__(self, scenario: Scenario, scene, robot=None, variation: Optional[dict] = None):
@@ -43,6 +44,37 @@ class World:
         p = self.people[0] if self.people else None
         if p is not None:
             self.yaw0 = p.yaw0 if p.yaw0 is not None else _heading(scene.target(p.target).rotation)
+        self.recorded = self._recorded_tracks(scenario, scene)
+
+    def _recorded_tracks(self, scenario: Scenario, scene) -> dict:
+        """``{body: (kind, RecordedTrack)}`` of the scenario's recording, each replay started the episode's drawn
+        fraction into the recording's loop; kind "target" or "obstacle" as the scene has the body."""
+        spec = scenario.recording
+        if spec is None:
+            return {}
+        try:
+            rec = load_recording(spec.file)
+        except (OSError, InputError) as exc:
+            raise ConfigError(scenario.source, "recording.file", str(exc)) from None
+        out = {}
+        for body in spec.bodies or tuple(rec.bodies):
+            if body not in rec.bodies:
+                raise ConfigError(scenario.source, "recording.bodies", f"'{body}' is not in {spec.file} (it has "
+                                  f"{', '.join(rec.bodies)})")
+            frame = rec.frames[rec.bodies.index(body)]
+            if frame.strip("/") != scene.frame:
+                raise ConfigError(scenario.source, "recording", f"'{body}' is recorded in frame '{frame}', the "
+                                  f"scene's frame is '{scene.frame}'")
+            kind = "target" if body in scene.target_names else "obstacle"
+            if kind == "obstacle":
+                scene.obstacle(body)  # a clear error for a body the scene does not have
+            if body in scenario.obstacles or any(body in (q.target, q.body) for q in scenario.people):
+                raise ConfigError(scenario.source, "recording.bodies", f"'{body}' moves by the scenario already")
+            track = RecordedTrack(rec, body)
+            v = self.variation.get(RECORDING_KEY)
+            track.offset_s = (v.phase_rad / (2 * math.pi)) * track.loop_s if v is not None else 0.0
+            out[body] = (kind, track)
+        return out
 
     def person_yaw(self, t: float, i: int = 0) -> float:
         """Heading of person ``i``'s target at time t."""
@@ -91,6 +123,8 @@ class World:
                 out["obstacles"][p.body] = pp["body"]
         for name in self.sc.obstacles:
             out["obstacles"][name] = self.obstacle_pose(name, t)
+        for name, (kind, track) in self.recorded.items():
+            out["targets" if kind == "target" else "obstacles"][name] = track.pose(t)
         return out
 
     def scene_at(self, t: float, scene=None):

@@ -30,6 +30,9 @@ Scenario files::
       cabinet: [{t: 0, center: [7.75, 3.2, 0.5]}, {t: 6, center: [7.75, 2.0, 0.5], yaw: 0.0}]
     goal_changes:                     # the goal set changes at time t
       - {t: 6, goals: [{base: [6.9, 2.0, 0.0]}]}
+    recording:                        # bodies replayed from a motion-capture recording (CSV or rosbag2), looped
+      file: ../recordings/person_turning.csv   # relative to the scenario file
+      bodies: [person_face, person_body]        # scene targets or obstacles (default: every body recorded)
 
 A person (:class:`PersonMotion`) is a target, optionally with a body obstacle: the pair turns about the body's
 vertical axis (the face keeps its offset from the body's centre) and walks with the body's centre on the keyframes'
@@ -40,7 +43,8 @@ Episode variation (:func:`draw_variation`, :func:`vary`): per person, a phase of
 to the turn's phase; with ``loop_s`` the keyframed timeline also starts that fraction of a loop later), a scale of the
 turn's period and of the standing stretches' durations (1 +- ``period``), of the turn's amplitude and of the keyframed
 turns (the headings' deviations from the first keyframe's; 1 +- ``amplitude``) and of the walking speed (the walking
-stretches' durations divided by 1 +- ``speed``). The draw depends on the scenario's seed, the benchmark's seed and the
+stretches' durations divided by 1 +- ``speed``); a recording's replay starts a drawn fraction (the phase over
+``2 pi``) into its loop, drawn after the people's. The draw depends on the scenario's seed, the benchmark's seed and the
 episode alone, so every mode of an episode sees the same motion.
 """
 
@@ -125,6 +129,17 @@ class MotionVariation:
 
 
 @dataclass(frozen=True)
+class RecordingSpec:
+    """Bodies replayed from a recording (:mod:`psprm_core.recording`): the file and the bodies (() = every one)."""
+
+    file: str
+    bodies: tuple = ()
+
+
+RECORDING_KEY = "<recording>"  # the variation entry of a scenario's recording (no target has this name)
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str
     scene: str
@@ -144,6 +159,7 @@ class Scenario:
     variation: VariationRanges = field(default_factory=VariationRanges)
     description: str = ""
     source: str = ""
+    recording: Optional[RecordingSpec] = None
 
     @property
     def target(self) -> str:
@@ -204,7 +220,7 @@ def load_scenario(path: str | Path) -> Scenario:
     f = Fields(load_yaml(path), str(path))
     f.check_keys(["name", "description", "scene", "planner", "nodes", "seed", "target", "targets", "start", "goals",
                   "duration_s", "control_dt", "camera_fps", "goal_tolerance", "person", "people", "variation",
-                  "obstacles", "goal_changes"])
+                  "obstacles", "goal_changes", "recording"])
     goals = _list(f, "goals")
     if not goals:
         raise ConfigError(str(path), "goals", "at least one goal is needed")
@@ -258,6 +274,19 @@ def load_scenario(path: str | Path) -> Scenario:
         if not isinstance(ch["goals"], list) or not ch["goals"]:
             raise ConfigError(str(path), f"goal_changes[{i}].goals", "expected a non-empty list of goals")
         changes.append((float(ch["t"]), tuple(_goal_spec(f, g, f"goal_changes[{i}].goals") for g in ch["goals"])))
+    recording = None
+    if f.has("recording"):
+        rf = f.sub("recording")
+        rf.check_keys(["file", "bodies"])
+        bodies = _list(rf, "bodies")
+        if not all(isinstance(b, str) for b in bodies) or len(set(bodies)) != len(bodies):
+            raise rf.error("bodies", "expected a list of distinct body names")
+        if set(bodies) & set(names):
+            raise rf.error("bodies", "a recorded body cannot also move with a person")
+        file = Path(rf.str("file"))
+        if not file.is_absolute():
+            file = Path(path).parent / file
+        recording = RecordingSpec(str(file), tuple(bodies))
     start = f.data.get("start")
     if not isinstance(start, dict):
         raise ConfigError(str(path), "start", "expected a mapping of planning-joint values")
@@ -268,13 +297,14 @@ def load_scenario(path: str | Path) -> Scenario:
         duration_s=f.float("duration_s", 60.0, lo=0.1), control_dt=f.float("control_dt", 0.1, lo=1e-3),
         camera_fps=f.float("camera_fps", 4.0, lo=0.01), goal_tolerance=f.float("goal_tolerance", 0.1, lo=1e-4),
         people=tuple(people), obstacles=obstacles, goal_changes=tuple(sorted(changes, key=lambda c: c[0])),
-        variation=variation, description=f.str("description", ""), source=str(path))
+        variation=variation, description=f.str("description", ""), source=str(path), recording=recording)
 
 
 # ---- episode variation ----------------------------------------------------------------------------------------------
 def draw_variation(scenario: Scenario, episode: int, seed: int = 0) -> dict:
     """``{target: MotionVariation}`` of episode ``episode`` (module docstring): drawn from the scenario's name and
-    seed, ``seed`` (the benchmark's) and the episode alone, person by person in the scenario's order."""
+    seed, ``seed`` (the benchmark's) and the episode alone, person by person in the scenario's order, then the
+    recording's start (:data:`RECORDING_KEY`)."""
     ss = np.random.SeedSequence([int(scenario.seed), int(seed), int(episode), zlib.crc32(scenario.name.encode())])
     rng = np.random.default_rng(ss)
     r = scenario.variation
@@ -284,6 +314,8 @@ def draw_variation(scenario: Scenario, episode: int, seed: int = 0) -> dict:
                                         period_scale=float(rng.uniform(1 - r.period, 1 + r.period)),
                                         amplitude_scale=float(rng.uniform(1 - r.amplitude, 1 + r.amplitude)),
                                         speed_scale=float(rng.uniform(1 - r.speed, 1 + r.speed)))
+    if scenario.recording is not None:
+        out[RECORDING_KEY] = MotionVariation(phase_rad=float(rng.uniform(0.0, r.phase_rad)))
     return out
 
 

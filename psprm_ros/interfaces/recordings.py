@@ -1,134 +1,25 @@
-"""Recorded rigid-body poses (motion capture): load CSV and rosbag2 files, write them, and generate the shipped
-recordings, one per shipped params file (:data:`SHIPPED`): a person turning side to side (``dynamic_person``), two
-nurses turning and walking (``nursing``), a monitor on a rolling cart pushed along the back aisle
-(``blind_spot_alley``). ``python -m psprm_ros.interfaces.recordings [NAME ...]`` regenerates them.
+"""Recorded rigid-body poses (motion capture): write CSV and rosbag2 files (loaded by :mod:`psprm_core.recording`,
+whose names this module also gives), and generate the shipped recordings, one per shipped params file
+(:data:`SHIPPED`): a person turning side to side (``dynamic_person``), two nurses turning and walking (``nursing``), a
+monitor on a rolling cart pushed along the back aisle (``blind_spot_alley``). ``python -m
+psprm_ros.interfaces.recordings [NAME ...]`` regenerates them.
 
-CSV format (one row per body and sample, header required; ``frame`` optional, default ``map``)::
-
-    time,body,frame,x,y,z,qx,qy,qz,qw
-    0.000000,person_face,map,3.9398,3.2215,1.6003,0.0012,-0.0004,0.9854,0.1700
-
-rosbag2 (sqlite3 or mcap, read with the ``rosbags`` package): every ``geometry_msgs/msg/PoseStamped`` topic is one
-body; the body name is the topic's middle part (``/mocap/<body>/pose``), else the topic without its leading slash.
-
-No ROS import here: :mod:`psprm_ros.mocap_replay` publishes what this module loads.
+The file formats: :mod:`psprm_core.recording`. No ROS import here: :mod:`psprm_ros.mocap_replay` publishes what this
+module loads.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from psprm_core.errors import InputError
 from psprm_core.paths import resolve_named
+from psprm_core.recording import (COLUMNS, Recording, load_csv, load_recording, load_rosbag,  # noqa: F401
+                                  make_recording)
 from psprm_core.scene import load_scene
-
-COLUMNS = ["time", "body", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
-
-
-@dataclass
-class Recording:
-    """Samples sorted by time: ``times`` (N,) s from the first sample, ``body`` (N,) index into ``bodies``,
-    ``P`` (N, 3), ``Q`` (N, 4) quaternions xyzw, ``frames`` per body."""
-
-    times: np.ndarray
-    body: np.ndarray
-    bodies: list
-    P: np.ndarray
-    Q: np.ndarray
-    frames: list
-    t0: float = 0.0  # the recorded time (stamp, s) of the first sample: recorded stamps are t0 + times
-
-    @property
-    def duration(self) -> float:
-        return float(self.times[-1]) if len(self.times) else 0.0
-
-    def rate_hz(self, body: str) -> float:
-        t = self.times[self.body == self.bodies.index(body)]
-        return float((len(t) - 1) / (t[-1] - t[0])) if len(t) > 1 else 0.0
-
-    def track(self, body: str) -> tuple:
-        """(times, positions, quaternions) of one body."""
-        m = self.body == self.bodies.index(body)
-        return self.times[m], self.P[m], self.Q[m]
-
-
-def _finish(times, body_names, P, Q, frames_by_body) -> Recording:
-    bodies = list(dict.fromkeys(body_names))
-    idx = np.array([bodies.index(b) for b in body_names], dtype=np.int64)
-    times = np.asarray(times, float)
-    order = np.argsort(times, kind="stable")
-    t = times[order]
-    t0 = float(t[0]) if len(t) else 0.0
-    t = t - t0
-    return Recording(times=t, body=idx[order], bodies=bodies, P=np.asarray(P, float).reshape(-1, 3)[order],
-                     Q=np.asarray(Q, float).reshape(-1, 4)[order], frames=[frames_by_body[b] for b in bodies], t0=t0)
-
-
-def load_csv(path) -> Recording:
-    path = Path(path)
-    times, names, P, Q, frames = [], [], [], [], {}
-    with open(path, newline="") as f:
-        reader = csv.DictReader(f)
-        missing = set(COLUMNS) - {"frame"} - set(reader.fieldnames or [])
-        if missing:
-            raise InputError(f"{path}: missing CSV columns {', '.join(sorted(missing))}")
-        for i, row in enumerate(reader, start=2):
-            try:
-                times.append(float(row["time"]))
-                P.append([float(row["x"]), float(row["y"]), float(row["z"])])
-                Q.append([float(row["qx"]), float(row["qy"]), float(row["qz"]), float(row["qw"])])
-            except (TypeError, ValueError) as exc:
-                raise InputError(f"{path}: line {i}: {exc}") from None
-            names.append(row["body"])
-            frames.setdefault(row["body"], row.get("frame") or "map")
-    if not times:
-        raise InputError(f"{path}: no samples")
-    return _finish(times, names, P, Q, frames)
-
-
-def _body_of(topic: str) -> str:
-    parts = [p for p in topic.split("/") if p]
-    if len(parts) >= 3 and parts[-1] == "pose":
-        return parts[-2]
-    return "/".join(parts) or topic
-
-
-def load_rosbag(path) -> Recording:
-    """PoseStamped topics of a rosbag2 directory (or its .db3/.mcap file) via ``rosbags``."""
-    from rosbags.highlevel import AnyReader
-
-    path = Path(path)
-    bag = path.parent if path.is_file() else path
-    times, names, P, Q, frames = [], [], [], [], {}
-    with AnyReader([bag]) as reader:
-        conns = [c for c in reader.connections if c.msgtype == "geometry_msgs/msg/PoseStamped"]
-        if not conns:
-            raise InputError(f"{bag}: no geometry_msgs/msg/PoseStamped topics")
-        for conn, stamp_ns, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            b = _body_of(conn.topic)
-            times.append(stamp_ns * 1e-9)
-            names.append(b)
-            p, o = msg.pose.position, msg.pose.orientation
-            P.append([p.x, p.y, p.z])
-            Q.append([o.x, o.y, o.z, o.w])
-            frames.setdefault(b, msg.header.frame_id or "map")
-    return _finish(times, names, P, Q, frames)
-
-
-def load_recording(path) -> Recording:
-    """CSV (``.csv``) or rosbag2 (a directory with ``metadata.yaml``, or a ``.db3``/``.mcap`` file)."""
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"recording not found: {path}")
-    if path.suffix.lower() == ".csv":
-        return load_csv(path)
-    return load_rosbag(path)
 
 
 def save_csv(rec: Recording, path) -> Path:
@@ -235,7 +126,7 @@ def _assemble(t: np.ndarray, tracks: dict, frames: dict, rng, drop: float = 0.00
         names += [name] * int(keep.sum())
         P.append(pos[keep])
         Q.append(quat[keep])
-    return _finish(np.concatenate(times), names, np.vstack(P), np.vstack(Q), frames)
+    return make_recording(np.concatenate(times), names, np.vstack(P), np.vstack(Q), frames)
 
 
 def _perturb(q: np.ndarray, rng, sigma: float) -> np.ndarray:
