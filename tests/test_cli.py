@@ -48,6 +48,9 @@ def test_bad_input_gives_one_line_error(capsys):
         assert main(["perf", "replan-motion", "--nodes", "50", *bad]) == 2, bad
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and words in err[0], err
+    assert main(["dynbench", "--scenarios", "recorded_person", "--history", "-1", "--no-oracle"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "history must be a finite time >= 0 s" in err[0], err
 
 
 def test_plan_json_and_plot(tmp_path, capsys):

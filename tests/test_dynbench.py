@@ -497,3 +497,43 @@ def test_a_recorded_episode_judges_its_frames_against_the_recording(tmp_path):
         assert abs(_heading(q) - np.interp(tau, ts, fyaw)) < 1e-6
         checked += 1
     assert checked >= 4
+
+
+def test_a_history_reaches_the_replanner_before_the_first_plan(tmp_path, monkeypatch):
+    """``history_s``: the replanner is given the recorded person's poses, one per control step from -history_s on,
+    before it makes the first plan (recorded here by wrapping the real replanner's calls; the poses judged against the
+    test's own CSV)."""
+    from psprm_core.errors import PsprmError
+    from psprm_core.planning.replanner import Replanner
+
+    ts, fc, fyaw = _write_recording(tmp_path / "rec.csv")
+    sc = dataclasses.replace(load_scenario(_recorded_scenario(tmp_path)), nodes=400, duration_s=2.0)
+    calls = []
+    update, replan = Replanner.update_target, Replanner.replan
+
+    def spy_update(self, name, c, q, stamp=None):
+        calls.append(("pose", name, stamp, np.array(c), np.array(q)))
+        return update(self, name, c, q, stamp=stamp)
+
+    def spy_replan(self, *a, **k):
+        calls.append(("replan",))
+        return replan(self, *a, **k)
+
+    monkeypatch.setattr(Replanner, "update_target", spy_update)
+    monkeypatch.setattr(Replanner, "replan", spy_replan)
+    run_episode(sc, mode="static", history_s=1.5)
+    first = next(i for i, c in enumerate(calls) if c[0] == "replan")
+    before = [c for c in calls[:first] if c[1] == "person_face"]
+    assert [round(c[2], 6) for c in before] == [round(-1.5 + 0.1 * k, 6) for k in range(16)]
+    loop = 4.1
+    for _, _, t, c, q in before:
+        tau = t % loop
+        if tau <= ts[-1]:
+            assert np.allclose(c, [np.interp(tau, ts, fc[:, j]) for j in range(3)], atol=1e-8)
+            assert abs(_heading(q) - np.interp(tau, ts, fyaw)) < 1e-6
+    calls.clear()
+    run_episode(sc, mode="static")  # no history: the first pose is the one at t = 0
+    first = next(i for i, c in enumerate(calls) if c[0] == "replan")
+    assert [c[2] for c in calls[:first] if c[1] == "person_face"] == [0.0]
+    with pytest.raises(PsprmError, match="history"):
+        run_episode(sc, mode="static", history_s=float("nan"))

@@ -26,6 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="comma-separated modes (default: motion, motion_no_prediction, from_rest, static, hindsight)")
     p.add_argument("--latency", type=float, default=0.3,
                    help="replan latency in s: the commit horizon of the motion modes, the wait of from_rest")
+    p.add_argument("--history", type=float, default=0.0, metavar="S",
+                   help="seconds of the people's poses given to the replanner before the first plan (a motion-capture "
+                        "stream running before the goal is given; default 0)")
     p.add_argument("--nodes", type=int, default=None, help="override every scenario's roadmap size")
     p.add_argument("--duration", type=float, default=None, help="override every scenario's time limit (s)")
     p.add_argument("--camera-fps", type=float, default=None,
@@ -67,7 +70,7 @@ def _run(args) -> int:
     names = [s.strip() for s in args.scenarios.split(",") if s.strip()] if args.scenarios else DEFAULT_SCENARIOS
     modes = [s.strip() for s in args.modes.split(",") if s.strip()] if args.modes else list(MODES)
     cfg = DynBenchConfig(scenarios=names, episodes=args.episodes, seed=args.seed, modes=modes,
-                         latency_s=args.latency, nodes=args.nodes, duration_s=args.duration,
+                         latency_s=args.latency, history_s=args.history, nodes=args.nodes, duration_s=args.duration,
                          camera_fps=args.camera_fps, oracle=not args.no_oracle,
                          hindsight_judged=args.hindsight_judged,
                          **{k: v for k, v in (("hindsight_searches", args.hindsight_searches),

@@ -108,13 +108,15 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
                 replan_settings=None, latency_s: float = DEFAULT_LATENCY_S, variation: Optional[dict] = None,
                 replanning: Optional[bool] = None, judge: Optional[FrameJudge] = None,
                 hindsight_searches: Optional[str] = None, hindsight_variants: Optional[str] = None,
-                hindsight_judged: int = 0) -> dict:
+                hindsight_judged: int = 0, history_s: float = 0.0) -> dict:
     """Execute one episode in ``mode`` (:data:`MODES`, the module docstring) on ``planner`` (a built or loaded
     roadmap that the episode changes; default: built from the scenario). ``variation``: the episode's
     ``{target: MotionVariation}`` (:func:`~.scenarios.draw_variation`). ``replanning=False`` is ``mode="static"``
     (the former flag). ``oracle`` / ``judge`` (a :class:`~.episodes.FrameJudge` of this episode's world, shared by its
     modes): judge the camera frames. ``hindsight_*``: the candidates of mode ``hindsight``
-    (:func:`~.hindsight.run_hindsight`).
+    (:func:`~.hindsight.run_hindsight`). ``history_s``: seconds of the world's poses, one per control step, given
+    to the replanner before the first plan (a motion-capture stream that runs before the goal is given; the same in
+    every mode).
 
     Returns a dict with the executed configurations on the control clock (``times``, ``executed``), the camera frames
     (``frames_t``, ``frames_q``, ``frames_scene``: the poses sent at those instants) and, when judged, ``detected`` /
@@ -126,6 +128,8 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
         mode = "static"
     if not (math.isfinite(latency_s) and latency_s >= 0):
         raise PsprmError(f"replan latency must be a finite time >= 0 s, got {latency_s}")
+    if not (math.isfinite(history_s) and history_s >= 0):
+        raise PsprmError(f"history must be a finite time >= 0 s, got {history_s}")
     settings = mode_settings(mode, replan_settings or ReplanSettings())
     scene = load_scene(resolve_named("scene", scenario.scene))  # the scenario's world, as the file has it
     if planner is None:
@@ -148,6 +152,8 @@ def run_episode(scenario: Scenario, mode: str = "motion", planner=None, oracle=N
             rp.update_obstacle(name, c, q, stamp=t)
         return poses
 
+    for k in range(int(round(history_s / scenario.control_dt)), 0, -1):  # the stream before the goal is given
+        apply_world(-k * scenario.control_dt)
     poses0 = apply_world(0.0)
     specs = world.goal_specs(0.0)
     rp.set_robot_state(start)

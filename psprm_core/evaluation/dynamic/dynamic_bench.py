@@ -64,6 +64,7 @@ class DynBenchConfig:
     seed: int = 0  # the variations' seed (with the scenario's own and the episode's index)
     modes: Sequence[str] = MODES
     latency_s: float = DEFAULT_LATENCY_S
+    history_s: float = 0.0  # the people's poses given to the replanner before the first plan
     nodes: Optional[int] = None  # override every scenario's roadmap size
     duration_s: Optional[float] = None  # override every scenario's time limit
     camera_fps: Optional[float] = None  # override every scenario's oracle frames per simulated second
@@ -86,6 +87,8 @@ class DynBenchConfig:
             raise PsprmError(f"unknown mode(s) {', '.join(bad) or '(none given)'} (choose from {', '.join(MODES)})")
         if not (np.isfinite(self.latency_s) and self.latency_s >= 0):
             raise PsprmError(f"latency must be a finite time >= 0 s, got {self.latency_s}")
+        if not (np.isfinite(self.history_s) and self.history_s >= 0):
+            raise PsprmError(f"history must be a finite time >= 0 s, got {self.history_s}")
         for name, v in (("nodes", self.nodes), ("duration", self.duration_s), ("camera fps", self.camera_fps)):
             if v is not None and not v > 0:
                 raise PsprmError(f"{name} must be positive, got {v}")
@@ -179,7 +182,7 @@ def run_episode_modes(scenario, episode: int, cfg: dict, cache=None) -> dict:
             ep = run_episode(scenario, mode=mode, planner=planner, replan_settings=rs, latency_s=cfg["latency_s"],
                              variation=variation, judge=judge, hindsight_searches=cfg["hindsight_searches"],
                              hindsight_variants=cfg["hindsight_variants"],
-                             hindsight_judged=cfg["hindsight_judged"])
+                             hindsight_judged=cfg["hindsight_judged"], history_s=cfg["history_s"])
             modes[mode] = episode_metrics(ep)
             walls[mode] = time.perf_counter() - t0
         return json_safe({"scenario": scenario.name, "episode": int(episode),
