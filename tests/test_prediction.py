@@ -373,3 +373,45 @@ def test_the_scores_by_heading_are_the_scores_of_the_person_at_each_heading(load
     assert abs(s_south - s_east) > 0.05, (s_south, s_east)  # the headings see the route differently
     assert by_heading == pytest.approx([s_east, s_south, s_east], abs=1e-4)
     assert min(s_south, s_east) - 1e-6 <= mean <= max(s_south, s_east) + 1e-6
+
+
+def test_prediction_scores_cover_a_recorded_person():
+    """A scenario whose person is replayed from a recording (``recorded_person``) is scored too: with prediction off
+    the heading score is the mean absolute heading change over the horizon, computed here from the CSV itself (read
+    with the csv module, the replay started the episode's drawn fraction into the body's loop)."""
+    import csv
+
+    from psprm_core.evaluation.dynamic.prediction_score import prediction_scores
+    from psprm_core.evaluation.scenarios import draw_variation, load_scenario
+    from psprm_core.paths import config_dir, resolve_named
+
+    h, T = 4.0, 24.0
+    res = prediction_scores({"off": PredictionSettings(enabled=False)}, ["recorded_person"], [3], [h],
+                            max_duration_s=T)
+    ts, yaws = [], []
+    with open(config_dir() / "recordings" / "person_turning.csv", newline="") as f:
+        for row in csv.DictReader(f):
+            if row["body"] == "person_face":
+                x, y, z, w = (float(row[k]) for k in ("qx", "qy", "qz", "qw"))
+                ts.append(float(row["time"]))
+                yaws.append(math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z)))
+    ts, yaws = np.array(ts) - ts[0], np.unwrap(yaws)
+    loop = ts[-1] + ts[-1] / (len(ts) - 1)
+    sc = load_scenario(resolve_named("scenario", "recorded_person"))
+    offset = draw_variation(sc, 3, 0)["<recording>"].phase_rad / (2 * math.pi) * loop
+
+    def yaw_at(t):
+        tau = (t + offset) % loop
+        assert tau <= ts[-1]  # (the stretch back to the first sample is not among this test's instants)
+        return float(np.interp(tau, ts, yaws))
+
+    dyaw = []
+    for k, t in enumerate(np.arange(0.0, T, 1 / 30)):
+        if k % 15 or t < 2.0 or t + h > T:
+            continue
+        d = yaw_at(float(t + h)) - yaw_at(float(t))
+        dyaw.append(abs((d + math.pi) % (2 * math.pi) - math.pi))
+    off = res["variants"]["off"]["scenarios"]["recorded_person"]
+    assert off["forecasts"] == len(dyaw) > 20
+    assert off["yaw_crps_rad"][0] == pytest.approx(np.mean(dyaw), abs=1e-4)
+    assert np.mean(dyaw) > 0.5  # the person turns

@@ -16,8 +16,8 @@ from .scenarios import RECORDING_KEY, Scenario, _heading, keyframed_pose, person
 
 class World:
     """The scenario's time-varying scene: ``poses(t)`` gives the moving targets' and obstacles' poses (the people,
-    the keyframed obstacles and the recorded bodies), ``goal_specs(t)`` the goal set at time t. ``variation``: ``{target: MotionVariation}`` of an episode (:func:`draw_variation`);
-    None: the motion as written."""
+    the keyframed obstacles and the recorded bodies), ``goal_specs(t)`` the goal set at time t. ``variation``:
+    ``{target: MotionVariation}`` of an episode (:func:`draw_variation`); None: the motion as written."""
 
     def __init__(self, scenario: Scenario, scene, robot=None, variation: Optional[dict] = None):
         self.sc, self.scene0, self.robot = scenario, scene, robot

@@ -1,7 +1,8 @@
 """How well :class:`~psprm_core.prediction.TargetPredictor` forecasts the people of the shipped scenarios.
 
-Each scenario's people move as its keyframes say, varied per episode (:func:`~..scenarios.draw_variation`, the same
-variations as the dynamic benchmark for the same seed and episode indices). The predictor is fed their target poses
+Each scenario's people move as its keyframes (or its recording) say, varied per episode
+(:func:`~..scenarios.draw_variation`, the same variations as the dynamic benchmark for the same seed and episode
+indices). The predictor is fed their target poses
 at ``rate_hz`` (a mocap stream) and asked, every ``every_s``, for the predicted pose at the horizons ``horizons``;
 each forecast is judged against the pose the target then has:
 
@@ -59,7 +60,7 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
     for name in scenarios:
         sc = load_scenario(resolve_named("scenario", name))
         scene = load_scene(resolve_named("scene", sc.scene))
-        if not sc.people:
+        if not sc.people and sc.recording is None:
             raise InputError(f"scenario {name} has no people to predict")
         yaw = {v: {h: [] for h in horizons} for v in variants}
         pos = {v: {h: [] for h in horizons} for v in variants}
@@ -67,7 +68,10 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
         every = max(1, int(round(every_s * rate_hz)))
         for ep in episodes:  # one pose stream per episode, fed to every variant's predictors
             world = World(sc, scene, None, draw_variation(sc, int(ep), seed))
-            targets = [p.target for p in world.people]
+            targets = [p.target for p in world.people] + [b for b, (kind, _) in world.recorded.items()
+                                                          if kind == "target"]
+            if not targets:
+                raise InputError(f"scenario {name} has no targets to predict")
             preds = {v: {t: TargetPredictor(settings, t) for t in targets} for v, settings in variants.items()}
             for k, t in enumerate(np.arange(0.0, T, 1.0 / rate_hz)):
                 now = world.poses(float(t))["targets"]
