@@ -59,6 +59,16 @@ def rpy_to_matrix(rpy) -> np.ndarray:
     )
 
 
+def quat_multiply(a, b) -> np.ndarray:
+    """Hamilton products ``a b`` of quaternions xyzw (``a`` then ``b`` applied in the body frame: R(a) R(b));
+    broadcast over leading axes."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
+    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+
+
 def yaw_to_quat(yaw: float) -> np.ndarray:
     return np.array([0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)])
 

@@ -16,10 +16,12 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
 from .errors import InputError
+from .geometry import quat_multiply, quat_to_matrix
 
 COLUMNS = ["time", "body", "frame", "x", "y", "z", "qx", "qy", "qz", "qw"]
 
@@ -131,15 +133,21 @@ class RecordedTrack:
     """One body of a :class:`Recording` replayed in a loop (each pass starts one of the body's mean sample periods
     after the last one's final sample, where the body's first sample follows its last): :meth:`pose` gives the
     position (linear interpolation) and unit quaternion (normalised linear interpolation on the shorter arc) at replay
-    time ``t`` s, the replay having started ``offset_s`` s into the loop."""
+    time ``t`` s, the replay having started ``offset_s`` s into the loop. ``frame_pose``: (xyz, quaternion xyzw), the
+    pose of the body's recorded frame in the frame wanted (e.g. a mocap system's ``world`` in a scene's ``map``)."""
 
-    def __init__(self, rec: Recording, body: str, offset_s: float = 0.0):
+    def __init__(self, rec: Recording, body: str, offset_s: float = 0.0, frame_pose: Optional[tuple] = None):
         if body not in rec.bodies:
             raise InputError(f"body '{body}' is not in the recording (it has {', '.join(rec.bodies)})")
         t, P, Q = rec.track(body)
         if len(t) < 2 or not (np.isfinite(P).all() and np.isfinite(Q).all()):
             raise InputError(f"recorded body '{body}': needs at least two finite samples")
         Q = Q / np.linalg.norm(Q, axis=1, keepdims=True)
+        if frame_pose is not None:  # recorded in another frame: into the frame whose pose in it is given
+            xyz, quat = np.asarray(frame_pose[0], float), np.asarray(frame_pose[1], float)
+            quat = quat / np.linalg.norm(quat)
+            P = P @ quat_to_matrix(quat).T + xyz
+            Q = quat_multiply(quat, Q)
         for i in range(1, len(Q)):  # one hemisphere, so neighbours interpolate along the shorter arc
             if float(np.dot(Q[i], Q[i - 1])) < 0.0:
                 Q[i] = -Q[i]
@@ -162,3 +170,4 @@ class RecordedTrack:
         p = (1.0 - w) * self._P[i] + w * self._P[i + 1]
         q = (1.0 - w) * self._Q[i] + w * self._Q[i + 1]
         return p, q / np.linalg.norm(q)
+

@@ -472,7 +472,7 @@ def test_bad_recordings_in_a_scenario_name_the_field(tmp_path):
     with pytest.raises(ConfigError, match=r"recording\.bodies"):
         load_scenario(_recorded_scenario(tmp_path, extra="person: {target: person_face}\n"))
     _write_recording(tmp_path / "rec.csv", frame="world")
-    with pytest.raises(ConfigError, match="frame 'world'"):
+    with pytest.raises(ConfigError, match=r"recording\.frame.*frame 'world'"):
         World(load_scenario(_recorded_scenario(tmp_path)), scene)
 
 
@@ -537,3 +537,39 @@ def test_a_history_reaches_the_replanner_before_the_first_plan(tmp_path, monkeyp
     assert [c[2] for c in calls[:first] if c[1] == "person_face"] == [0.0]
     with pytest.raises(PsprmError, match="history"):
         run_episode(sc, mode="static", history_s=float("nan"))
+
+
+def test_a_recording_in_another_frame_is_replayed_in_the_scene_frame(tmp_path):
+    """Samples recorded in ``world``, a frame whose pose in the scene's ``map`` the scenario gives (turned 0.5 rad about
+    z and 0.2 rad about x, moved by (1, -2, 0.1)): the test writes the world coordinates of its own map-frame poses
+    (the face also pitched 0.3 rad), computed with scipy's rotations, and the replay gives the map-frame poses back."""
+    from scipy.spatial.transform import Rotation
+
+    ts, fc, fyaw = _write_recording(tmp_path / "map.csv")
+    t_w = np.array([1.0, -2.0, 0.1])
+    R_w = Rotation.from_euler("ZX", [0.5, 0.2])  # the pose of world in map
+    lines = (tmp_path / "map.csv").read_text().splitlines()
+    out, want = [lines[0]], {}
+    for line in lines[1:]:
+        t, body, _, *v = line.split(",")
+        x, y, z, w = (float(a) for a in v[3:])
+        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+        R_map = Rotation.from_euler("ZY", [yaw, 0.3])
+        p = R_w.inv().apply(np.array(v[:3], float) - t_w)
+        out.append(f"{t},{body},world," + ",".join(f"{a:.12f}" for a in (*p, *(R_w.inv() * R_map).as_quat())))
+        want[(round(float(t) - 100.0, 6), body)] = (np.array(v[:3], float), R_map)
+    (tmp_path / "rec.csv").write_text("\n".join(out) + "\n")
+    qx, qy, qz, qw = R_w.as_quat()
+    frame = f"  frame: {{name: world, xyz: [1.0, -2.0, 0.1], quat: [{qx:.12f}, {qy:.12f}, {qz:.12f}, {qw:.12f}]}}\n"
+    f = _recorded_scenario(tmp_path)
+    f.write_text(f.read_text().replace("recording: {file: rec.csv, bodies: [person_face, person_body]}\n",
+                                       "recording:\n  file: rec.csv\n  bodies: [person_face, person_body]\n" + frame))
+    world = World(load_scenario(f), load_scene(resolve_named("scene", "dynamic_person")))
+    for k in (0, 7, 23, 40):
+        c, q = world.poses(float(ts[k]))["targets"]["person_face"]
+        wc, wr = want[(round(float(ts[k]), 6), "person_face")]
+        assert np.allclose(c, wc, atol=1e-7)
+        assert (Rotation.from_quat(q) * wr.inv()).magnitude() < 1e-6
+    f.write_text(f.read_text().replace("name: world", "name: mocap"))
+    with pytest.raises(ConfigError, match=r"recording\.frame.*frame 'world'"):
+        World(load_scenario(f), load_scene(resolve_named("scene", "dynamic_person")))

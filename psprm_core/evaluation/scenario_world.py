@@ -61,16 +61,19 @@ class World:
             if body not in rec.bodies:
                 raise ConfigError(scenario.source, "recording.bodies", f"'{body}' is not in {spec.file} (it has "
                                   f"{', '.join(rec.bodies)})")
-            frame = rec.frames[rec.bodies.index(body)]
-            if frame.strip("/") != scene.frame:
-                raise ConfigError(scenario.source, "recording", f"'{body}' is recorded in frame '{frame}', the "
-                                  f"scene's frame is '{scene.frame}'")
+            frame = rec.frames[rec.bodies.index(body)].strip("/")
+            frame_pose = None
+            if frame != scene.frame:
+                if frame != spec.frame_name:
+                    raise ConfigError(scenario.source, "recording.frame", f"'{body}' is recorded in frame '{frame}', "
+                                      f"the scene's frame is '{scene.frame}': give that frame's pose in it")
+                frame_pose = (spec.frame_xyz, spec.frame_quat)
             kind = "target" if body in scene.target_names else "obstacle"
             if kind == "obstacle":
                 scene.obstacle(body)  # a clear error for a body the scene does not have
             if body in scenario.obstacles or any(body in (q.target, q.body) for q in scenario.people):
                 raise ConfigError(scenario.source, "recording.bodies", f"'{body}' moves by the scenario already")
-            track = RecordedTrack(rec, body)
+            track = RecordedTrack(rec, body, frame_pose=frame_pose)
             v = self.variation.get(RECORDING_KEY)
             track.offset_s = (v.phase_rad / (2 * math.pi)) * track.loop_s if v is not None else 0.0
             out[body] = (kind, track)

@@ -33,6 +33,7 @@ Scenario files::
     recording:                        # bodies replayed from a motion-capture recording (CSV or rosbag2), looped
       file: ../recordings/person_turning.csv   # relative to the scenario file
       bodies: [person_face, person_body]        # scene targets or obstacles (default: every body recorded)
+      frame: {name: world, xyz: [0, 0, 0], quat: [0, 0, 0, 1]}   # optional: a recorded frame's pose in the scene's
 
 A person (:class:`PersonMotion`) is a target, optionally with a body obstacle: the pair turns about the body's
 vertical axis (the face keeps its offset from the body's centre) and walks with the body's centre on the keyframes'
@@ -130,10 +131,14 @@ class MotionVariation:
 
 @dataclass(frozen=True)
 class RecordingSpec:
-    """Bodies replayed from a recording (:mod:`psprm_core.recording`): the file and the bodies (() = every one)."""
+    """Bodies replayed from a recording (:mod:`psprm_core.recording`): the file, the bodies (() = every one) and,
+    for bodies recorded in another frame than the scene's, that frame's name and pose in the scene frame."""
 
     file: str
     bodies: tuple = ()
+    frame_name: str = ""
+    frame_xyz: tuple = (0.0, 0.0, 0.0)
+    frame_quat: tuple = (0.0, 0.0, 0.0, 1.0)
 
 
 RECORDING_KEY = "<recording>"  # the variation entry of a scenario's recording (no target has this name)
@@ -277,7 +282,7 @@ def load_scenario(path: str | Path) -> Scenario:
     recording = None
     if f.has("recording"):
         rf = f.sub("recording")
-        rf.check_keys(["file", "bodies"])
+        rf.check_keys(["file", "bodies", "frame"])
         bodies = _list(rf, "bodies")
         if not all(isinstance(b, str) for b in bodies) or len(set(bodies)) != len(bodies):
             raise rf.error("bodies", "expected a list of distinct body names")
@@ -286,7 +291,16 @@ def load_scenario(path: str | Path) -> Scenario:
         file = Path(rf.str("file"))
         if not file.is_absolute():
             file = Path(path).parent / file
-        recording = RecordingSpec(str(file), tuple(bodies))
+        frame = {}
+        if rf.has("frame"):
+            ff = rf.sub("frame")
+            ff.check_keys(["name", "xyz", "quat"])
+            quat = ff.vec("quat", 4, (0.0, 0.0, 0.0, 1.0))
+            if not np.linalg.norm(quat) > 1e-9:
+                raise ff.error("quat", "must be a non-zero quaternion (x, y, z, w)")
+            frame = {"frame_name": ff.str("name").strip("/"), "frame_xyz": ff.vec("xyz", 3, (0.0, 0.0, 0.0)),
+                     "frame_quat": quat}
+        recording = RecordingSpec(str(file), tuple(bodies), **frame)
     start = f.data.get("start")
     if not isinstance(start, dict):
         raise ConfigError(str(path), "start", "expected a mapping of planning-joint values")

@@ -23,18 +23,9 @@ from typing import Dict, Optional, Sequence
 import numpy as np
 
 from psprm_core.errors import InputError
+from psprm_core.geometry import quat_multiply
 
 from .conversions import validated_pose
-
-
-def quat_mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product of quaternions xyzw (``a`` then ``b`` applied in the body frame: R(a) R(b))."""
-    ax, ay, az, aw = a
-    bx, by, bz, bw = b
-    return np.array([aw * bx + ax * bw + ay * bz - az * by,
-                     aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw,
-                     aw * bw - ax * bx - ay * by - az * bz])
 
 
 def quat_rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -53,7 +44,7 @@ def compose_pose(a: tuple, b: tuple) -> tuple:
     """Pose ``a`` (p, q) composed with pose ``b`` expressed in ``a``'s frame: ``T_a @ T_b``."""
     pa, qa = a
     pb, qb = b
-    return np.asarray(pa, float) + quat_rotate(qa, pb), _unit(quat_mul(qa, qb))
+    return np.asarray(pa, float) + quat_rotate(qa, pb), _unit(quat_multiply(qa, qb))
 
 
 def invert_pose(a: tuple) -> tuple:
