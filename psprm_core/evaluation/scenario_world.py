@@ -10,7 +10,7 @@ import numpy as np
 
 from ..errors import ConfigError, InputError
 from ..geometry import yaw_to_quat
-from ..recording import RecordedTrack, load_recording
+from ..recording import RecordedTrack
 from .scenarios import RECORDING_KEY, Scenario, _heading, keyframed_pose, person_pose, vary
 
 
@@ -53,7 +53,7 @@ class World:
         if spec is None:
             return {}
         try:
-            rec = load_recording(spec.file)
+            rec = spec.recording
         except (OSError, InputError) as exc:
             raise ConfigError(scenario.source, "recording.file", str(exc)) from None
         out = {}

@@ -55,6 +55,7 @@ import dataclasses
 import math
 import zlib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -62,6 +63,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..prediction import turned
+from ..recording import Recording, load_recording
 from ..yamlio import Fields, load_yaml
 
 
@@ -139,6 +141,11 @@ class RecordingSpec:
     frame_name: str = ""
     frame_xyz: tuple = (0.0, 0.0, 0.0)
     frame_quat: tuple = (0.0, 0.0, 0.0, 1.0)
+
+    @cached_property
+    def recording(self) -> Recording:
+        """The file's samples, read once per spec (every episode's :class:`~.scenario_world.World` replays them)."""
+        return load_recording(self.file)
 
 
 RECORDING_KEY = "<recording>"  # the variation entry of a scenario's recording (no target has this name)

@@ -60,8 +60,6 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
     for name in scenarios:
         sc = load_scenario(resolve_named("scenario", name))
         scene = load_scene(resolve_named("scene", sc.scene))
-        if not sc.people and sc.recording is None:
-            raise InputError(f"scenario {name} has no people to predict")
         yaw = {v: {h: [] for h in horizons} for v in variants}
         pos = {v: {h: [] for h in horizons} for v in variants}
         T = min(float(sc.duration_s), max_duration_s)
@@ -71,7 +69,7 @@ def prediction_scores(variants: Mapping[str, PredictionSettings], scenarios: Seq
             targets = [p.target for p in world.people] + [b for b, (kind, _) in world.recorded.items()
                                                           if kind == "target"]
             if not targets:
-                raise InputError(f"scenario {name} has no targets to predict")
+                raise InputError(f"scenario {name} has no people to predict")
             preds = {v: {t: TargetPredictor(settings, t) for t in targets} for v, settings in variants.items()}
             for k, t in enumerate(np.arange(0.0, T, 1.0 / rate_hz)):
                 now = world.poses(float(t))["targets"]
