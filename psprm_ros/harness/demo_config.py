@@ -236,7 +236,9 @@ def demo_config(params_file, recording=None) -> DemoConfig:
     topics = {**_topics(monitor, targets, "target_topics", where),
               **_topics(monitor, obstacles, "obstacle_topics", where)}
     replan = str(shared.get("replan_settings") or planner_setup.PLANNER_PARAMS["replan_settings"])
-    budget = shared.get("arrival_budget", ReplanSettings.from_yaml(resolve_named("planner", replan)).arrival_budget)
+    budget = shared.get("arrival_budget")  # the params file's override, else the server's settings file's
+    if budget is None:
+        budget = ReplanSettings.from_yaml(resolve_named("planner", replan)).arrival_budget
     cfg = DemoConfig(params_file=where, scene=scene, robot=robot, adapter=adapter, targets=targets,
                      dynamic_obstacles=obstacles, start_problem=start_problem, start=start, goal_problem=goal_problem,
                      goals=goals, goal_regions=regions, body_topics=topics,
