@@ -60,13 +60,14 @@ def rpy_to_matrix(rpy) -> np.ndarray:
 
 
 def quat_multiply(a, b) -> np.ndarray:
-    """Hamilton products ``a b`` of quaternions xyzw (``a`` then ``b`` applied in the body frame: R(a) R(b));
-    broadcast over leading axes."""
+    """Hamilton products ``a b`` of quaternions xyzw (``a`` then ``b`` applied in the body frame: R(a) R(b)): each
+    of ``a``, ``b`` one quaternion (4,) or N of them (N, 4). One pair costs what a scalar expression does (a pose
+    message's frame change calls it)."""
     a, b = np.asarray(a, float), np.asarray(b, float)
-    ax, ay, az, aw = a[..., 0], a[..., 1], a[..., 2], a[..., 3]
-    bx, by, bz, bw = b[..., 0], b[..., 1], b[..., 2], b[..., 3]
-    return np.stack([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
-                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+    ax, ay, az, aw = a.T
+    bx, by, bz, bw = b.T
+    return np.array([aw * bx + ax * bw + ay * bz - az * by, aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw, aw * bw - ax * bx - ay * by - az * bz]).T
 
 
 def yaw_to_quat(yaw: float) -> np.ndarray:
